@@ -1,0 +1,26 @@
+"""terrainwarp: a deterministic, differentiable CPU simulator of the GPU terrain pipeline.
+
+Public API::
+
+    Heightmap, Camera, Scene, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover
+"""
+
+from __future__ import annotations
+
+import os as _os
+
+import warp as _wp
+
+if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
+    _wp.config.log_level = _wp.LOG_WARNING  # no per-module "load took ... ms" lines
+
+from .camera import Camera, flyover, orbit  # noqa: E402
+from .heightmap import Heightmap  # noqa: E402
+from .kernels.raster import Fragments, rasterize  # noqa: E402
+from .mesh import Mesh  # noqa: E402
+from .pipeline import Frame, Report, render  # noqa: E402
+from .scene import Scene  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
+           "orbit", "flyover", "__version__"]

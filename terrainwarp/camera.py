@@ -1,0 +1,242 @@
+"""Cameras and camera paths.
+
+Conventions (the one place they are stated; nothing else in terrainwarp contradicts them):
+
+* World space is right-handed with **y up** (OpenGL). Heights are along +y. Heightmap row ``i`` runs
+  along +z and column ``j`` along +x: sample ``(i, j)`` sits at ``(x0 + j*dx, h[i, j], z0 + i*dz)``.
+  For a north-up raster, +x is east and +z is south.
+* The view matrix is OpenGL's ``lookAt``: eye space looks down -z, x right, y up.
+* The projection matrix is OpenGL's ``gluPerspective``: clip z in [-w, w]; window depth
+  ``(z_ndc + 1) / 2`` lies in [0, 1] (0 at the near plane).
+* Window coordinates have their origin at the bottom-left, as OpenGL's; images everywhere in
+  terrainwarp have row 0 at the **top** (as image files do), so image row = height - 1 - window y.
+* Positions handed to the rasterizer are **camera-relative** float32 (world minus eye, subtracted in
+  float64 on the host before the cast), which is how GPUs keep precision for terrains far from the
+  origin; :meth:`Camera.view_matrix` with ``relative=True`` is the matching view matrix.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .heightmap import Heightmap
+
+__all__ = ["Camera", "orbit", "flyover"]
+
+
+def _vec3(name: str, v: object) -> tuple[float, float, float]:
+    try:
+        a = np.asarray(v, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise TypeError(f"{name}: expected 3 finite numbers, got {v!r}") from e
+    if a.shape != (3,):
+        raise ValueError(f"{name}: expected 3 numbers, got {a.size}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite numbers, got {a.tolist()}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera in OpenGL conventions (see the module docstring).
+
+    Attributes:
+        position: eye position in world metres (float64 on the host).
+        target: the point looked at.
+        up: approximate up direction (default +y).
+        fov_y_deg: vertical field of view in degrees, in (0, 180).
+        width, height: viewport size in pixels.
+        near, far: clip plane distances in metres, 0 < near < far.
+    """
+
+    position: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_y_deg: float = 45.0
+    width: int = 640
+    height: int = 480
+    near: float = 1.0
+    far: float = 1.0e5
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False, hash=False)
+
+    def __post_init__(self) -> None:
+        for name in ("position", "target", "up"):
+            object.__setattr__(self, name, _vec3(name, getattr(self, name)))
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer):
+                raise TypeError(f"{name}: expected a positive integer number of pixels, got {v!r}")
+            if not 1 <= int(v) <= 16384:
+                raise ValueError(f"{name}: expected 1..16384 pixels, got {v}")
+            object.__setattr__(self, name, int(v))
+        for name in ("fov_y_deg", "near", "far"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer):
+                raise TypeError(f"{name}: expected a number, got {v!r}")
+            if not math.isfinite(float(v)):
+                raise ValueError(f"{name}: expected a finite number, got {v}")
+            object.__setattr__(self, name, float(v))
+        if not 0.0 < self.fov_y_deg < 180.0:
+            raise ValueError(f"fov_y_deg: expected a value in (0, 180) degrees, got {self.fov_y_deg}")
+        if not self.near > 0.0:
+            raise ValueError(f"near: expected > 0, got {self.near}")
+        if not self.far > self.near:
+            raise ValueError(f"far: expected > near ({self.near}), got {self.far}")
+        d = np.subtract(self.target, self.position)
+        if not np.linalg.norm(d) > 0.0:
+            raise ValueError("target: must differ from position (the view direction is undefined)")
+        u = np.asarray(self.up)
+        if np.linalg.norm(np.cross(d / np.linalg.norm(d), u)) <= 1e-9 * max(np.linalg.norm(u), 1e-300):
+            raise ValueError(f"up: must not be parallel to the view direction, got up={self.up}")
+
+    # -- derived quantities -------------------------------------------------------------------------
+    @property
+    def aspect(self) -> float:
+        return self.width / self.height
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Unit view direction (float64, shape (3,))."""
+        d = np.subtract(self.target, self.position)
+        return d / np.linalg.norm(d)
+
+    @property
+    def focal_px(self) -> float:
+        """d = viewport_height / (2 tan(fovy/2)): pixels per unit of (size / distance)."""
+        return self.height / (2.0 * math.tan(math.radians(self.fov_y_deg) / 2.0))
+
+    def view_matrix(self, relative: bool = False) -> np.ndarray:
+        """OpenGL lookAt view matrix, float64 (4, 4).
+
+        Args:
+            relative: if True, the translation is left out: the matrix for camera-relative positions
+                (world - eye), which is what the pipeline feeds the rasterizer.
+        """
+        f = self.forward
+        s = np.cross(f, np.asarray(self.up))
+        s /= np.linalg.norm(s)
+        u = np.cross(s, f)
+        m = np.eye(4)
+        m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+        if not relative:
+            m[:3, 3] = -m[:3, :3] @ np.asarray(self.position)
+        return m
+
+    def proj_matrix(self) -> np.ndarray:
+        """OpenGL gluPerspective projection matrix, float64 (4, 4); clip z in [-w, w]."""
+        t = 1.0 / math.tan(math.radians(self.fov_y_deg) / 2.0)
+        n, f = self.near, self.far
+        p = np.zeros((4, 4))
+        p[0, 0] = t / self.aspect
+        p[1, 1] = t
+        p[2, 2] = (f + n) / (n - f)
+        p[2, 3] = 2.0 * f * n / (n - f)
+        p[3, 2] = -1.0
+        return p
+
+    def with_(self, **changes: object) -> Camera:
+        """A copy with some fields replaced (validated again)."""
+        kw = {k: getattr(self, k) for k in
+              ("position", "target", "up", "fov_y_deg", "width", "height", "near", "far")}
+        kw.update(changes)
+        return Camera(**kw)  # type: ignore[arg-type]
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in
+                (("position", self.position), ("target", self.target), ("up", self.up),
+                 ("fov_y_deg", self.fov_y_deg), ("width", self.width), ("height", self.height),
+                 ("near", self.near), ("far", self.far))}
+
+    @classmethod
+    def default_for(cls, heightmap: Heightmap, width: int = 640, height: int = 480,
+                    fov_y_deg: float = 45.0) -> Camera:
+        """A three-quarter view from the south (+z) side that frames the whole terrain."""
+        (x0, z0), (x1, z1) = heightmap.bounds_xz
+        finite = heightmap.heights[np.isfinite(heightmap.heights)]
+        hmin = float(finite.min()) if finite.size else 0.0
+        hmax = float(finite.max()) if finite.size else 0.0
+        cx, cz = 0.5 * (x0 + x1), 0.5 * (z0 + z1)
+        size = max(x1 - x0, z1 - z0, hmax - hmin, 1e-6)
+        target = (cx, hmin + 0.25 * (hmax - hmin), cz)
+        dist = 0.62 * size / math.tan(math.radians(fov_y_deg) / 2.0)
+        el = math.radians(35.0)
+        az = math.radians(20.0)
+        pos = (cx - dist * math.cos(el) * math.sin(az), target[1] + dist * math.sin(el),
+               cz + dist * math.cos(el) * math.cos(az))
+        near = max(dist * 1e-3, 1e-4)
+        far = dist * 4.0 + size * 2.0
+        return cls(position=pos, target=target, fov_y_deg=fov_y_deg, width=width, height=height,
+                   near=near, far=far)
+
+
+# -- camera paths -----------------------------------------------------------------------------------
+def orbit(center: object, radius: float, elevation: float, n: int, *, width: int = 640, height: int = 480,
+          fov_y_deg: float = 45.0, near: float = 1.0, far: float = 1e5, turns: float = 1.0) -> list[Camera]:
+    """``n`` cameras on a horizontal circle of ``radius`` around ``center``, ``elevation`` metres above it,
+    all looking at ``center``."""
+    c = _vec3("center", center)
+    if not (radius > 0 and math.isfinite(radius)):
+        raise ValueError(f"radius: expected a positive finite number, got {radius}")
+    if int(n) < 1:
+        raise ValueError(f"n: expected at least 1 camera, got {n}")
+    cams = []
+    for k in range(int(n)):
+        a = 2.0 * math.pi * turns * k / int(n)
+        p = (c[0] + radius * math.sin(a), c[1] + elevation, c[2] + radius * math.cos(a))
+        cams.append(Camera(position=p, target=c, fov_y_deg=fov_y_deg, width=width, height=height,
+                           near=near, far=far))
+    return cams
+
+
+def flyover(heightmap: Heightmap, waypoints_xz: object, clearance: float, n: int, *,
+            look_ahead: float | None = None, width: int = 640, height: int = 480,
+            fov_y_deg: float = 60.0, near: float = 1.0, far: float = 1e5) -> list[Camera]:
+    """``n`` cameras evenly spaced along a polyline of (x, z) waypoints, each ``clearance`` metres above
+    the terrain beneath it (deaconu2021, "Navigation": only x and z are tracked, y follows the height
+    function), looking ``look_ahead`` metres further along the path and slightly down.
+    """
+    w = np.asarray(waypoints_xz, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 2 or w.shape[0] < 2:
+        raise ValueError(f"waypoints_xz: expected an (k, 2) array with k >= 2, got shape {w.shape}")
+    if not np.all(np.isfinite(w)):
+        raise ValueError("waypoints_xz: expected finite coordinates")
+    if not (clearance > 0 and math.isfinite(clearance)):
+        raise ValueError(f"clearance: expected a positive finite number of metres, got {clearance}")
+    if int(n) < 1:
+        raise ValueError(f"n: expected at least 1 camera, got {n}")
+    seg = np.linalg.norm(np.diff(w, axis=0), axis=1)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    total = float(cum[-1])
+    if total <= 0:
+        raise ValueError("waypoints_xz: the path has zero length")
+    ahead = look_ahead if look_ahead is not None else 0.1 * total
+
+    def at(s: float) -> np.ndarray:
+        s = min(max(s, 0.0), total)
+        k = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1))
+        t = (s - cum[k]) / seg[k] if seg[k] > 0 else 0.0
+        return w[k] + t * (w[k + 1] - w[k])
+
+    ss = np.linspace(0.0, total, int(n)) if int(n) > 1 else np.array([0.0])
+    eyes = np.array([at(s) for s in ss])
+    tgts = []
+    for s in ss:
+        t = at(s + ahead)
+        if np.linalg.norm(t - at(s)) < 1e-9:  # end of path: keep the last heading
+            t = at(s) + (at(s) - at(s - ahead))
+        tgts.append(t)
+    tgts = np.array(tgts)
+    he = heightmap.sample(eyes[:, 0], eyes[:, 1])
+    ht = heightmap.sample(tgts[:, 0], tgts[:, 1])
+    cams = []
+    for k in range(len(ss)):
+        y = float(he[k]) + clearance
+        ty = min(float(ht[k]), y - 0.25 * clearance)
+        cams.append(Camera(position=(eyes[k, 0], y, eyes[k, 1]), target=(tgts[k, 0], ty, tgts[k, 1]),
+                           fov_y_deg=fov_y_deg, width=width, height=height, near=near, far=far))
+    return cams

@@ -1,0 +1,349 @@
+"""Heightmaps: float32 heights in metres on a regular grid with spacing (dx, dz).
+
+Sample (i, j) sits at world (x0 + j*dx, h[i, j], z0 + i*dz) (see :mod:`terrainwarp.camera`).
+Sources: numpy arrays of any integer or float dtype, image files through OpenImageIO (8/16-bit PNG,
+16-bit and float TIFF, float EXR), ``.npy``, the real SRTM DEMs that matplotlib ships, and
+procedural fBm noise. The designer controls of mrbsp-lod-visibility.txt section 1 (sea level, height
+scale, seabed factor, smoothing that spares mountains) return new heightmaps.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._io import atomic_path, write_image
+
+__all__ = ["Heightmap", "metres_per_degree"]
+
+# WGS84 ellipsoid
+_WGS84_A = 6378137.0
+_WGS84_F = 1.0 / 298.257223563
+_WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
+
+EXAMPLES = ("jacksboro", "topobathy")
+
+
+def metres_per_degree(lat_deg: float) -> tuple[float, float]:
+    """Metres per degree of (longitude, latitude) at geodetic latitude ``lat_deg`` on WGS84.
+
+    Longitude: N(phi) cos(phi) * pi/180 with N the prime-vertical radius of curvature; latitude:
+    M(phi) * pi/180 with M the meridional radius of curvature.
+    """
+    phi = math.radians(lat_deg)
+    s2 = math.sin(phi) ** 2
+    n = _WGS84_A / math.sqrt(1.0 - _WGS84_E2 * s2)
+    m = _WGS84_A * (1.0 - _WGS84_E2) / (1.0 - _WGS84_E2 * s2) ** 1.5
+    return (math.pi / 180.0 * n * math.cos(phi), math.pi / 180.0 * m)
+
+
+def _positive(name: str, v: object) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+        raise TypeError(f"{name}: expected a positive number of metres, got {v!r}")
+    f = float(v)
+    if not (math.isfinite(f) and f > 0.0):
+        raise ValueError(f"{name}: expected a positive finite number of metres, got {v}")
+    return f
+
+
+@dataclass(frozen=True, eq=False)
+class Heightmap:
+    """A regular grid of heights.
+
+    Attributes:
+        heights: (H, W) float32 metres, read-only. Row i runs along +z, column j along +x.
+            NaN marks no-data holes only when the heightmap was made with ``allow_nan=True``.
+        dx, dz: sample spacing along x (columns) and z (rows), metres.
+        origin: world (x, z) of sample (0, 0), metres (float64; far-from-origin terrains keep their
+            precision because the pipeline subtracts the eye in float64 before casting to float32).
+        name: a label for reports.
+        meta: free-form provenance (source file, CRS, latitude used for spacing, ...).
+    """
+
+    heights: np.ndarray
+    dx: float = 1.0
+    dz: float = 1.0
+    origin: tuple[float, float] = (0.0, 0.0)
+    name: str = "heightmap"
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        h = self.heights
+        if not isinstance(h, np.ndarray) or h.dtype != np.float32 or h.ndim != 2:
+            raise TypeError("heights: use Heightmap.from_array() to build a Heightmap from arbitrary data")
+        h = np.ascontiguousarray(h)
+        h.setflags(write=False)
+        object.__setattr__(self, "heights", h)
+        object.__setattr__(self, "dx", _positive("dx", self.dx))
+        object.__setattr__(self, "dz", _positive("dz", self.dz))
+        o = np.asarray(self.origin, dtype=np.float64).reshape(-1)
+        if o.shape != (2,) or not np.all(np.isfinite(o)):
+            raise ValueError(f"origin: expected 2 finite numbers (x, z), got {self.origin!r}")
+        object.__setattr__(self, "origin", (float(o[0]), float(o[1])))
+
+    # -- constructors ------------------------------------------------------------------------------
+    @classmethod
+    def from_array(cls, a: object, dx: float = 1.0, dz: float | None = None, *,
+                   max_height: float | None = None, origin: tuple[float, float] = (0.0, 0.0),
+                   allow_nan: bool = False, name: str = "array", meta: dict | None = None) -> Heightmap:
+        """A heightmap from a 2D array of any integer or float dtype.
+
+        Args:
+            a: (H, W) array (or (H, W, 1)); int8..uint64, float16..float64.
+            dx, dz: spacing in metres (dz defaults to dx).
+            max_height: if given, ``a`` is a normalised image: integers are divided by their dtype's
+                maximum, floats are taken as [0, 1]; the result is multiplied by ``max_height`` (N in
+                deaconu2021, "Terrain generation"). If None, values are metres as they are.
+            allow_nan: accept NaN as no-data holes (default: NaN is an error).
+        """
+        if isinstance(a, Heightmap):
+            raise TypeError("a: already a Heightmap")
+        arr = np.asarray(a)
+        if arr.dtype == object or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+            raise TypeError(f"a: expected an integer or float array, got dtype {arr.dtype}")
+        if arr.ndim == 3 and arr.shape[2] == 1:
+            arr = arr[:, :, 0]
+        if arr.ndim != 2:
+            raise ValueError(f"a: expected a 2D array (H, W), got shape {arr.shape}")
+        if arr.size == 0:
+            raise ValueError(f"a: expected a non-empty array, got shape {arr.shape}")
+        if max_height is not None:
+            n = _positive("max_height", max_height)
+            if np.issubdtype(arr.dtype, np.integer):
+                scale = float(np.iinfo(arr.dtype).max)
+                h64 = arr.astype(np.float64) / scale * n
+            else:
+                h64 = arr.astype(np.float64) * n
+        else:
+            h64 = None
+        if np.issubdtype(arr.dtype, np.floating):
+            src = arr if h64 is None else h64
+            if np.isinf(src).any():
+                raise ValueError(f"a: expected finite heights, got {int(np.isinf(src).sum())} infinite values")
+            nn = int(np.isnan(src).sum())
+            if nn and not allow_nan:
+                raise ValueError(f"a: {nn} NaN heights; pass allow_nan=True to treat NaN as no-data holes")
+            if nn == src.size:
+                raise ValueError("a: every height is NaN")
+        h = (h64 if h64 is not None else arr).astype(np.float32)
+        if np.isinf(h).any():
+            raise ValueError("a: heights overflow float32 (|h| > 3.4e38)")
+        dxf = _positive("dx", dx)
+        dzf = _positive("dz", dz if dz is not None else dx)
+        m = {"source_dtype": str(arr.dtype)}
+        if meta:
+            m.update(meta)
+        return cls(heights=h, dx=dxf, dz=dzf, origin=origin, name=name, meta=m)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, dx: float = 1.0, dz: float | None = None, *,
+             max_height: float | None = None, channel: int = 0, allow_nan: bool = False) -> Heightmap:
+        """Load a heightmap from an image file (OpenImageIO) or a ``.npy`` file.
+
+        8- and 16-bit PNG and TIFF keep their integer values as metres unless ``max_height`` is given
+        (then they are normalised by the dtype's maximum and scaled by it); float TIFF and EXR are
+        metres. Multi-channel images use ``channel``.
+        """
+        p = Path(path)
+        if not p.exists():
+            raise FileNotFoundError(f"path: no such file: {p}")
+        if p.is_dir():
+            raise ValueError(f"path: expected a file, got a directory: {p}")
+        if p.stat().st_size == 0:
+            raise ValueError(f"path: file is empty: {p}")
+        ext = p.suffix.lower()
+        if ext == ".npy":
+            try:
+                arr = np.load(p, allow_pickle=False)
+            except Exception as e:  # numpy raises several types for corrupt files
+                raise ValueError(f"path: cannot read {p} as .npy: {e}") from e
+            return cls.from_array(arr, dx, dz, max_height=max_height, allow_nan=allow_nan, name=p.stem,
+                                  meta={"source": str(p)})
+        arr = _read_image(p, channel)
+        return cls.from_array(arr, dx, dz, max_height=max_height, allow_nan=allow_nan, name=p.stem,
+                              meta={"source": str(p)})
+
+    @classmethod
+    def example(cls, name: str = "jacksboro") -> Heightmap:
+        """A real DEM shipped with matplotlib.
+
+        * ``"jacksboro"``: SRTM 3-arc-second DEM of the Jacksboro fault, Tennessee, 344 x 403 int16
+          metres; spacing converted from degrees to metres on WGS84 at the centre latitude.
+        * ``"topobathy"``: 91 x 120 float32 topography and bathymetry off the Pacific Northwest
+          (negative heights below sea level); its rows run north to south after a flip.
+        """
+        from matplotlib import cbook
+
+        if name not in EXAMPLES:
+            raise ValueError(f"name: expected one of {list(EXAMPLES)}, got {name!r}")
+        if name == "jacksboro":
+            d = cbook.get_sample_data("jacksboro_fault_dem.npz")
+            z = np.asarray(d["elevation"])
+            # The file's 'ymin' is the northern edge of row 0; rows run south, i.e. +z. No flip.
+            lat = 0.5 * (float(d["ymin"]) + float(d["ymax"]))
+            mlon, mlat = metres_per_degree(lat)
+            dx = float(d["dx"]) * mlon
+            dz = float(d["dy"]) * mlat
+            return cls.from_array(z, dx, dz, name="jacksboro", meta={
+                "source": "matplotlib sample data jacksboro_fault_dem.npz (SRTM)", "latitude_deg": lat,
+                "spacing_deg": [float(d["dx"]), float(d["dy"])], "flipped_rows": False})
+        d = cbook.get_sample_data("topobathy.npz")
+        z = np.asarray(d["topo"])
+        lat_a = np.asarray(d["latitude"], dtype=np.float64)
+        lon_a = np.asarray(d["longitude"], dtype=np.float64)
+        flipped = bool(lat_a[-1] > lat_a[0])
+        if flipped:  # south-up: make row 0 the northern row
+            z = z[::-1]
+        lat = float(lat_a.mean())
+        mlon, mlat = metres_per_degree(lat)
+        dx = float(np.mean(np.diff(lon_a))) * mlon
+        dz = float(np.abs(np.mean(np.diff(lat_a)))) * mlat
+        return cls.from_array(z, dx, dz, name="topobathy", meta={
+            "source": "matplotlib sample data topobathy.npz", "latitude_deg": lat, "flipped_rows": flipped})
+
+    @classmethod
+    def fbm(cls, rows: int, cols: int | None = None, *, seed: int = 0, max_height: float = 1000.0,
+            dx: float = 10.0, dz: float | None = None, feature_size: float = 256.0, octaves: int = 8,
+            gain: float = 0.5, lacunarity: float = 2.0, ridged: bool = False) -> Heightmap:
+        """Procedural fractal terrain (fBm of gradient noise), deterministic for a seed.
+
+        Heights lie in [0, max_height]. ``feature_size`` is the wavelength of the first octave in
+        samples. Any window of a larger terrain with the same parameters equals that part of it.
+        """
+        from .kernels.noise import fbm as _fbm
+
+        cols = rows if cols is None else cols
+        for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
+                raise ValueError(f"{nm}: expected a positive integer, got {v!r}")
+        n = _positive("max_height", max_height)
+        fs = _positive("feature_size", feature_size)
+        a = _fbm(int(rows), int(cols), seed=int(seed), base_frequency=1.0 / fs, octaves=int(octaves),
+                 lacunarity=float(lacunarity), gain=float(gain), ridged=ridged)
+        h = ((a + np.float32(1.0)) * np.float32(0.5 * n)).astype(np.float32)
+        return cls.from_array(h, dx, dz, name=f"fbm{rows}x{cols}s{seed}", meta={
+            "source": "fbm", "seed": int(seed), "feature_size": fs, "octaves": int(octaves),
+            "gain": gain, "lacunarity": lacunarity, "ridged": ridged})
+
+    # -- properties --------------------------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.heights.shape[0]), int(self.heights.shape[1]))
+
+    @property
+    def bounds_xz(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((xmin, zmin), (xmax, zmax)) of the sample grid in world metres."""
+        x0, z0 = self.origin
+        return ((x0, z0), (x0 + (self.shape[1] - 1) * self.dx, z0 + (self.shape[0] - 1) * self.dz))
+
+    @property
+    def height_range(self) -> tuple[float, float]:
+        f = self.heights[np.isfinite(self.heights)]
+        return (float(f.min()), float(f.max()))
+
+    def __repr__(self) -> str:
+        lo, hi = self.height_range
+        return (f"Heightmap({self.name!r}, shape={self.shape}, dx={self.dx:.4g}, dz={self.dz:.4g}, "
+                f"heights=[{lo:.4g}, {hi:.4g}] m)")
+
+    # -- sampling ----------------------------------------------------------------------------------
+    def sample(self, x: object, z: object, method: str = "bilinear") -> np.ndarray:
+        """Heights at world (x, z), float32, by the device's bilinear or bicubic filter."""
+        from .kernels.sampling import sample_grid
+
+        xa = np.asarray(x, dtype=np.float64)
+        za = np.asarray(z, dtype=np.float64)
+        u = (xa - self.origin[0]) / self.dx
+        v = (za - self.origin[1]) / self.dz
+        return sample_grid(self.heights, u, v, method)
+
+    # -- designer controls (mrbsp-lod-visibility.txt, section 1) -----------------------------------
+    def designed(self, *, sea_level: float = 0.0, height_scale: float = 1.0, seabed: float = 1.0,
+                 smoothing: int = 0, mountain_height: float | None = None) -> Heightmap:
+        """The designer's controls of mrbsp section 1, applied in this order:
+
+        1. sea level: heights are shifted by ``-sea_level`` ("sink" with > 0, "float" with < 0);
+        2. seabed factor: heights below the new sea level are multiplied by ``seabed`` (< 1 makes
+           the sea shallower, so beaches, the land within a few metres of sea level, grow);
+        3. height scale: everything is multiplied by ``height_scale`` (the highest peak);
+        4. smoothing: ``smoothing`` passes of a 3x3 binomial filter, except on mountains (samples at
+           or above ``mountain_height`` after scaling, default the 85th percentile), which keep their
+           jagged peaks.
+        """
+        for nm, v in (("sea_level", sea_level), ("height_scale", height_scale), ("seabed", seabed)):
+            if not math.isfinite(float(v)):
+                raise ValueError(f"{nm}: expected a finite number, got {v}")
+        if height_scale <= 0 or seabed < 0:
+            raise ValueError("height_scale: expected > 0 and seabed: expected >= 0")
+        if int(smoothing) < 0:
+            raise ValueError(f"smoothing: expected >= 0 passes, got {smoothing}")
+        h = self.heights.astype(np.float64) - float(sea_level)
+        h = np.where(h < 0.0, h * float(seabed), h) * float(height_scale)
+        if smoothing:
+            fin = np.isfinite(h)
+            thr = float(np.percentile(h[fin], 85.0)) if mountain_height is None else float(mountain_height)
+            mountain = h >= thr
+            for _ in range(int(smoothing)):
+                p = np.pad(h, 1, mode="edge")
+                k = np.array([1.0, 2.0, 1.0])
+                s = sum(k[a] * k[b] * p[a:a + h.shape[0], b:b + h.shape[1]] for a in range(3) for b in range(3))
+                h = np.where(mountain, h, s / 16.0)
+        return Heightmap.from_array(h, self.dx, self.dz, origin=self.origin, allow_nan=True,
+                                    name=self.name + "-designed", meta={**self.meta, "designed": {
+                                        "sea_level": sea_level, "height_scale": height_scale,
+                                        "seabed": seabed, "smoothing": int(smoothing)}})
+
+    # -- saving ------------------------------------------------------------------------------------
+    def save(self, path: str | os.PathLike) -> Path:
+        """Save losslessly: ``.tif``/``.tiff``/``.exr`` as float32, ``.npy`` as float32, ``.png`` as
+        16-bit integers (only when every height is an integer in [0, 65535]; otherwise a ValueError
+        suggests a float format). Written to a temporary name, then renamed.
+        """
+        p = Path(path)
+        ext = p.suffix.lower()
+        h = self.heights
+        if ext == ".npy":
+            with atomic_path(p) as tmp:
+                np.save(tmp, h)
+            return p
+        if ext == ".png":
+            if not (np.all(np.isfinite(h)) and np.all(h == np.round(h)) and h.min() >= 0 and h.max() <= 65535):
+                raise ValueError("path: PNG stores 16-bit integers; these heights are not integers in "
+                                 "[0, 65535]: save as .tif or .exr (float32) instead")
+            write_image(p, h.astype(np.uint16))
+            return p
+        if ext in (".tif", ".tiff", ".exr"):
+            write_image(p, h)
+            return p
+        raise ValueError(f"path: expected a .png, .tif, .tiff, .exr or .npy file name, got {p.name!r}")
+
+
+# -- OpenImageIO ------------------------------------------------------------------------------------
+def _read_image(p: Path, channel: int) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(p))
+    if inp is None:
+        raise ValueError(f"path: cannot read {p} as an image: {oiio.geterror().strip() or 'unknown format'}")
+    try:
+        spec = inp.spec()
+        if spec.width <= 0 or spec.height <= 0:
+            raise ValueError(f"path: image {p} is empty ({spec.width}x{spec.height})")
+        if not 0 <= channel < spec.nchannels:
+            raise ValueError(f"channel: expected 0..{spec.nchannels - 1} for {p}, got {channel}")
+        px = inp.read_image(0, 0, channel, channel + 1, oiio.UNKNOWN)
+        if px is None:
+            raise ValueError(f"path: {p} is corrupt or truncated: {inp.geterror().strip()}")
+    finally:
+        inp.close()
+    arr = np.asarray(px)
+    if arr.ndim == 3:
+        arr = arr[:, :, 0]
+    if arr.dtype == np.float16:
+        arr = arr.astype(np.float32)
+    return arr

@@ -1,0 +1,56 @@
+"""Triangle meshes as the pipeline passes them between stages."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Mesh"]
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """A displaced terrain mesh.
+
+    Attributes:
+        positions: (n, 3) float32, camera-relative (world minus ``eye``).
+        eye: the float64 world point the positions are relative to.
+        triangles: (m, 3) int32, counter-clockwise seen from above (+y).
+        uv: (n, 2) float32 heightmap coordinates in [0, 1] (u along x, v along z).
+        level: (n,) int32 LOD level of the patch each vertex came from (0 for the full grid).
+        patch_id: (n,) int32 index of the patch each vertex came from (0 for the full grid).
+        normals: (n, 3) float32 unit vertex normals, or None when nothing asked for them.
+    """
+
+    positions: np.ndarray
+    eye: tuple[float, float, float]
+    triangles: np.ndarray
+    uv: np.ndarray
+    level: np.ndarray
+    patch_id: np.ndarray
+    normals: np.ndarray | None = None
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def n_triangles(self) -> int:
+        return int(self.triangles.shape[0])
+
+    def world_positions(self) -> np.ndarray:
+        """(n, 3) float64 world positions (positions + eye)."""
+        return self.positions.astype(np.float64) + np.asarray(self.eye)
+
+    def to_pyvista(self):  # -> pyvista.PolyData
+        """A ``pyvista.PolyData`` in world coordinates with level, patch_id (and normals) as point data."""
+        import pyvista as pv
+
+        faces = np.hstack([np.full((self.n_triangles, 1), 3, np.int64), self.triangles.astype(np.int64)])
+        pd = pv.PolyData(self.world_positions(), faces.reshape(-1))
+        pd.point_data["level"] = self.level
+        pd.point_data["patch_id"] = self.patch_id
+        if self.normals is not None:
+            pd.point_data["Normals"] = self.normals
+        return pd
