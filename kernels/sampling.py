@@ -8,8 +8,9 @@ Samples outside the grid are clamped to the edge (texture CLAMP_TO_EDGE).
   rounding of the weights).
 * bicubic: the tensor-product 4-point Lagrange cubic through samples at offsets -1, 0, 1, 2. Unlike
   Keys' cubic convolution (a = -0.5, "Catmull-Rom"), which reproduces only quadratics, it reproduces
-  any cubic along each axis exactly, which is what the tests check. Near the border, where the
-  4-sample support is clamped, it degrades gracefully to the clamped values.
+  any cubic along each axis exactly, which is what the tests check. Near the border, the 4-sample
+  support reaches one sample past the grid; those samples are extrapolated linearly along each axis,
+  so planes are reproduced everywhere and cubics everywhere but in the outermost cell.
 
 Heights are sampled relative to the centre sample before weighting (a local reference), so a terrain
 at 8,848 m with millimetre relief keeps its relief in float32.
@@ -53,6 +54,26 @@ def sample_bilinear(h: wp.array2d(dtype=wp.float32), u: float, v: float) -> floa
 
 
 @wp.func
+def _fetch_linear_ext(h: wp.array2d(dtype=wp.float32), i: int, j: int) -> float:
+    """Fetch with linear extrapolation past the border (per axis), so planes stay planes."""
+    n0 = h.shape[0]
+    n1 = h.shape[1]
+    ii = wp.clamp(i, 0, n0 - 1)
+    jj = wp.clamp(j, 0, n1 - 1)
+    v = h[ii, jj]
+    if i != ii and n0 > 1:
+        i2 = wp.clamp(ii + wp.where(i < 0, 1, -1), 0, n0 - 1)
+        v += float(wp.abs(i - ii)) * (v - h[i2, jj])
+    if j != jj and n1 > 1:
+        j2 = wp.clamp(jj + wp.where(j < 0, 1, -1), 0, n1 - 1)
+        ii2 = wp.clamp(i, 0, n0 - 1)
+        a = h[ii2, jj]
+        b = h[ii2, j2]
+        v += float(wp.abs(j - jj)) * (a - b)
+    return v
+
+
+@wp.func
 def _lagrange4(t: float) -> wp.vec4:
     """Weights of the cubic Lagrange interpolant through nodes -1, 0, 1, 2 at t in [0, 1]."""
     w0 = -t * (t - 1.0) * (t - 2.0) / 6.0
@@ -76,7 +97,7 @@ def sample_bicubic(h: wp.array2d(dtype=wp.float32), u: float, v: float) -> float
     for a in range(4):
         row = float(0.0)
         for b in range(4):
-            row += wu[b] * (fetch(h, i0 - 1 + a, j0 - 1 + b) - ref)
+            row += wu[b] * (_fetch_linear_ext(h, i0 - 1 + a, j0 - 1 + b) - ref)
         acc += wv[a] * row
     return ref + acc
 

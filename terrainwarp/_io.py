@@ -50,7 +50,7 @@ def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise ValueError(f"path: cannot write {p}: {oiio.geterror()}")
-        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(a))
+        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(a).reshape(a.shape[0], a.shape[1], nch))
         err = out.geterror()
         out.close()
         if not ok:

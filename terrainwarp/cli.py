@@ -28,11 +28,11 @@ def _scene(args: argparse.Namespace):
 
         sc = Scene(Heightmap.example("jacksboro"), name="demo")
     cam = sc.camera
-    if getattr(args, "width", None) or getattr(args, "height", None):
+    if getattr(args, "width", None) is not None or getattr(args, "height", None) is not None:
         from .camera import Camera
 
-        w = args.width or cam.width
-        h = args.height or cam.height
+        w = cam.width if args.width is None else args.width
+        h = cam.height if args.height is None else args.height
         cam = Camera.default_for(sc.heightmap, w, h, cam.fov_y_deg) if not sc.source.get("camera") \
             else cam.with_(width=w, height=h)
         sc = sc.with_(camera=cam)

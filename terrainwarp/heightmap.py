@@ -130,7 +130,8 @@ class Heightmap:
                 raise ValueError(f"a: {nn} NaN heights; pass allow_nan=True to treat NaN as no-data holes")
             if nn == src.size:
                 raise ValueError("a: every height is NaN")
-        h = (h64 if h64 is not None else arr).astype(np.float32)
+        with np.errstate(over="ignore"):
+            h = (h64 if h64 is not None else arr).astype(np.float32)
         if np.isinf(h).any():
             raise ValueError("a: heights overflow float32 (|h| > 3.4e38)")
         dxf = _positive("dx", dx)

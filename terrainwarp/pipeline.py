@@ -190,9 +190,10 @@ def render(scene: Scene, device: str = "cpu") -> Frame:
             frame.depth = frags.depth
     if "shade" in stages:
         with _timed(report, "shade") as r:
-            rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, vnormals,
-                                   (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32), azimuth_deg=scene.light_azimuth_deg,
-                                   elevation_deg=scene.light_elevation_deg, device=device)
+            world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32)
+            rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, vnormals, world_y,
+                                   azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
+                                   device=device)
             r.counters["pixels"] = int(frame.triangle_id.size)
         if "image" in scene.outputs:
             frame.image = _srgb8(rgb)
