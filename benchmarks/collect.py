@@ -1,0 +1,25 @@
+"""Rebuild BENCHMARKS.md at the repository root from benchmarks/results/*.md."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+ORDER = ["frame", "lod", "tessellate", "raster", "normals_curvature", "error_vs_time", "fit", "stability"]
+
+
+def main() -> None:
+    res = ROOT / "benchmarks" / "results"
+    files = sorted(res.glob("*.md"), key=lambda p: (ORDER.index(p.stem) if p.stem in ORDER else 99, p.stem))
+    parts = ["# Benchmarks\n",
+             "Latest figures, one section per benchmark, each with the command that made it. Timings are wall "
+             "clock on the machine named in the section; comparisons are ratios against a baseline run in the "
+             "same process. Regenerate everything with `make bench` (or one file with the command shown), then "
+             "`python benchmarks/collect.py`.\n"]
+    parts += [p.read_text().strip() + "\n" for p in files]
+    (ROOT / "BENCHMARKS.md").write_text("\n".join(parts))
+    print(f"BENCHMARKS.md: {len(files)} sections")
+
+
+if __name__ == "__main__":
+    main()
