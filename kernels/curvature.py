@@ -1,0 +1,398 @@
+"""Curvature of a heightmap: the directional approximations of curtis2004 and the surface curvatures of
+geomorphometry, each one kernel over the whole grid.
+
+Directional curvature (curtis2004, "Determining curvature"), in the four directions ``DIRECTIONS``:
+x (+column), z (+row), diagonal (+x, +z) and diagonal (+x, -z), with step lengths dx, dz and
+sqrt(dx^2 + dz^2) (= dx*sqrt(2) when dx = dz). Along a direction the terrain is a plane curve y(t) and
+Equation 1 gives k = |y''| / (1 + y'^2)^(3/2) (1/m). Methods (``CURVATURE_METHODS``):
+
+* ``two_normal``: y' = slope of the tangent at the vertex, from its normal (s = -(n.u)/n.y for the unit
+  horizontal direction u); y'' = (s_next - s_vertex) / L.
+* ``three_normal``: the same for the pairs (previous, vertex) and (vertex, next), the two curvatures
+  averaged. Reinforcement (``distance`` d > 1): the same with the neighbours d samples away (step d*L),
+  and the result is the product (scale*k_1) * (scale*k_d), which pushes values away from 1.
+* ``three_vertex``: the chords to the two neighbours have slopes s1, s2; y'' = (s2 - s1) / L, y' =
+  (s1 + s2) / 2.
+* ``edge_angle``: 1 - cos(phi), phi the angle between the consecutive edges (vertex - previous) and
+  (next - vertex) of the section (so pi - the angle between the edges radiating from the vertex:
+  straight ground gives 0, a right angle 1), clamped to [0, 1]; computed as sin^2/(1 + cos) so that
+  small angles keep their precision in float32. Dimensionless.
+
+``scale`` multiplies every value (curtis2004's curvature scaling parameter); edge_angle is clamped
+before scaling.
+
+Surface curvatures (``SURFACE_SCHEMES``: Zevenbergen & Thorne 1987, Evans 1979 / Young 1978 as in
+Florinsky 2016) from the 3x3 window's p = dh/dx, q = dh/dz, r = d2h/dx2, t = d2h/dz2, s = d2h/dxdz,
+w = 1 + p^2 + q^2; sign: positive on convex ground (a dome, a ridge):
+
+* mean H = -((1 + q^2) r - 2 p q s + (1 + p^2) t) / (2 w^(3/2))
+* Gaussian K = (r t - s^2) / w^2
+* profile kv = -(p^2 r + 2 p q s + q^2 t) / ((p^2 + q^2) w^(3/2))   (normal curvature along the gradient)
+* plan kp = -(q^2 r - 2 p q s + p^2 t) / (p^2 + q^2)^(3/2)         (curvature of the contour line)
+
+profile and plan are 0 where the gradient is exactly 0.
+
+Precision and no data: all differences are taken relative to the centre sample (Sterbenz: exact for
+nearby float32 values), so a flat terrain gives exactly 0 and a sloped plane a few ulp of its float32
+samples. Missing samples (NaN, or outside the grid) are skipped: a 3-point stencil with a missing
+neighbour shifts to the two samples on the other side (exact on quadratics), a normal pair with a
+missing neighbour is dropped, and a direction with no usable samples gives 0. In the 3x3 surface
+window a missing sample is replaced by its reflection through the centre (2c - opposite, or c), which
+is exact on planes. A NaN centre gives NaN (no data) in every output; no other output is ever NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from terrainwarp.kernels.normals import METHODS as NORMAL_METHODS
+from terrainwarp.kernels.normals import _check_spacing, _device_heights, fetch, vertex_normals_device
+
+DIRECTIONS = ("x", "z", "diag_xz", "diag_x_negz")
+CURVATURE_METHODS = {"two_normal": 0, "three_normal": 1, "three_vertex": 2, "edge_angle": 3}
+SURFACE_SCHEMES = {"zevenbergen_thorne": 0, "evans_young": 1}
+SURFACE_FIELDS = ("mean", "gaussian", "profile", "plan")
+
+# ---------------------------------------------------------------------------------------------------
+# direction tables
+# ---------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def dir_offset(d: int) -> wp.vec2i:
+    """(di, dj) grid step of direction d: x, z, diagonal (+x,+z), diagonal (+x,-z)."""
+    if d == 0:
+        return wp.vec2i(0, 1)
+    if d == 1:
+        return wp.vec2i(1, 0)
+    if d == 2:
+        return wp.vec2i(1, 1)
+    return wp.vec2i(-1, 1)
+
+
+@wp.func
+def _nan() -> float:
+    return wp.nan
+
+
+# ---------------------------------------------------------------------------------------------------
+# section-curve functions
+# ---------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _chords(h: wp.array2d(dtype=wp.float32), i: int, j: int, di: int, dj: int, L: float) -> wp.vec4:
+    """(ok, s1, s2, where) for the 3-sample stencil through (i, j) along (di, dj) with step L:
+    chord slopes s1 (first->middle) and s2 (middle->last); where = 0 centred, -1 when the vertex is the
+    first sample (forward stencil), +1 when it is the last (backward). ok = 0 when no stencil fits."""
+    c = h[i, j]
+    p = fetch(h, i - di, j - dj, 2, 0.0)
+    n = fetch(h, i + di, j + dj, 2, 0.0)
+    if p[1] > 0.0 and n[1] > 0.0:
+        return wp.vec4(1.0, (c - p[0]) / L, (n[0] - c) / L, 0.0)
+    if n[1] > 0.0:
+        nn = fetch(h, i + 2 * di, j + 2 * dj, 2, 0.0)
+        if nn[1] > 0.0:
+            return wp.vec4(1.0, (n[0] - c) / L, (nn[0] - n[0]) / L, -1.0)
+    if p[1] > 0.0:
+        pp = fetch(h, i - 2 * di, j - 2 * dj, 2, 0.0)
+        if pp[1] > 0.0:
+            return wp.vec4(1.0, (p[0] - pp[0]) / L, (c - p[0]) / L, 1.0)
+    return wp.vec4(0.0)
+
+
+@wp.func
+def eq1(ypp: float, yp: float) -> float:
+    """curtis2004 Equation 1: |y''| / (1 + y'^2)^(3/2)."""
+    w = 1.0 + yp * yp
+    return wp.abs(ypp) / (w * wp.sqrt(w))
+
+
+@wp.func
+def three_vertex_k(ch: wp.vec4, L: float) -> float:
+    if ch[0] == 0.0:
+        return 0.0
+    s1 = ch[1]
+    s2 = ch[2]
+    yp = 0.5 * (s1 + s2)
+    if ch[3] < 0.0:
+        yp = 0.5 * (3.0 * s1 - s2)
+    elif ch[3] > 0.0:
+        yp = 0.5 * (3.0 * s2 - s1)
+    return eq1((s2 - s1) / L, yp)
+
+
+@wp.func
+def edge_angle_k(ch: wp.vec4) -> float:
+    """1 - cos(angle between the chord directions (1, s1) and (1, s2)), in [0, 1]."""
+    if ch[0] == 0.0:
+        return 0.0
+    s1 = ch[1]
+    s2 = ch[2]
+    inv = 1.0 / wp.sqrt((1.0 + s1 * s1) * (1.0 + s2 * s2))
+    sn = (s2 - s1) * inv
+    cs = (1.0 + s1 * s2) * inv
+    v = float(1.0)
+    if cs > 0.0:
+        v = sn * sn / (1.0 + cs)
+    else:
+        v = 1.0 - cs
+    return wp.clamp(v, 0.0, 1.0)
+
+
+@wp.func
+def _slope_from_normal(n: wp.vec3, ux: float, uz: float) -> float:
+    return -(n[0] * ux + n[2] * uz) / n[1]
+
+
+@wp.func
+def _normal_pair_k(h: wp.array2d(dtype=wp.float32), nrm: wp.array2d(dtype=wp.vec3), i: int, j: int, di: int,
+                   dj: int, L: float, ux: float, uz: float, sc: float, side: int) -> wp.vec2:
+    """(ok, k) of the normal pair (vertex, vertex + side*(di, dj)); y' = the vertex's slope."""
+    a = i + side * di
+    b = j + side * dj
+    if fetch(h, a, b, 2, 0.0)[1] == 0.0:
+        return wp.vec2(0.0, 0.0)
+    sn = _slope_from_normal(nrm[a, b], ux, uz)
+    return wp.vec2(1.0, eq1((sn - sc) / L, sc))
+
+
+@wp.func
+def _three_normal_k(h: wp.array2d(dtype=wp.float32), nrm: wp.array2d(dtype=wp.vec3), i: int, j: int, di: int,
+                    dj: int, L: float, ux: float, uz: float, sc: float) -> wp.vec2:
+    kn = _normal_pair_k(h, nrm, i, j, di, dj, L, ux, uz, sc, 1)
+    kp = _normal_pair_k(h, nrm, i, j, di, dj, L, ux, uz, sc, -1)
+    cnt = kn[0] + kp[0]
+    if cnt == 0.0:
+        return wp.vec2(0.0, 0.0)
+    return wp.vec2(1.0, (kn[1] + kp[1]) / cnt)
+
+
+@wp.func
+def directional_k(h: wp.array2d(dtype=wp.float32), nrm: wp.array2d(dtype=wp.vec3), i: int, j: int, d: int,
+                  dx: float, dz: float, method: int, scale: float, distance: int) -> float:
+    o = dir_offset(d)
+    di = o[0]
+    dj = o[1]
+    L = wp.sqrt(float(di * di) * dz * dz + float(dj * dj) * dx * dx)
+    if method == 2:
+        return scale * three_vertex_k(_chords(h, i, j, di, dj, L), L)
+    if method == 3:
+        return scale * edge_angle_k(_chords(h, i, j, di, dj, L))
+    ux = float(dj) * dx / L
+    uz = float(di) * dz / L
+    sc = _slope_from_normal(nrm[i, j], ux, uz)
+    if method == 0:
+        r = _normal_pair_k(h, nrm, i, j, di, dj, L, ux, uz, sc, 1)
+        if r[0] == 0.0:
+            r = _normal_pair_k(h, nrm, i, j, di, dj, L, ux, uz, sc, -1)
+        return scale * r[1]
+    k1 = _three_normal_k(h, nrm, i, j, di, dj, L, ux, uz, sc)
+    if distance <= 1:
+        return scale * k1[1]
+    kd = _three_normal_k(h, nrm, i, j, di * distance, dj * distance, L * float(distance), ux, uz, sc)
+    return (scale * k1[1]) * (scale * kd[1])
+
+
+# ---------------------------------------------------------------------------------------------------
+# surface curvature (3x3 window)
+# ---------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _win(h: wp.array2d(dtype=wp.float32), i: int, j: int, a: int, b: int, c: float) -> float:
+    """Height of window sample (i+a, j+b) minus the centre c; a missing sample is reflected."""
+    v = fetch(h, i + a, j + b, 2, 0.0)
+    if v[1] > 0.0:
+        return v[0] - c
+    r = fetch(h, i - a, j - b, 2, 0.0)
+    if r[1] > 0.0:
+        return c - r[0]
+    return 0.0
+
+
+@wp.func
+def surface_k(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz: float, scheme: int) -> wp.vec4:
+    c = h[i, j]
+    # z1..z9 relative to the centre; row -1 is -z
+    z1 = _win(h, i, j, -1, -1, c)
+    z2 = _win(h, i, j, -1, 0, c)
+    z3 = _win(h, i, j, -1, 1, c)
+    z4 = _win(h, i, j, 0, -1, c)
+    z6 = _win(h, i, j, 0, 1, c)
+    z7 = _win(h, i, j, 1, -1, c)
+    z8 = _win(h, i, j, 1, 0, c)
+    z9 = _win(h, i, j, 1, 1, c)
+    p = float(0.0)
+    q = float(0.0)
+    r = float(0.0)
+    t = float(0.0)
+    s = ((z9 - z7) - (z3 - z1)) / (4.0 * dx * dz)
+    if scheme == 0:
+        p = (z6 - z4) / (2.0 * dx)
+        q = (z8 - z2) / (2.0 * dz)
+        r = (z6 + z4) / (dx * dx)
+        t = (z8 + z2) / (dz * dz)
+    else:
+        p = ((z3 - z1) + (z6 - z4) + (z9 - z7)) / (6.0 * dx)
+        q = ((z7 - z1) + (z8 - z2) + (z9 - z3)) / (6.0 * dz)
+        r = ((z1 + z3 + z4 + z6 + z7 + z9) - 2.0 * (z2 + z8)) / (3.0 * dx * dx)
+        t = ((z1 + z2 + z3 + z7 + z8 + z9) - 2.0 * (z4 + z6)) / (3.0 * dz * dz)
+    p2 = p * p
+    q2 = q * q
+    w = 1.0 + p2 + q2
+    sw = wp.sqrt(w)
+    mean = -((1.0 + q2) * r - 2.0 * p * q * s + (1.0 + p2) * t) / (2.0 * w * sw)
+    gauss = (r * t - s * s) / (w * w)
+    g2 = p2 + q2
+    prof = float(0.0)
+    plan = float(0.0)
+    if g2 > 0.0:
+        prof = -(p2 * r + 2.0 * p * q * s + q2 * t) / (g2 * w * sw)
+        plan = -(q2 * r - 2.0 * p * q * s + p2 * t) / (g2 * wp.sqrt(g2))
+    return wp.vec4(mean, gauss, prof, plan)
+
+
+# ---------------------------------------------------------------------------------------------------
+# kernels
+# ---------------------------------------------------------------------------------------------------
+
+
+@wp.kernel(enable_backward=False)
+def _directional_kernel(
+    h: wp.array2d(dtype=wp.float32),
+    nrm: wp.array2d(dtype=wp.vec3),
+    dx: float,
+    dz: float,
+    method: int,
+    scale: float,
+    distance: int,
+    # outputs
+    out_k: wp.array2d(dtype=wp.vec4),
+):
+    i, j = wp.tid()
+    if wp.isnan(h[i, j]):
+        out_k[i, j] = wp.vec4(_nan())
+        return
+    k = wp.vec4(0.0)
+    for d in range(4):
+        k[d] = directional_k(h, nrm, i, j, d, dx, dz, method, scale, distance)
+    out_k[i, j] = k
+
+
+@wp.kernel(enable_backward=False)
+def _surface_kernel(
+    h: wp.array2d(dtype=wp.float32),
+    dx: float,
+    dz: float,
+    scheme: int,
+    # outputs
+    out_k: wp.array2d(dtype=wp.vec4),
+):
+    i, j = wp.tid()
+    if wp.isnan(h[i, j]):
+        out_k[i, j] = wp.vec4(_nan())
+        return
+    out_k[i, j] = surface_k(h, i, j, dx, dz, scheme)
+
+
+@wp.kernel(enable_backward=False)
+def _max_kernel(
+    k: wp.array2d(dtype=wp.vec4),
+    # outputs
+    out_k: wp.array2d(dtype=wp.float32),
+    out_dir: wp.array2d(dtype=wp.int32),
+):
+    i, j = wp.tid()
+    v = k[i, j]
+    best = v[0]
+    bd = int(0)
+    for d in range(1, 4):
+        if v[d] > best:
+            best = v[d]
+            bd = d
+    if wp.isnan(v[0]):
+        out_k[i, j] = v[0]
+        out_dir[i, j] = -1
+    else:
+        out_k[i, j] = best
+        out_dir[i, j] = bd
+
+
+# ---------------------------------------------------------------------------------------------------
+# host wrappers
+# ---------------------------------------------------------------------------------------------------
+
+
+def directional_curvature(heights: np.ndarray, dx: float, dz: float, method: str = "three_normal",
+                          scale: float = 1.0, distance: int = 1, normals: str = "quad",
+                          device: str = "cpu") -> np.ndarray:
+    """(H, W, 4) float32 curvature in the four ``DIRECTIONS`` by ``method`` (see the module docstring).
+
+    Args:
+        heights: (H, W) float heights (metres); NaN = no data.
+        dx, dz: spacing along x (columns) and z (rows), > 0.
+        method: one of ``CURVATURE_METHODS``.
+        scale: curvature scale (> 0), multiplies every value.
+        distance: reinforcement distance for ``three_normal`` (1 = none; d > 1 multiplies by the
+            curvature of the neighbours d samples away).
+        normals: vertex-normal method for the normal-based methods (curtis2004 uses ``"quad"``).
+
+    Returns:
+        (H, W, 4) float32, >= 0; 1/m for the Equation-1 methods (times ``scale``; 1/m^2 with
+        reinforcement), dimensionless for ``edge_angle``. NaN exactly at NaN heights.
+    """
+    if method not in CURVATURE_METHODS:
+        raise ValueError(f"method: expected one of {list(CURVATURE_METHODS)}, got {method!r}")
+    if normals not in NORMAL_METHODS:
+        raise ValueError(f"normals: expected one of {list(NORMAL_METHODS)}, got {normals!r}")
+    if isinstance(distance, bool) or not isinstance(distance, int | np.integer) or distance < 1:
+        raise ValueError(f"distance: expected an integer >= 1, got {distance!r}")
+    sc = float(scale)
+    if not (np.isfinite(sc) and sc > 0.0):
+        raise ValueError(f"scale: expected a positive finite number, got {scale!r}")
+    dx, dz = _check_spacing(dx, dz)
+    h = _device_heights(heights, device)
+    m = CURVATURE_METHODS[method]
+    if m <= 1:
+        nrm = vertex_normals_device(h, dx, dz, normals, "skip")
+    else:
+        nrm = wp.empty((1, 1), dtype=wp.vec3, device=device)
+    out = wp.empty(h.shape, dtype=wp.vec4, device=device)
+    wp.launch(_directional_kernel, dim=h.shape, inputs=[h, nrm, dx, dz, m, sc, int(distance)], outputs=[out],
+              device=device)
+    return out.numpy().reshape(h.shape[0], h.shape[1], 4)
+
+
+def surface_curvature(heights: np.ndarray, dx: float, dz: float, scheme: str = "zevenbergen_thorne",
+                      device: str = "cpu") -> np.ndarray:
+    """(H, W, 4) float32 (mean, Gaussian, profile, plan) curvature; 1/m, 1/m^2, 1/m, 1/m."""
+    if scheme not in SURFACE_SCHEMES:
+        raise ValueError(f"scheme: expected one of {list(SURFACE_SCHEMES)}, got {scheme!r}")
+    dx, dz = _check_spacing(dx, dz)
+    h = _device_heights(heights, device)
+    out = wp.empty(h.shape, dtype=wp.vec4, device=device)
+    wp.launch(_surface_kernel, dim=h.shape, inputs=[h, dx, dz, SURFACE_SCHEMES[scheme]], outputs=[out],
+              device=device)
+    return out.numpy().reshape(h.shape[0], h.shape[1], 4)
+
+
+def max_curvature(curvature: np.ndarray, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """Per-vertex maximum over the four directions.
+
+    Args:
+        curvature: (H, W, 4) float32 directional curvature.
+
+    Returns:
+        ((H, W) float32 maximum, (H, W) int32 index into ``DIRECTIONS`` of the first maximum; -1 and NaN
+        at no-data vertices).
+    """
+    k = np.asarray(curvature, dtype=np.float32)
+    if k.ndim != 3 or k.shape[2] != 4:
+        raise ValueError(f"curvature: expected an (H, W, 4) array, got shape {k.shape}")
+    kd = wp.array(np.ascontiguousarray(k), dtype=wp.vec4, device=device)
+    out_k = wp.empty(k.shape[:2], dtype=wp.float32, device=device)
+    out_d = wp.empty(k.shape[:2], dtype=wp.int32, device=device)
+    wp.launch(_max_kernel, dim=k.shape[:2], inputs=[kd], outputs=[out_k, out_d], device=device)
+    return out_k.numpy(), out_d.numpy()
