@@ -29,16 +29,18 @@ _WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
 EXAMPLES = ("jacksboro", "topobathy")
 
 
-def metres_per_degree(lat_deg: float) -> tuple[float, float]:
-    """Metres per degree of (longitude, latitude) at geodetic latitude ``lat_deg`` on WGS84.
+def metres_per_degree(lat_deg: float, *, a: float = _WGS84_A, f: float = _WGS84_F) -> tuple[float, float]:
+    """Metres per degree of (longitude, latitude) at geodetic latitude ``lat_deg`` on the ellipsoid with
+    semi-major axis ``a`` metres and flattening ``f`` (default WGS84; f=0 is a sphere).
 
     Longitude: N(phi) cos(phi) * pi/180 with N the prime-vertical radius of curvature; latitude:
     M(phi) * pi/180 with M the meridional radius of curvature.
     """
+    e2 = f * (2.0 - f)
     phi = math.radians(lat_deg)
     s2 = math.sin(phi) ** 2
-    n = _WGS84_A / math.sqrt(1.0 - _WGS84_E2 * s2)
-    m = _WGS84_A * (1.0 - _WGS84_E2) / (1.0 - _WGS84_E2 * s2) ** 1.5
+    n = a / math.sqrt(1.0 - e2 * s2)
+    m = a * (1.0 - e2) / (1.0 - e2 * s2) ** 1.5
     return (math.pi / 180.0 * n * math.cos(phi), math.pi / 180.0 * m)
 
 
@@ -142,13 +144,21 @@ class Heightmap:
         return cls(heights=h, dx=dxf, dz=dzf, origin=origin, name=name, meta=m)
 
     @classmethod
-    def load(cls, path: str | os.PathLike, dx: float = 1.0, dz: float | None = None, *,
-             max_height: float | None = None, channel: int = 0, allow_nan: bool = False) -> Heightmap:
-        """Load a heightmap from an image file (OpenImageIO) or a ``.npy`` file.
+    def load(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *,
+             max_height: float | None = None, channel: int = 0, allow_nan: bool = False,
+             **raster_options: Any) -> Heightmap:
+        """Load a heightmap from an image file (OpenImageIO), a ``.npy`` file, or a GeoTIFF / GDAL raster.
 
         8- and 16-bit PNG and TIFF keep their integer values as metres unless ``max_height`` is given
         (then they are normalised by the dtype's maximum and scaled by it); float TIFF and EXR are
-        metres. Multi-channel images use ``channel``.
+        metres. Multi-channel images use ``channel``. Spacing ``dx`` defaults to 1 m, ``dz`` to ``dx``.
+
+        A TIFF with a CRS (GeoTIFF) and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...; see
+        :data:`terrainwarp.geotiff.GDAL_EXTS`) go through :func:`terrainwarp.geotiff.read_geotiff`: metre
+        spacing, heights and orientation come from the georeferencing (``dx``/``dz`` override the spacing),
+        band ``channel + 1`` is read, no-data cells become NaN (whatever ``allow_nan`` says), and
+        ``raster_options`` (``window``, ``bounds``, ``decimate``, ``resampling``) are passed on. What was
+        assumed is in ``meta`` and ``meta["summary"]``.
         """
         p = Path(path)
         if not p.exists():
@@ -158,6 +168,17 @@ class Heightmap:
         if p.stat().st_size == 0:
             raise ValueError(f"path: file is empty: {p}")
         ext = p.suffix.lower()
+        from . import geotiff
+
+        if geotiff.is_gdal_raster(p):
+            if max_height is not None:
+                raise ValueError(f"max_height: not used for georeferenced rasters ({p.name}); heights come "
+                                 "from the file's values, scale and offset")
+            return geotiff.read_geotiff(p, band=int(channel) + 1, dx=dx, dz=dz, **raster_options)
+        if raster_options:
+            raise TypeError(f"{sorted(raster_options)[0]}: only GeoTIFF / GDAL rasters take "
+                            f"{', '.join(sorted(raster_options))}; {p.name} is read by OpenImageIO or numpy")
+        dx = 1.0 if dx is None else dx
         if ext == ".npy":
             try:
                 arr = np.load(p, allow_pickle=False)
@@ -304,10 +325,18 @@ class Heightmap:
         """Save losslessly: ``.tif``/``.tiff``/``.exr`` as float32, ``.npy`` as float32, ``.png`` as
         16-bit integers (only when every height is an integer in [0, 65535]; otherwise a ValueError
         suggests a float format). Written to a temporary name, then renamed.
+
+        A heightmap read from a GeoTIFF / GDAL raster saves ``.tif``/``.tiff`` as a GeoTIFF with its CRS,
+        transform, nodata, scale/offset and source dtype (see :func:`terrainwarp.geotiff.write_geotiff`).
         """
         p = Path(path)
         ext = p.suffix.lower()
         h = self.heights
+        if ext in (".tif", ".tiff"):
+            from . import geotiff
+
+            if geotiff.is_georeferenced(self.meta):
+                return geotiff.write_geotiff(self, p)
         if ext == ".npy":
             with atomic_path(p) as tmp:
                 np.save(tmp, h)

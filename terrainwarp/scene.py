@@ -100,7 +100,7 @@ class Scene:
             hp = Path(hm_d["path"])
             if not hp.is_absolute():
                 hp = Path(base_dir) / hp
-            hm = Heightmap.load(hp, hm_d.get("dx", 1.0), hm_d.get("dz"), max_height=hm_d.get("max_height"))
+            hm = Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"))
         elif "fbm" in hm_d:
             f = dict(hm_d["fbm"])
             _check_keys("heightmap.fbm", f, {"rows", "cols", "seed", "max_height", "dx", "dz", "feature_size",
