@@ -14,6 +14,7 @@ import warp as _wp
 if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
     _wp.config.log_level = _wp.LOG_WARNING  # no per-module "load took ... ms" lines
 
+from .analysis import compute_curvature, compute_normals  # noqa: E402
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
 from .kernels.raster import Fragments, rasterize  # noqa: E402
@@ -23,4 +24,4 @@ from .scene import Scene  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
-           "orbit", "flyover", "__version__"]
+           "orbit", "flyover", "compute_normals", "compute_curvature", "__version__"]

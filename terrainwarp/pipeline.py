@@ -11,6 +11,7 @@ image      vertex_normals, mesh, raster, shade
 normals    vertex_normals, mesh, raster, shade
 depth      mesh, raster
 mesh       mesh
+curvature  curvature (heightmap curvature, three-normal, four directions; its own stage)
 report     (none: the report of whatever ran)
 =========  =========================================
 """
@@ -31,12 +32,13 @@ from .scene import Scene
 
 __all__ = ["render", "Frame", "Report", "StageRecord", "stages_for"]
 
-STAGE_ORDER = ("vertex_normals", "mesh", "raster", "shade")
+STAGE_ORDER = ("vertex_normals", "curvature", "mesh", "raster", "shade")
 _NEEDS = {
     "image": {"vertex_normals", "mesh", "raster", "shade"},
     "normals": {"vertex_normals", "mesh", "raster", "shade"},
     "depth": {"mesh", "raster"},
     "mesh": {"mesh"},
+    "curvature": {"curvature"},
     "report": set(),
 }
 
@@ -94,6 +96,9 @@ class Frame:
         normals: (H, W, 3) float32 per-pixel unit normals (0 on background).
         triangle_id: (H, W) int32 visible triangle per pixel (-1 background), when raster ran.
         mesh: the :class:`Mesh` drawn.
+        curvature: (H, W, 4) float32 curvature of the heightmap (not the image) in the directions x, z,
+            diagonal (+x,+z), diagonal (+x,-z) (:func:`terrainwarp.compute_curvature`, three-normal), 1/m;
+            only when the scene asks for ``"curvature"``.
         report: the :class:`Report`.
     """
 
@@ -105,6 +110,7 @@ class Frame:
     triangle_id: np.ndarray | None = None
     barycentrics: np.ndarray | None = None
     mesh: Mesh | None = None
+    curvature: np.ndarray | None = None
 
     def save(self, out_dir: str | Path) -> list[Path]:
         """Write what the frame has: ``frame.png``, ``depth.exr``, ``normals.exr``, ``mesh.vtp`` and
@@ -118,6 +124,8 @@ class Frame:
             written.append(write_image(out / "depth.exr", self.depth))
         if self.normals is not None:
             written.append(write_image(out / "normals.exr", self.normals.astype(np.float32)))
+        if self.curvature is not None:
+            written.append(write_image(out / "curvature.exr", self.curvature.astype(np.float32)))
         if self.mesh is not None and "mesh" in self.scene.outputs:
             from ._io import atomic_path
 
@@ -169,6 +177,12 @@ def render(scene: Scene, device: str = "cpu") -> Frame:
         with _timed(report, "vertex_normals") as r:
             vnormals = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device).reshape(-1, 3)
             r.counters["samples"] = int(hm.heights.size)
+    if "curvature" in stages:
+        from .analysis import compute_curvature
+
+        with _timed(report, "curvature") as r:
+            frame.curvature = compute_curvature(hm, "three_normal", device=device)
+            r.counters.update(samples=int(hm.heights.size), method="three_normal")
     mesh = None
     if "mesh" in stages:
         with _timed(report, "mesh") as r:

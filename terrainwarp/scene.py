@@ -29,7 +29,7 @@ from .heightmap import EXAMPLES, Heightmap
 
 __all__ = ["Scene", "OUTPUTS", "MESH_POLICIES"]
 
-OUTPUTS = ("image", "depth", "normals", "report", "mesh")
+OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh")
 MESH_POLICIES = ("grid",)
 
 
