@@ -44,8 +44,8 @@ if TYPE_CHECKING:
 
 __all__ = ["GDAL_EXTS", "describe", "is_gdal_raster", "is_georeferenced", "read_geotiff", "write_geotiff"]
 
-# Extensions always read through GDAL; .tif/.tiff only when the file carries a CRS (plain TIFFs stay with
-# OpenImageIO, see Heightmap.load).
+# Extensions always read through GDAL; .tif/.tiff only when the file carries georeferencing (plain TIFFs
+# stay with OpenImageIO, see Heightmap.load).
 GDAL_EXTS = (".vrt", ".img", ".asc", ".hgt", ".dem", ".bil", ".bt", ".ter", ".xyz", ".grd", ".nc", ".jp2")
 _TIFF_EXTS = (".tif", ".tiff", ".gtiff")
 
@@ -84,8 +84,8 @@ def _open(p: Path):
 
 def is_gdal_raster(path: str | os.PathLike) -> bool:
     """True when :meth:`Heightmap.load` should read ``path`` through rasterio: a GDAL-only extension, or a
-    TIFF that carries a CRS (a GeoTIFF). Plain TIFFs without a CRS, and unreadable files, are False (left
-    to OpenImageIO and its error messages)."""
+    TIFF that carries a CRS, a geotransform or ground control points (a GeoTIFF). Plain TIFFs, and
+    unreadable files, are False (left to OpenImageIO and its error messages)."""
     p = Path(path)
     ext = p.suffix.lower()
     if ext in GDAL_EXTS:
@@ -94,7 +94,7 @@ def is_gdal_raster(path: str | os.PathLike) -> bool:
         return False
     try:
         with _open(p) as src:
-            return src.crs is not None
+            return src.crs is not None or not src.transform.is_identity or bool(src.gcps[0])
     except ValueError:
         return False
 
@@ -212,6 +212,10 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
         if b > src.count:
             raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
         t = src.transform
+        if t.is_identity and src.gcps[0]:
+            raise ValueError(f"path: {p} is georeferenced by {len(src.gcps[0])} ground control points, not "
+                             "a geotransform; resample it onto a grid first, e.g. `gdalwarp -t_srs <CRS> "
+                             "in.tif out.tif`")
         scale_ref = max(abs(t.a), abs(t.e))
         if abs(t.b) > _SHEAR_RTOL * scale_ref or abs(t.d) > _SHEAR_RTOL * scale_ref:  # b, d below: 0
             raise ValueError(
@@ -230,6 +234,8 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
         raw = src.read(b, window=win, out_shape=(n, m), resampling=rs) if k > 1 else src.read(b, window=win)
         dtype = np.dtype(src.dtypes[b - 1])
         nodata = src.nodatavals[b - 1]
+        if nodata is not None and not np.issubdtype(dtype, np.floating) and not math.isfinite(nodata):
+            nodata = None  # a NaN/inf nodata tag on an integer band matches no cell
         flags = src.mask_flag_enums[b - 1]
         if nodata is not None:
             nd = np.asarray(nodata).astype(dtype)

@@ -153,7 +153,7 @@ class Heightmap:
         (then they are normalised by the dtype's maximum and scaled by it); float TIFF and EXR are
         metres. Multi-channel images use ``channel``. Spacing ``dx`` defaults to 1 m, ``dz`` to ``dx``.
 
-        A TIFF with a CRS (GeoTIFF) and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...; see
+        A georeferenced TIFF (GeoTIFF) and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...; see
         :data:`terrainwarp.geotiff.GDAL_EXTS`) go through :func:`terrainwarp.geotiff.read_geotiff`: metre
         spacing, heights and orientation come from the georeferencing (``dx``/``dz`` override the spacing),
         band ``channel + 1`` is read, no-data cells become NaN (whatever ``allow_nan`` says), and

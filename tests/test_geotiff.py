@@ -351,3 +351,33 @@ def test_srtm_hgt_tile(tmp_path):
     assert back.heights.tobytes() == hm.heights.tobytes()
     assert back.meta["sample00_crs"] == pytest.approx(hm.meta["sample00_crs"], abs=1e-9)
     assert (back.dx, back.dz) == pytest.approx((hm.dx, hm.dz), rel=1e-12)
+
+
+def test_tiff_with_transform_but_no_crs_and_gcps(tmp_path):
+    a = _dem((4, 5), np.float32)
+    p = _write(tmp_path / "nocrs.tif", a, None, from_origin(0.0, 40.0, 2.5, 2.5), nodata=-1.0)
+    assert is_gdal_raster(p)
+    hm = Heightmap.load(p)
+    assert hm.dx == 2.5 and hm.meta["crs_kind"] == "none" and "taken as metres" in hm.meta["summary"]
+    from rasterio.control import GroundControlPoint
+
+    g = [GroundControlPoint(0, 0, 500000.0, 5000000.0), GroundControlPoint(0, 5, 500050.0, 5000000.0),
+         GroundControlPoint(4, 0, 500000.0, 4999960.0)]
+    with rasterio.open(tmp_path / "gcp.tif", "w", driver="GTiff", width=5, height=4, count=1, dtype="float32",
+                       gcps=g, crs="EPSG:32633") as d:
+        d.write(a, 1)
+    with pytest.raises(ValueError, match="ground control points"):
+        Heightmap.load(tmp_path / "gcp.tif")
+
+
+def test_mask_band_with_decimation(tmp_path):
+    b = _dem((12, 12), np.uint16)
+    with rasterio.open(tmp_path / "m.tif", "w", driver="GTiff", width=12, height=12, count=1, dtype="uint16",
+                       crs="EPSG:32633", transform=from_origin(0, 120, 10, 10)) as d:
+        d.write(b, 1)
+        m = np.full((12, 12), 255, np.uint8)
+        m[:3, :3] = 0
+        d.write_mask(m)
+    hm = Heightmap.load(tmp_path / "m.tif", decimate=3, resampling="nearest")
+    assert hm.shape == (4, 4) and np.isnan(hm.heights[0, 0]) and hm.meta["nodata_count"] == 1
+    np.testing.assert_array_equal(hm.heights[1:, 1:], b[4::3, 4::3].astype(np.float32))
