@@ -1,0 +1,246 @@
+import numpy as np
+import pytest
+
+from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp.lod import (
+    ContinuousPolicy,
+    DistancePolicy,
+    LodState,
+    ScreenErrorPolicy,
+    Terrain,
+    select,
+    tile_from_key,
+    tile_key,
+    tile_name,
+)
+
+
+def test_keys_round_trip():
+    rng = np.random.default_rng(0)
+    z = rng.integers(0, 20, 1000)
+    x = rng.integers(0, 2**28, 1000)
+    y = rng.integers(0, 2**28, 1000)
+    k = tile_key(z, x, y)
+    assert len(np.unique(k)) == len(np.unique(np.stack([z, x, y], 1), axis=0))
+    z2, x2, y2 = tile_from_key(k)
+    assert np.array_equal(z, z2) and np.array_equal(x, x2) and np.array_equal(y, y2)
+    assert tile_name(tile_key(3, 5, 7)) == "3/5/7"
+    with pytest.raises(ValueError):
+        tile_key(-1, 0, 0)
+
+
+def _flat(n=257):
+    return Heightmap.from_array(np.zeros((n, n), np.float32), 1.0)
+
+
+def test_geometric_error_zero_on_plane_and_exact_on_bump():
+    i, j = np.mgrid[0:129, 0:129]
+    plane = Heightmap.from_array((0.3 * j - 0.7 * i + 5.0).astype(np.float32))
+    t = Terrain.prepare(plane, roots=1, tess=8)
+    for mn, mx, err in t.stats:
+        assert err.max() <= 1e-4  # float32 rounding of the bilinear weights only
+    h = np.zeros((129, 129), np.float32)
+    h[37, 53] = 10.0  # a one-sample bump, not on any vertex of levels < depth
+    t = Terrain.prepare(Heightmap.from_array(h), roots=1, tess=8)
+    assert t.depth == 4
+    # at level L the node spacing is 2**(4-L) cells; (37, 53) is on the vertex grid only at the deepest level
+    for lvl, (mn, mx, err) in enumerate(t.stats):
+        s = 128 / 2**lvl
+        node = (int(37 // s), int(53 // s))
+        assert mx[node] == 10.0 and mn[node] == 0.0
+        if lvl == t.depth:
+            assert err.max() == 0.0
+        else:
+            assert err[node] == 10.0  # the node's surface is 0 there: the whole bump is error
+    assert t.stats[0][2][0, 0] == 10.0
+
+
+def test_flat_terrain_camera_over_middle_is_symmetric():
+    hm = _flat()
+    t = Terrain.prepare(hm, roots=4, tess=8)
+    cam = Camera(position=(128.0, 40.0, 128.0), target=(128.0, 0.0, 128.0), up=(0.0, 0.0, -1.0), fov_y_deg=120,
+                 width=256, height=256, near=0.5, far=1000.0)
+    pl = select(t, cam, DistancePolicy(k=3.0))
+    assert len(np.unique(pl.level)) > 1
+    n = t.roots[0] << t.depth
+    cells = {(int(lv), int(x), int(y)) for lv, (_, x, y) in zip(pl.level, np.stack(tile_from_key(pl.key), 1))}
+    for lv, x, y in cells:
+        m = n >> (t.depth - lv)
+        assert (lv, m - 1 - x, y) in cells and (lv, x, m - 1 - y) in cells and (lv, y, x) in cells
+
+
+@pytest.fixture(scope="module")
+def dem_terrain():
+    return Terrain.prepare(Heightmap.example(), roots=16, tess=8)
+
+
+def _cams(hm, n=4):
+    (x0, z0), (x1, z1) = hm.bounds_xz
+    base = Camera.default_for(hm, 320, 240)
+    cams = [base]
+    for k in range(n - 1):
+        px = x0 + (x1 - x0) * (0.2 + 0.2 * k)
+        pz = z0 + (z1 - z0) * (0.8 - 0.15 * k)
+        y = float(hm.sample([px], [pz])[0]) + 300.0
+        cams.append(Camera(position=(px, y, pz), target=(0.5 * (x0 + x1), y - 600.0, z0), width=320, height=240,
+                           near=1.0, far=1e6))
+    return cams
+
+
+@pytest.mark.parametrize("policy", [ScreenErrorPolicy(0.5), ScreenErrorPolicy(2.0), DistancePolicy(3.0)])
+def test_balance_and_matching_edge_spacing(dem_terrain, policy):
+    for cam in _cams(dem_terrain.heightmap):
+        pl = select(dem_terrain, cam, policy)
+        nb = pl.neighbour_level
+        has = nb >= 0
+        diff = np.abs(nb - pl.level[:, None])[has]
+        assert diff.max() <= 1
+        # every shared edge: both sides place vertices with the same spacing (edge length / factor)
+        _check_shared_edges(pl)
+
+
+def _check_shared_edges(pl):
+    # index edges by their world endpoints; same-level neighbours share the whole edge, a coarse edge is
+    # shared with two finer half-edges: compare the spacing (length / factor) along each
+    o, s, f = pl.origin, pl.size, pl.outer
+    segs = {}
+    for p in range(len(pl)):
+        x0, z0 = o[p]
+        x1, z1 = x0 + s[p, 0], z0 + s[p, 1]
+        edges = [((x0, z0), (x0, z1), s[p, 1]), ((x0, z0), (x1, z0), s[p, 0]), ((x1, z0), (x1, z1), s[p, 1]),
+                 ((x0, z1), (x1, z1), s[p, 0])]
+        for e, (a, b, length) in enumerate(edges):
+            segs.setdefault("x" if a[0] == b[0] else "z", []).append((a, b, length / f[p, e], p))
+    checked = 0
+    for axis, lst in segs.items():
+        by_line = {}
+        for a, b, sp, p in lst:
+            key = a[0] if axis == "x" else a[1]
+            by_line.setdefault(round(key, 6), []).append((a, b, sp, p))
+        for items in by_line.values():
+            for i, (a, b, sp, p) in enumerate(items):
+                lo, hi = (a[1], b[1]) if axis == "x" else (a[0], b[0])
+                for a2, b2, sp2, p2 in items[i + 1:]:
+                    lo2, hi2 = (a2[1], b2[1]) if axis == "x" else (a2[0], b2[0])
+                    if min(hi, hi2) - max(lo, lo2) > 1e-9:  # overlapping: a shared edge
+                        assert sp == pytest.approx(sp2, rel=1e-12), (p, p2)
+                        checked += 1
+    assert checked > 0
+
+
+def test_culling_never_removes_a_visible_patch(dem_terrain):
+    hm = dem_terrain.heightmap
+    for cam in _cams(hm, 3):
+        pl = select(dem_terrain, cam, ScreenErrorPolicy(1.0))
+        assert pl.stats["culled"] >= 0
+        f = render(Scene(hm, camera=cam, outputs=("depth",)))
+        tri = f.triangle_id[f.triangle_id >= 0]
+        cw = hm.shape[1] - 1
+        cell = tri // 2
+        ci, cj = cell // cw, cell % cw
+        covered = np.zeros(len(ci), bool)
+        for (ox, oz), sc in zip(pl.origin_cells, pl.size_cells):
+            covered |= (cj + 1 > ox) & (cj < ox + sc) & (ci + 1 > oz) & (ci < oz + sc)
+        assert covered.all()
+
+
+def test_culling_drops_patches_behind_the_camera(dem_terrain):
+    hm = dem_terrain.heightmap
+    (x0, z0), (x1, z1) = hm.bounds_xz
+    cam = Camera(position=(0.5 * (x0 + x1), 1500.0, 0.5 * (z0 + z1)), target=(x1, 1400.0, 0.5 * (z0 + z1)),
+                 width=160, height=120, near=1.0, far=1e6)
+    pl = select(dem_terrain, cam, DistancePolicy(1.0))
+    assert pl.stats["culled"] > 0
+    assert np.all(pl.origin[:, 0] + pl.size[:, 0] > 0.5 * (x0 + x1) - 1.0)  # nothing behind the eye
+
+
+def test_hysteresis_lowers_level_changes():
+    hm = Heightmap.fbm(257, seed=3, dx=10.0, max_height=400.0)
+    t = Terrain.prepare(hm, roots=4, tess=8)
+    path = []
+    for k in range(40):  # back and forth along a line, small steps
+        s = 0.5 + 0.03 * np.sin(k * 1.3)
+        path.append(Camera(position=(1280.0 * s, 900.0, 2600.0), target=(1280.0, 0.0, 1280.0), width=320,
+                           height=240, near=1.0, far=1e5))
+
+    def changes(h):
+        st = LodState()
+        prev = None
+        n = 0
+        for cam in path:
+            pl = select(t, cam, ScreenErrorPolicy(1.0, hysteresis=h), st)
+            cur = set(pl.key.tolist())
+            if prev is not None:
+                n += len(cur ^ prev)
+            prev = cur
+        return n
+
+    plain, hyst = changes(0.0), changes(0.5)
+    assert plain > 0
+    assert hyst < plain
+
+
+def test_dist_zero_camera_inside_node_is_defined():
+    hm = Heightmap.fbm(129, seed=1, dx=1.0, max_height=50.0)
+    t = Terrain.prepare(hm, roots=1, tess=8)
+    ground = float(hm.sample([64.0], [64.0])[0])
+    cam = Camera(position=(64.0, ground + 0.5, 64.0), target=(100.0, ground, 100.0), width=64, height=64,
+                 near=0.01, far=1e4)
+    pl = select(t, cam, ScreenErrorPolicy(1.0))
+    assert np.all(np.isfinite(pl.metric)) or np.all(pl.metric[pl.distance > 0] < 3e38)
+    assert pl.level.max() == t.depth  # inside the box: infinite screen error, split to the bottom
+    assert np.all(np.isfinite(pl.outer))
+
+
+def test_continuous_factors_shared_edges_bitwise(dem_terrain):
+    cam = _cams(dem_terrain.heightmap)[1]
+    pl = select(dem_terrain, cam, ContinuousPolicy(target_px=6.0, level=3))
+    assert (pl.level == 3).all()
+    assert pl.outer.min() >= 1.0 and pl.outer.max() <= 64.0
+    assert len(np.unique(pl.outer)) > 5  # actually continuous
+    # east edge of a patch == west edge of the patch to its right, bit for bit
+    lut = {(round(o[0], 6), round(o[1], 6)): i for i, o in enumerate(pl.origin)}
+    n = 0
+    for i, (o, s) in enumerate(zip(pl.origin, pl.size)):
+        j = lut.get((round(o[0] + s[0], 6), round(o[1], 6)))
+        if j is not None:
+            assert pl.outer[i, 2] == pl.outer[j, 0]
+            n += 1
+        j = lut.get((round(o[0], 6), round(o[1] + s[1], 6)))
+        if j is not None:
+            assert pl.outer[i, 3] == pl.outer[j, 1]
+            n += 1
+    assert n > 10
+
+
+def test_selection_is_deterministic(dem_terrain):
+    cam = _cams(dem_terrain.heightmap)[2]
+    a = select(dem_terrain, cam, ScreenErrorPolicy(0.7))
+    b = select(dem_terrain, cam, ScreenErrorPolicy(0.7))
+    for x, y in zip(a[:-1], b[:-1]):
+        assert np.array_equal(x, y)
+
+
+def test_bad_input():
+    hm = Heightmap.fbm(33, seed=0)
+    with pytest.raises(ValueError, match="tess"):
+        Terrain.prepare(hm, tess=65)
+    with pytest.raises(ValueError, match="roots"):
+        Terrain.prepare(hm, roots=0)
+    t = Terrain.prepare(hm, roots=1, tess=4)
+    cam = Camera.default_for(hm)
+    with pytest.raises(ValueError, match="tolerance_px"):
+        select(t, cam, ScreenErrorPolicy(float("nan")))
+    with pytest.raises(ValueError, match="hysteresis"):
+        select(t, cam, ScreenErrorPolicy(1.0, hysteresis=1.5))
+    with pytest.raises(TypeError, match="policy"):
+        select(t, cam, "fast")
+    with pytest.raises(TypeError, match="terrain"):
+        select(hm, cam)
+    big = Terrain.prepare(Heightmap.fbm(321, seed=0, dx=1.0), roots=1, tess=40, depth=2)
+    cam = Camera(position=(1.0, 1500.0, 1.0), target=(200.0, 0.0, 200.0), near=0.1, far=1e4)
+    uniform = select(big, cam, DistancePolicy(thresholds=(1e9, 0.0)))  # one level: no doubling, allowed
+    assert set(uniform.level.tolist()) == {1}
+    d = np.unique(uniform.distance)
+    with pytest.raises(ValueError, match="tess"):  # mixed levels would need 2 * 40 > 64
+        select(big, cam, DistancePolicy(thresholds=(1e9, 0.5 * (d[0] + d[1]))))
