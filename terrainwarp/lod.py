@@ -564,7 +564,8 @@ def _complete_tiling(terrain, level, lx, ly, dist, metric, culled):
         idx = covered.locate(x << shift, y << shift)
         is_leaf = (level[idx] == lvl) & (lx[idx] == x) & (ly[idx] == y)
         x, y = x[~is_leaf], y[~is_leaf]
-        x, y = np.concatenate([2 * x, 2 * x + 1, 2 * x, 2 * x + 1]), np.concatenate([2 * y, 2 * y, 2 * y + 1, 2 * y + 1])
+        x, y = (np.concatenate([2 * x, 2 * x + 1, 2 * x, 2 * x + 1]),
+                np.concatenate([2 * y, 2 * y, 2 * y + 1, 2 * y + 1]))
     al = np.concatenate(add_l)
     n = len(al)
     outside = np.concatenate([np.zeros(len(level), bool), np.ones(n, bool)])

@@ -37,7 +37,7 @@ def test_geometric_error_zero_on_plane_and_exact_on_bump():
     i, j = np.mgrid[0:129, 0:129]
     plane = Heightmap.from_array((0.3 * j - 0.7 * i + 5.0).astype(np.float32))
     t = Terrain.prepare(plane, roots=1, tess=8)
-    for mn, mx, err in t.stats:
+    for _mn, _mx, err in t.stats:
         assert err.max() <= 1e-4  # float32 rounding of the bilinear weights only
     h = np.zeros((129, 129), np.float32)
     h[37, 53] = 10.0  # a one-sample bump, not on any vertex of levels < depth
