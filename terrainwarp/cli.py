@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 __all__ = ["main"]
 
 
@@ -52,6 +54,46 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_float(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not (v > 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {s}")
+    return v
+
+
+def _lod_policy(args: argparse.Namespace):
+    from .lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy
+
+    if args.policy == "sse":
+        return ScreenErrorPolicy(args.tolerance_px, hysteresis=args.hysteresis)
+    if args.policy == "distance":
+        return DistancePolicy(args.k, hysteresis=args.hysteresis)
+    return ContinuousPolicy(args.target_px, level=args.level)
+
+
+def _cmd_lod(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from .lod import Terrain, select
+    from .plots import plot_patches
+
+    sc = _scene(args)
+    terrain = Terrain.prepare(sc.heightmap, roots=args.roots, tess=args.tess)
+    patches = select(terrain, sc.camera, _lod_policy(args))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    patches.to_csv(out / "patches.csv")
+    plot_patches(sc.heightmap, patches, sc.camera, out / "lod.png",
+                 title=f"{args.policy}: {len(patches)} patches, {patches.stats['culled']} culled")
+    print(json.dumps({**patches.stats, "levels": np.bincount(patches.level).tolist() if len(patches) else []}))
+    print(f"wrote: {out / 'lod.png'}, {out / 'patches.csv'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.")
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
@@ -66,6 +108,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--width", type=int, default=None)
     r.add_argument("--height", type=int, default=None)
     r.set_defaults(func=_cmd_render)
+    lo = sub.add_parser("lod", help="select LOD patches: top-down picture (lod.png) and table (patches.csv)")
+    lo.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
+    lo.add_argument("--out", default="out/lod")
+    lo.add_argument("--policy", choices=["sse", "distance", "continuous"], default="sse")
+    lo.add_argument("--tolerance-px", type=_positive_float, default=1.0, help="screen-space error tolerance")
+    lo.add_argument("--k", type=_positive_float, default=2.0, help="distance policy: split below k * node size")
+    lo.add_argument("--target-px", type=_positive_float, default=8.0, help="continuous: pixels per edge segment")
+    lo.add_argument("--level", type=int, default=3, help="continuous: the patch grid's level")
+    lo.add_argument("--hysteresis", type=float, default=0.0)
+    lo.add_argument("--roots", type=int, default=16)
+    lo.add_argument("--tess", type=int, default=16)
+    lo.add_argument("--width", type=int, default=None)
+    lo.add_argument("--height", type=int, default=None)
+    lo.set_defaults(func=_cmd_lod)
     return p
 
 

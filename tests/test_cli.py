@@ -35,3 +35,12 @@ def test_bad_arguments_one_line_exit_2(argv, tmp_path):
     assert len(lines) == 1, r.stderr
     assert "Traceback" not in r.stderr
     assert not any(tmp_path.iterdir())
+
+
+def test_lod_writes_picture_and_table(tmp_path, capsys):
+    assert main(["lod", "--out", str(tmp_path), "--tolerance-px", "2", "--width", "160", "--height", "120"]) == 0
+    assert (tmp_path / "lod.png").stat().st_size > 1000
+    rows = (tmp_path / "patches.csv").read_text().splitlines()
+    stats = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert len(rows) == 1 + stats["patches"]
+    assert rows[0].startswith("key,zoom_x_y,level")
