@@ -38,7 +38,9 @@ import warp as wp
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
 SUBPIXEL_HALF = SUBPIXEL // 2
-GUARD_BAND_PX = 16384.0  # window coordinates are kept within [-GB, size + GB]
+GUARD_BAND_PX = 0.0  # x and y are clipped at the viewport itself, as llvmpipe does (its pixels match then)
+TILE = 16  # screen tile edge in pixels (binning of large triangles)
+SMALL_PX = 16  # triangles whose pixel box spans fewer pixels than this each way are drawn at once
 _EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
@@ -54,7 +56,7 @@ vec9f = wp.types.vector(length=9, dtype=wp.float32)
 def _clip_poly(poly: poly9, n: int, plane: wp.vec4) -> tuple[poly9, int]:
     """Sutherland-Hodgman clip of an n-gon (rows of poly) against dot(plane, v) >= 0."""
     out = poly9()
-    m = int(0)
+    m = int(0)  # noqa: UP018 -- a mutable Warp int
     for k in range(n):
         a = poly[k]
         b = poly[(k + 1) % n]
@@ -64,8 +66,11 @@ def _clip_poly(poly: poly9, n: int, plane: wp.vec4) -> tuple[poly9, int]:
             out[m] = a
             m += 1
         if (da >= 0.0) != (db >= 0.0):
-            t = da / (da - db)
-            out[m] = a + t * (b - a)
+            # from the outside vertex towards the inside one, as Mesa's clipper interpolates
+            if da < 0.0:
+                out[m] = a + (da / (da - db)) * (b - a)
+            else:
+                out[m] = b + (db / (db - da)) * (a - b)
             m += 1
     return out, m
 
@@ -78,25 +83,312 @@ def float_bits(x: float) -> wp.uint32: ...
 def bits_float(x: wp.uint32) -> float: ...
 
 
+@wp.func_native("""return __builtin_fmaf(a, b, c);""")
+def _fma(a: float, b: float, c: float) -> float: ...
+
+
 @wp.func
-def _floordiv(a: wp.int64, b: wp.int64) -> wp.int64:
-    """floor(a / b) for b > 0 (C division truncates towards zero)."""
-    if a >= wp.int64(0):
-        return a / b
-    return -((-a + b - wp.int64(1)) / b)
+def _pixel_lo(v: wp.int64) -> int:
+    """Smallest pixel index whose centre (k * 256 + 128) is >= the fixed-point coordinate v."""
+    return int((v - wp.int64(SUBPIXEL_HALF) + wp.int64(SUBPIXEL - 1)) >> wp.int64(SUBPIXEL_BITS))
+
+
+@wp.func
+def _pixel_hi(v: wp.int64) -> int:
+    """Largest pixel index whose centre is <= v (arithmetic shift = floor division by 256)."""
+    return int((v - wp.int64(SUBPIXEL_HALF)) >> wp.int64(SUBPIXEL_BITS))
 
 
 @wp.func
 def _snap(v: float) -> wp.int64:
-    return wp.int64(wp.floor(v * float(SUBPIXEL) + 0.5))
+    # round half to even, as llvmpipe's util_iround (lrintf) does
+    return wp.int64(wp.rint(v * float(SUBPIXEL)))
 
 
 @wp.func
 def _is_top_left(dx: wp.int64, dy: wp.int64) -> wp.bool:
     # Edge a->b of a counter-clockwise triangle in window coordinates (y up, interior on the left).
-    # Visually (row 0 at the top): a top edge is horizontal with the interior below (dx < 0);
-    # a left edge has the interior to its right (it runs downwards, dy < 0).
-    return dy < wp.int64(0) or (dy == wp.int64(0) and dx < wp.int64(0))
+    # Included edges (llvmpipe's convention for GL framebuffers, checked against it in the tests):
+    # a left edge (it runs downwards, dy < 0, interior at +x) or a horizontal edge with the interior
+    # above it in window y (dx > 0), which is the bottom edge of the triangle in the image.
+    return dy < wp.int64(0) or (dy == wp.int64(0) and dx > wp.int64(0))
+
+
+@wp.func
+def _setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, gb: wp.vec2):
+    """Trivial reject, near-plane and guard-band clipping, viewport transform and snapping.
+
+    Returns (n, xs, ys, fxs, fys, zs): the clipped convex polygon with n vertices (0 when rejected),
+    window x and y in fixed point (8 sub-pixel bits, pixel centres at k * 256 + 128), the same in float
+    before snapping, and window depth.
+    """
+    xs = vec9l()
+    ys = vec9l()
+    fxs = vec9f()
+    fys = vec9f()
+    zs = vec9f()
+    n = int(0)  # noqa: UP018 -- a mutable Warp int
+    reject = wp.bool(False)
+    if c0[0] > c0[3] and c1[0] > c1[3] and c2[0] > c2[3]:
+        reject = True
+    if c0[0] < -c0[3] and c1[0] < -c1[3] and c2[0] < -c2[3]:
+        reject = True
+    if c0[1] > c0[3] and c1[1] > c1[3] and c2[1] > c2[3]:
+        reject = True
+    if c0[1] < -c0[3] and c1[1] < -c1[3] and c2[1] < -c2[3]:
+        reject = True
+    if c0[2] > c0[3] and c1[2] > c1[3] and c2[2] > c2[3]:
+        reject = True
+    if c0[2] < -c0[3] and c1[2] < -c1[3] and c2[2] < -c2[3]:
+        reject = True
+    if reject:
+        return n, xs, ys, fxs, fys, zs
+    poly = poly9()
+    poly[0] = c0
+    poly[1] = c1
+    poly[2] = c2
+    n = 3
+    # Mesa's clipper order: the guard-band x and y planes first, then near, then far
+    outside = wp.bool(False)
+    for k in range(n):
+        v = poly[k]
+        if wp.abs(v[0]) > gb[0] * v[3] or wp.abs(v[1]) > gb[1] * v[3]:
+            outside = True
+    if outside:
+        poly, n = _clip_poly(poly, n, wp.vec4(-1.0, 0.0, 0.0, gb[0]))
+        poly, n = _clip_poly(poly, n, wp.vec4(1.0, 0.0, 0.0, gb[0]))
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, -1.0, 0.0, gb[1]))
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 1.0, 0.0, gb[1]))
+    if c0[2] < -c0[3] or c1[2] < -c1[3] or c2[2] < -c2[3]:
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, 1.0, 1.0))
+    # the far plane too, geometrically, when a vertex lies beyond it: such a vertex may have w < 0
+    # (-w <= z and z > w), and only after both clips is w >= |z| >= 0 for every vertex
+    if c0[2] > c0[3] or c1[2] > c1[3] or c2[2] > c2[3]:
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, -1.0, 1.0))
+    if n < 3:
+        n = 0
+        return n, xs, ys, fxs, fys, zs
+    for k in range(n):
+        if poly[k][3] <= 0.0:
+            n = 0
+            return n, xs, ys, fxs, fys, zs
+    hw = 0.5 * float(width)
+    hh = 0.5 * float(height)
+    for k in range(n):
+        f = _window(poly[k], hw, hh)
+        fxs[k] = f[0]
+        fys[k] = f[1]
+        zs[k] = f[2]
+        xs[k] = _snap(f[0])
+        ys[k] = _snap(f[1])
+    return n, xs, ys, fxs, fys, zs
+
+
+@wp.func
+def _inside(c: wp.vec4, gb: wp.vec2) -> wp.bool:
+    return wp.abs(c[0]) <= gb[0] * c[3] and wp.abs(c[1]) <= gb[1] * c[3] and wp.abs(c[2]) <= c[3]
+
+
+@wp.func
+def _window(c: wp.vec4, hw: float, hh: float) -> wp.vec3:
+    """Window (x, y, depth) of a clip-space vertex with w > 0, as llvmpipe's vertex stage computes it:
+    x / w * scale + translate, fused."""
+    iw = 1.0 / c[3]
+    return wp.vec3(_fma(c[0] * iw, hw, hw), _fma(c[1] * iw, hh, hh), _fma(c[2] * iw, 0.5, 0.5))
+
+
+@wp.func
+def _poly_pixels(n: int, xs: vec9l, ys: vec9l, width: int, height: int) -> wp.vec4i:
+    """Pixel index range (x0, x1, y0, y1) whose centres may be covered, clamped to the viewport."""
+    xmin = xs[0]
+    xmax = xs[0]
+    ymin = ys[0]
+    ymax = ys[0]
+    for k in range(1, n):
+        xmin = wp.min(xmin, xs[k])
+        xmax = wp.max(xmax, xs[k])
+        ymin = wp.min(ymin, ys[k])
+        ymax = wp.max(ymax, ys[k])
+    return wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
+                    wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
+
+
+@wp.func
+def _fan_tri(xs: vec9l, ys: vec9l, k: int, cull_back: int):
+    """Fan triangle (0, k, k+1) made counter-clockwise; returns (ok, order) with order 0 = as is,
+    1 = vertices k and k+1 swapped; ok is False for zero area or a culled back face."""
+    area = (xs[k] - xs[0]) * (ys[k + 1] - ys[0]) - (xs[k + 1] - xs[0]) * (ys[k] - ys[0])
+    ok = area != wp.int64(0)
+    if cull_back != 0 and area < wp.int64(0):
+        ok = False
+    swap = int(0)  # noqa: UP018 -- a mutable Warp int
+    if area < wp.int64(0):
+        swap = 1
+    return ok, swap
+
+
+@wp.func
+def _edge_bias(dx: wp.int64, dy: wp.int64) -> wp.int64:
+    if _is_top_left(dx, dy):
+        return wp.int64(0)
+    return wp.int64(-1)
+
+
+@wp.func
+def _tri_rect(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
+              r: wp.vec4i) -> wp.bool:
+    """Whether the CCW triangle may cover a pixel centre of the pixel rectangle r = (x0, x1, y0, y1)."""
+    half = wp.int64(SUBPIXEL_HALF)
+    one = wp.int64(SUBPIXEL)
+    x0 = wp.int64(r[0]) * one + half
+    x1 = wp.int64(r[1]) * one + half
+    y0 = wp.int64(r[2]) * one + half
+    y1 = wp.int64(r[3]) * one + half
+    # each edge: the corner where the edge function is largest
+    ex = x0
+    ey = y0
+    if by - cy > wp.int64(0):
+        ex = x1
+    if cx - bx > wp.int64(0):
+        ey = y1
+    if (cx - bx) * (ey - by) - (cy - by) * (ex - bx) + _edge_bias(cx - bx, cy - by) < wp.int64(0):
+        return False
+    ex = x0
+    ey = y0
+    if cy - ay > wp.int64(0):
+        ex = x1
+    if ax - cx > wp.int64(0):
+        ey = y1
+    if (ax - cx) * (ey - cy) - (ay - cy) * (ex - cx) + _edge_bias(ax - cx, ay - cy) < wp.int64(0):
+        return False
+    ex = x0
+    ey = y0
+    if ay - by > wp.int64(0):
+        ex = x1
+    if bx - ax > wp.int64(0):
+        ey = y1
+    if (bx - ax) * (ey - ay) - (by - ay) * (ex - ax) + _edge_bias(bx - ax, by - ay) < wp.int64(0):
+        return False
+    return True
+
+
+@wp.func
+def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
+                fa: wp.vec3, fb: wp.vec3, fc: wp.vec3, t: int, r: wp.vec4i, width: int, height: int,
+                out_key: wp.array(dtype=wp.uint64)) -> wp.vec3l:
+    """Cover the pixel centres of rectangle r = (x0, x1, y0, y1) inside the CCW triangle; depth-test
+    with a 64-bit atomic min. Returns (fragments tested, fragments inside, pixels written)."""
+    half = wp.int64(SUBPIXEL_HALF)
+    one = wp.int64(SUBPIXEL)
+    xmin = wp.min(ax, wp.min(bx, cx))
+    xmax = wp.max(ax, wp.max(bx, cx))
+    ymin = wp.min(ay, wp.min(by, cy))
+    ymax = wp.max(ay, wp.max(by, cy))
+    px0 = wp.max(r[0], _pixel_lo(xmin))
+    px1 = wp.min(r[1], _pixel_hi(xmax))
+    py0 = wp.max(r[2], _pixel_lo(ymin))
+    py1 = wp.min(r[3], _pixel_hi(ymax))
+    tested = wp.int64(0)
+    inside = wp.int64(0)
+    written = wp.int64(0)
+    if px0 > px1 or py0 > py1:
+        return wp.vec3l(tested, inside, written)
+    bias0 = _edge_bias(cx - bx, cy - by)
+    bias1 = _edge_bias(ax - cx, ay - cy)
+    bias2 = _edge_bias(bx - ax, by - ay)
+    sx = wp.int64(px0) * one + half
+    sy = wp.int64(py0) * one + half
+    # E0: edge b->c (weight of a), E1: c->a (weight of b), E2: a->b (weight of c); bias folded in
+    e0r = (cx - bx) * (sy - by) - (cy - by) * (sx - bx) + bias0
+    e1r = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx) + bias1
+    e2r = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax) + bias2
+    e0dx = -(cy - by) * one
+    e1dx = -(ay - cy) * one
+    e2dx = -(by - ay) * one
+    e0dy = (cx - bx) * one
+    e1dy = (ax - cx) * one
+    e2dy = (bx - ax) * one
+    # depth plane from the float (unsnapped) window coordinates, as llvmpipe's triangle setup does,
+    # evaluated relative to the centre of pixel (px0, py0); fa = (x, y, z) of vertex a
+    dx01 = fa[0] - fb[0]
+    dy01 = fa[1] - fb[1]
+    dx20 = fc[0] - fa[0]
+    dy20 = fc[1] - fa[1]
+    ooa = 1.0 / (dx01 * dy20 - dx20 * dy01)
+    dz01 = fa[2] - fb[2]
+    dz20 = fc[2] - fa[2]
+    dzdx = (dz01 * dy20 - dz20 * dy01) * ooa
+    dzdy = (dx01 * dz20 - dx20 * dz01) * ooa
+    z00 = fa[2] - (dzdx * (fa[0] - (float(px0) + 0.5)) + dzdy * (fa[1] - (float(py0) + 0.5)))
+    tid = wp.uint64(t)
+    for j in range(py1 - py0 + 1):
+        e0 = e0r
+        e1 = e1r
+        e2 = e2r
+        row = (height - 1 - (py0 + j)) * width + px0
+        zr = z00 + dzdy * float(j)
+        for i in range(px1 - px0 + 1):
+            if (e0 | e1 | e2) >= wp.int64(0):
+                inside += wp.int64(1)
+                # coverage is geometric (the polygon is clipped to near and far); depth is clamped
+                # to [0, 1] as GL does, so a rounding excursion below 0 at the near plane stays drawn
+                d = wp.clamp(zr + dzdx * float(i), 0.0, 1.0)
+                key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | tid
+                old = wp.atomic_min(out_key, row + i, key)
+                if key < old:
+                    written += wp.int64(1)
+            e0 += e0dx
+            e1 += e1dx
+            e2 += e2dx
+        tested += wp.int64(px1 - px0 + 1)
+        e0r += e0dy
+        e1r += e1dy
+        e2r += e2dy
+    return wp.vec3l(tested, inside, written)
+
+
+@wp.func
+def _raster_poly(n: int, xs: vec9l, ys: vec9l, fxs: vec9f, fys: vec9f, zs: vec9f, t: int, r: wp.vec4i,
+                 cull_back: int, width: int, height: int, out_key: wp.array(dtype=wp.uint64)) -> wp.vec4l:
+    """Draw the polygon's fan, each triangle on its own as llvmpipe does after clipping.
+    Returns (fan triangles drawn, fragments tested, inside, written)."""
+    acc = wp.vec4l()
+    for k in range(1, n - 1):
+        ok, swap = _fan_tri(xs, ys, k, cull_back)
+        if ok:
+            kb = k
+            kc = k + 1
+            if swap == 1:
+                kb = k + 1
+                kc = k
+            c = _raster_tri(xs[0], ys[0], xs[kb], ys[kb], xs[kc], ys[kc], wp.vec3(fxs[0], fys[0], zs[0]),
+                            wp.vec3(fxs[kb], fys[kb], zs[kb]), wp.vec3(fxs[kc], fys[kc], zs[kc]), t, r,
+                            width, height, out_key)
+            acc = acc + wp.vec4l(wp.int64(1), c[0], c[1], c[2])
+    return acc
+
+
+@wp.func
+def _poly_rect(n: int, xs: vec9l, ys: vec9l, r: wp.vec4i, cull_back: int) -> wp.bool:
+    """Whether some drawable fan triangle of the polygon may cover a pixel centre of rectangle r."""
+    hit = wp.bool(False)
+    for k in range(1, n - 1):
+        ok, swap = _fan_tri(xs, ys, k, cull_back)
+        if ok and not hit:
+            kb = k
+            kc = k + 1
+            if swap == 1:
+                kb = k + 1
+                kc = k
+            if _tri_rect(xs[0], ys[0], xs[kb], ys[kb], xs[kc], ys[kc], r):
+                hit = True
+    return hit
+
+
+@wp.func
+def _tile_rect(tx: int, ty: int, width: int, height: int) -> wp.vec4i:
+    return wp.vec4i(tx * TILE, wp.min(tx * TILE + TILE - 1, width - 1),
+                    ty * TILE, wp.min(ty * TILE + TILE - 1, height - 1))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -117,158 +409,160 @@ def _vertex_kernel(
 
 
 @wp.kernel(enable_backward=False)
-def _raster_kernel(
+def _small_count_kernel(
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     width: int,
     height: int,
     cull_back: int,
     gb: wp.vec2,
+    tiles_x: int,
     # outputs
     out_key: wp.array(dtype=wp.uint64),
-    out_count: wp.array(dtype=wp.int64),
+    out_big: wp.array(dtype=wp.int32),
+    out_tile_count: wp.array(dtype=wp.int32),
+    out_stats: wp.array(dtype=wp.int64),
 ):
+    """Per triangle: set up; draw it at once when its pixel box spans at most SMALL_PX pixels each
+    way, else count the screen tiles it may cover (out_big[t] = 1)."""
     t = wp.tid()
+    out_big[t] = 0
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
     c2 = clip[tris[t, 2]]
-    # trivial reject against the six clip planes
-    if c0[0] > c0[3] and c1[0] > c1[3] and c2[0] > c2[3]:
-        return
-    if c0[0] < -c0[3] and c1[0] < -c1[3] and c2[0] < -c2[3]:
-        return
-    if c0[1] > c0[3] and c1[1] > c1[3] and c2[1] > c2[3]:
-        return
-    if c0[1] < -c0[3] and c1[1] < -c1[3] and c2[1] < -c2[3]:
-        return
-    if c0[2] > c0[3] and c1[2] > c1[3] and c2[2] > c2[3]:
-        return
-    if c0[2] < -c0[3] and c1[2] < -c1[3] and c2[2] < -c2[3]:
-        return
-    poly = poly9()
-    poly[0] = c0
-    poly[1] = c1
-    poly[2] = c2
-    n = int(3)
-    if c0[2] < -c0[3] or c1[2] < -c1[3] or c2[2] < -c2[3]:
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, 1.0, 1.0))
-    # guard band (only when needed)
-    outside = wp.bool(False)
-    for k in range(n):
-        v = poly[k]
-        if wp.abs(v[0]) > gb[0] * v[3] or wp.abs(v[1]) > gb[1] * v[3]:
-            outside = True
-    if outside:
-        poly, n = _clip_poly(poly, n, wp.vec4(-1.0, 0.0, 0.0, gb[0]))
-        poly, n = _clip_poly(poly, n, wp.vec4(1.0, 0.0, 0.0, gb[0]))
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, -1.0, 0.0, gb[1]))
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 1.0, 0.0, gb[1]))
-    if n < 3:
-        return
-    # to window coordinates, fixed point; z_ndc kept as float
-    xs = vec9l()
-    ys = vec9l()
-    zs = vec9f()
-    hw = 0.5 * float(width)
-    hh = 0.5 * float(height)
-    for k in range(n):
-        v = poly[k]
-        iw = 1.0 / v[3]
-        xs[k] = _snap((v[0] * iw + 1.0) * hw)
-        ys[k] = _snap((v[1] * iw + 1.0) * hh)
-        zs[k] = v[2] * iw
-    # orientation of the polygon (sum over the fan)
-    area2 = wp.int64(0)
-    for k in range(1, n - 1):
-        area2 += (xs[k] - xs[0]) * (ys[k + 1] - ys[0]) - (xs[k + 1] - xs[0]) * (ys[k] - ys[0])
-    if area2 == wp.int64(0):
-        return
-    if cull_back != 0 and area2 < wp.int64(0):
-        return
-    tested = wp.int64(0)
-    half = wp.int64(SUBPIXEL_HALF)
-    one = wp.int64(SUBPIXEL)
-    for k in range(1, n - 1):
-        ax = xs[0]
-        ay = ys[0]
-        bx = xs[k]
-        by = ys[k]
-        cx = xs[k + 1]
-        cy = ys[k + 1]
-        za = zs[0]
-        zb = zs[k]
-        zc = zs[k + 1]
+    if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb):
+        # fast path, no clipping needed (most triangles): the same arithmetic as _setup and
+        # _raster_poly for n = 3, without the polygon arrays
+        hw = 0.5 * float(width)
+        hh = 0.5 * float(height)
+        fa = _window(c0, hw, hh)
+        fb = _window(c1, hw, hh)
+        fc = _window(c2, hw, hh)
+        ax = _snap(fa[0])
+        ay = _snap(fa[1])
+        bx = _snap(fb[0])
+        by = _snap(fb[1])
+        cx = _snap(fc[0])
+        cy = _snap(fc[1])
         area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
-        if area == wp.int64(0):
-            continue
-        if area < wp.int64(0):  # make it counter-clockwise
-            tx = bx
-            ty = by
-            tz = zb
+        if area == wp.int64(0) or (cull_back != 0 and area < wp.int64(0)):
+            return
+        if area < wp.int64(0):
+            qx = bx
+            qy = by
+            qf = fb
             bx = cx
             by = cy
-            zb = zc
-            cx = tx
-            cy = ty
-            zc = tz
-            area = -area
-        # bounding box in pixels whose centres may be covered
+            fb = fc
+            cx = qx
+            cy = qy
+            fc = qf
         xmin = wp.min(ax, wp.min(bx, cx))
         xmax = wp.max(ax, wp.max(bx, cx))
         ymin = wp.min(ay, wp.min(by, cy))
         ymax = wp.max(ay, wp.max(by, cy))
-        px0 = int(wp.max(wp.int64(0), _floordiv(xmin - half + one - wp.int64(1), one)))
-        px1 = int(wp.min(wp.int64(width - 1), _floordiv(xmax - half, one)))
-        py0 = int(wp.max(wp.int64(0), _floordiv(ymin - half + one - wp.int64(1), one)))
-        py1 = int(wp.min(wp.int64(height - 1), _floordiv(ymax - half, one)))
-        if px0 > px1 or py0 > py1:
-            continue
-        # edge functions E_ab(P) = (b - a) x (P - a); bias excludes non-top-left edges at E == 0
-        bias0 = wp.int64(0)
-        bias1 = wp.int64(0)
-        bias2 = wp.int64(0)
-        if not _is_top_left(cx - bx, cy - by):
-            bias0 = wp.int64(-1)
-        if not _is_top_left(ax - cx, ay - cy):
-            bias1 = wp.int64(-1)
-        if not _is_top_left(bx - ax, by - ay):
-            bias2 = wp.int64(-1)
-        sx = wp.int64(px0) * one + half
-        sy = wp.int64(py0) * one + half
-        # E0: edge b->c (weight of a), E1: c->a (weight of b), E2: a->b (weight of c)
-        e0r = (cx - bx) * (sy - by) - (cy - by) * (sx - bx)
-        e1r = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx)
-        e2r = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax)
-        e0dx = -(cy - by) * one
-        e1dx = -(ay - cy) * one
-        e2dx = -(by - ay) * one
-        e0dy = (cx - bx) * one
-        e1dy = (ax - cx) * one
-        e2dy = (bx - ax) * one
-        inv_area = 1.0 / float(area)
-        dzb = zb - za
-        dzc = zc - za
-        for py in range(py0, py1 + 1):
-            e0 = e0r
-            e1 = e1r
-            e2 = e2r
-            row = (height - 1 - py) * width
-            for px in range(px0, px1 + 1):
-                tested += wp.int64(1)
-                if e0 + bias0 >= wp.int64(0) and e1 + bias1 >= wp.int64(0) and e2 + bias2 >= wp.int64(0):
-                    zn = za + (float(e1) * dzb + float(e2) * dzc) * inv_area
-                    d = 0.5 * zn + 0.5
-                    if d >= 0.0 and d <= 1.0:
-                        key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | wp.uint64(t)
-                        wp.atomic_min(out_key, row + px, key)
-                e0 += e0dx
-                e1 += e1dx
-                e2 += e2dx
-            e0r += e0dy
-            e1r += e1dy
-            e2r += e2dy
-    wp.atomic_add(out_count, 0, wp.int64(1))
-    wp.atomic_add(out_count, 1, tested)
+        if xmax - xmin < wp.int64((SMALL_PX - 1) * SUBPIXEL) and ymax - ymin < wp.int64((SMALL_PX - 1) * SUBPIXEL):
+            c = _raster_tri(ax, ay, bx, by, cx, cy, fa, fb, fc, t, wp.vec4i(0, width - 1, 0, height - 1),
+                            width, height, out_key)
+            if c[0] > wp.int64(0):
+                wp.atomic_add(out_stats, 0, wp.int64(1))
+                wp.atomic_add(out_stats, 1, c[0])
+                wp.atomic_add(out_stats, 2, c[1])
+                wp.atomic_add(out_stats, 3, c[2])
+            return
+    n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
+    if n == 0:
+        return
+    box = _poly_pixels(n, xs, ys, width, height)
+    if box[0] > box[1] or box[2] > box[3]:
+        return
+    if box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX:
+        acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key)
+        if acc[0] > wp.int64(0):
+            wp.atomic_add(out_stats, 0, wp.int64(1))
+            wp.atomic_add(out_stats, 1, acc[1])
+            wp.atomic_add(out_stats, 2, acc[2])
+            wp.atomic_add(out_stats, 3, acc[3])
+        return
+    ntiles = int(0)  # noqa: UP018 -- a mutable Warp int
+    for ty in range(box[2] / TILE, box[3] / TILE + 1):
+        for tx in range(box[0] / TILE, box[1] / TILE + 1):
+            if _poly_rect(n, xs, ys, _tile_rect(tx, ty, width, height), cull_back):
+                wp.atomic_add(out_tile_count, ty * tiles_x + tx, 1)
+                ntiles += 1
+    if ntiles > 0:
+        out_big[t] = 1
+        wp.atomic_add(out_stats, 0, wp.int64(1))
+        wp.atomic_add(out_stats, 4, wp.int64(1))
+        wp.atomic_add(out_stats, 5, wp.int64(ntiles))
+
+
+@wp.kernel(enable_backward=False)
+def _bin_kernel(
+    clip: wp.array(dtype=wp.vec4),
+    tris: wp.array2d(dtype=wp.int32),
+    big: wp.array(dtype=wp.int32),
+    width: int,
+    height: int,
+    cull_back: int,
+    gb: wp.vec2,
+    tiles_x: int,
+    tile_start: wp.array(dtype=wp.int32),
+    # outputs
+    out_cursor: wp.array(dtype=wp.int32),
+    out_list: wp.array(dtype=wp.int32),
+):
+    """Per large triangle: write its id into the list of every tile it may cover."""
+    t = wp.tid()
+    if big[t] == 0:
+        return
+    c0 = clip[tris[t, 0]]
+    c1 = clip[tris[t, 1]]
+    c2 = clip[tris[t, 2]]
+    n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
+    box = _poly_pixels(n, xs, ys, width, height)
+    for ty in range(box[2] / TILE, box[3] / TILE + 1):
+        for tx in range(box[0] / TILE, box[1] / TILE + 1):
+            if _poly_rect(n, xs, ys, _tile_rect(tx, ty, width, height), cull_back):
+                tile = ty * tiles_x + tx
+                slot = wp.atomic_add(out_cursor, tile, 1)
+                out_list[tile_start[tile] + slot] = t
+
+
+@wp.kernel(enable_backward=False)
+def _tile_kernel(
+    clip: wp.array(dtype=wp.vec4),
+    tris: wp.array2d(dtype=wp.int32),
+    width: int,
+    height: int,
+    cull_back: int,
+    gb: wp.vec2,
+    tiles_x: int,
+    tile_start: wp.array(dtype=wp.int32),
+    tile_count: wp.array(dtype=wp.int32),
+    tri_list: wp.array(dtype=wp.int32),
+    # outputs
+    out_key: wp.array(dtype=wp.uint64),
+    out_stats: wp.array(dtype=wp.int64),
+):
+    """Per screen tile: draw the large triangles binned to it, clipped to the tile."""
+    tile = wp.tid()
+    ty = tile / tiles_x
+    tx = tile - ty * tiles_x
+    r = _tile_rect(tx, ty, width, height)
+    acc = wp.vec4l()
+    s = tile_start[tile]
+    for i in range(s, s + tile_count[tile]):
+        t = tri_list[i]
+        c0 = clip[tris[t, 0]]
+        c1 = clip[tris[t, 1]]
+        c2 = clip[tris[t, 2]]
+        n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
+        acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key)
+    if tile_count[tile] > 0:
+        wp.atomic_add(out_stats, 1, acc[1])
+        wp.atomic_add(out_stats, 2, acc[2])
+        wp.atomic_add(out_stats, 3, acc[3])
 
 
 @wp.kernel(enable_backward=False)
@@ -343,6 +637,67 @@ def _as_matrix(name: str, m: object) -> np.ndarray:
     return a
 
 
+def _check_triangles(triangles: object, n: int) -> np.ndarray:
+    tri = np.asarray(triangles)
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise ValueError(f"triangles: expected shape (m, 3), got {tri.shape}")
+    if tri.size and not np.issubdtype(tri.dtype, np.integer):
+        raise TypeError(f"triangles: expected an integer array, got {tri.dtype}")
+    if tri.size and (tri.min() < 0 or tri.max() >= n):
+        raise ValueError(f"triangles: indices must lie in [0, {n}), got [{tri.min()}, {tri.max()}]")
+    return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)
+
+
+def _check_size(width: object, height: object) -> tuple[int, int]:
+    for nm, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, int | np.integer):
+            raise TypeError(f"{nm}: expected an integer, got {v!r}")
+        if not 1 <= int(v) <= 16384:
+            raise ValueError(f"{nm}: expected 1..16384 pixels, got {v}")
+    return int(width), int(height)
+
+
+def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
+                    device: str) -> Fragments:
+    npx = width * height
+    key = wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
+    stats = wp.zeros(6, dtype=wp.int64, device=device)
+    m = int(tri.shape[0])
+    tri_wp = wp.array(tri if m else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
+    tiles_x = (width + TILE - 1) // TILE
+    tiles_y = (height + TILE - 1) // TILE
+    if n and m:
+        gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
+        cb = int(bool(cull_back))
+        big = wp.empty(m, dtype=wp.int32, device=device)
+        tile_count = wp.zeros(tiles_x * tiles_y, dtype=wp.int32, device=device)
+        wp.launch(_small_count_kernel, dim=m, inputs=[clip, tri_wp, width, height, cb, gb, tiles_x],
+                  outputs=[key, big, tile_count, stats], device=device)
+        total = int(stats.numpy()[5])
+        if total:
+            tile_start = wp.empty_like(tile_count)
+            wp.utils.array_scan(tile_count, tile_start, inclusive=False)
+            cursor = wp.zeros_like(tile_count)
+            tri_list = wp.empty(total, dtype=wp.int32, device=device)
+            wp.launch(_bin_kernel, dim=m, inputs=[clip, tri_wp, big, width, height, cb, gb, tiles_x, tile_start],
+                      outputs=[cursor, tri_list], device=device)
+            wp.launch(_tile_kernel, dim=tiles_x * tiles_y,
+                      inputs=[clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
+                      outputs=[key, stats], device=device)
+    out_id = wp.empty(npx, dtype=wp.int32, device=device)
+    out_depth = wp.empty(npx, dtype=wp.float32, device=device)
+    out_bary = wp.empty(npx, dtype=wp.vec2, device=device)
+    wp.launch(_resolve_ids_kernel, dim=npx, inputs=[key, clip, tri_wp, width, height],
+              outputs=[out_id, out_depth, out_bary], device=device)
+    ids = out_id.numpy().reshape(height, width)
+    c = stats.numpy()
+    stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
+               "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
+               "pixels_written": int(c[3]), "pixels_covered": int(np.count_nonzero(ids >= 0))}
+    return Fragments(ids, out_depth.numpy().reshape(height, width),
+                     out_bary.numpy().reshape(height, width, 2), stats_d)
+
+
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
               *, cull_back: bool = False, device: str = "cpu") -> Fragments:
     """Rasterize a triangle mesh with any matrices (no assumption about which axis is up).
@@ -359,49 +714,45 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         :class:`Fragments`. Deterministic: bit-identical on every run.
     """
     pos = np.asarray(positions)
-    tri = np.asarray(triangles)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
     if not np.issubdtype(pos.dtype, np.floating):
         raise TypeError(f"positions: expected a float array, got {pos.dtype}")
-    if tri.ndim != 2 or tri.shape[1] != 3:
-        raise ValueError(f"triangles: expected shape (m, 3), got {tri.shape}")
-    if tri.size and not np.issubdtype(tri.dtype, np.integer):
-        raise TypeError(f"triangles: expected an integer array, got {tri.dtype}")
-    for nm, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int | np.integer):
-            raise TypeError(f"{nm}: expected an integer, got {v!r}")
-        if not 1 <= int(v) <= 16384:
-            raise ValueError(f"{nm}: expected 1..16384 pixels, got {v}")
-    width, height = int(width), int(height)
-    if tri.size and (tri.min() < 0 or tri.max() >= len(pos)):
-        raise ValueError(f"triangles: indices must lie in [0, {len(pos)}), got [{tri.min()}, {tri.max()}]")
+    tri = _check_triangles(triangles, len(pos))
+    width, height = _check_size(width, height)
     pos32 = np.ascontiguousarray(pos, dtype=np.float32)
     if not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
-    npx = width * height
-    key = wp.array(np.full(npx, _EMPTY_KEY, dtype=np.uint64), dtype=wp.uint64, device=device)
-    count = wp.zeros(2, dtype=wp.int64, device=device)
     clip = wp.empty(max(len(pos32), 1), dtype=wp.vec4, device=device)
-    m = int(tri.shape[0])
-    tri_wp = wp.array(np.ascontiguousarray(tri, dtype=np.int32).reshape(m, 3) if m else
-                      np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
-    if len(pos32) and m:
+    if len(pos32):
         wp.launch(_vertex_kernel, dim=len(pos32), inputs=[wp.array(pos32, dtype=wp.vec3, device=device),
                                                           wp.mat44(*mvp.reshape(-1).tolist())],
                   outputs=[clip], device=device)
-        gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
-        wp.launch(_raster_kernel, dim=m, inputs=[clip, tri_wp, width, height, int(bool(cull_back)), gb],
-                  outputs=[key, count], device=device)
-    out_id = wp.empty(npx, dtype=wp.int32, device=device)
-    out_depth = wp.empty(npx, dtype=wp.float32, device=device)
-    out_bary = wp.empty(npx, dtype=wp.vec2, device=device)
-    wp.launch(_resolve_ids_kernel, dim=npx, inputs=[key, clip, tri_wp, width, height],
-              outputs=[out_id, out_depth, out_bary], device=device)
-    ids = out_id.numpy().reshape(height, width)
-    c = count.numpy()
-    stats = {"triangles_in": m, "triangles_rasterized": int(c[0]), "fragments_tested": int(c[1]),
-             "pixels_covered": int((ids >= 0).sum())}
-    return Fragments(ids, out_depth.numpy().reshape(height, width),
-                     out_bary.numpy().reshape(height, width, 2), stats)
+    return _rasterize_clip(clip, len(pos32), tri, width, height, cull_back, device)
+
+
+def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, cull_back: bool = False,
+                   device: str = "cpu") -> Fragments:
+    """Rasterize triangles given clip-space vertices, as a GPU does after the vertex shader.
+
+    Args:
+        clip: (n, 4) float32 clip-space positions (x, y, z, w), OpenGL conventions.
+        triangles: (m, 3) int32 vertex indices; width, height: viewport in pixels (1..16384).
+        cull_back: drop clockwise triangles.
+
+    Returns:
+        :class:`Fragments`, as :func:`rasterize`.
+    """
+    c = np.asarray(clip)
+    if c.ndim != 2 or c.shape[1] != 4:
+        raise ValueError(f"clip: expected shape (n, 4), got {c.shape}")
+    if not np.issubdtype(c.dtype, np.floating):
+        raise TypeError(f"clip: expected a float array, got {c.dtype}")
+    tri = _check_triangles(triangles, len(c))
+    width, height = _check_size(width, height)
+    c32 = np.ascontiguousarray(c, dtype=np.float32)
+    if not np.all(np.isfinite(c32)):
+        raise ValueError("clip: expected finite coordinates")
+    clip_wp = wp.array(c32 if len(c32) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
+    return _rasterize_clip(clip_wp, len(c32), tri, width, height, cull_back, device)
