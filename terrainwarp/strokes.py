@@ -9,9 +9,14 @@ directional curvature of :func:`terrainwarp.compute_curvature`.
   with fewer than ``min_length`` vertices is dropped. Each segment is black with alpha = the curvature
   of its vertices (mean of the two, clipped to [0, 1]).
 * :func:`hatch_strokes`: at every vertex above ``threshold`` a stroke of ``length`` sample spacings
-  on the tangent plane, centred on the vertex, along the projection of sum_d k_d u_d (u_d the unit
-  vectors of the four directions) onto the tangent plane (``direction="with"``) or perpendicular to it
-  on the tangent plane (``"perp"``); alpha = maximum curvature clipped to [0, 1].
+  on the tangent plane, centred on the vertex, along the curvature-weighted direction of the four
+  directions projected onto the tangent plane (``direction="with"``) or perpendicular to it on the
+  tangent plane (``"perp"``); alpha = maximum curvature clipped to [0, 1]. The paper sums the four
+  unit vectors weighted by curvature; a curvature direction has no sign, so here they are averaged as
+  axes (doubled angles, sum_d k_d (cos 2a_d, sin 2a_d), then half the angle): on a ridge along x the
+  plain sum would tilt the hatches by 35 degrees because the two diagonals' vectors do not cancel.
+  Where the weights cancel (equal curvature every way, e.g. a sphere) the direction of the maximum is
+  used.
 
 Both return :class:`Strokes` (segment arrays a rasterizer can draw) and draw themselves top-down with
 matplotlib (:meth:`Strokes.picture`), so the parameter tables of curtis2004 figures 3 and 4 can be
@@ -227,18 +232,24 @@ def hatch_strokes(heightmap: Heightmap, *, method: str = "three_normal", scale: 
     if not (np.isfinite(ln) and ln > 0.0):
         raise ValueError(f"length: expected a positive number of sample spacings, got {length!r}")
     k = _curvature_for(hm, curvature, method, scale, distance)
-    kmax, _ = max_curvature(k)
+    kmax, kdir = max_curvature(k)
     hh, ww = hm.shape
     nrm = compute_normals(hm, normals, border="skip").reshape(-1, 3).astype(np.float64)
-    lens = np.hypot(_OFFSETS[:, 1] * hm.dx, _OFFSETS[:, 0] * hm.dz)
-    u = np.zeros((4, 3))
-    u[:, 0] = _OFFSETS[:, 1] * hm.dx / lens
-    u[:, 2] = _OFFSETS[:, 0] * hm.dz / lens
+    # orientation average with doubled angles: a curvature direction has no sign, so x, z and the two
+    # diagonals are averaged as axes (the paper's plain sum of the four signed unit vectors would tilt
+    # a ridge's hatches by the two diagonals' unequal signs)
+    theta = np.arctan2(_OFFSETS[:, 0] * hm.dz, _OFFSETS[:, 1] * hm.dx)
     kk = np.nan_to_num(k.reshape(-1, 4).astype(np.float64))
-    w = kk @ u
+    c2 = kk @ np.cos(2 * theta)
+    s2 = kk @ np.sin(2 * theta)
+    ksum = kk.sum(axis=1)
+    kmax_flat, kdir_flat = kmax.reshape(-1), kdir.reshape(-1)
+    iso = np.hypot(c2, s2) <= 1e-6 * ksum  # no preferred axis (e.g. a sphere): the maximum's direction
+    ang = np.where(iso, theta[np.clip(kdir_flat, 0, 3)], 0.5 * np.arctan2(s2, c2))
+    w = np.stack([np.cos(ang), np.zeros_like(ang), np.sin(ang)], axis=1)
     t = w - np.sum(w * nrm, axis=1, keepdims=True) * nrm
     tn = np.linalg.norm(t, axis=1)
-    sel = np.isfinite(kmax.reshape(-1)) & (kmax.reshape(-1) > float(threshold)) & (tn > 1e-12)
+    sel = np.isfinite(kmax_flat) & (kmax_flat > float(threshold)) & (tn > 1e-12)
     idx = np.nonzero(sel)[0]
     t = t[idx] / tn[idx, None]
     if direction == "perp":
