@@ -52,7 +52,7 @@ def main() -> None:
         st = {s.name: s for s in f.report.stages}
         vt = vtk_time(f, cam)
         total = f.report.total_ms
-        rows.append([f"{w}x{h}", st["vertex_normals"].time_ms, st["mesh"].time_ms, st["raster"].time_ms,
+        rows.append([f"{w}x{h}", st["normal_map"].time_ms, st["mesh"].time_ms, st["raster"].time_ms,
                      st["shade"].time_ms, total, st["mesh"].counters["triangles"],
                      st["raster"].counters["pixels_covered"],
                      vt * 1e3 if isinstance(vt, float) else vt,

@@ -74,3 +74,39 @@ def grid_mesh(heights: np.ndarray, dx: float, dz: float, rel_origin: tuple[float
     if m:
         wp.launch(_grid_triangles_kernel, dim=(hh - 1, ww - 1), inputs=[ww], outputs=[tri], device=device)
     return (pos.numpy().reshape(-1, 3), uv.numpy().reshape(-1, 2), tri.numpy()[:m].reshape(-1, 3))
+
+
+@wp.kernel(enable_backward=False)
+def _sample_normals_kernel(
+    nmap: wp.array2d(dtype=wp.vec3),
+    uv: wp.array(dtype=wp.vec2),
+    # outputs
+    out_n: wp.array(dtype=wp.vec3),
+):
+    k = wp.tid()
+    rows = nmap.shape[0]
+    cols = nmap.shape[1]
+    u = wp.clamp(uv[k][0] * float(cols - 1), 0.0, float(cols - 1))
+    v = wp.clamp(uv[k][1] * float(rows - 1), 0.0, float(rows - 1))
+    j0 = int(wp.floor(u))
+    i0 = int(wp.floor(v))
+    j1 = wp.min(j0 + 1, cols - 1)
+    i1 = wp.min(i0 + 1, rows - 1)
+    fu = u - float(j0)
+    fv = v - float(i0)
+    a = nmap[i0, j0] + (nmap[i0, j1] - nmap[i0, j0]) * fu
+    b = nmap[i1, j0] + (nmap[i1, j1] - nmap[i1, j0]) * fu
+    out_n[k] = wp.normalize(a + (b - a) * fv)
+
+
+def sample_normal_map(nmap: np.ndarray, uv: np.ndarray, device: str = "cpu") -> np.ndarray:
+    """Bilinear lookup of an (H, W, 3) normal map at (n, 2) uv in [0, 1] (u along columns), renormalised:
+    (n, 3) float32 vertex normals (the normal map of deaconu2021 "Shading", fetched per vertex)."""
+    n = len(uv)
+    out = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
+    if n:
+        wp.launch(_sample_normals_kernel, dim=n,
+                  inputs=[wp.array(np.ascontiguousarray(nmap, np.float32), dtype=wp.vec3, device=device),
+                          wp.array(np.ascontiguousarray(uv, np.float32), dtype=wp.vec2, device=device)],
+                  outputs=[out], device=device)
+    return out.numpy()[:n].reshape(n, 3)

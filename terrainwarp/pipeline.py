@@ -1,19 +1,35 @@
 """``render(scene) -> Frame``: the pipeline, run backwards from the outputs the scene asks for.
 
-Stages (each a pure function of arrays): ``vertex_normals`` (heightmap normals, Sobel), ``mesh``
-(displaced mesh, camera-relative), ``raster`` (visibility pass), ``shade`` (resolve + hillshade).
-Which run:
+Stages (each a pure function of arrays):
 
-=========  =========================================
+=============  =============================================================================
+stage          what
+=============  =============================================================================
+prepare        LOD scenes without a caller-held Terrain: quadtree pyramids (min/max/error)
+normal_map     the heightmap's Sobel normal map (cached in the Terrain when one is held)
+curvature      heightmap curvature (three-normal, four directions)
+select         LOD scenes: the visible patches (policy, balance, edge factors, culling)
+mesh           the full-resolution grid, or the patches tessellated and displaced in one launch
+raster         the visibility pass (triangle id, depth, barycentrics per pixel)
+shade          resolve + hillshade (image, per-pixel normals)
+reference      the full-resolution grid rasterized from the same camera (only for ``error``)
+error          per-pixel screen-space error against the reference (terrainwarp.metrics)
+=============  =============================================================================
+
+Which run, by output (LOD scenes add ``prepare`` and ``select`` wherever ``mesh`` runs):
+
+=========  ==================================================
 output     stages
-=========  =========================================
-image      vertex_normals, mesh, raster, shade
-normals    vertex_normals, mesh, raster, shade
+=========  ==================================================
+image      normal_map, mesh, raster, shade
+normals    normal_map, mesh, raster, shade
 depth      mesh, raster
 mesh       mesh
-curvature  curvature (heightmap curvature, three-normal, four directions; its own stage)
+patches    select (LOD scenes)
+error      mesh, raster, reference, error
+curvature  curvature
 report     (none: the report of whatever ran)
-=========  =========================================
+=========  ==================================================
 """
 
 from __future__ import annotations
@@ -32,22 +48,31 @@ from .scene import Scene
 
 __all__ = ["render", "Frame", "Report", "StageRecord", "stages_for"]
 
-STAGE_ORDER = ("vertex_normals", "curvature", "mesh", "raster", "shade")
+STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
 _NEEDS = {
-    "image": {"vertex_normals", "mesh", "raster", "shade"},
-    "normals": {"vertex_normals", "mesh", "raster", "shade"},
+    "image": {"normal_map", "mesh", "raster", "shade"},
+    "normals": {"normal_map", "mesh", "raster", "shade"},
     "depth": {"mesh", "raster"},
     "mesh": {"mesh"},
+    "patches": {"select"},
+    "error": {"mesh", "raster", "reference", "error"},
     "curvature": {"curvature"},
     "report": set(),
 }
 
 
-def stages_for(outputs: tuple[str, ...]) -> list[str]:
+def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool = False) -> list[str]:
     """The stages that the given outputs need, in pipeline order."""
     need: set[str] = set()
     for o in outputs:
         need |= _NEEDS[o]
+    if mesh == "lod":
+        if "mesh" in need:
+            need.add("select")
+        if "select" in need and not have_terrain:
+            need.add("prepare")
+    else:
+        need.discard("select")
     return [s for s in STAGE_ORDER if s in need]
 
 
@@ -99,6 +124,8 @@ class Frame:
         curvature: (H, W, 4) float32 curvature of the heightmap (not the image) in the directions x, z,
             diagonal (+x,+z), diagonal (+x,-z) (:func:`terrainwarp.compute_curvature`, three-normal), 1/m;
             only when the scene asks for ``"curvature"``.
+        patches: the :class:`terrainwarp.lod.PatchList` of a LOD frame.
+        error: :class:`terrainwarp.metrics.ErrorStats` against the full-resolution reference, when asked.
         report: the :class:`Report`.
     """
 
@@ -110,6 +137,8 @@ class Frame:
     triangle_id: np.ndarray | None = None
     barycentrics: np.ndarray | None = None
     mesh: Mesh | None = None
+    patches: Any = None
+    error: Any = None
     curvature: np.ndarray | None = None
 
     def save(self, out_dir: str | Path) -> list[Path]:
@@ -132,6 +161,13 @@ class Frame:
             with atomic_path(out / "mesh.vtp") as tmp:
                 self.mesh.to_pyvista().save(str(tmp))
             written.append(out / "mesh.vtp")
+        if self.patches is not None and "patches" in self.scene.outputs:
+            self.patches.to_csv(out / "patches.csv")
+            written.append(out / "patches.csv")
+        if self.error is not None:
+            if self.error.error_map is not None:
+                written.append(write_image(out / "error_px.exr", self.error.error_map))
+            self.report.info["error"] = self.error.row()
         written.append(write_json(out / "report.json", self.report.to_dict()))
         return written
 
@@ -151,13 +187,19 @@ def _timed(report: Report, name: str):
     report.stages.append(rec)
 
 
-def render(scene: Scene, device: str = "cpu") -> Frame:
+def render(scene: Scene, terrain=None, state=None, device: str = "cpu") -> Frame:
     """Render a scene, running only the stages its outputs need.
+
+    Args:
+        scene: what to draw and which outputs to compute.
+        terrain: a :class:`terrainwarp.lod.Terrain` prepared for this heightmap (pyramids, normal map),
+            held by the caller across frames; prepared here (and timed as ``prepare``) when None and
+            the scene needs it.
+        state: a :class:`terrainwarp.lod.LodState` for hysteresis across frames, or None.
 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
     """
-    from .kernels.displacement import grid_mesh
     from .kernels.normals import sobel_normals
     from .kernels.raster import rasterize
     from .kernels.shading import hillshade
@@ -166,33 +208,59 @@ def render(scene: Scene, device: str = "cpu") -> Frame:
         raise TypeError(f"scene: expected a Scene, got {type(scene).__name__}")
     cam = scene.camera
     hm = scene.heightmap
-    stages = stages_for(scene.outputs)
+    lod = scene.mesh == "lod"
+    if terrain is not None:
+        from .lod import Terrain
+
+        if not isinstance(terrain, Terrain):
+            raise TypeError(f"terrain: expected a Terrain, got {type(terrain).__name__}")
+        if terrain.heightmap is not hm:
+            raise ValueError("terrain: prepared for another heightmap than the scene's")
+    stages = stages_for(scene.outputs, scene.mesh, have_terrain=terrain is not None)
     report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
                           "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
                           "mesh_policy": scene.mesh, "outputs": list(scene.outputs), "stages_run": stages,
                           "device": device})
+    if lod:
+        report.info["lod"] = dict(scene.lod.__dict__)
     frame = Frame(scene=scene, report=report)
-    vnormals = None
-    if "vertex_normals" in stages:
-        with _timed(report, "vertex_normals") as r:
-            vnormals = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device).reshape(-1, 3)
-            r.counters["samples"] = int(hm.heights.size)
+    if "prepare" in stages:
+        from .lod import Terrain
+
+        with _timed(report, "prepare") as r:
+            terrain = Terrain.prepare(hm, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
+            r.counters.update(roots=terrain.roots[0] * terrain.roots[1], depth=terrain.depth, tess=terrain.tess)
+    nmap = None
+    if "normal_map" in stages:
+        with _timed(report, "normal_map") as r:
+            cached = terrain._dev.get(("normal_map", device)) if terrain is not None else None
+            if cached is None:
+                cached = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
+                if terrain is not None:
+                    terrain._dev[("normal_map", device)] = cached
+                r.counters["samples"] = int(hm.heights.size)
+            else:
+                r.counters["cached"] = True
+            nmap = cached
     if "curvature" in stages:
         from .analysis import compute_curvature
 
         with _timed(report, "curvature") as r:
             frame.curvature = compute_curvature(hm, "three_normal", device=device)
             r.counters.update(samples=int(hm.heights.size), method="three_normal")
+    if "select" in stages:
+        from .lod import select
+
+        with _timed(report, "select") as r:
+            frame.patches = select(terrain, cam, scene.lod.make_policy(), state, device=device)
+            r.counters.update({k: v for k, v in frame.patches.stats.items() if k in
+                               ("nodes_visited", "patches", "culled", "forced_splits", "max_level")})
     mesh = None
     if "mesh" in stages:
         with _timed(report, "mesh") as r:
-            eye = cam.position
-            rel = (hm.origin[0] - eye[0], eye[1], hm.origin[1] - eye[2])  # float64 subtraction on the host
-            pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, rel, device=device)
-            n = len(pos)
-            mesh = Mesh(positions=pos, eye=eye, triangles=tri, uv=uv, level=np.zeros(n, np.int32),
-                        patch_id=np.zeros(n, np.int32), normals=vnormals)
-            r.counters.update(patches=1, vertices=n, triangles=int(len(tri)))
+            mesh = _lod_mesh(scene, frame.patches, nmap, device) if lod else _grid_mesh(hm, cam, nmap, device)
+            r.counters.update(patches=len(frame.patches) if lod else 1, vertices=mesh.n_vertices,
+                              triangles=mesh.n_triangles)
         frame.mesh = mesh
     if "raster" in stages:
         with _timed(report, "raster") as r:
@@ -200,12 +268,12 @@ def render(scene: Scene, device: str = "cpu") -> Frame:
                               cam.width, cam.height, cull_back=scene.cull_back, device=device)
             r.counters.update(frags.stats)
         frame.triangle_id, frame.barycentrics = frags.triangle_id, frags.barycentrics
-        if "depth" in scene.outputs:
-            frame.depth = frags.depth
+        frame.depth = frags.depth
+    rgb = None
     if "shade" in stages:
         with _timed(report, "shade") as r:
             world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32)
-            rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, vnormals, world_y,
+            rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, mesh.normals, world_y,
                                    azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
                                    device=device)
             r.counters["pixels"] = int(frame.triangle_id.size)
@@ -213,4 +281,50 @@ def render(scene: Scene, device: str = "cpu") -> Frame:
             frame.image = _srgb8(rgb)
         if "normals" in scene.outputs:
             frame.normals = pix_n
+    if "reference" in stages:
+        with _timed(report, "reference") as r:
+            if lod:
+                ref_mesh = _grid_mesh(hm, cam, None, device)
+                ref = rasterize(ref_mesh.positions, ref_mesh.triangles, cam.view_matrix(relative=True),
+                                cam.proj_matrix(), cam.width, cam.height, cull_back=scene.cull_back, device=device)
+                ref_tri, ref_depth = ref.triangle_id, ref.depth
+                r.counters.update(triangles=ref_mesh.n_triangles, pixels_covered=ref.stats["pixels_covered"])
+            else:  # the grid frame is its own reference
+                ref_tri, ref_depth = frame.triangle_id, frame.depth
+                r.counters["reused"] = True
+    if "error" in stages:
+        from .metrics import frame_error
+
+        with _timed(report, "error") as r:
+            frame.error = frame_error(hm, cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
+                                      frame.barycentrics, frame.depth, ref_tri, ref_depth, keep_maps=True)
+            r.counters.update(max_px=round(frame.error.max_px, 4), p99_px=round(frame.error.p99_px, 4),
+                              cracks=frame.error.cracks)
+    if "depth" not in scene.outputs:
+        frame.depth = None
     return frame
+
+
+def _grid_mesh(hm, cam, nmap, device: str) -> Mesh:
+    from .kernels.displacement import grid_mesh
+
+    eye = cam.position
+    rel = (hm.origin[0] - eye[0], eye[1], hm.origin[1] - eye[2])  # float64 subtraction on the host
+    pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, rel, device=device)
+    n = len(pos)
+    return Mesh(positions=pos, eye=eye, triangles=tri, uv=uv, level=np.zeros(n, np.int32),
+                patch_id=np.zeros(n, np.int32), normals=None if nmap is None else nmap.reshape(-1, 3))
+
+
+def _lod_mesh(scene: Scene, patches, nmap, device: str) -> Mesh:
+    """Tessellate and displace the selected patches in one launch (the GPU's single draw call)."""
+    from .kernels.displacement import sample_normal_map
+    from .kernels.tessellator import tessellate_patches
+
+    hm = scene.heightmap
+    cam = scene.camera
+    out = tessellate_patches(patches, hm.heights, hm.dx, hm.dz, hm.origin, cam.position,
+                             spacing=scene.lod.spacing, filter=scene.lod.filter, device=device)
+    normals = None if nmap is None else sample_normal_map(nmap, out["uv"], device=device)
+    return Mesh(positions=out["positions"], eye=cam.position, triangles=out["triangles"], uv=out["uv"],
+                level=out["level"], patch_id=out["patch_id"], normals=normals)

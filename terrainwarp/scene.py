@@ -27,10 +27,64 @@ from typing import Any
 from .camera import Camera
 from .heightmap import EXAMPLES, Heightmap
 
-__all__ = ["Scene", "OUTPUTS", "MESH_POLICIES"]
+__all__ = ["Scene", "LodConfig", "OUTPUTS", "MESH_POLICIES"]
 
-OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh")
-MESH_POLICIES = ("grid",)
+OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error")
+MESH_POLICIES = ("grid", "lod")
+LOD_POLICIES = ("sse", "distance", "continuous")
+SPACINGS = ("equal", "fractional_even", "fractional_odd")
+FILTERS = ("bilinear", "bicubic")
+
+
+@dataclass(frozen=True)
+class LodConfig:
+    """How a ``mesh = "lod"`` scene selects and tessellates patches.
+
+    Attributes:
+        policy: ``"sse"`` (screen-space error, malafeev2014), ``"distance"`` (deaconu2021) or
+            ``"continuous"`` (a uniform patch grid with per-edge fractional factors).
+        tolerance_px: sse policy: split while the projected geometric error exceeds this.
+        k: distance policy: split while the eye is within ``k`` node sizes of the node's box.
+        target_px: continuous policy: target pixels per triangle edge.
+        level: continuous policy: the level of the uniform patch grid.
+        hysteresis: band for separate split/merge thresholds (malafeev2014), in [0, 1).
+        roots: root nodes (deaconu2021 tests 4, 16, 32, 64).
+        tess: tessellation level T of every patch (<= 32 when edges double toward finer neighbours).
+        spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
+        filter: ``"bilinear"`` or ``"bicubic"`` height sampling in the domain shader.
+    """
+
+    policy: str = "sse"
+    tolerance_px: float = 1.0
+    k: float = 2.0
+    target_px: float = 8.0
+    level: int = 3
+    hysteresis: float = 0.0
+    roots: int = 16
+    tess: int = 16
+    spacing: str = "equal"
+    filter: str = "bilinear"
+
+    def __post_init__(self) -> None:
+        if self.policy not in LOD_POLICIES:
+            raise ValueError(f"lod.policy: expected one of {list(LOD_POLICIES)}, got {self.policy!r}")
+        if self.spacing not in SPACINGS:
+            raise ValueError(f"lod.spacing: expected one of {list(SPACINGS)}, got {self.spacing!r}")
+        if self.filter not in FILTERS:
+            raise ValueError(f"lod.filter: expected one of {list(FILTERS)}, got {self.filter!r}")
+        self.make_policy()  # validates the numbers
+
+    def make_policy(self):
+        from .lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, _check_policy
+
+        if self.policy == "sse":
+            p = ScreenErrorPolicy(float(self.tolerance_px), hysteresis=float(self.hysteresis))
+        elif self.policy == "distance":
+            p = DistancePolicy(float(self.k), hysteresis=float(self.hysteresis))
+        else:
+            p = ContinuousPolicy(float(self.target_px), level=int(self.level), hysteresis=float(self.hysteresis))
+        _check_policy(p)
+        return p
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,7 +95,9 @@ class Scene:
         heightmap: the terrain.
         camera: the camera (default: :meth:`Camera.default_for` the heightmap).
         outputs: subset of ``OUTPUTS``; :func:`terrainwarp.render` runs only the stages they need.
-        mesh: mesh policy; ``"grid"`` is the full-resolution grid (two triangles per cell).
+        mesh: ``"grid"``, the full-resolution grid (two triangles per cell), or ``"lod"``: patches selected
+            by the quadtree policy in ``lod`` and tessellated as the GPU does.
+        lod: the :class:`LodConfig` of a ``"lod"`` scene.
         light_azimuth_deg, light_elevation_deg: the hillshade's sun.
         cull_back: cull back-facing triangles in the rasterizer.
     """
@@ -50,6 +106,7 @@ class Scene:
     camera: Camera | None = None
     outputs: tuple[str, ...] = ("image", "depth", "report")
     mesh: str = "grid"
+    lod: LodConfig = field(default_factory=LodConfig)
     light_azimuth_deg: float = 315.0
     light_elevation_deg: float = 45.0
     cull_back: bool = False
@@ -70,9 +127,47 @@ class Scene:
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(outs)))
         if self.mesh not in MESH_POLICIES:
             raise ValueError(f"mesh: expected one of {list(MESH_POLICIES)}, got {self.mesh!r}")
+        if isinstance(self.lod, dict):
+            object.__setattr__(self, "lod", LodConfig(**self.lod))
+        if not isinstance(self.lod, LodConfig):
+            raise TypeError(f"lod: expected a LodConfig, got {type(self.lod).__name__}")
 
     def with_(self, **changes: Any) -> Scene:
         return replace(self, **changes)
+
+    def camera_path(self, n: int | None = None) -> list[Camera]:
+        """The scene's camera path: its ``[path]`` table if the scene file has one, else a default
+        flyover diagonally across the terrain (8 cameras, 2% of the terrain's extent above the ground,
+        looking 25% of the path ahead), at the scene camera's viewport and field of view.
+
+        ``[path]`` keys: ``kind = "flyover"`` with ``waypoints`` (pairs of fractions of the extent, or
+        metres with ``units = "m"``), ``clearance`` (m), ``n``; or ``kind = "orbit"`` with ``radius``
+        and ``elevation`` (fractions of the extent, or metres with units = "m") and ``n``.
+        """
+        from .camera import flyover, orbit
+
+        d = dict(self.source.get("path", {}))
+        _check_keys("path", d, {"kind", "waypoints", "clearance", "n", "radius", "elevation", "units", "fov_y_deg"})
+        hm = self.heightmap
+        cam = self.camera
+        (x0, z0), (x1, z1) = hm.bounds_xz
+        ext = max(x1 - x0, z1 - z0, 1e-9)
+        metres = d.get("units", "fraction") == "m"
+        k = int(n if n is not None else d.get("n", 8))
+        fov = float(d.get("fov_y_deg", cam.fov_y_deg))
+        lo, hi = hm.height_range
+        far = 4.0 * ext + (hi - lo) * 4.0
+        if d.get("kind", "flyover") == "orbit":
+            r = float(d.get("radius", 0.9)) * (1.0 if metres else ext)
+            el = float(d.get("elevation", 0.5)) * (1.0 if metres else ext)
+            c = (0.5 * (x0 + x1), lo, 0.5 * (z0 + z1))
+            return orbit(c, r, el + (hi - lo), k, width=cam.width, height=cam.height, fov_y_deg=fov,
+                         near=max(1e-3 * r, 1e-4), far=far + r)
+        wps = d.get("waypoints", [[0.15, 0.85], [0.5, 0.55], [0.85, 0.15]])
+        w = [(a, b) if metres else (x0 + a * (x1 - x0), z0 + b * (z1 - z0)) for a, b in wps]
+        clearance = float(d.get("clearance", 0.02 * ext))
+        return flyover(hm, w, clearance, k, look_ahead=0.25 * ext, width=cam.width, height=cam.height,
+                       fov_y_deg=fov, near=max(clearance * 1e-2, 1e-4), far=far)
 
     # -- files -------------------------------------------------------------------------------------
     @classmethod
@@ -89,7 +184,7 @@ class Scene:
 
     @classmethod
     def from_dict(cls, data: dict, base_dir: str | Path = ".", name: str = "scene") -> Scene:
-        _check_keys("scene", data, {"heightmap", "camera", "render"})
+        _check_keys("scene", data, {"heightmap", "camera", "render", "lod", "path"})
         hm_d = data.get("heightmap", {"example": "jacksboro"})
         _check_keys("heightmap", hm_d, {"example", "path", "dx", "dz", "max_height", "fbm"})
         if "example" in hm_d:
@@ -125,6 +220,9 @@ class Scene:
         kw = {k: r[k] for k in ("mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back") if k in r}
         if "outputs" in r:
             kw["outputs"] = tuple(r["outputs"])
+        if "lod" in data:
+            _check_keys("lod", data["lod"], set(LodConfig.__dataclass_fields__))
+            kw["lod"] = LodConfig(**data["lod"])
         return cls(heightmap=hm, camera=cam, name=name, source=data, **kw)
 
 

@@ -13,7 +13,7 @@ def test_demo_writes_three_files(tmp_path, capsys):
     assert "raster" in out and "total" in out
     assert {p.name for p in tmp_path.iterdir()} == {"frame.png", "depth.exr", "report.json"}
     rep = json.loads((tmp_path / "report.json").read_text())
-    assert [s["name"] for s in rep["stages"]] == ["vertex_normals", "mesh", "raster", "shade"]
+    assert [s["name"] for s in rep["stages"]] == ["normal_map", "mesh", "raster", "shade"]
     assert rep["info"]["width"] == 96
 
 

@@ -36,7 +36,7 @@ def test_render_is_deterministic(demo_frame):
 
 def test_report_lists_stages_with_counters(demo_frame):
     r = demo_frame.report
-    assert [s.name for s in r.stages] == ["vertex_normals", "mesh", "raster", "shade"]
+    assert [s.name for s in r.stages] == ["normal_map", "mesh", "raster", "shade"]
     mesh = r.stage("mesh").counters
     assert mesh["vertices"] == 344 * 403
     assert mesh["triangles"] == 2 * 343 * 402
@@ -44,7 +44,7 @@ def test_report_lists_stages_with_counters(demo_frame):
     assert ras["pixels_covered"] == int((demo_frame.triangle_id >= 0).sum())
     assert all(s.time_ms >= 0 for s in r.stages)
     d = r.to_dict()
-    assert d["info"]["stages_run"] == ["vertex_normals", "mesh", "raster", "shade"]
+    assert d["info"]["stages_run"] == ["normal_map", "mesh", "raster", "shade"]
 
 
 def test_only_needed_stages_run():
@@ -131,3 +131,20 @@ def test_frame_save_writes_files(tmp_path):
     back = Heightmap.load(tmp_path / "depth.exr")  # the depth image reads back bit-exact
     assert back.heights.tobytes() == f.depth.tobytes()
     assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_stage_plan_for_lod_scenes():
+    assert stages_for(("image",), "lod") == ["prepare", "normal_map", "select", "mesh", "raster", "shade"]
+    assert stages_for(("image",), "lod", have_terrain=True) == ["normal_map", "select", "mesh", "raster", "shade"]
+    assert stages_for(("patches",), "lod", have_terrain=True) == ["select"]
+    assert stages_for(("error",), "grid") == ["mesh", "raster", "reference", "error"]
+    assert stages_for(("patches",), "grid") == []
+
+
+def test_error_output_of_the_grid_is_zero(tmp_path):
+    hm = Heightmap.fbm(65, seed=6, dx=5.0, max_height=150.0)
+    f = render(Scene(hm, camera=Camera.default_for(hm, 96, 72), outputs=("error", "report")))
+    assert f.error.max_px < 2e-3 and f.error.cracks == 0 and f.error.mismatched == 0
+    assert f.report.stage("reference").counters["reused"] is True
+    names = {p.name for p in f.save(tmp_path)}
+    assert "error_px.exr" in names and "report.json" in names
