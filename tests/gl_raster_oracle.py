@@ -35,30 +35,27 @@ layout(location = 0) out int out_id;
 void main() { out_id = gl_PrimitiveID + id_offset + 1; }
 """
 
-_CTX = None
+def _new_context():
+    import moderngl
+
+    return moderngl.create_context(standalone=True, backend="egl", require=450)
 
 
 def available() -> bool:
     """Whether an EGL OpenGL 4.5 context can be created."""
     try:
-        _context()
+        _new_context().release()
         return True
     except Exception:  # noqa: BLE001 -- any failure means no oracle
         return False
 
 
-def _context():
-    global _CTX
-    if _CTX is None:
-        import moderngl
-
-        _CTX = moderngl.create_context(standalone=True, backend="egl", require=450)
-    return _CTX
-
-
 def renderer() -> str:
-    ctx = _context()
-    return f"{ctx.info['GL_RENDERER']} / {ctx.info['GL_VERSION']}"
+    ctx = _new_context()
+    try:
+        return f"{ctx.info['GL_RENDERER']} / {ctx.info['GL_VERSION']}"
+    finally:
+        ctx.release()
 
 
 def _depth32f(ctx, width: int, height: int):
@@ -67,7 +64,8 @@ def _depth32f(ctx, width: int, height: int):
     load = ctx.mglo._context.load
     bind = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_uint)(load("glBindTexture"))
     teximage = ctypes.CFUNCTYPE(None, ctypes.c_uint, ctypes.c_int, ctypes.c_int, ctypes.c_int, ctypes.c_int,
-                                ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p)(load("glTexImage2D"))
+                                ctypes.c_int, ctypes.c_uint, ctypes.c_uint, ctypes.c_void_p)(
+                                    load("glTexImage2D"))
     bind(GL_TEXTURE_2D, tex.glo)
     teximage(GL_TEXTURE_2D, 0, GL_DEPTH_COMPONENT32F, width, height, 0, GL_DEPTH_COMPONENT, GL_FLOAT, None)
     bind(GL_TEXTURE_2D, 0)
@@ -75,12 +73,18 @@ def _depth32f(ctx, width: int, height: int):
 
 
 class GLRaster:
-    """A reusable llvmpipe framebuffer of one size; ``draw`` returns (ids, depth, seconds)."""
+    """An llvmpipe framebuffer of one size in a context of its own; ``draw`` returns (ids, depth, seconds).
+
+    The context is made current when created and moderngl issues its calls to whatever context is
+    current: another library that makes its own EGL context current (VTK does, even when only a
+    ``pyvista.Plotter`` is created) must not run between creating a ``GLRaster`` and using it. Create
+    one, use it, ``close()`` it.
+    """
 
     def __init__(self, width: int, height: int):
         import moderngl
 
-        ctx = _context()
+        ctx = _new_context()
         self.ctx, self.width, self.height = ctx, width, height
         self.prog = ctx.program(vertex_shader=_VS, fragment_shader=_FS)
         self.color = ctx.texture((width, height), 1, dtype="i4")
@@ -96,7 +100,8 @@ class GLRaster:
         vaos = []
         for s in range(0, len(tri), CHUNK):
             ibo = ctx.buffer(tri[s:s + CHUNK].tobytes())
-            vao = ctx.vertex_array(self.prog, [(vbo, "4f", "in_clip")], index_buffer=ibo, index_element_size=4)
+            vao = ctx.vertex_array(self.prog, [(vbo, "4f", "in_clip")], index_buffer=ibo,
+                                   index_element_size=4)
             vaos.append((s, vao, ibo))
         return vbo, vaos
 
@@ -127,8 +132,14 @@ class GLRaster:
         dep = np.frombuffer(self.depth.read(), dtype=np.float32).reshape(self.height, self.width)[::-1]
         return np.ascontiguousarray(ids), np.ascontiguousarray(dep), dt
 
-    @staticmethod
-    def release(uploaded) -> None:
+    def close(self) -> None:
+        self.fbo.release()
+        self.color.release()
+        self.depth.release()
+        self.prog.release()
+        self.ctx.release()
+
+    def release(self, uploaded) -> None:
         vbo, vaos = uploaded
         for _, vao, ibo in vaos:
             vao.release()
@@ -143,10 +154,13 @@ def gl_rasterize(clip: np.ndarray, triangles: np.ndarray, width: int, height: in
     Returns:
         ids (H, W) int32 (-1 background) and depth (H, W) float32 window depth, row 0 at the top.
     """
-    g = GLRaster(width, height)
-    up = g.upload(clip, triangles) if len(triangles) else None
-    if up is None:
+    if not len(triangles):
         return np.full((height, width), -1, np.int32), np.ones((height, width), np.float32)
-    ids, dep, _ = g.draw(up, cull_back=cull_back)
-    g.release(up)
+    g = GLRaster(width, height)
+    try:
+        up = g.upload(clip, triangles)
+        ids, dep, _ = g.draw(up, cull_back=cull_back)
+        g.release(up)
+    finally:
+        g.close()
     return ids, dep
