@@ -94,6 +94,26 @@ def _cmd_lod(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .report import default_settings, summarise, sweep, write_report
+
+    sc = _scene(args)
+    cams = sc.camera_path(args.frames)
+    settings = default_settings(sc.heightmap, quick=args.quick)
+    if args.policies:
+        want = set(args.policies.split(","))
+        bad = want - {s.policy for s in settings}
+        if bad:
+            raise ValueError(f"--policies: unknown {sorted(bad)}")
+        settings = [s for s in settings if s.policy in want]
+    rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images)
+    paths = write_report(sc, cams, rows, args.out)
+    for r in summarise(rows):
+        print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  {r['frame_ms']:9.2f} ms  {int(r['triangles']):>9} tris")
+    print("wrote: " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.")
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
@@ -122,6 +142,19 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--width", type=int, default=None)
     lo.add_argument("--height", type=int, default=None)
     lo.set_defaults(func=_cmd_lod)
+    rp = sub.add_parser("report", help="sweep LOD settings and peers over the camera path: frames.csv, "
+                                       "pareto.png, report.md")
+    rp.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
+    rp.add_argument("--out", default="out/report")
+    rp.add_argument("--frames", type=int, default=None, help="cameras on the path (default: the scene's, or 8)")
+    rp.add_argument("--policies", default=None,
+                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin")
+    rp.add_argument("--quick", action="store_true", help="two settings per policy")
+    rp.add_argument("--no-images", action="store_true", help="skip shading (no PSNR/SSIM)")
+    rp.add_argument("--no-progress", action="store_true")
+    rp.add_argument("--width", type=int, default=None)
+    rp.add_argument("--height", type=int, default=None)
+    rp.set_defaults(func=_cmd_report)
     return p
 
 

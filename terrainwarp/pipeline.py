@@ -187,7 +187,7 @@ def _timed(report: Report, name: str):
     report.stages.append(rec)
 
 
-def render(scene: Scene, terrain=None, state=None, device: str = "cpu") -> Frame:
+def render(scene: Scene, terrain=None, state=None, reference: Frame | None = None, device: str = "cpu") -> Frame:
     """Render a scene, running only the stages its outputs need.
 
     Args:
@@ -196,6 +196,8 @@ def render(scene: Scene, terrain=None, state=None, device: str = "cpu") -> Frame
             held by the caller across frames; prepared here (and timed as ``prepare``) when None and
             the scene needs it.
         state: a :class:`terrainwarp.lod.LodState` for hysteresis across frames, or None.
+        reference: a full-resolution frame of the same heightmap and camera (with ``depth``) to measure
+            the error against, so a sweep renders each camera's reference once; None renders it here.
 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
@@ -283,7 +285,12 @@ def render(scene: Scene, terrain=None, state=None, device: str = "cpu") -> Frame
             frame.normals = pix_n
     if "reference" in stages:
         with _timed(report, "reference") as r:
-            if lod:
+            if reference is not None:
+                if reference.scene.camera != cam or reference.triangle_id is None or reference.depth is None:
+                    raise ValueError("reference: expected a frame of the same camera with triangle ids and depth")
+                ref_tri, ref_depth = reference.triangle_id, reference.depth
+                r.counters["given"] = True
+            elif lod:
                 ref_mesh = _grid_mesh(hm, cam, None, device)
                 ref = rasterize(ref_mesh.positions, ref_mesh.triangles, cam.view_matrix(relative=True),
                                 cam.proj_matrix(), cam.width, cam.height, cull_back=scene.cull_back, device=device)
@@ -296,8 +303,11 @@ def render(scene: Scene, terrain=None, state=None, device: str = "cpu") -> Frame
         from .metrics import frame_error
 
         with _timed(report, "error") as r:
+            ref_img = reference.image if reference is not None else (frame.image if not lod else None)
             frame.error = frame_error(hm, cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
-                                      frame.barycentrics, frame.depth, ref_tri, ref_depth, keep_maps=True)
+                                      frame.barycentrics, frame.depth, ref_tri, ref_depth,
+                                      image=frame.image if ref_img is not None else None, ref_image=ref_img,
+                                      keep_maps=True)
             r.counters.update(max_px=round(frame.error.max_px, 4), p99_px=round(frame.error.p99_px, 4),
                               cracks=frame.error.cracks)
     if "depth" not in scene.outputs:

@@ -1,0 +1,292 @@
+"""Error against run time: sweep LOD settings and peers over a camera path, measure every frame against
+the full-resolution reference, and draw the Pareto front.
+
+A sweep is a list of settings (policy, parameter) crossed with the scene's cameras. Every frame is
+measured by :mod:`terrainwarp.metrics` against the full-resolution grid rendered once per camera.
+Policies: ``grid`` (the full-resolution mesh), ``sse`` (screen-space-error tolerance, px), ``distance``
+(k node sizes), ``continuous`` (target pixels per edge, fractional_odd), and the peers ``martini`` and
+``delatin`` (max error in metres; their view-independent meshing time is reported apart from render
+time, and their measured vertical error beside the setting).
+
+Frame cost: for LOD policies ``select + mesh + raster`` (the per-frame work); for the grid and the
+peers ``mesh + raster`` (their meshes are static, only made camera-relative per frame). The error and
+reference stages are measurement, not cost.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera
+from .heightmap import Heightmap
+from .scene import LodConfig, Scene
+
+__all__ = ["Setting", "default_settings", "sweep", "summarise", "write_report", "TIMING_COLUMNS"]
+
+TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms")
+
+
+@dataclass(frozen=True)
+class Setting:
+    policy: str
+    param: float
+
+    @property
+    def label(self) -> str:
+        return "grid" if self.policy == "grid" else f"{self.policy}={self.param:g}"
+
+
+def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]:
+    """A range of each policy's parameter, from fine to coarse."""
+    lo, hi = heightmap.height_range
+    relief = max(hi - lo, 1e-6)
+    s = [Setting("grid", 0.0)]
+    sse = (0.5, 1.0, 2.0, 4.0, 8.0) if not quick else (1.0, 4.0)
+    dist = (8.0, 4.0, 2.0, 1.0) if not quick else (4.0, 1.0)
+    cont = (2.0, 4.0, 8.0, 16.0) if not quick else (4.0, 16.0)
+    peer = tuple(relief * f for f in ((0.0005, 0.002, 0.008, 0.03) if not quick else (0.002, 0.03)))
+    s += [Setting("sse", v) for v in sse] + [Setting("distance", v) for v in dist]
+    s += [Setting("continuous", v) for v in cont]
+    s += [Setting("martini", round(v, 4)) for v in peer] + [Setting("delatin", round(v, 4)) for v in peer]
+    return s
+
+
+def _lod_config(setting: Setting, base: LodConfig) -> LodConfig:
+    d = dict(base.__dict__)
+    if setting.policy == "sse":
+        d.update(policy="sse", tolerance_px=setting.param)
+    elif setting.policy == "distance":
+        d.update(policy="distance", k=setting.param)
+    else:
+        d.update(policy="continuous", target_px=setting.param, spacing="fractional_odd")
+    return LodConfig(**d)
+
+
+def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
+          images: bool = True, device: str = "cpu") -> list[dict]:
+    """Render every setting from every camera; one row per (setting, frame), sorted by (setting, frame).
+
+    Args:
+        images: also shade the frames and report PSNR/SSIM of the hillshaded images (costs a shade pass).
+    """
+    from tqdm import tqdm
+
+    from .kernels.displacement import sample_normal_map
+    from .kernels.raster import rasterize
+    from .kernels.shading import hillshade
+    from .lod import Terrain
+    from .metrics import frame_error
+    from .peers import delatin_mesh, martini_mesh, mesh_vertical_error
+    from .pipeline import _srgb8, render
+
+    hm = scene.heightmap
+    outs = ("error", "image") if images else ("error",)
+    refs = []
+    terrain = None
+    need_lod = any(s.policy in ("sse", "distance", "continuous") for s in settings)
+    t_prep = 0.0
+    if need_lod:
+        t0 = time.perf_counter()
+        terrain = Terrain.prepare(hm, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
+        t_prep = (time.perf_counter() - t0) * 1e3
+    rows: list[dict] = []
+    total = len(settings) * len(cameras) + len(cameras)
+    bar = tqdm(total=total, desc="report", unit="frame", disable=not progress, leave=False)
+    for cam in cameras:  # references first: the grid, rendered once per camera
+        refs.append(render(scene.with_(camera=cam, mesh="grid", outputs=("depth", "image") if images else
+                                       ("depth",)), device=device))
+        bar.update(1)
+    nmap = None
+    for setting in settings:
+        peer = None
+        peer_err = math.nan
+        if setting.policy in ("martini", "delatin"):
+            peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
+            peer_err = mesh_vertical_error(hm, peer)
+            if images and nmap is None:
+                from .kernels.normals import sobel_normals
+
+                nmap = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
+        for k, cam in enumerate(cameras):
+            ref = refs[k]
+            row = {"policy": setting.policy, "param": setting.param, "setting": setting.label, "frame": k}
+            if peer is None:
+                if setting.policy == "grid":
+                    sc = scene.with_(camera=cam, mesh="grid", outputs=outs)
+                    f = render(sc, reference=ref, device=device)
+                else:
+                    sc = scene.with_(camera=cam, mesh="lod", lod=_lod_config(setting, scene.lod), outputs=outs)
+                    f = render(sc, terrain=terrain, reference=ref, device=device)
+                st = {s.name: s for s in f.report.stages}
+                sel = st["select"].time_ms if "select" in st else 0.0
+                row.update(select_ms=sel, mesh_ms=st["mesh"].time_ms, raster_ms=st["raster"].time_ms,
+                           frame_ms=sel + st["mesh"].time_ms + st["raster"].time_ms,
+                           patches=st["mesh"].counters.get("patches", 1), vertices=f.mesh.n_vertices,
+                           triangles=f.mesh.n_triangles, peer_mesh_ms=0.0, peer_error_m=math.nan)
+                err = f.error
+            else:
+                t0 = time.perf_counter()
+                m = peer.to_mesh(hm, cam)
+                t_mesh = (time.perf_counter() - t0) * 1e3
+                t0 = time.perf_counter()
+                fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+                               cam.width, cam.height, cull_back=scene.cull_back, device=device)
+                t_ras = (time.perf_counter() - t0) * 1e3
+                img = None
+                if images:
+                    uv = np.stack([peer.grid_xy[:, 0] / max(hm.shape[1] - 1, 1),
+                                   peer.grid_xy[:, 1] / max(hm.shape[0] - 1, 1)], 1).astype(np.float32)
+                    nrm = sample_normal_map(nmap, uv, device=device)
+                    rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm,
+                                       peer.heights.astype(np.float32), azimuth_deg=scene.light_azimuth_deg,
+                                       elevation_deg=scene.light_elevation_deg, device=device)
+                    img = _srgb8(rgb)
+                err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics,
+                                  fr.depth, ref.triangle_id, ref.depth, image=img, ref_image=ref.image)
+                row.update(select_ms=0.0, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=t_mesh + t_ras, patches=0,
+                           vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=peer.mesh_ms,
+                           peer_error_m=peer_err)
+            row.update(max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
+                       cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
+                       psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
+                       ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=t_prep)
+            rows.append(row)
+            bar.update(1)
+    bar.close()
+    return rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """One row per setting: worst-frame p99 and max error, mean frame time and triangles."""
+    out = []
+    for label in dict.fromkeys(r["setting"] for r in rows):
+        rs = [r for r in rows if r["setting"] == label]
+        out.append({"policy": rs[0]["policy"], "param": rs[0]["param"], "setting": label,
+                    "p99_px": max(r["p99_px"] for r in rs), "max_px": max(r["max_px"] for r in rs),
+                    "mean_px": float(np.mean([r["mean_px"] for r in rs])),
+                    "frame_ms": float(np.mean([r["frame_ms"] for r in rs])),
+                    "select_ms": float(np.mean([r["select_ms"] for r in rs])),
+                    "mesh_ms": float(np.mean([r["mesh_ms"] for r in rs])),
+                    "triangles": float(np.mean([r["triangles"] for r in rs])),
+                    "cracks": int(sum(r["cracks"] for r in rs)),
+                    "peer_mesh_ms": rs[0]["peer_mesh_ms"], "peer_error_m": rs[0]["peer_error_m"],
+                    "psnr_db": float(np.nanmean([r["psnr_db"] for r in rs])) if any(
+                        np.isfinite(r["psnr_db"]) for r in rs) else math.nan})
+    return out
+
+
+def pareto(summary: list[dict], cost: str = "frame_ms") -> list[dict]:
+    """The settings no other setting beats on both p99 error and cost."""
+    pts = sorted(summary, key=lambda r: (r["p99_px"], r[cost]))
+    front, best = [], math.inf
+    for r in pts:
+        if r[cost] < best:
+            front.append(r)
+            best = r[cost]
+    return front
+
+
+def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0)) -> list[list]:
+    """For each budget and policy: the cheapest setting (by triangles) whose worst-frame p99 meets it."""
+    rows = []
+    for b in budgets:
+        for pol in dict.fromkeys(r["policy"] for r in summary):
+            ok = [r for r in summary if r["policy"] == pol and r["p99_px"] <= b]
+            if not ok:
+                rows.append([b, pol, "-", "-", "-", "-", "-"])
+                continue
+            r = min(ok, key=lambda r: r["triangles"])
+            rows.append([b, pol, r["setting"], round(r["p99_px"], 3), int(r["triangles"]), round(r["frame_ms"], 2),
+                         round(r["peer_mesh_ms"], 1) if r["policy"] in ("martini", "delatin") else "-"])
+    return rows
+
+
+def rows_to_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    keys = list(rows[0].keys()) if rows else []
+    w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ._io import atomic_path
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--"}
+    for ax, cost, lab in ((axes[0], "frame_ms", "time per frame (ms)"), (axes[1], "triangles", "triangles per frame")):
+        for pol in dict.fromkeys(r["policy"] for r in summary):
+            rs = sorted([r for r in summary if r["policy"] == pol], key=lambda r: r[cost])
+            ax.plot([r[cost] for r in rs], [max(r["p99_px"], 1e-4) for r in rs], marks.get(pol, "o-"), label=pol,
+                    ms=6)
+        front = pareto(summary, cost)
+        ax.plot([r[cost] for r in front], [max(r["p99_px"], 1e-4) for r in front], color="red", lw=3, alpha=0.3,
+                label="Pareto front")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(lab)
+        ax.set_ylabel("p99 screen error (px), worst frame")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path) -> list[Path]:
+    """frames.csv, pareto.png and report.md for a sweep."""
+    from ._io import write_text
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summ = summarise(rows)
+    paths = [write_text(out / "frames.csv", rows_to_csv(rows)),
+             plot_pareto(summ, out / "pareto.png", f"{scene.heightmap.name}: error against cost, "
+                                                   f"{len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}")]
+    md = [f"# Error against run time: {scene.heightmap.name}", "",
+          f"Heightmap {scene.heightmap.shape[0]}x{scene.heightmap.shape[1]}, dx={scene.heightmap.dx:.4g} m, "
+          f"dz={scene.heightmap.dz:.4g} m; {len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}; "
+          f"LOD: {scene.lod.roots} roots, tess {scene.lod.tess}. Errors are per-frame p99 of the exact per-pixel "
+          "reprojection error (worst frame); frame_ms = select + mesh + raster (LOD), mesh + raster (grid, peers).",
+          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "frame_ms", "triangles", "cracks", "psnr_db",
+                                      "peer_mesh_ms", "peer_error_m"], summ),
+          "", "## Cheapest setting per budget (triangles)", "",
+          "| budget_px | policy | setting | p99_px | triangles | frame_ms | peer_mesh_ms |",
+          "|---|---|---|---|---|---|---|"]
+    md += ["| " + " | ".join(str(v) for v in r) + " |" for r in budget_table(summ)]
+    md += ["", "## Pareto front (time)", "", ", ".join(r["setting"] for r in pareto(summ, "frame_ms")),
+           "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]
+    md += [f"| {k} | {tuple(round(v, 1) for v in c.position)} | {tuple(round(v, 1) for v in c.target)} |"
+           for k, c in enumerate(cameras)]
+    md += ["", "![pareto](pareto.png)", ""]
+    paths.append(write_text(out / "report.md", "\n".join(md)))
+    return paths
+
+
+def _md(cols: list[str], rows: list[dict]) -> str:
+    def f(v):
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else f"{v:.4g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    lines += ["| " + " | ".join(f(r[c]) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)
