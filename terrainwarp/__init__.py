@@ -2,7 +2,8 @@
 
 Public API::
 
-    Heightmap, Camera, Scene, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover
+    Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
+    Terrain, LodState, select, compute_normals, compute_curvature
 """
 
 from __future__ import annotations
@@ -20,8 +21,10 @@ from .heightmap import Heightmap  # noqa: E402
 from .kernels.raster import Fragments, rasterize  # noqa: E402
 from .mesh import Mesh  # noqa: E402
 from .pipeline import Frame, Report, render  # noqa: E402
-from .scene import Scene  # noqa: E402
+from .lod import LodState, Terrain, select  # noqa: E402
+from .scene import LodConfig, Scene  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
-           "orbit", "flyover", "compute_normals", "compute_curvature", "__version__"]
+           "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
+           "__version__"]
