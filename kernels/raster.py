@@ -752,6 +752,11 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         raise TypeError(f"positions: expected a float array, got {pos.dtype}")
     tri = _check_triangles(triangles, len(pos))
     width, height = _check_size(width, height)
+    clip = _transform(pos, view, proj, device)
+    return _rasterize_clip(clip, len(pos), tri, width, height, cull_back, device)
+
+
+def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.array:
     pos32 = np.ascontiguousarray(pos, dtype=np.float32)
     if not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
@@ -761,7 +766,16 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         wp.launch(_vertex_kernel, dim=len(pos32), inputs=[wp.array(pos32, dtype=wp.vec3, device=device),
                                                           wp.mat44(*mvp.reshape(-1).tolist())],
                   outputs=[clip], device=device)
-    return _rasterize_clip(clip, len(pos32), tri, width, height, cull_back, device)
+    return clip
+
+
+def clip_coordinates(positions: object, view: object, proj: object, *, device: str = "cpu") -> np.ndarray:
+    """The clip-space vertices :func:`rasterize` computes: (n, 4) float32 ``(proj @ view) @ (p, 1)``,
+    with the product of the matrices rounded to float32 first, as a vertex shader's uniform would be."""
+    pos = np.asarray(positions)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
+    return _transform(pos, view, proj, device).numpy()[: len(pos)].reshape(-1, 4)
 
 
 def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, cull_back: bool = False,
