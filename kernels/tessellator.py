@@ -1,0 +1,776 @@
+"""The fixed-function quad tessellator and the domain shader, as Warp kernels over a whole frame.
+
+The rules (level clamping and rounding per spacing, culling, 16.16 fixed-point point placement,
+ring-by-ring stitching, winding) are those of the Direct3D 11 reference tessellator, stated with
+their specification sections in :mod:`terrainwarp.tessellate` (the pure-Python reference these kernels
+are tested against, itself tested against Mesa's llvmpipe). This file ports them to ``@wp.func``.
+
+One frame, one launch per stage, no loop over patches on the host:
+
+1. ``_count_kernel`` (one thread per patch): points and triangles of each patch.
+2. ``wp.utils.array_scan`` of both counts (exclusive; entry P is the total).
+3. ``_emit_kernel`` (one thread per patch): the 16.16 domain coordinates and patch id of each point,
+   and the triangles (global indices, counter-clockwise in (u, v)), in the reference's order.
+4. ``_displace_kernel`` (one thread per point, the domain shader): the point's exact position on a
+   lattice of 2^-16 heightmap cells, its height by bilinear or bicubic filtering of the heightmap
+   (:func:`terrainwarp.kernels.sampling.sample_height`), and its camera-relative float32 position.
+
+Crack-free displacement: every patch's extent is given to the kernel as integer lattice coordinates
+(2^-16 heightmap cells, rounded once on the host from float64). A point's lattice coordinate along
+each axis is ``a + floor((b - a) * t / 2^16)`` for ``t <= 1/2`` and ``b - floor((b - a) * (2^16 - t)
+/ 2^16)`` beyond, with ``[a, b]`` the patch's range and ``t`` its 16.16 domain coordinate, so it is
+exact whenever the patch spans a whole number of cells, and mirror-symmetric. Everything after
+that (grid coordinate, height, position) is a function of the lattice point alone, so two patches
+that place a vertex at the same lattice point produce it bit-identically: equal factors on a shared
+edge of equal length always do; a coarse edge with factor 2L beside two fine edges with factor L
+(the LOD issue's doubled edges) does when L is a power of two (the fixed-point reciprocals 2^16/L
+are then exact; otherwise the GPU itself places the points up to 2^-16 of the edge apart).
+
+Camera-relative float32: the host splits the eye into an integer lattice part and a sub-lattice
+remainder; the kernel converts the exact int64 difference ``lattice - eye`` to float32 (error
+2^-24 relative to the distance from the eye) and scales it by the cell size, so terrains far from
+the world origin, or large ones, keep their precision near the camera.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import warp as wp
+
+from terrainwarp.kernels.sampling import sample_height
+
+__all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES"]
+
+SPACING_CODES = {"equal": 0, "fractional_even": 1, "fractional_odd": 2}
+FILTER_CODES = {"bilinear": 0, "bicubic": 1}
+FXP_ONE = 65536
+FXP_HALF = 32768
+
+vec6i = wp.types.vector(length=6, dtype=wp.int32)
+vec6f = wp.types.vector(length=6, dtype=wp.float32)
+vec4l = wp.types.vector(length=4, dtype=wp.int64)
+
+# ------------------------------------------------------------------------------------------------
+# levels (rules 2-6 of terrainwarp.tessellate)
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _fmax(a: float, b: float) -> float:
+    """IEEE fmax: a NaN operand is dropped."""
+    if wp.isnan(b):
+        return a
+    if wp.isnan(a):
+        return b
+    if a > b:
+        return a
+    return b
+
+
+@wp.func
+def _fmin(a: float, b: float) -> float:
+    if wp.isnan(b):
+        return a
+    if wp.isnan(a):
+        return b
+    if a < b:
+        return a
+    return b
+
+
+@wp.func
+def _process(o: wp.vec4, inner: wp.vec2, spacing: int):
+    """-> (status: 0 culled, 1 minimal unit quad, 2 regular; six 16.16 levels; six parities (1 odd))."""
+    fx = vec6i()
+    odd = vec6i()
+    culled = int(0)
+    for e in range(4):
+        if not (o[e] > 0.0):
+            culled = 1
+    if culled == 1:
+        return 0, fx, odd
+    lo = float(1.0)
+    hi = float(64.0)
+    if spacing == 1:
+        lo = 2.0
+    if spacing == 2:
+        hi = 63.0
+    lv = vec6f()
+    for e in range(4):
+        x = _fmin(hi, _fmax(lo, o[e]))
+        if spacing == 0:
+            x = wp.ceil(x)
+        lv[e] = x
+    lo_in = lo
+    if spacing == 2:
+        big = int(0)
+        for e in range(4):
+            if lv[e] > 1.0000076293945312:  # 1 + 2^-17
+                big = 1
+        for a in range(2):
+            if inner[a] > 1.0000076293945312:
+                big = 1
+        if big == 1:
+            lo_in = lo + 1.52587890625e-05  # + 2^-16: force a picture frame
+    for a in range(2):
+        x = _fmin(hi, _fmax(lo_in, inner[a]))
+        if spacing == 0:
+            x = wp.ceil(x)
+        lv[4 + a] = x
+    all_one = int(1)
+    for s in range(6):
+        if spacing == 0:
+            odd[s] = int(lv[s]) % 2
+            if s >= 4 and lv[s] == 1.0:
+                odd[s] = 0
+        elif spacing == 2:
+            odd[s] = 1
+        fx[s] = int(wp.rint(lv[s] * 65536.0))  # 16.16, nearest, ties to even
+        if fx[s] != 65536:
+            all_one = 0
+    if all_one == 1 and spacing != 1:
+        return 1, fx, odd
+    return 2, fx, odd
+
+
+# ------------------------------------------------------------------------------------------------
+# one edge (rule 7)
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _fxp_ceil(x: int) -> int:
+    if (x & 0xFFFF) != 0:
+        return (x & 0x7FFF0000) + 65536
+    return x
+
+
+@wp.func
+def _num_points(fx: int, odd: int) -> int:
+    if odd == 1:
+        return (_fxp_ceil(32768 + (fx + 1) / 2) * 2) >> 16
+    return ((_fxp_ceil((fx + 1) / 2) * 2) >> 16) + 1
+
+
+@wp.func
+def _remove_msb(v: int) -> int:
+    if v <= 0:
+        return 0
+    b = int(1)
+    while b * 2 <= v:
+        b = b * 2
+    return v - b
+
+
+@wp.func
+def _reciprocal(n: int) -> int:
+    """round(2^16 / n)."""
+    return (131072 + n) / (2 * n)
+
+
+@wp.func
+def _half_points(fx: int, odd: int) -> int:
+    half = (fx + 1) / 2
+    if odd == 1 or half == 32768:
+        half += 32768
+    return _fxp_ceil(half) >> 16
+
+
+@wp.func
+def _place(fx: int, odd: int, point_in: int) -> int:
+    """16.16 position of partition point ``point_in`` on an edge of level ``fx``."""
+    half = (fx + 1) / 2
+    if odd == 1 or half == 32768:
+        half += 32768
+    fl = half & 0x7FFF0000
+    ce = _fxp_ceil(half)
+    frac = half - fl
+    nhalf = ce >> 16
+    split = int(0)
+    if ce == fl:
+        split = nhalf + 1
+    elif odd == 1:
+        if fl == 65536:
+            split = 0
+        else:
+            split = (_remove_msb((fl >> 16) - 1) << 1) + 1
+    else:
+        split = (_remove_msb(fl >> 16) << 1) + 1
+    nfs = (fl * 2) >> 16
+    ncs = (ce * 2) >> 16
+    if odd == 1:
+        nfs -= 1
+        ncs -= 1
+    point = point_in
+    flip = int(0)
+    if point >= nhalf:
+        point = 2 * nhalf - point - odd
+        flip = 1
+    if point == nhalf:
+        return 32768
+    idx_f = point
+    if point > split:
+        idx_f = point - 1
+    lf = wp.int64(idx_f * _reciprocal(nfs))
+    lc = wp.int64(point * _reciprocal(ncs))
+    loc = int((lf * wp.int64(65536 - frac) + lc * wp.int64(frac) + wp.int64(32768)) >> wp.int64(16))
+    if flip == 1:
+        return 65536 - loc
+    return loc
+
+
+@wp.func
+def _final_point_position(i: int) -> int:
+    """The reference's ruler-function table {0, 32, 16, 8, 17, 4, 18, 9, ...}[i] for i in 1..32."""
+    if i == 1:
+        return 32
+    j = i - 1
+    k = int(0)
+    while (j >> k) & 1 == 0:
+        k += 1
+    return (16 >> k) + (j >> (k + 1))
+
+
+# ------------------------------------------------------------------------------------------------
+# patch layout: g = (points on outer edges 0..3, inner partition points along u, along v)
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _layout(fx: vec6i, odd: vec6i) -> vec6i:
+    g = vec6i()
+    for e in range(4):
+        g[e] = _num_points(fx[e], odd[e])
+    for a in range(2):
+        m = 3
+        if odd[4 + a] == 1:
+            m = 4
+        g[4 + a] = wp.max(m, _num_points(fx[4 + a], odd[4 + a]))
+    return g
+
+
+@wp.func
+def _ring_count(g: vec6i, r: int, e: int) -> int:
+    """Points (both ends included) on edge e of ring r."""
+    if r == 0:
+        return g[e]
+    if e % 2 == 0:
+        return g[5] - 2 * r
+    return g[4] - 2 * r
+
+
+@wp.func
+def _vidx(g: vec6i, r: int, e: int, k: int) -> int:
+    """Patch-local index of point k on edge e of ring r (the reference's storage order)."""
+    b = int(0)
+    if r > 0:
+        b = g[0] + g[1] + g[2] + g[3] - 4 + (r - 1) * (2 * g[4] + 2 * g[5] - 4 - 4 * r)
+        mu = g[4] - 2 * r
+        mv = g[5] - 2 * r
+        if mu == 1:  # a column at u = 1/2, stored with v decreasing
+            if e == 0:
+                return b + k
+            if e == 1:
+                return b + mv - 1
+            if e == 2:
+                return b + mv - 1 - k
+            return b
+        if mv == 1:  # a row at v = 1/2, stored with u increasing
+            if e == 0:
+                return b
+            if e == 1:
+                return b + k
+            if e == 2:
+                return b + mu - 1
+            return b + mu - 1 - k
+    if e == 3 and k == _ring_count(g, r, 3) - 1:
+        return b
+    off = int(0)
+    for j in range(e):
+        off += _ring_count(g, r, j) - 1
+    return b + off + k
+
+
+@wp.func
+def _row(g: vec6i, r: int, e: int, k: int, rev: int, c: int) -> int:
+    if rev == 1:
+        return _vidx(g, r, e, c - 1 - k)
+    return _vidx(g, r, e, k)
+
+
+@wp.func
+def _num_triangles(g: vec6i, odd: vec6i) -> int:
+    nu = g[4]
+    nv = g[5]
+    n_rings = wp.min((nu + 1) >> 1, (nv + 1) >> 1)
+    t = int(0)
+    for e in range(4):
+        t += g[e] + _ring_count(g, 1, e) - 2
+    for ring in range(2, n_rings):
+        for e in range(4):
+            t += 2 * _ring_count(g, ring, e)
+    r = n_rings - 1
+    if nu > nv and odd[5] == 1:
+        t += 2 * (_ring_count(g, r, 1) - 1)
+    elif nv >= nu and odd[4] == 1:
+        t += 2 * (_ring_count(g, r, 0) - 1)
+    return t
+
+
+# ------------------------------------------------------------------------------------------------
+# stitching (rule 9)
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _tri(out_tri: wp.array(dtype=wp.vec3i), t: int, vb: int, a: int, b: int, c: int) -> int:
+    out_tri[t] = wp.vec3i(vb + a, vb + b, vb + c)
+    return t + 1
+
+
+@wp.func
+def _stitch_transition(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: vec6i, e: int,
+                       in_half_in: int, in_odd: int, out_half_in: int, out_odd: int) -> int:
+    """Outer ring edge e -> first inner ring edge e, in ruler-function order (StitchTransition)."""
+    t = t_in
+    in_half = in_half_in - in_odd
+    out_half = out_half_in - out_odd
+    o = int(0)
+    i = int(0)
+    if 0 < out_half:
+        t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+        o += 1
+    for k in range(1, 33):
+        f = _final_point_position(k)
+        if f < in_half:
+            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            i += 1
+        if f < out_half:
+            t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+            o += 1
+    if in_odd != out_odd or in_odd == 1:
+        if in_odd == out_odd:  # quad in the middle
+            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i + 1), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
+            i += 1
+            o += 1
+        elif in_odd == 0:  # triangle pointing inside
+            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
+            o += 1
+        else:  # triangle pointing outside
+            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            i += 1
+    for kk in range(32):
+        f = _final_point_position(32 - kk)
+        if f < out_half:
+            t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+            o += 1
+        if f < in_half:
+            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            i += 1
+    if 0 < out_half:
+        t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+    return t
+
+
+@wp.func
+def _stitch_regular(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: vec6i, trapezoid: int,
+                    diagonals: int, n_in: int, ro: int, eo: int, ri: int, ei: int, rev: int) -> int:
+    """A strip between two rows (StitchRegular). diagonals: 0 mirrored, 1 inside-to-outside,
+    2 inside-to-outside except the middle quad. The inner row may be read reversed (rev=1)."""
+    t = t_in
+    o = int(0)
+    i = int(0)
+    if trapezoid == 1:
+        t = _tri(out_tri, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
+        o += 1
+    for p in range(n_in - 1):
+        oi = int(0)
+        if diagonals == 0 and p < n_in / 2:
+            oi = 1
+        if diagonals == 2 and p == n_in / 2 - 1:
+            oi = 1
+        a_o = _vidx(g, ro, eo, o)
+        b_o = _vidx(g, ro, eo, o + 1)
+        a_i = _row(g, ri, ei, i, rev, n_in)
+        b_i = _row(g, ri, ei, i + 1, rev, n_in)
+        if oi == 1:
+            t = _tri(out_tri, t, vb, a_o, b_i, a_i)
+            t = _tri(out_tri, t, vb, a_o, b_o, b_i)
+        else:
+            t = _tri(out_tri, t, vb, a_i, a_o, b_o)
+            t = _tri(out_tri, t, vb, a_i, b_o, b_i)
+        i += 1
+        o += 1
+    if trapezoid == 1:
+        t = _tri(out_tri, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
+    return t
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.kernel(enable_backward=False)
+def _count_kernel(
+    outer: wp.array(dtype=wp.vec4),
+    inner: wp.array(dtype=wp.vec2),
+    spacing: int,
+    # outputs
+    out_nv: wp.array(dtype=wp.int32),
+    out_nt: wp.array(dtype=wp.int32),
+):
+    p = wp.tid()
+    status, fx, odd = _process(outer[p], inner[p], spacing)
+    if status == 0:
+        out_nv[p] = 0
+        out_nt[p] = 0
+    elif status == 1:
+        out_nv[p] = 4
+        out_nt[p] = 2
+    else:
+        g = _layout(fx, odd)
+        out_nv[p] = g[0] + g[1] + g[2] + g[3] - 4 + (g[4] - 2) * (g[5] - 2)
+        out_nt[p] = _num_triangles(g, odd)
+
+
+@wp.func
+def _point(out_dom: wp.array(dtype=wp.vec2i), out_pid: wp.array(dtype=wp.int32), k: int, p: int,
+           u: int, v: int) -> int:
+    out_dom[k] = wp.vec2i(u, v)
+    out_pid[k] = p
+    return k + 1
+
+
+@wp.kernel(enable_backward=False)
+def _emit_kernel(
+    outer: wp.array(dtype=wp.vec4),
+    inner: wp.array(dtype=wp.vec2),
+    spacing: int,
+    v_off: wp.array(dtype=wp.int32),
+    t_off: wp.array(dtype=wp.int32),
+    # outputs
+    out_dom: wp.array(dtype=wp.vec2i),
+    out_pid: wp.array(dtype=wp.int32),
+    out_tri: wp.array(dtype=wp.vec3i),
+):
+    p = wp.tid()
+    status, fx, odd = _process(outer[p], inner[p], spacing)
+    vb = v_off[p]
+    t = t_off[p]
+    if status == 0:
+        return
+    if status == 1:
+        k = _point(out_dom, out_pid, vb, p, 0, 0)
+        k = _point(out_dom, out_pid, k, p, 65536, 0)
+        k = _point(out_dom, out_pid, k, p, 65536, 65536)
+        k = _point(out_dom, out_pid, k, p, 0, 65536)
+        t = _tri(out_tri, t, vb, 0, 1, 3)
+        t = _tri(out_tri, t, vb, 1, 2, 3)
+        return
+    g = _layout(fx, odd)
+    nu = g[4]
+    nv = g[5]
+    k = vb
+    # outer ring: down u=0, along v=0, up u=1, back along v=1
+    for e in range(4):
+        end = g[e] - 1
+        for q0 in range(end):
+            q = end - q0
+            if e == 1 or e == 2:
+                q = q0
+            s = _place(fx[e], odd[e], q)
+            if e == 0:
+                k = _point(out_dom, out_pid, k, p, 0, s)
+            elif e == 1:
+                k = _point(out_dom, out_pid, k, p, s, 0)
+            elif e == 2:
+                k = _point(out_dom, out_pid, k, p, 65536, s)
+            else:
+                k = _point(out_dom, out_pid, k, p, s, 65536)
+    # inner rings, spiralling inwards
+    n_rings = wp.min(nu, nv) >> 1
+    for ring in range(1, n_rings):
+        for e in range(4):
+            along = (e + 1) & 1
+            perp = e & 1
+            end_along = g[4 + along] - 1 - ring
+            perp_point = ring
+            if e >= 2:
+                perp_point = g[4 + perp] - 1 - ring
+            tp = _place(fx[4 + perp], odd[4 + perp], perp_point)
+            for pp in range(ring, end_along):
+                q = end_along - (pp - ring)
+                if e == 1 or e == 2:
+                    q = pp
+                s = _place(fx[4 + along], odd[4 + along], q)
+                if along == 1:
+                    k = _point(out_dom, out_pid, k, p, tp, s)
+                else:
+                    k = _point(out_dom, out_pid, k, p, s, tp)
+    # degenerate centre row / column of an even inner partition
+    if nu > nv and odd[5] == 0:
+        for pp in range(n_rings, nu - n_rings):
+            k = _point(out_dom, out_pid, k, p, _place(fx[4], odd[4], pp), 32768)
+    elif nv >= nu and odd[4] == 0:
+        for pp in range(n_rings, nv - n_rings):
+            k = _point(out_dom, out_pid, k, p, 32768, _place(fx[5], odd[5], nv - 1 - pp))
+    # connectivity, ring by ring, edge by edge
+    n_rings_c = wp.min((nu + 1) >> 1, (nv + 1) >> 1)
+    for ring in range(1, n_rings_c):
+        for e in range(4):
+            axis = (e + 1) & 1
+            if ring == 1:
+                t = _stitch_transition(out_tri, t, vb, g, e, _half_points(fx[4 + axis], odd[4 + axis]),
+                                       odd[4 + axis], _half_points(fx[e], odd[e]), odd[e])
+            else:
+                t = _stitch_regular(out_tri, t, vb, g, 1, 0, _ring_count(g, ring, e), ring - 1, e, ring, e, 0)
+    r = n_rings_c - 1
+    if nu > nv and odd[5] == 1:
+        t = _stitch_regular(out_tri, t, vb, g, 0, 1, _ring_count(g, r, 1), r, 1, r, 3, 1)
+    elif nv >= nu and odd[4] == 1:
+        diag = int(1)
+        if odd[5] == 1:
+            diag = 2
+        t = _stitch_regular(out_tri, t, vb, g, 0, diag, _ring_count(g, r, 0), r, 0, r, 2, 1)
+
+
+@wp.func
+def _lattice(a: wp.int64, b: wp.int64, s: int) -> wp.int64:
+    """Lattice coordinate at 16.16 domain coordinate s of the range [a, b], mirror-symmetric."""
+    if s <= 32768:
+        return a + (((b - a) * wp.int64(s)) >> wp.int64(16))
+    return b - (((b - a) * wp.int64(65536 - s)) >> wp.int64(16))
+
+
+@wp.func
+def _grid(n: wp.int64) -> float:
+    """Lattice coordinate (2^-16 cells) -> grid coordinate (cells), one rounding."""
+    return float(n >> wp.int64(16)) + float(n & wp.int64(65535)) * 1.52587890625e-05
+
+
+@wp.kernel(enable_backward=False)
+def _displace_kernel(
+    dom: wp.array(dtype=wp.vec2i),
+    pid: wp.array(dtype=wp.int32),
+    box: wp.array(dtype=vec4l),
+    level: wp.array(dtype=wp.int32),
+    h: wp.array2d(dtype=wp.float32),
+    eye_lx: wp.int64,
+    eye_lz: wp.int64,
+    eye_rem: wp.vec3,
+    cell: wp.vec2,
+    method: int,
+    # outputs
+    out_pos: wp.array(dtype=wp.vec3),
+    out_uv: wp.array(dtype=wp.vec2),
+    out_level: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    d = dom[k]
+    p = pid[k]
+    b = box[p]
+    nx = _lattice(b[0], b[2], d[0])
+    nz = _lattice(b[1], b[3], d[1])
+    gx = _grid(nx)
+    gz = _grid(nz)
+    hgt = sample_height(h, gx, gz, method)
+    px = float(nx - eye_lx) * cell[0] - eye_rem[0]
+    pz = float(nz - eye_lz) * cell[1] - eye_rem[2]
+    out_pos[k] = wp.vec3(px, hgt - eye_rem[1], pz)
+    out_uv[k] = wp.vec2(gx / float(wp.max(h.shape[1] - 1, 1)), gz / float(wp.max(h.shape[0] - 1, 1)))
+    out_level[k] = level[p]
+
+
+# ------------------------------------------------------------------------------------------------
+# host
+# ------------------------------------------------------------------------------------------------
+
+
+def _levels(outer, inner) -> tuple[np.ndarray, np.ndarray]:
+    o = np.asarray(outer, dtype=np.float32)
+    i = np.asarray(inner, dtype=np.float32)
+    if o.ndim != 2 or o.shape[1] != 4:
+        raise ValueError(f"outer: expected shape (P, 4), got {o.shape}")
+    if i.shape != (o.shape[0], 2):
+        raise ValueError(f"inner: expected shape ({o.shape[0]}, 2), got {i.shape}")
+    return np.ascontiguousarray(o), np.ascontiguousarray(i)
+
+
+def _spacing_code(spacing: str) -> int:
+    if spacing not in SPACING_CODES:
+        raise ValueError(f"spacing: expected one of {list(SPACING_CODES)}, got {spacing!r}")
+    return SPACING_CODES[spacing]
+
+
+def _tessellate(o: np.ndarray, i: np.ndarray, code: int, device: str):
+    p = o.shape[0]
+    wo = wp.array(o, dtype=wp.vec4, device=device)
+    wi = wp.array(i, dtype=wp.vec2, device=device)
+    nv = wp.zeros(p + 1, dtype=wp.int32, device=device)
+    nt = wp.zeros(p + 1, dtype=wp.int32, device=device)
+    if p:
+        wp.launch(_count_kernel, dim=p, inputs=[wo, wi, code], outputs=[nv, nt], device=device)
+    v_off = wp.empty(p + 1, dtype=wp.int32, device=device)
+    t_off = wp.empty(p + 1, dtype=wp.int32, device=device)
+    wp.utils.array_scan(nv, v_off, inclusive=False)
+    wp.utils.array_scan(nt, t_off, inclusive=False)
+    n = int(v_off.numpy()[p])
+    m = int(t_off.numpy()[p])
+    dom = wp.empty(max(n, 1), dtype=wp.vec2i, device=device)
+    pid = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+    tri = wp.empty(max(m, 1), dtype=wp.vec3i, device=device)
+    if p:
+        wp.launch(_emit_kernel, dim=p, inputs=[wo, wi, code, v_off, t_off], outputs=[dom, pid, tri], device=device)
+    return n, m, dom, pid, tri, v_off, t_off
+
+
+def tessellate_domains(outer, inner, spacing: str, device: str = "cpu"):
+    """Tessellate P quad patches in one launch (no displacement).
+
+    Args:
+        outer: (P, 4) float32 outer levels per patch, ``gl_TessLevelOuter`` order (u=0, v=0, u=1, v=1).
+        inner: (P, 2) float32 inner levels per patch (along u, along v).
+        spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
+
+    Returns:
+        dict with ``uv`` (n, 2) float32 domain coordinates (exact multiples of 2^-16), ``patch_id``
+        (n,) int32, ``triangles`` (m, 3) int32 global indices (counter-clockwise in (u, v)),
+        ``vertex_offsets`` and ``triangle_offsets`` (P+1,) int32 (patch p owns
+        ``vertex_offsets[p]:vertex_offsets[p+1]``). Each patch's slice equals
+        :func:`terrainwarp.tessellate_patch` with indices shifted by its vertex offset.
+    """
+    o, i = _levels(outer, inner)
+    n, m, dom, pid, tri, v_off, t_off = _tessellate(o, i, _spacing_code(spacing), device)
+    return {
+        "uv": (dom.numpy()[:n].astype(np.float64) / FXP_ONE).astype(np.float32).reshape(-1, 2),
+        "patch_id": pid.numpy()[:n].copy(),
+        "triangles": tri.numpy()[:m].reshape(-1, 3).astype(np.int32),
+        "vertex_offsets": v_off.numpy().copy(),
+        "triangle_offsets": t_off.numpy().copy(),
+    }
+
+
+class Tessellation(NamedTuple):
+    """A displaced, tessellated frame (one entry per domain point unless said otherwise).
+
+    Attributes:
+        positions: (n, 3) float32 camera-relative world positions (world minus ``eye``).
+        uv: (n, 2) float32 heightmap coordinates in [0, 1] (u along x, v along z).
+        domain: (n, 2) float32 tessellation domain coordinates of each point in its patch.
+        patch_id: (n,) int32 index of the patch that produced the point.
+        level: (n,) int32 the patch's LOD level (0 when none was given).
+        triangles: (m, 3) int32, counter-clockwise seen from above (+y), like the grid mesh: the
+            domain's (u, v) = (x, z) frame is left-handed seen from +y, so each GL ccw triangle
+            (a, b, c) is stored as (a, c, b).
+        vertex_offsets, triangle_offsets: (P+1,) int32 per-patch ranges.
+        eye: the float64 world point positions are relative to.
+    """
+
+    positions: np.ndarray
+    uv: np.ndarray
+    domain: np.ndarray
+    patch_id: np.ndarray
+    level: np.ndarray
+    triangles: np.ndarray
+    vertex_offsets: np.ndarray
+    triangle_offsets: np.ndarray
+    eye: tuple[float, float, float]
+
+    def to_mesh(self):
+        """The frame as a :class:`terrainwarp.Mesh`."""
+        from terrainwarp.mesh import Mesh
+
+        return Mesh(positions=self.positions, eye=self.eye, triangles=self.triangles, uv=self.uv,
+                    level=self.level, patch_id=self.patch_id)
+
+
+def _get(patches, name: str, required: bool = True):
+    v = patches.get(name) if isinstance(patches, dict) else getattr(patches, name, None)
+    if v is None and required:
+        raise ValueError(f"patches: expected a field {name!r}")
+    return v
+
+
+def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str = "equal",
+                       filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu") -> Tessellation:
+    """Tessellate and displace all patches of a frame (one launch per stage).
+
+    Args:
+        patches: an object or dict with ``origin_xz`` (P, 2) world (x, z) of each patch's corner
+            with the smallest coordinates (float64, metres), ``size`` (P,) its side in metres, ``outer``
+            (P, 4) and ``inner`` (P, 2) float32 levels, and optionally ``level`` (P,) int32. The
+            domain's u runs along +x and v along +z.
+        heights: (H, W) float32 heightmap, row i along +z, column j along +x.
+        dx, dz: sample spacing in metres (> 0).
+        eye: world (x, y, z) positions are made relative to (float64).
+        spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
+        filter: ``"bilinear"`` or ``"bicubic"`` height sampling (outside the grid: clamped to the edge).
+        origin: world (x, z) of sample (0, 0).
+
+    Returns:
+        A :class:`Tessellation`. Not differentiable (discrete topology; heights are sampled with the
+        same ``@wp.func`` as :func:`terrainwarp.kernels.sampling.sample_grid`).
+    """
+    o, i = _levels(_get(patches, "outer"), _get(patches, "inner"))
+    p = o.shape[0]
+    org = np.asarray(_get(patches, "origin_xz"), dtype=np.float64)
+    size = np.asarray(_get(patches, "size"), dtype=np.float64).reshape(-1)
+    if org.shape != (p, 2):
+        raise ValueError(f"patches.origin_xz: expected shape ({p}, 2), got {org.shape}")
+    if size.shape != (p,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+        raise ValueError(f"patches.size: expected ({p},) positive finite sizes, got shape {size.shape}")
+    if not np.all(np.isfinite(org)):
+        raise ValueError("patches.origin_xz: expected finite coordinates, got NaN or inf")
+    lvl = _get(patches, "level", required=False)
+    lvl = np.zeros(p, np.int32) if lvl is None else np.asarray(lvl, dtype=np.int32).reshape(-1)
+    if lvl.shape != (p,):
+        raise ValueError(f"patches.level: expected shape ({p},), got {lvl.shape}")
+    h = np.asarray(heights, dtype=np.float32)
+    if h.ndim != 2 or min(h.shape) < 1:
+        raise ValueError(f"heights: expected a 2-D (H, W) array, got shape {h.shape}")
+    dx, dz = float(dx), float(dz)
+    if not (np.isfinite(dx) and np.isfinite(dz) and dx > 0 and dz > 0):
+        raise ValueError(f"dx, dz: expected positive finite spacings, got {dx}, {dz}")
+    if filter not in FILTER_CODES:
+        raise ValueError(f"filter: expected one of {list(FILTER_CODES)}, got {filter!r}")
+    e = np.asarray(eye, dtype=np.float64).reshape(-1)
+    if e.size != 3 or not np.all(np.isfinite(e)):
+        raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
+    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
+    code = _spacing_code(spacing)
+
+    # patch extents and the eye on the lattice of 2^-16 cells (float64 on the host, rounded once)
+    scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
+    lo = np.rint((org - (x0, z0)) * scale).astype(np.int64)
+    hi = np.rint((org + size[:, None] - (x0, z0)) * scale).astype(np.int64)
+    if np.any(np.abs(np.concatenate([lo, hi])) > 2**46):
+        raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
+    box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
+    el = (e[[0, 2]] - (x0, z0)) * scale
+    el_int = np.floor(el).astype(np.int64)
+    rem = (el - el_int) / scale
+    cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
+
+    n, m, dom, pid, tri, v_off, t_off = _tessellate(o, i, code, device)
+    pos = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
+    uv = wp.empty(max(n, 1), dtype=wp.vec2, device=device)
+    lev = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+    if n:
+        wp.launch(_displace_kernel, dim=n,
+                  inputs=[dom, pid, wp.array(box, dtype=vec4l, device=device),
+                          wp.array(lvl, dtype=wp.int32, device=device),
+                          wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device),
+                          int(el_int[0]), int(el_int[1]), wp.vec3(float(rem[0]), float(e[1]), float(rem[1])),
+                          wp.vec2(float(cell[0]), float(cell[1])), FILTER_CODES[filter]],
+                  outputs=[pos, uv, lev], device=device)
+    return Tessellation(
+        positions=pos.numpy()[:n].reshape(-1, 3), uv=uv.numpy()[:n].reshape(-1, 2),
+        domain=(dom.numpy()[:n].astype(np.float64) / FXP_ONE).astype(np.float32).reshape(-1, 2),
+        patch_id=pid.numpy()[:n].copy(), level=lev.numpy()[:n].copy(),
+        triangles=np.ascontiguousarray(tri.numpy()[:m].reshape(-1, 3)[:, [0, 2, 1]]).astype(np.int32),
+        vertex_offsets=v_off.numpy().copy(), triangle_offsets=t_off.numpy().copy(),
+        eye=(float(e[0]), float(e[1]), float(e[2])))
