@@ -41,7 +41,7 @@ FLAG_LOW_I = 4  # ... across its i0 side
 FLAG_HIGH_I = 8  # ... across its i1 side
 
 # stats counters of a pass
-STAT_TESTS, STAT_BOUNDS_FAIL, STAT_SIMILARITY_FAIL, STAT_MERGES, STAT_STEPS = range(5)
+STAT_TESTS, STAT_BOUNDS_FAIL, STAT_SIMILARITY_FAIL, STAT_MERGES = range(4)
 
 # ------------------------------------------------------------------------------------------------
 # functions
@@ -316,6 +316,17 @@ def _emit_kernel(
         while sc_fwd[f] >= 0:
             f = sc_fwd[f]
         rec_father[pb + s] = sc_out[f]
+
+
+@wp.kernel(enable_backward=False)
+def _keep_single_kernel(
+    single_rec: wp.array(dtype=wp.int32),
+    # outputs
+    single_prev: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    if single_rec[k] >= 0:
+        single_prev[k] = 1
 
 
 @wp.kernel(enable_backward=False)
@@ -720,7 +731,7 @@ class MergeState:
         self.sc_out = wp.zeros(self.ncells, dtype=wp.int32, device=device)
         self.count = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
         self.off = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
-        self.stats = wp.zeros(5, dtype=wp.int64, device=device)
+        self.stats = wp.zeros(4, dtype=wp.int64, device=device)
 
     def run_pass(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Merge every level at ``tol``; returns the root's polygons: rects (P, 4) int32 (i0, i1, j0, j1),
@@ -747,13 +758,14 @@ class MergeState:
                       outputs=[self.sc_out, self.rec_rect, self.rec_grad, self.rec_flags, self.rec_father,
                                self.single_rec], device=dev)
         # step j: nodes holding one polygon keep it for every higher tolerance
-        sr = self.single_rec.numpy()
-        self.single_prev.assign(np.maximum(self.single_prev.numpy(), (sr >= 0).astype(np.int32)))
+        wp.launch(_keep_single_kernel, dim=self.single_rec.shape[0], inputs=[self.single_rec],
+                  outputs=[self.single_prev], device=dev)
         base = d * self.ncells
         total = int(self.off[d].numpy()[1])
-        rects = self.rec_rect.numpy()[base:base + total].copy()
-        grads = self.rec_grad.numpy()[base:base + total].copy()
-        flags = self.rec_flags.numpy()[base:base + total].copy()
+        # copies: on the CPU .numpy() is a view of memory the next pass overwrites
+        rects = self.rec_rect[base:base + total].numpy().reshape(total, 4).copy()
+        grads = self.rec_grad[base:base + total].numpy().reshape(total, 2).copy()
+        flags = self.rec_flags[base:base + total].numpy().reshape(total).copy()
         return rects, grads, flags
 
     def take_stats(self) -> np.ndarray:

@@ -129,7 +129,7 @@ class Polytree:
         polygons: the multiresolution :class:`PolygonArray`.
         depth: quadtree depth (2^depth cells a side).
         pass_ms: (T,) wall time of each tolerance's merge pass (ms).
-        pass_stats: (T, 5) int64 per pass: pair tests, bounds failures, similarity failures, merges, 0.
+        pass_stats: (T, 4) int64 per pass: pair tests, bounds failures, similarity failures, merges.
     """
 
     heightmap: Heightmap
@@ -224,7 +224,16 @@ class Polytree:
         t = min(int(np.floor(x)), self.n_levels - 2)
         if t < 0:  # a single level
             return self.mesh(0, eye)
-        s = x - t
+        return self.morph_at(t, x - t, eye)
+
+    def morph_at(self, t: int, s: float, eye=None) -> Mesh:
+        """The morph from level t to t+1 at parameter ``s`` in [0, 1] (same vertices and triangles for
+        every s; at s = 1 every vertex sits on a level t+1 vertex)."""
+        if isinstance(s, bool) or not isinstance(s, int | float | np.integer | np.floating):
+            raise TypeError(f"s: expected a number, got {s!r}")
+        s = float(s)
+        if not 0.0 <= s <= 1.0:
+            raise ValueError(f"s: expected a morph parameter in [0, 1], got {s}")
         mo = self.morph(t)
         eye3, rel = self._rel(eye)
         hm = self.heightmap

@@ -243,6 +243,8 @@ def test_bad_input():
         pt.polygons.level(3)
     with pytest.raises(ValueError, match="x:"):
         pt.morph_mesh(2.0)
+    with pytest.raises(ValueError, match="t:"):
+        pt.morph(0)  # a single level: nothing to morph to
 
 
 # ------------------------------------------------------------------------------------------------
@@ -298,12 +300,9 @@ def test_morph_end_points_equal_the_two_levels(rough):
         if mo.split_added == 0:
             assert m0_set == fine_set
         # s = 1: every vertex sits on a vertex of level t+1 and every level t+1 vertex is reached
-        m1 = pt.morph_mesh(float(t) + 1.0 - 1e-9) if t + 1 == pt.n_levels - 1 else None
-        from terrainwarp.kernels.polytree import morph_positions
-
-        p1 = morph_positions(hm.heights, mo.src, mo.dst, 1.0, hm.dx, hm.dz, (0.0, 0.0, 0.0))
-        assert {tuple(p) for p in p1.tolist()} == {tuple(p) for p in coarse.positions.tolist()}
-        del m1
+        m1 = pt.morph_at(t, 1.0)
+        assert {tuple(p) for p in m1.positions.tolist()} == {tuple(p) for p in coarse.positions.tolist()}
+        np.testing.assert_array_equal(pt.morph_at(t, 0.0).positions, m0.positions)
         # in between, positions move continuously and heights come from the heightmap
         pa = pt.morph_mesh(t + 0.5).positions
         pb = pt.morph_mesh(t + 0.51).positions
@@ -322,3 +321,11 @@ def test_morph_between_equal_levels_is_static():
         mm = pt.morph_mesh(x)
         np.testing.assert_array_equal(mm.positions, m.positions)
         np.testing.assert_array_equal(mm.triangles, m.triangles)
+
+
+def test_figure5_gradients_and_threshold():
+    # two unit polygons with the paper's figure 5 gradients: (7, -9) and (15, -11), difference 10
+    hm = _hm([[0.0, 4.0, 12.0], [-4.0, -1.0, 6.0]])
+    np.testing.assert_array_equal(gradients(hm.heights, [[0, 1, 0, 1], [0, 1, 1, 2]]), [[7, -9], [15, -11]])
+    assert _sorted(merge_rectangles(hm, 9.99)) == [(0, 1, 0, 1), (0, 1, 1, 2)]
+    assert _sorted(merge_rectangles(hm, 10.0)) == [(0, 1, 0, 2)]  # <= (the paper merges above 10)
