@@ -384,3 +384,18 @@ def test_bad_arguments():
         surface_curvature(h, "horn")
     with pytest.raises(ValueError, match="curvature"):
         max_curvature(np.zeros((3, 3, 3), np.float32))
+
+
+# --- pipeline ------------------------------------------------------------------------------------------------
+
+def test_render_curvature_output_is_its_own_stage():
+    import terrainwarp as tw
+
+    hm = tw.Heightmap.example("topobathy")
+    f = tw.render(tw.Scene(hm, outputs=("curvature", "report")))
+    assert f.curvature.shape == (*hm.shape, 4) and f.curvature.dtype == np.float32
+    assert np.array_equal(f.curvature, compute_curvature(hm, "three_normal"))
+    assert f.report.stage("curvature") is not None and f.report.stage("curvature").time_ms > 0
+    assert f.image is None and f.mesh is None and f.report.stage("raster") is None
+    g = tw.render(tw.Scene(hm, outputs=("depth",)))
+    assert g.curvature is None and g.report.stage("curvature") is None
