@@ -267,6 +267,8 @@ def test_bad_arguments():
         compute_normals(np.zeros((0, 3), np.float32))
     with pytest.raises(TypeError, match="heightmap"):
         compute_normals([[1.0]])
+    with pytest.raises(ValueError, match="infinite"):
+        compute_normals(np.float64([[1.0, 1e39]]))  # overflows float32
     with pytest.raises(ValueError, match="dx, dz"):
         compute_normals(Heightmap.from_array(h), dx=2.0)
 
