@@ -3,7 +3,8 @@
 Public API::
 
     Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
-    Terrain, LodState, select, compute_normals, compute_curvature
+    Terrain, LodState, select, compute_normals, compute_curvature,
+    tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport
 """
 
 from __future__ import annotations
@@ -19,12 +20,16 @@ from .analysis import compute_curvature, compute_normals  # noqa: E402
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
 from .kernels.raster import Fragments, rasterize  # noqa: E402
+from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
+from .lod import LodState, Terrain, select  # noqa: E402
 from .mesh import Mesh  # noqa: E402
 from .pipeline import Frame, Report, render  # noqa: E402
-from .lod import LodState, Terrain, select  # noqa: E402
 from .scene import LodConfig, Scene  # noqa: E402
+from .tessellate import tessellate_patch  # noqa: E402
+from .watertight import WatertightReport, check_watertight  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
+           "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
            "__version__"]

@@ -1,0 +1,175 @@
+"""Crack and T-junction detection for terrain meshes.
+
+:func:`check_watertight` first merges vertices whose float32 positions are bit-identical (that is
+the contract of the tessellator: two patches produce a shared vertex bit-identically, or not at
+all), drops triangles that collapse after the merge (zero-area slivers of the fractional_odd
+picture frame), then counts
+
+* open edges: undirected edges used by exactly one triangle, other than those on the terrain's
+  border (both endpoints on the same side of the border rectangle in x, z); each one is a crack;
+* non-manifold edges: used by three or more triangles;
+* T-junctions: a vertex of an open edge that lies strictly inside another open edge in the
+  horizontal (x, z) projection (a terrain is a height field, so a vertex that the neighbouring patch
+  does not have shows up as a point on the neighbour's edge there; its height differs, which is the
+  crack). Tolerance: 1e-6 of the edge's length across the edge, and 1e-6 away from both ends.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["check_watertight", "WatertightReport"]
+
+
+@dataclass(frozen=True)
+class WatertightReport:
+    """What :func:`check_watertight` found.
+
+    Attributes:
+        n_vertices: vertices after merging bit-identical positions.
+        n_triangles: non-degenerate triangles after merging.
+        n_degenerate: triangles dropped because two of their corners merged.
+        n_border_edges: edges used once that lie on the terrain border (allowed).
+        n_open_edges: edges used once away from the border (cracks).
+        n_nonmanifold_edges: edges used by three or more triangles.
+        n_t_junctions: (vertex, edge) pairs where a vertex lies inside another open edge.
+        open_edges: (n_open_edges, 2, 3) float64 endpoint positions of each crack edge.
+        t_junctions: (n_t_junctions, 3, 3) float64: the vertex, then the edge's two endpoints.
+    """
+
+    n_vertices: int
+    n_triangles: int
+    n_degenerate: int
+    n_border_edges: int
+    n_open_edges: int
+    n_nonmanifold_edges: int
+    n_t_junctions: int
+    open_edges: np.ndarray = field(repr=False)
+    t_junctions: np.ndarray = field(repr=False)
+
+    @property
+    def watertight(self) -> bool:
+        """No cracks, no T-junctions, no non-manifold edges."""
+        return self.n_open_edges == 0 and self.n_t_junctions == 0 and self.n_nonmanifold_edges == 0
+
+    def to_dict(self, max_items: int = 100) -> dict:
+        """JSON-ready summary (the first ``max_items`` locations of each kind)."""
+        return {
+            "watertight": self.watertight, "n_vertices": self.n_vertices, "n_triangles": self.n_triangles,
+            "n_degenerate": self.n_degenerate, "n_border_edges": self.n_border_edges,
+            "n_open_edges": self.n_open_edges, "n_nonmanifold_edges": self.n_nonmanifold_edges,
+            "n_t_junctions": self.n_t_junctions,
+            "open_edges": self.open_edges[:max_items].tolist(),
+            "t_junctions": self.t_junctions[:max_items].tolist(),
+        }
+
+
+def _unpack(mesh, triangles):
+    if triangles is not None:
+        return mesh, triangles
+    if isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        return mesh[0], mesh[1]
+    if hasattr(mesh, "positions") and hasattr(mesh, "triangles"):
+        return mesh.positions, mesh.triangles
+    raise TypeError(f"mesh: expected a Mesh, a Tessellation or (positions, triangles), got {type(mesh).__name__}")
+
+
+def check_watertight(mesh, triangles=None, border="auto") -> WatertightReport:
+    """Count cracks (open edges away from the border), non-manifold edges and T-junctions.
+
+    Args:
+        mesh: a :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or
+            positions (n, 3) float32 with ``triangles`` given separately.
+        triangles: (m, 3) int indices when ``mesh`` is a positions array.
+        border: ``"auto"``: the x, z bounding rectangle of the positions; ``None``: no border (every
+            edge used once is a crack); or ``(x_min, x_max, z_min, z_max)`` in the positions' frame.
+
+    Returns:
+        A :class:`WatertightReport` (locations in the positions' frame, float64).
+    """
+    pos, tri = _unpack(mesh, triangles)
+    if isinstance(border, str) and border != "auto":
+        raise ValueError(f"border: expected 'auto', None or (x_min, x_max, z_min, z_max), got {border!r}")
+    pos = np.asarray(pos)
+    if pos.ndim != 2 or pos.shape[1] != 3:
+        raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
+    pos = np.ascontiguousarray(pos, dtype=np.float32)
+    tri = np.asarray(tri)
+    if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
+        raise ValueError(f"triangles: expected (m, 3) integer indices, got {tri.shape} {tri.dtype}")
+    if tri.size and (tri.min() < 0 or tri.max() >= pos.shape[0]):
+        raise ValueError(f"triangles: expected indices in [0, {pos.shape[0]}), got [{tri.min()}, {tri.max()}]")
+
+    # merge bit-identical vertices (-0.0 and 0.0 are different bits, but equal positions: canonicalise)
+    canon = pos + np.float32(0.0)
+    _, inv = np.unique(canon.view(np.uint32).reshape(-1, 3), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    merged = np.zeros((int(inv.max()) + 1 if inv.size else 0, 3), np.float64)
+    merged[inv] = pos.astype(np.float64)
+    t = inv[tri.astype(np.int64)] if tri.size else np.zeros((0, 3), np.int64)
+    good = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 0] != t[:, 2])
+    n_deg = int((~good).sum())
+    t = t[good]
+
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    once = uniq[counts == 1]
+    n_nonmanifold = int((counts > 2).sum())
+
+    if border is None or once.shape[0] == 0:
+        on_border = np.zeros(once.shape[0], bool)
+    else:
+        if isinstance(border, str):
+            xz = merged[:, [0, 2]]
+            bx = (xz[:, 0].min(), xz[:, 0].max(), xz[:, 1].min(), xz[:, 1].max())
+        else:
+            bx = tuple(float(b) for b in np.asarray(border, dtype=np.float64).reshape(4))
+        a, b = merged[once[:, 0]], merged[once[:, 1]]
+        on_border = np.zeros(once.shape[0], bool)
+        for axis, val in ((0, bx[0]), (0, bx[1]), (2, bx[2]), (2, bx[3])):
+            on_border |= (a[:, axis] == val) & (b[:, axis] == val)
+    open_e = once[~on_border]
+    open_pos = merged[open_e] if open_e.size else np.zeros((0, 2, 3))
+
+    tj = _t_junctions(merged, open_e)
+    return WatertightReport(
+        n_vertices=int(merged.shape[0]), n_triangles=int(t.shape[0]), n_degenerate=n_deg,
+        n_border_edges=int(on_border.sum()), n_open_edges=int(open_e.shape[0]),
+        n_nonmanifold_edges=n_nonmanifold, n_t_junctions=int(tj.shape[0]),
+        open_edges=open_pos.reshape(-1, 2, 3), t_junctions=tj.reshape(-1, 3, 3))
+
+
+def _t_junctions(merged: np.ndarray, open_e: np.ndarray, tol: float = 1e-6, chunk: int = 1024) -> np.ndarray:
+    """(k, 3, 3): each vertex of an open edge lying strictly inside another open edge (x, z projection)."""
+    if open_e.shape[0] == 0:
+        return np.zeros((0, 3, 3))
+    cand = np.unique(open_e.reshape(-1))
+    q = merged[cand][:, [0, 2]]
+    order = np.argsort(q[:, 0], kind="stable")
+    qs, cs = q[order], cand[order]
+    out = []
+    for s in range(0, open_e.shape[0], chunk):
+        e = open_e[s:s + chunk]
+        a = merged[e[:, 0]][:, [0, 2]]
+        b = merged[e[:, 1]][:, [0, 2]]
+        d = b - a
+        length2 = (d * d).sum(1)
+        lo = np.minimum(a[:, 0], b[:, 0]) - tol * np.sqrt(length2)
+        hi = np.maximum(a[:, 0], b[:, 0]) + tol * np.sqrt(length2)
+        i0 = np.searchsorted(qs[:, 0], lo, "left")
+        i1 = np.searchsorted(qs[:, 0], hi, "right")
+        for j in range(e.shape[0]):
+            if i1[j] <= i0[j] or length2[j] == 0:
+                continue
+            p = qs[i0[j]:i1[j]]
+            ids = cs[i0[j]:i1[j]]
+            r = p - a[j]
+            tpar = (r @ d[j]) / length2[j]
+            cross = np.abs(r[:, 0] * d[j, 1] - r[:, 1] * d[j, 0]) / np.sqrt(length2[j])
+            hit = (tpar > tol) & (tpar < 1 - tol) & (cross <= tol * np.sqrt(length2[j])) \
+                & (ids != e[j, 0]) & (ids != e[j, 1])
+            for v in ids[hit]:
+                out.append(np.stack([merged[v], merged[e[j, 0]], merged[e[j, 1]]]))
+    return np.asarray(out).reshape(-1, 3, 3)

@@ -1,0 +1,160 @@
+"""check_watertight on hand-made frames: tilings that must be crack-free, and forced mismatches that
+must be found and located."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+
+from terrainwarp import check_watertight
+from terrainwarp.kernels.tessellator import tessellate_patches
+
+SPACINGS = ["equal", "fractional_even", "fractional_odd"]
+
+
+def _heights(n=65, seed=0):
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:n, 0:n] / (n - 1)
+    return (40 * np.sin(5 * x) * np.cos(3 * y) + rng.normal(0, 2, (n, n))).astype(np.float32)
+
+
+def _tiling_2x2(rng, spacing, size=16.0, origin=(1000.0, -500.0)):
+    """2x2 equal patches; each shared edge has one factor, used by both sides; inner levels differ."""
+    lo = 2.0 if spacing == "fractional_even" else 1.0
+    f = lambda: float(rng.choice([lo, 3.0, 4.0, 7.5, 13.3, 32.0, 63.9, 64.0, rng.uniform(lo, 40)]))  # noqa: E731
+    # vertical edges x = 0, 1, 2 (times size) for rows 0, 1; horizontal edges z = 0, 1, 2 for columns 0, 1
+    vert = {(i, r): f() for i in range(3) for r in range(2)}
+    hor = {(c, j): f() for c in range(2) for j in range(3)}
+    org, outer, inner = [], [], []
+    for r in range(2):
+        for c in range(2):
+            org.append((origin[0] + c * size, origin[1] + r * size))
+            outer.append([vert[(c, r)], hor[(c, r)], vert[(c + 1, r)], hor[(c, r + 1)]])
+            inner.append([f(), f()])
+    return {"origin_xz": np.array(org), "size": np.full(4, size), "outer": np.array(outer, np.float32),
+            "inner": np.array(inner, np.float32), "level": np.zeros(4, np.int32)}
+
+
+def _quadtree(level, size=8.0, origin=(-300.0, 7000.0)):
+    """2x2 roots of side 2*size; roots (0,0) and (1,1) split into 4 children. A coarse patch doubles
+    the factor of each edge that faces finer neighbours: root (1,0) on its u=0 and v=1 edges, root
+    (0,1) on its u=1 and v=0 edges, so every edge orientation meets a doubled neighbour."""
+    org, sz, outer, lvl = [], [], [], []
+    for r in range(2):
+        for c in range(2):
+            x0, z0 = origin[0] + 2 * size * c, origin[1] + 2 * size * r
+            if (r, c) in ((0, 0), (1, 1)):
+                for rr in range(2):
+                    for cc in range(2):
+                        org.append((x0 + size * cc, z0 + size * rr))
+                        sz.append(size)
+                        outer.append([level] * 4)
+                        lvl.append(1)
+            else:
+                o = [level] * 4
+                if (r, c) == (0, 1):
+                    o[0] = o[3] = 2 * level
+                else:
+                    o[2] = o[1] = 2 * level
+                org.append((x0, z0))
+                sz.append(2 * size)
+                outer.append(o)
+                lvl.append(0)
+    n = len(org)
+    return {"origin_xz": np.array(org), "size": np.array(sz), "outer": np.array(outer, np.float32),
+            "inner": np.full((n, 2), level, np.float32), "level": np.array(lvl, np.int32)}
+
+
+def _frame(patches, spacing, filt="bilinear", eye=(1010.0, 300.0, -480.0), dx=0.5, dz=0.5, origin=None):
+    h = _heights()
+    if origin is None:
+        origin = (float(patches["origin_xz"][:, 0].min()), float(patches["origin_xz"][:, 1].min()))
+    return tessellate_patches(patches, h, dx, dz, eye, spacing=spacing, filter=filt, origin=origin)
+
+
+@pytest.mark.parametrize("spacing", SPACINGS)
+def test_tiling_2x2_mixed_levels_is_watertight(spacing):
+    rng = np.random.default_rng(7)
+    for trial in range(4):
+        t = _frame(_tiling_2x2(rng, spacing), spacing, filt=["bilinear", "bicubic"][trial % 2])
+        rep = check_watertight(t)
+        assert rep.watertight, rep
+        assert rep.n_border_edges > 0 and rep.n_triangles > 0
+
+
+@pytest.mark.parametrize("spacing,level", [("equal", L) for L in (1, 2, 4, 8, 16, 32)]
+                         + [("fractional_even", L) for L in (2, 4, 8, 32)])
+def test_quadtree_doubled_edges_are_watertight(spacing, level):
+    t = _frame(_quadtree(level), spacing, filt="bicubic")
+    rep = check_watertight(t)
+    assert rep.watertight, rep
+    # the mesh is a disc: V - E + F = 1 for the merged mesh
+    assert rep.n_vertices - (3 * rep.n_triangles + rep.n_border_edges) // 2 + rep.n_triangles == 1
+
+
+def test_doubled_edge_with_non_power_of_two_level_cracks_like_the_gpu():
+    """2^16/3 is not exact: the coarse edge's points (factor 6) miss the fine ones (factor 3) by 2^-16."""
+    rep = check_watertight(_frame(_quadtree(3), "equal"))
+    assert rep.n_open_edges > 0 and rep.n_t_junctions > 0
+
+
+@pytest.mark.parametrize("spacing", SPACINGS)
+def test_forced_mismatch_is_detected_and_located(spacing):
+    rng = np.random.default_rng(3)
+    p = _tiling_2x2(rng, spacing)
+    p["outer"][:, :] = 6.0
+    p["inner"][:, :] = 6.0
+    p["outer"][0, 2] = 9.0  # patch 0's u=1 edge (x = x0 + size) no longer matches patch 1's u=0 edge
+    t = _frame(p, spacing)
+    rep = check_watertight(t)
+    assert not rep.watertight
+    assert rep.n_open_edges > 0 and rep.n_t_junctions > 0
+    x_edge = p["origin_xz"][0, 0] + p["size"][0] - t.eye[0]
+    z_range = (p["origin_xz"][0, 1] - t.eye[2], p["origin_xz"][0, 1] + p["size"][0] - t.eye[2])
+    assert np.allclose(rep.open_edges[:, :, 0], x_edge, atol=1e-3)
+    assert np.all((rep.open_edges[:, :, 2] >= z_range[0] - 1e-3) & (rep.open_edges[:, :, 2] <= z_range[1] + 1e-3))
+    assert np.allclose(rep.t_junctions[:, 0, 0], x_edge, atol=1e-3)
+    d = rep.to_dict()
+    assert d["watertight"] is False and len(d["open_edges"]) == rep.n_open_edges
+
+
+def test_border_modes_and_plain_arrays():
+    # one quad as two triangles: 4 border edges, no cracks
+    pos = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], np.float32)
+    tri = np.array([[0, 3, 1], [1, 3, 2]], np.int32)
+    rep = check_watertight(pos, tri)
+    assert rep.watertight and rep.n_border_edges == 4
+    assert check_watertight((pos, tri), border=None).n_open_edges == 4
+    assert check_watertight(pos, tri, border=(-1, 2, -1, 2)).n_open_edges == 4
+    # a T-junction: a vertex in the middle of the shared diagonal on one side only
+    pos2 = np.vstack([pos, [[0.5, 0.1, 0.5]]]).astype(np.float32)
+    tri2 = np.array([[0, 3, 4], [0, 4, 1], [1, 3, 2]], np.int32)
+    rep2 = check_watertight(pos2, tri2)
+    assert rep2.n_open_edges == 3 and rep2.n_t_junctions == 1
+    assert np.allclose(rep2.t_junctions[0, 0], [0.5, 0.1, 0.5])
+    # degenerate triangles (two corners at the same bits) are dropped, not counted as cracks
+    pos3 = np.vstack([pos, pos[[1]]]).astype(np.float32)
+    tri3 = np.array([[0, 3, 1], [1, 3, 2], [1, 4, 2]], np.int32)
+    rep3 = check_watertight(pos3, tri3)
+    assert rep3.watertight and rep3.n_degenerate == 1
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="positions"):
+        check_watertight(np.zeros((3, 2)), np.zeros((1, 3), np.int32))
+    with pytest.raises(ValueError, match="triangles"):
+        check_watertight(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+    with pytest.raises(TypeError, match="mesh"):
+        check_watertight(42)
+    with pytest.raises(ValueError, match="border"):
+        check_watertight(np.zeros((3, 3)), np.array([[0, 1, 2]]), border="box")
+
+
+def test_report_is_deterministic():
+    def run():
+        rep = check_watertight(_frame(_quadtree(8), "equal"))
+        return hashlib.sha256(rep.open_edges.tobytes() + str(rep.to_dict()).encode()).hexdigest()
+
+    assert run() == run()
