@@ -31,6 +31,7 @@ __all__ = ["Scene", "LodConfig", "OUTPUTS", "MESH_POLICIES"]
 
 OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error")
 MESH_POLICIES = ("grid", "lod")
+SHADINGS = ("hillshade", "level", "patch", "wireframe", "splat", "cracks")
 LOD_POLICIES = ("sse", "distance", "continuous")
 SPACINGS = ("equal", "fractional_even", "fractional_odd")
 FILTERS = ("bilinear", "bicubic")
@@ -100,6 +101,10 @@ class Scene:
         lod: the :class:`LodConfig` of a ``"lod"`` scene.
         light_azimuth_deg, light_elevation_deg: the hillshade's sun.
         cull_back: cull back-facing triangles in the rasterizer.
+        shading: how the image is coloured, one of ``SHADINGS``: ``"hillshade"`` (default),
+            ``"level"`` / ``"patch"`` (LOD level / patch colours), ``"wireframe"`` (triangle edges over
+            the hillshade), ``"splat"`` (splat-map multi-texturing, deaconu2021), ``"cracks"`` (background
+            seen through the terrain in magenta).
     """
 
     heightmap: Heightmap
@@ -110,6 +115,7 @@ class Scene:
     light_azimuth_deg: float = 315.0
     light_elevation_deg: float = 45.0
     cull_back: bool = False
+    shading: str = "hillshade"
     name: str = "scene"
     source: dict[str, Any] = field(default_factory=dict)
 
@@ -125,6 +131,8 @@ class Scene:
         if bad:
             raise ValueError(f"outputs: unknown {bad}; expected a subset of {list(OUTPUTS)}")
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(outs)))
+        if self.shading not in SHADINGS:
+            raise ValueError(f"shading: expected one of {list(SHADINGS)}, got {self.shading!r}")
         if self.mesh not in MESH_POLICIES:
             raise ValueError(f"mesh: expected one of {list(MESH_POLICIES)}, got {self.mesh!r}")
         if isinstance(self.lod, dict):
@@ -216,8 +224,10 @@ class Scene:
                 cam = Camera.default_for(hm, cam_d.get("width", 640), cam_d.get("height", 480),
                                          cam_d.get("fov_y_deg", 45.0))
         r = data.get("render", {})
-        _check_keys("render", r, {"outputs", "mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back"})
-        kw = {k: r[k] for k in ("mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back") if k in r}
+        _check_keys("render", r, {"outputs", "mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back",
+                                  "shading"})
+        kw = {k: r[k] for k in ("mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back", "shading")
+              if k in r}
         if "outputs" in r:
             kw["outputs"] = tuple(r["outputs"])
         if "lod" in data:
