@@ -258,7 +258,8 @@ def _device_heights(heights: np.ndarray, device: str) -> wp.array:
     a = np.asarray(heights)
     if a.ndim != 2 or a.size == 0:
         raise ValueError(f"heights: expected a non-empty (H, W) array, got shape {a.shape}")
-    f = np.ascontiguousarray(a, dtype=np.float32)
+    with np.errstate(over="ignore"):
+        f = np.ascontiguousarray(a, dtype=np.float32)
     if np.isinf(f).any():
         raise ValueError(f"heights: expected finite heights or NaN (no data), got {int(np.isinf(f).sum())} "
                          "infinite values (after conversion to float32)")
