@@ -275,9 +275,13 @@ def render(scene: Scene, terrain=None, state=None, reference: Frame | None = Non
     if "shade" in stages:
         with _timed(report, "shade") as r:
             world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32)
-            rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, mesh.normals, world_y,
-                                   azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
-                                   device=device)
+            if scene.shading == "hillshade":
+                rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, mesh.normals, world_y,
+                                       azimuth_deg=scene.light_azimuth_deg,
+                                       elevation_deg=scene.light_elevation_deg, device=device)
+            else:
+                rgb, pix_n, shade_counters = _shade_mode(scene, frame, mesh, world_y, nmap, device)
+                r.counters.update(shade_counters)
             r.counters["pixels"] = int(frame.triangle_id.size)
         if "image" in scene.outputs:
             frame.image = _srgb8(rgb)
@@ -313,6 +317,26 @@ def render(scene: Scene, terrain=None, state=None, reference: Frame | None = Non
     if "depth" not in scene.outputs:
         frame.depth = None
     return frame
+
+
+def _shade_mode(scene: Scene, frame: Frame, mesh: Mesh, world_y: np.ndarray, nmap, device: str):
+    """The non-default shading modes (``Scene.shading``), see ``kernels.shading.shade``."""
+    from .kernels.raster import clip_coordinates
+    from .kernels.shading import shade, splat_map
+
+    cam = scene.camera
+    kw = {}
+    if scene.shading == "wireframe":
+        kw["clip"] = clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix(),
+                                      device=device)
+    if scene.shading == "splat":
+        hm = scene.heightmap
+        kw["splat"] = splat_map(hm.heights, nmap, device=device)
+        kw["world_xz"] = np.stack([mesh.positions[:, 0] + mesh.eye[0], mesh.positions[:, 2] + mesh.eye[2]],
+                                  1).astype(np.float32)
+    return shade(frame.triangle_id, frame.barycentrics, mesh.triangles, mesh.normals, world_y, mode=scene.shading,
+                 level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv, azimuth_deg=scene.light_azimuth_deg,
+                 elevation_deg=scene.light_elevation_deg, device=device, **kw)
 
 
 def _grid_mesh(hm, cam, nmap, device: str) -> Mesh:
