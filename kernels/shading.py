@@ -7,6 +7,8 @@ the heightmap's height range). Background pixels take a sky colour.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import warp as wp
 
@@ -111,3 +113,401 @@ def hillshade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.n
                  np.zeros(1, np.float32), dtype=wp.float32, device=device),
         lo, span, wp.vec3(*light), float(ambient), wp.vec3(*sky)], outputs=[rgb, nrm], device=device)
     return rgb.numpy().reshape(hh, ww, 3), nrm.numpy().reshape(hh, ww, 3)
+
+
+# ------------------------------------------------------------------------------------------------
+# shading modes: level / patch colours, wireframe overlay, splat-map multi-texturing, cracks
+# ------------------------------------------------------------------------------------------------
+
+SHADING_MODES = ("hillshade", "level", "patch", "wireframe", "splat", "cracks")
+CRACK_COLOUR = (1.0, 0.0, 1.0)  # loud magenta: background seen through the terrain
+WIRE_COLOUR = (0.05, 0.05, 0.05)
+
+# eight well-separated colours for LOD levels (level % 8)
+_LEVEL_COLOURS = np.array([[0.12, 0.47, 0.71], [1.00, 0.50, 0.05], [0.17, 0.63, 0.17], [0.84, 0.15, 0.16],
+                           [0.58, 0.40, 0.74], [0.55, 0.34, 0.29], [0.89, 0.47, 0.76], [0.74, 0.74, 0.13]],
+                          np.float32)
+
+
+class SplatRule(NamedTuple):
+    """One texture of the splat map (deaconu2021 "Multi-texturing"): where it applies and what it looks like.
+
+    The weight is 1 inside [h_lo, h_hi] x [slope_lo_deg, slope_hi_deg] and falls off smoothly over
+    ``blend`` (height, as a fraction of the height range) and ``blend_deg`` (slope) outside.
+    The texture is procedural: ``colour`` modulated by value noise of ``scale`` metres and ``contrast``.
+    """
+
+    colour: tuple[float, float, float]
+    h_lo: float = 0.0
+    h_hi: float = 1.0
+    slope_lo_deg: float = 0.0
+    slope_hi_deg: float = 90.0
+    blend: float = 0.05
+    blend_deg: float = 5.0
+    scale: float = 20.0
+    contrast: float = 0.25
+
+
+# height as a fraction of the terrain's range, slope in degrees: grass, forest, rock, snow, sand
+DEFAULT_SPLAT_RULES = (
+    SplatRule((0.30, 0.50, 0.20), 0.00, 0.45, 0.0, 25.0, scale=15.0),
+    SplatRule((0.16, 0.30, 0.14), 0.20, 0.65, 0.0, 35.0, scale=40.0, contrast=0.35),
+    SplatRule((0.45, 0.42, 0.40), 0.00, 1.00, 30.0, 90.0, scale=8.0, contrast=0.3),
+    SplatRule((0.93, 0.94, 0.97), 0.70, 1.00, 0.0, 45.0, scale=60.0, contrast=0.08),
+    SplatRule((0.76, 0.70, 0.50), 0.00, 0.08, 0.0, 15.0, scale=5.0, contrast=0.15),
+)
+
+
+@wp.func
+def _smooth_band(x: float, lo: float, hi: float, band: float) -> float:
+    """1 inside [lo, hi], smoothstep down to 0 over ``band`` outside."""
+    b = wp.max(band, 1.0e-6)
+    a = wp.clamp((x - (lo - b)) / b, 0.0, 1.0)
+    c = wp.clamp(((hi + b) - x) / b, 0.0, 1.0)
+    return a * a * (3.0 - 2.0 * a) * c * c * (3.0 - 2.0 * c)
+
+
+@wp.func
+def _hash2(ix: int, iz: int, seed: int) -> float:
+    h = wp.uint32(ix) * wp.uint32(374761393) + wp.uint32(iz) * wp.uint32(668265263) + wp.uint32(seed) * wp.uint32(
+        2246822519)
+    h = (h ^ (h >> wp.uint32(13))) * wp.uint32(1274126177)
+    h = h ^ (h >> wp.uint32(16))
+    return float(h & wp.uint32(0xFFFFFF)) / 16777215.0
+
+
+@wp.func
+def _value_noise(x: float, z: float, seed: int) -> float:
+    fx = wp.floor(x)
+    fz = wp.floor(z)
+    ix = int(fx)
+    iz = int(fz)
+    u = x - fx
+    v = z - fz
+    u = u * u * (3.0 - 2.0 * u)
+    v = v * v * (3.0 - 2.0 * v)
+    a = _hash2(ix, iz, seed)
+    b = _hash2(ix + 1, iz, seed)
+    c = _hash2(ix, iz + 1, seed)
+    d = _hash2(ix + 1, iz + 1, seed)
+    return (a * (1.0 - u) + b * u) * (1.0 - v) + (c * (1.0 - u) + d * u) * v
+
+
+@wp.kernel(enable_backward=False)
+def _splat_map_kernel(
+    heights: wp.array2d(dtype=wp.float32),
+    normals: wp.array2d(dtype=wp.vec3),
+    rules: wp.array2d(dtype=wp.float32),
+    n_rules: int,
+    grid: int,
+    h_lo: float,
+    h_span: float,
+    # outputs
+    out_atlas: wp.array3d(dtype=wp.float32),
+):
+    """Per heightmap sample: the weight of every texture, texture k in atlas cell k // 4 (row-major in a
+    grid x grid atlas), channel k % 4 (deaconu2021 figure 9)."""
+    i, j = wp.tid()
+    hh = heights.shape[0]
+    ww = heights.shape[1]
+    h = (heights[i, j] - h_lo) / h_span
+    slope = wp.acos(wp.clamp(normals[i, j][1], -1.0, 1.0)) * (180.0 / wp.pi)
+    for k in range(n_rules):
+        w = _smooth_band(h, rules[k, 0], rules[k, 1], rules[k, 4]) * _smooth_band(
+            slope, rules[k, 2], rules[k, 3], rules[k, 5])
+        cell = k / 4
+        cr = cell / grid
+        cc = cell - cr * grid
+        out_atlas[cr * hh + i, cc * ww + j, k - cell * 4] = w
+
+
+@wp.func
+def _atlas_sample(atlas: wp.array3d(dtype=wp.float32), k: int, grid: int, hh: int, ww: int, uv: wp.vec2) -> float:
+    """Bilinear sample of texture k's weight at heightmap uv in [0, 1] (u along columns, v along rows),
+    clamped to its own atlas cell."""
+    cell = k / 4
+    cr = cell / grid
+    cc = cell - cr * grid
+    x = wp.clamp(uv[0], 0.0, 1.0) * float(ww - 1)
+    y = wp.clamp(uv[1], 0.0, 1.0) * float(hh - 1)
+    x0 = wp.min(int(wp.floor(x)), ww - 2)
+    y0 = wp.min(int(wp.floor(y)), hh - 2)
+    x0 = wp.max(x0, 0)
+    y0 = wp.max(y0, 0)
+    x1 = wp.min(x0 + 1, ww - 1)
+    y1 = wp.min(y0 + 1, hh - 1)
+    fx = wp.clamp(x - float(x0), 0.0, 1.0)
+    fy = wp.clamp(y - float(y0), 0.0, 1.0)
+    ch = k - cell * 4
+    a = atlas[cr * hh + y0, cc * ww + x0, ch]
+    b = atlas[cr * hh + y0, cc * ww + x1, ch]
+    c = atlas[cr * hh + y1, cc * ww + x0, ch]
+    d = atlas[cr * hh + y1, cc * ww + x1, ch]
+    return (a * (1.0 - fx) + b * fx) * (1.0 - fy) + (c * (1.0 - fx) + d * fx) * fy
+
+
+@wp.func
+def _edge_distance_px(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, px: float, py: float, hw: float, hh: float) -> float:
+    """Distance in pixels from window point (px, py) to the nearest edge of the projected triangle
+    (infinite when a vertex lies behind the eye, where the projection is not a triangle)."""
+    if c0[3] <= 0.0 or c1[3] <= 0.0 or c2[3] <= 0.0:
+        return 1.0e30
+    a = wp.vec2((c0[0] / c0[3] + 1.0) * hw, (c0[1] / c0[3] + 1.0) * hh)
+    b = wp.vec2((c1[0] / c1[3] + 1.0) * hw, (c1[1] / c1[3] + 1.0) * hh)
+    c = wp.vec2((c2[0] / c2[3] + 1.0) * hw, (c2[1] / c2[3] + 1.0) * hh)
+    p = wp.vec2(px, py)
+    d = float(1.0e30)
+    e = b - a
+    d = wp.min(d, wp.abs(e[0] * (p[1] - a[1]) - e[1] * (p[0] - a[0])) / wp.max(wp.length(e), 1.0e-12))
+    e = c - b
+    d = wp.min(d, wp.abs(e[0] * (p[1] - b[1]) - e[1] * (p[0] - b[0])) / wp.max(wp.length(e), 1.0e-12))
+    e = a - c
+    d = wp.min(d, wp.abs(e[0] * (p[1] - c[1]) - e[1] * (p[0] - c[0])) / wp.max(wp.length(e), 1.0e-12))
+    return d
+
+
+@wp.kernel(enable_backward=False)
+def _shade_kernel(
+    tri_id: wp.array2d(dtype=wp.int32),
+    bary: wp.array2d(dtype=wp.vec2),
+    tris: wp.array2d(dtype=wp.int32),
+    normals: wp.array(dtype=wp.vec3),
+    heights: wp.array(dtype=wp.float32),
+    vlevel: wp.array(dtype=wp.int32),
+    vpatch: wp.array(dtype=wp.int32),
+    uv: wp.array(dtype=wp.vec2),
+    world_xz: wp.array(dtype=wp.vec2),
+    clip: wp.array(dtype=wp.vec4),
+    level_colours: wp.array(dtype=wp.vec3),
+    atlas: wp.array3d(dtype=wp.float32),
+    rules: wp.array2d(dtype=wp.float32),
+    n_rules: int,
+    grid: int,
+    hm_h: int,
+    hm_w: int,
+    mode: int,
+    wire_px: float,
+    h_lo: float,
+    h_span: float,
+    light: wp.vec3,
+    ambient: float,
+    sky: wp.vec3,
+    wire: wp.vec3,
+    # outputs
+    out_rgb: wp.array2d(dtype=wp.vec3),
+    out_n: wp.array2d(dtype=wp.vec3),
+):
+    """mode: 0 hillshade, 1 level, 2 patch, 3 wireframe (hillshade + edges), 4 splat."""
+    i, j = wp.tid()
+    t = tri_id[i, j]
+    if t < 0:
+        out_rgb[i, j] = sky
+        out_n[i, j] = wp.vec3(0.0, 0.0, 0.0)
+        return
+    b = bary[i, j]
+    b2 = 1.0 - b[0] - b[1]
+    i0 = tris[t, 0]
+    i1 = tris[t, 1]
+    i2 = tris[t, 2]
+    n = wp.normalize(b[0] * normals[i0] + b[1] * normals[i1] + b2 * normals[i2])
+    hgt = b[0] * heights[i0] + b[1] * heights[i1] + b2 * heights[i2]
+    shade = ambient + (1.0 - ambient) * wp.max(wp.dot(n, light), 0.0)
+    base = _ramp((hgt - h_lo) / h_span)
+    if mode == 1:
+        base = level_colours[vlevel[i0] % level_colours.shape[0]]
+    elif mode == 2:
+        base = wp.vec3(0.35 + 0.6 * _hash2(vpatch[i0], 17, 1), 0.35 + 0.6 * _hash2(vpatch[i0], 29, 2),
+                       0.35 + 0.6 * _hash2(vpatch[i0], 41, 3))
+    elif mode == 4:
+        tuv = b[0] * uv[i0] + b[1] * uv[i1] + b2 * uv[i2]
+        xz = b[0] * world_xz[i0] + b[1] * world_xz[i1] + b2 * world_xz[i2]
+        acc = wp.vec3(0.0, 0.0, 0.0)
+        wsum = float(0.0)
+        for k in range(n_rules):
+            w = _atlas_sample(atlas, k, grid, hm_h, hm_w, tuv)
+            if w > 0.0:
+                s = rules[k, 9]
+                tex = 1.0 + rules[k, 10] * (2.0 * _value_noise(xz[0] / s, xz[1] / s, k) - 1.0)
+                acc = acc + w * tex * wp.vec3(rules[k, 6], rules[k, 7], rules[k, 8])
+                wsum += w
+        if wsum > 0.0:
+            base = acc / wsum
+    rgb = base * shade
+    if mode == 3:
+        hh = 0.5 * float(tri_id.shape[0])
+        hw = 0.5 * float(tri_id.shape[1])
+        d = _edge_distance_px(clip[i0], clip[i1], clip[i2], float(j) + 0.5,
+                              float(tri_id.shape[0] - 1 - i) + 0.5, hw, hh)
+        if d < wire_px:
+            rgb = wire
+    out_rgb[i, j] = rgb
+    out_n[i, j] = n
+
+
+@wp.kernel(enable_backward=False)
+def _cracks_kernel(
+    tri_id: wp.array2d(dtype=wp.int32),
+    reach: int,
+    # outputs
+    out_crack: wp.array2d(dtype=wp.int32),
+):
+    """A background pixel is a crack when terrain lies within ``reach`` pixels on both sides of it,
+    left and right or above and below: background seen through the surface, not around it."""
+    i, j = wp.tid()
+    out_crack[i, j] = 0
+    if tri_id[i, j] >= 0:
+        return
+    h = tri_id.shape[0]
+    w = tri_id.shape[1]
+    left = wp.bool(False)
+    right = wp.bool(False)
+    up = wp.bool(False)
+    down = wp.bool(False)
+    for k in range(1, reach + 1):
+        if j - k >= 0 and tri_id[i, j - k] >= 0:
+            left = True
+        if j + k < w and tri_id[i, j + k] >= 0:
+            right = True
+        if i - k >= 0 and tri_id[i - k, j] >= 0:
+            up = True
+        if i + k < h and tri_id[i + k, j] >= 0:
+            down = True
+    if (left and right) or (up and down):
+        out_crack[i, j] = 1
+
+
+def splat_map(heights: np.ndarray, normals: np.ndarray, rules=DEFAULT_SPLAT_RULES, *,
+              device: str = "cpu") -> tuple[np.ndarray, int]:
+    """The splat map of deaconu2021 "Multi-texturing": texture weights from height and slope rules.
+
+    Args:
+        heights: (H, W) float32 heightmap; normals: (H, W, 3) float32 unit normals.
+        rules: a sequence of :class:`SplatRule` (heights as fractions of the terrain's range).
+
+    Returns:
+        (atlas, grid): atlas (grid*H, grid*W, 4) float32 weights in [0, 1]; texture k lives in cell
+        k // 4 (row-major), channel k % 4. ``grid`` is the smallest power of two with
+        4 * grid**2 >= len(rules) (5 textures: a 2 x 2 atlas of 4-channel images, as in the paper).
+    """
+    h = np.asarray(heights, np.float32)
+    nrm = np.asarray(normals, np.float32)
+    if h.ndim != 2:
+        raise ValueError(f"heights: expected shape (H, W), got {h.shape}")
+    if nrm.shape != h.shape + (3,):
+        raise ValueError(f"normals: expected shape {h.shape + (3,)}, got {nrm.shape}")
+    rules = [r if isinstance(r, SplatRule) else SplatRule(*r) for r in rules]
+    if not rules:
+        raise ValueError("rules: expected at least one SplatRule")
+    grid = 1
+    while 4 * grid * grid < len(rules):
+        grid *= 2
+    fin = h[np.isfinite(h)]
+    lo = float(fin.min()) if fin.size else 0.0
+    span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
+    atlas = wp.zeros((grid * h.shape[0], grid * h.shape[1], 4), dtype=wp.float32, device=device)
+    wp.launch(_splat_map_kernel, dim=h.shape, inputs=[
+        wp.array(np.nan_to_num(h, nan=lo), dtype=wp.float32, device=device),
+        wp.array(np.nan_to_num(nrm), dtype=wp.vec3, device=device),
+        wp.array(_rules_table(rules), dtype=wp.float32, device=device), len(rules), grid, lo, span],
+        outputs=[atlas], device=device)
+    return atlas.numpy(), grid
+
+
+def _rules_table(rules) -> np.ndarray:
+    return np.array([[r.h_lo, r.h_hi, r.slope_lo_deg, r.slope_hi_deg, r.blend, r.blend_deg, *r.colour, r.scale,
+                      r.contrast] for r in rules], np.float32).reshape(-1, 11)
+
+
+def find_cracks(triangle_id: np.ndarray, reach: int = 3, *, device: str = "cpu") -> np.ndarray:
+    """(H, W) bool: background pixels with terrain within ``reach`` px on both sides (see _cracks_kernel)."""
+    ids = np.ascontiguousarray(triangle_id, dtype=np.int32)
+    if ids.ndim != 2:
+        raise ValueError(f"triangle_id: expected shape (H, W), got {ids.shape}")
+    out = wp.empty(ids.shape, dtype=wp.int32, device=device)
+    wp.launch(_cracks_kernel, dim=ids.shape, inputs=[wp.array(ids, dtype=wp.int32, device=device), int(reach)],
+              outputs=[out], device=device)
+    return out.numpy().astype(bool)
+
+
+def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarray, normals: np.ndarray,
+          heights: np.ndarray, *, mode: str = "hillshade", level: np.ndarray | None = None,
+          patch_id: np.ndarray | None = None, uv: np.ndarray | None = None, world_xz: np.ndarray | None = None,
+          clip: np.ndarray | None = None, splat: tuple[np.ndarray, int] | None = None,
+          rules=DEFAULT_SPLAT_RULES, wire_px: float = 0.6, crack_reach: int = 3,
+          azimuth_deg: float = 315.0, elevation_deg: float = 45.0, ambient: float = 0.25,
+          sky: tuple[float, float, float] = (0.62, 0.75, 0.90),
+          device: str = "cpu") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Shade a frame in one of :data:`SHADING_MODES`.
+
+    Args:
+        triangle_id (H, W) int32, barycentrics (H, W, 2) float32: the visibility pass.
+        triangles (m, 3) int32; normals (n, 3) float32 unit; heights (n,) float32 world heights.
+        mode: ``"hillshade"`` (hypsometric tint x Lambert), ``"level"`` (colour by ``level`` (n,) int32),
+            ``"patch"`` (colour by ``patch_id`` (n,) int32), ``"wireframe"`` (hillshade with triangle
+            edges within ``wire_px`` pixels drawn dark; needs ``clip`` (n, 4) float32, deaconu2021
+            figure 10), ``"splat"`` (splat-map multi-texturing; needs ``uv`` (n, 2) heightmap coordinates
+            in [0, 1], ``world_xz`` (n, 2) and ``splat`` = :func:`splat_map`'s (atlas, grid) built with
+            the same ``rules``), ``"cracks"`` (hillshade; background pixels seen through the terrain in
+            magenta, :data:`CRACK_COLOUR`).
+
+    Returns:
+        rgb (H, W, 3) float32 linear in [0, 1], per-pixel normals (H, W, 3) float32, and counters
+        (``crack_pixels`` in "cracks" mode, ``edge_pixels`` in "wireframe" mode).
+    """
+    if mode not in SHADING_MODES:
+        raise ValueError(f"mode: expected one of {list(SHADING_MODES)}, got {mode!r}")
+    ids = np.ascontiguousarray(triangle_id, dtype=np.int32)
+    hh, ww = ids.shape
+    need = {"level": ("level", level), "patch": ("patch_id", patch_id), "wireframe": ("clip", clip),
+            "splat": ("uv", uv)}
+    if mode in need and need[mode][1] is None:
+        raise ValueError(f"{need[mode][0]}: required by shading mode {mode!r}")
+    if mode == "splat" and (world_xz is None or splat is None):
+        raise ValueError("splat: mode 'splat' needs world_xz and splat=(atlas, grid) from splat_map")
+
+    def varr(a, shape, dtype, wdt):
+        if a is None:
+            a = np.zeros((1,) + shape, dtype)
+        a = np.ascontiguousarray(a, dtype=dtype)
+        if len(a) == 0:
+            a = np.zeros((1,) + shape, dtype)
+        return wp.array(a, dtype=wdt, device=device)
+
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    light = (float(np.cos(el) * np.sin(az)), float(np.sin(el)), float(-np.cos(el) * np.cos(az)))
+    fin = heights[np.isfinite(heights)]
+    lo = float(fin.min()) if fin.size else 0.0
+    span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
+    if splat is not None:
+        atlas, grid = splat
+        atlas = np.ascontiguousarray(atlas, np.float32)
+        hm_h, hm_w = atlas.shape[0] // grid, atlas.shape[1] // grid
+    else:
+        atlas, grid, hm_h, hm_w = np.zeros((2, 2, 4), np.float32), 1, 2, 2
+    rtab = _rules_table([r if isinstance(r, SplatRule) else SplatRule(*r) for r in rules])
+    code = {"hillshade": 0, "cracks": 0, "level": 1, "patch": 2, "wireframe": 3, "splat": 4}[mode]
+    rgb = wp.empty((hh, ww), dtype=wp.vec3, device=device)
+    nrm = wp.empty((hh, ww), dtype=wp.vec3, device=device)
+    m = max(len(triangles), 1)
+    tri = np.zeros((m, 3), np.int32)
+    tri[: len(triangles)] = triangles
+    wp.launch(_shade_kernel, dim=(hh, ww), inputs=[
+        wp.array(ids, dtype=wp.int32, device=device),
+        wp.array(np.ascontiguousarray(barycentrics, np.float32), dtype=wp.vec2, device=device),
+        wp.array(tri, dtype=wp.int32, device=device),
+        varr(normals, (3,), np.float32, wp.vec3), varr(heights, (), np.float32, wp.float32),
+        varr(level, (), np.int32, wp.int32), varr(patch_id, (), np.int32, wp.int32),
+        varr(uv, (2,), np.float32, wp.vec2), varr(world_xz, (2,), np.float32, wp.vec2),
+        varr(clip, (4,), np.float32, wp.vec4), wp.array(_LEVEL_COLOURS, dtype=wp.vec3, device=device),
+        wp.array(atlas, dtype=wp.float32, device=device), wp.array(rtab, dtype=wp.float32, device=device),
+        len(rtab), int(grid), int(hm_h), int(hm_w), code, float(wire_px), lo, span, wp.vec3(*light),
+        float(ambient), wp.vec3(*sky), wp.vec3(*WIRE_COLOUR)], outputs=[rgb, nrm], device=device)
+    out = rgb.numpy()
+    counters: dict = {"mode": mode}
+    if mode == "cracks":
+        cr = find_cracks(ids, crack_reach, device=device)
+        out[cr] = CRACK_COLOUR
+        counters["crack_pixels"] = int(cr.sum())
+    if mode == "wireframe":
+        counters["edge_pixels"] = int(np.all(out == np.float32(WIRE_COLOUR), axis=-1).sum())
+    return out, nrm.numpy(), counters
