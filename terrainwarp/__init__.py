@@ -4,7 +4,10 @@ Public API::
 
     Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
     Terrain, LodState, select, compute_normals, compute_curvature,
-    tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport
+    tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
+    rasterize_clip, clip_coordinates
+
+Differentiable resolve for JAX (imports JAX): ``terrainwarp.interpolate.interpolate``.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
 from .analysis import compute_curvature, compute_normals  # noqa: E402
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
-from .kernels.raster import Fragments, rasterize  # noqa: E402
+from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
 from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
 from .lod import LodState, Terrain, select  # noqa: E402
 from .mesh import Mesh  # noqa: E402
@@ -32,4 +35,4 @@ __version__ = "0.1.0"
 __all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
-           "__version__"]
+           "rasterize_clip", "clip_coordinates", "__version__"]
