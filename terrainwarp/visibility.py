@@ -27,7 +27,7 @@ import numpy as np
 from .bintree import Bintree
 from .kernels.visibility import cell_node_visibility
 
-__all__ = ["VisibilityTable", "VisibilityState", "precompute_visibility"]
+__all__ = ["VisibilityTable", "VisibilityState", "precompute_visibility", "encode", "expand"]
 
 EYE_HEIGHT = 1.8
 
@@ -46,9 +46,11 @@ class VisibilityTable:
         tree: the :class:`Bintree`.
         cells: (rows along z, columns along x).
         coarse_level: Lc, the level of the blockee nodes.
-        base: (k,) int32 coarse node indices (0-based within level Lc) visible from cell (0, 0).
-        right_ptr, right_ids: CSR lists of coarse nodes that toggle between cell (i, j) and (i, j + 1),
-            pair index ``i * (cols - 1) + j``.
+        base: (k,) heap indices of the nodes visible from cell (0, 0), in the hierarchical encoding of
+            the paper's Table 1: a node stands for all its level-Lc descendants ("11" for 1100..1111),
+            emitted at the coarsest level where a whole subtree is in the set (uint16 when Lc <= 15).
+        right_ptr, right_ids: CSR lists (same encoding) of the nodes whose level-Lc descendants toggle
+            between cell (i, j) and (i, j + 1), pair index ``i * (cols - 1) + j``.
         down_ptr, down_ids: the same between (i, j) and (i + 1, j), pair index ``i * cols + j``.
         preprocess_s: wall time of the precomputation; params: the sampling parameters.
     """
@@ -71,7 +73,7 @@ class VisibilityTable:
 
     @property
     def storage_bytes(self) -> int:
-        """Bytes of the stored table (node ids as uint16 when Lc <= 16, else int32; int32 offsets)."""
+        """Bytes of the stored table (node ids as uint16 when Lc <= 15, else int32; int32 offsets)."""
         return int(sum(a.nbytes for a in (self.base, self.right_ptr, self.right_ids, self.down_ptr, self.down_ids)))
 
     @property
@@ -107,12 +109,12 @@ class VisibilityState:
         self.table = table
         self.cell = (0, 0)
         self.coarse = np.zeros(table.n_coarse, np.uint8)
-        self.coarse[table.base] = 1
+        self.coarse = expand(table.base, table.coarse_level)
         self.toggles = 0
         self._nodes: np.ndarray | None = None
 
     def _toggle(self, ids: np.ndarray) -> None:
-        self.coarse[ids] ^= 1
+        self.coarse ^= expand(ids, self.table.coarse_level)
         self.toggles += int(ids.size)
         self._nodes = None
 
@@ -156,6 +158,34 @@ class VisibilityState:
                     out[s] = self.coarse.reshape(1 << level, -1).max(axis=1)
             self._nodes = out
         return self._nodes
+
+
+def encode(mask: np.ndarray, level: int) -> np.ndarray:
+    """Hierarchical encoding of a (2**level,) 0/1 mask over the nodes of ``level``: the heap indices of
+    the maximal whole subtrees inside it, sorted (uint16 when level <= 15, else int32)."""
+    m = np.asarray(mask, bool)
+    full = [m]
+    for _ in range(level):
+        full.append(full[-1].reshape(-1, 2).all(axis=1))
+    out = []
+    for d in range(level + 1):  # d levels above ``level``
+        lv = level - d
+        keep = full[d] if d == level else full[d] & ~np.repeat(full[d + 1], 2)
+        out.append(np.nonzero(keep)[0] + (1 << lv) - 1)
+    ids = np.sort(np.concatenate(out))
+    return ids.astype(np.uint16 if level <= 15 else np.int32)
+
+
+def expand(ids: np.ndarray, level: int) -> np.ndarray:
+    """Inverse of :func:`encode`: the (2**level,) uint8 mask (the subtrees are disjoint)."""
+    g = np.asarray(ids, np.int64)
+    lv = np.floor(np.log2(g + 1)).astype(np.int64)
+    start = (g + 1 - (1 << lv)) << (level - lv)
+    stop = start + (np.int64(1) << (level - lv))
+    d = np.zeros((1 << level) + 1, np.int64)
+    np.add.at(d, start, 1)
+    np.add.at(d, stop, -1)
+    return (np.cumsum(d[:-1]) > 0).astype(np.uint8)
 
 
 def _cell_eyes(tree: Bintree, cells: tuple[int, int], which: np.ndarray, samples: int, eye_height: float,
@@ -257,12 +287,13 @@ def precompute_visibility(tree: Bintree, cells: int | tuple[int, int] = 16, coar
     down = (full[1:, :] ^ full[:-1, :]).reshape(-1, full.shape[-1])
 
     def csr(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        lists = [encode(r, lc) for r in m]  # per neighbouring pair (a few hundred), host loop
         ptr = np.zeros(len(m) + 1, np.int32)
-        ptr[1:] = np.cumsum(m.sum(axis=1, dtype=np.int64))
-        return ptr, np.nonzero(m)[1].astype(np.uint16 if lc <= 16 else np.int32)
+        ptr[1:] = np.cumsum([len(x) for x in lists])
+        return ptr, (np.concatenate(lists) if lists else np.zeros(0, np.uint16 if lc <= 15 else np.int32))
 
     rp, ri = csr(right)
     dp, di = csr(down)
     dt = time.perf_counter() - t0
-    base = np.nonzero(full[0, 0])[0].astype(np.uint16 if lc <= 16 else np.int32)
+    base = encode(full[0, 0], lc)
     return VisibilityTable(tree, (cr, cc), lc, base, rp, ri, dp, di, dt, params)
