@@ -573,8 +573,11 @@ def _displace_kernel(
     d = dom[k]
     p = pid[k]
     b = box[p]
-    nx = _lattice(b[0], b[2], d[0])
-    nz = _lattice(b[1], b[3], d[1])
+    # Patches may reach past the grid (the quadtree's roots cover it with power-of-two nodes): points
+    # beyond it are clamped to the border, so the terrain ends there (the triangles that collapse
+    # have zero area and are culled by the rasterizer).
+    nx = wp.clamp(_lattice(b[0], b[2], d[0]), wp.int64(0), wp.int64(h.shape[1] - 1) << wp.int64(16))
+    nz = wp.clamp(_lattice(b[1], b[3], d[1]), wp.int64(0), wp.int64(h.shape[0] - 1) << wp.int64(16))
     gx = _grid(nx)
     gz = _grid(nz)
     hgt = sample_height(h, gx, gz, method)
@@ -701,7 +704,8 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
 
     Args:
         patches: an object or dict with ``origin_xz`` (P, 2) world (x, z) of each patch's corner
-            with the smallest coordinates (float64, metres), ``size`` (P,) its side in metres, ``outer``
+            with the smallest coordinates (float64, metres), ``size`` (P,) its side in metres or (P, 2)
+            its (x, z) extent (a patch square in cells is a rectangle in metres when dx != dz), ``outer``
             (P, 4) and ``inner`` (P, 2) float32 levels, and optionally ``level`` (P,) int32. The
             domain's u runs along +x and v along +z.
         heights: (H, W) float32 heightmap, row i along +z, column j along +x.
@@ -718,11 +722,14 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     o, i = _levels(_get(patches, "outer"), _get(patches, "inner"))
     p = o.shape[0]
     org = np.asarray(_get(patches, "origin_xz"), dtype=np.float64)
-    size = np.asarray(_get(patches, "size"), dtype=np.float64).reshape(-1)
+    size = np.asarray(_get(patches, "size"), dtype=np.float64)
     if org.shape != (p, 2):
         raise ValueError(f"patches.origin_xz: expected shape ({p}, 2), got {org.shape}")
-    if size.shape != (p,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
-        raise ValueError(f"patches.size: expected ({p},) positive finite sizes, got shape {size.shape}")
+    if size.shape == (p,):  # square in metres
+        size = np.repeat(size[:, None], 2, axis=1)
+    if size.shape != (p, 2) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+        raise ValueError(f"patches.size: expected ({p},) or ({p}, 2) positive finite sizes (x, z), got shape "
+                         f"{size.shape}")
     if not np.all(np.isfinite(org)):
         raise ValueError("patches.origin_xz: expected finite coordinates, got NaN or inf")
     lvl = _get(patches, "level", required=False)
@@ -746,7 +753,7 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     # patch extents and the eye on the lattice of 2^-16 cells (float64 on the host, rounded once)
     scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
     lo = np.rint((org - (x0, z0)) * scale).astype(np.int64)
-    hi = np.rint((org + size[:, None] - (x0, z0)) * scale).astype(np.int64)
+    hi = np.rint((org + size - (x0, z0)) * scale).astype(np.int64)
     if np.any(np.abs(np.concatenate([lo, hi])) > 2**46):
         raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
     box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))

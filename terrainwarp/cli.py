@@ -114,6 +114,59 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ._io import write_json, write_text
+    from .fit import fit_lod, plot_fit
+
+    sc = _scene(args)
+    cams = sc.camera_path(args.frames)
+    res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    curve = []
+    for b in args.curve_budgets:
+        r = fit_lod(sc, b, policy=args.policy, cameras=cams)
+        if r.met:
+            curve.append((b, r.validated.cost))
+    write_json(out / "fit.json", res.to_dict())
+    plot_fit(res, out / "fit.png", curve or None)
+    g = res.grid
+    lines = ["# Fit", "", f"policy {args.policy}, budget {args.budget_px:g} px, {len(cams)} cameras", "",
+             "| method | value | worst p99 px | triangles/frame | pipeline evaluations | wall s |",
+             "|---|---|---|---|---|---|",
+             f"| fit | {res.value:.4g} | {res.validated.worst_p99:.3g} | {res.validated.cost:.0f} | {res.evaluations} "
+             f"| {res.wall_s:.1f} |"]
+    if g:
+        lines.append(f"| grid search ({g['points']} points) | {g['value']} | {g['worst_p99_px']} | {g['cost']} | "
+                     f"{g['evaluations']} | {g['wall_s']:.1f} |")
+    lines += ["", res.message, ""]
+    write_text(out / "report.md", "\n".join(lines))
+    print(res.message)
+    print(f"wrote: {out / 'fit.json'}, {out / 'fit.png'}, {out / 'report.md'}")
+    return 0 if res.met else 1
+
+
+def _cmd_stability(args: argparse.Namespace) -> int:
+    from .stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
+
+    n = 129 if args.full else 33
+    cases = [c for c in args.cases.split(",") if c] if args.cases else None
+    rows = run_suite(n, cases=cases, progress=not args.no_progress)
+    cmd = "terrainwarp stability --out DIR" + (" --full" if args.full else "")
+    path = write_stability_md(rows, args.out, command=cmd, n=n)
+    counts = {}
+    for r in rows:
+        counts[r.status] = counts.get(r.status, 0) + 1
+    print(", ".join(f"{v} {k}" for k, v in counts.items()))
+    print(f"wrote: {path}")
+    unexplained = [r for r in rows if r.status == FAIL and not any(k in r.note for k in EXPLANATIONS)]
+    for r in unexplained:
+        print(f"FAIL {r.case}/{r.stage}: {r.note}", file=sys.stderr)
+    return 1 if unexplained else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.")
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
@@ -155,6 +208,24 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--width", type=int, default=None)
     rp.add_argument("--height", type=int, default=None)
     rp.set_defaults(func=_cmd_report)
+    st = sub.add_parser("stability", help="run the extreme-case stability suite through every stage: stability.md")
+    st.add_argument("--out", required=True, help="output folder for stability.md")
+    st.add_argument("--full", action="store_true", help="129 x 129 grids instead of 33 x 33")
+    st.add_argument("--cases", default=None, help="comma-separated subset of terrainwarp.scenes.extreme.CASES")
+    st.add_argument("--no-progress", action="store_true")
+    st.set_defaults(func=_cmd_stability)
+    ft = sub.add_parser("fit", help="fit LOD thresholds to a screen-space error budget (fit.json, fit.png)")
+    ft.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
+    ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
+    ft.add_argument("--policy", choices=["sse", "distance", "continuous"], default="sse")
+    ft.add_argument("--frames", type=int, default=None)
+    ft.add_argument("--grid-points", type=int, default=0, help="also run a grid search baseline with N points")
+    ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[],
+                    help="also fit these budgets for the cost-against-budget curve")
+    ft.add_argument("--out", default="out/fit")
+    ft.add_argument("--width", type=int, default=None)
+    ft.add_argument("--height", type=int, default=None)
+    ft.set_defaults(func=_cmd_fit)
     return p
 
 

@@ -41,6 +41,7 @@ from .camera import Camera
 from .heightmap import Heightmap
 
 __all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "PatchList", "LodState",
+           "NodeMetrics", "node_metrics",
            "select", "tile_key", "tile_from_key", "tile_name", "MAX_TESS"]
 
 MAX_TESS = 64  # the hardware's maximum tessellation level
@@ -618,3 +619,52 @@ def _continuous_factors(terrain: Terrain, camera: Camera, origin: np.ndarray, si
     outer = np.stack([edge("00", "01"), edge("00", "10"), edge("10", "11"), edge("01", "11")], axis=1)
     inner = np.stack([0.5 * (outer[:, 1] + outer[:, 3]), 0.5 * (outer[:, 0] + outer[:, 2])], axis=1)
     return outer.astype(np.float32), inner.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# per-node metrics of the complete tree (for relaxed, differentiable selection in terrainwarp.fit)
+# ------------------------------------------------------------------------------------------------
+class NodeMetrics(NamedTuple):
+    """Every inside node of every level, for one camera (the complete tree, whatever a policy decides).
+
+    Attributes (lists over levels 0..D of (N_L,) arrays, in row-major (y, x) order of the level):
+        x, y: node coordinates; inside: origin inside the grid; culled: outside the frustum;
+        dist: eye-to-box distance (m); sse: projected geometric error (px, inf at distance 0 with error);
+        size: node side in metres (max of x and z).
+    """
+
+    x: list
+    y: list
+    inside: list
+    culled: list
+    dist: list
+    sse: list
+    size: list
+
+
+def node_metrics(terrain: Terrain, camera: Camera, device: str = "cpu") -> NodeMetrics:
+    """Distance, screen-space error and culling of every node of the complete tree, one launch per level."""
+    from .kernels.lod import frustum_planes, select_level
+
+    hm = terrain.heightmap
+    nx, nz = terrain.roots
+    eye = camera.position
+    rel_origin = (hm.origin[0] - eye[0], eye[1], hm.origin[1] - eye[2])
+    planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+    out = NodeMetrics([], [], [], [], [], [], [])
+    for lvl in range(terrain.depth + 1):
+        yy, xx = np.meshgrid(np.arange(nz << lvl, dtype=np.int64), np.arange(nx << lvl, dtype=np.int64),
+                             indexing="ij")
+        x, y = xx.reshape(-1), yy.reshape(-1)
+        keys = tile_key(np.full(len(x), lvl), x, y)
+        _, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), rel_origin,
+                                     terrain.node_size_world(lvl), planes, 1, 1.0, camera.focal_px, 0.0, False,
+                                     np.zeros(0, np.int64), device=device)
+        out.x.append(x)
+        out.y.append(y)
+        out.inside.append(_inside_many(terrain, np.full(len(x), lvl), x, y))
+        out.culled.append(cu.astype(bool))
+        out.dist.append(di.astype(np.float64))
+        out.sse.append(me.astype(np.float64))
+        out.size.append(np.full(len(x), max(terrain.node_size_world(lvl))))
+    return out

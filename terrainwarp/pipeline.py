@@ -357,8 +357,10 @@ def _lod_mesh(scene: Scene, patches, nmap, device: str) -> Mesh:
 
     hm = scene.heightmap
     cam = scene.camera
-    out = tessellate_patches(patches, hm.heights, hm.dx, hm.dz, hm.origin, cam.position,
-                             spacing=scene.lod.spacing, filter=scene.lod.filter, device=device)
-    normals = None if nmap is None else sample_normal_map(nmap, out["uv"], device=device)
-    return Mesh(positions=out["positions"], eye=cam.position, triangles=out["triangles"], uv=out["uv"],
-                level=out["level"], patch_id=out["patch_id"], normals=normals)
+    t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
+                            "inner": patches.inner, "level": patches.level}, hm.heights, hm.dx, hm.dz,
+                           cam.position, spacing=scene.lod.spacing, filter=scene.lod.filter, origin=hm.origin,
+                           device=device)
+    normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
+    return Mesh(positions=t.positions, eye=cam.position, triangles=t.triangles, uv=t.uv, level=t.level,
+                patch_id=t.patch_id, normals=normals)
