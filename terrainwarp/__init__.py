@@ -20,6 +20,7 @@ if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
     _wp.config.log_level = _wp.LOG_WARNING  # no per-module "load took ... ms" lines
 
 from .analysis import compute_curvature, compute_normals  # noqa: E402
+from .bintree import Bintree, select_bintree  # noqa: E402
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
 from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
@@ -29,10 +30,12 @@ from .mesh import Mesh  # noqa: E402
 from .pipeline import Frame, Report, render  # noqa: E402
 from .scene import LodConfig, Scene  # noqa: E402
 from .tessellate import tessellate_patch  # noqa: E402
+from .visibility import precompute_visibility  # noqa: E402
 from .watertight import WatertightReport, check_watertight  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
-           "rasterize_clip", "clip_coordinates", "__version__"]
+           "rasterize_clip", "clip_coordinates", "Bintree", "select_bintree", "precompute_visibility",
+           "__version__"]
