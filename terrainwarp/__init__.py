@@ -5,7 +5,7 @@ Public API::
     Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
     Terrain, LodState, select, compute_normals, compute_curvature,
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
-    rasterize_clip, clip_coordinates
+    rasterize_clip, clip_coordinates, build_polytree, Polytree
 
 Differentiable resolve for JAX (imports JAX): ``terrainwarp.interpolate.interpolate``.
 """
@@ -28,6 +28,7 @@ from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
 from .lod import LodState, Terrain, select  # noqa: E402
 from .mesh import Mesh  # noqa: E402
 from .pipeline import Frame, Report, render  # noqa: E402
+from .polytree import Polytree, build_polytree  # noqa: E402
 from .scene import LodConfig, Scene  # noqa: E402
 from .tessellate import tessellate_patch  # noqa: E402
 from .visibility import precompute_visibility  # noqa: E402
@@ -38,4 +39,4 @@ __all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", 
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
            "rasterize_clip", "clip_coordinates", "Bintree", "select_bintree", "precompute_visibility",
-           "__version__"]
+           "build_polytree", "Polytree", "__version__"]

@@ -100,14 +100,20 @@ class TinMorph:
     """Section 2.5 between levels ``t`` (fine) and ``t + 1`` (coarse).
 
     Level t's polygons are split where they cover several level t+1 polygons (the common refinement of
-    the two tilings), the split tiling is triangulated watertight, and every vertex gets a target vertex
-    of level t+1 inside the closure of every level t+1 polygon it touches (coarse vertices stay, vertices
-    on a coarse edge slide to its nearer end, interior vertices go to the nearest corner). At parameter s,
-    x and z are interpolated linearly and the height is sampled from the heightmap.
+    the two tilings; carried down from the top, :meth:`Polytree.split_level`, so that the morph of
+    t -> t+1 ends on the vertices the morph of t+1 -> t+2 starts from), the split tiling is triangulated
+    watertight, and every vertex gets a target vertex of split level t+1 inside the closure of every
+    polygon of it that the vertex touches (coarse vertices stay, vertices on a coarse edge slide to its
+    nearer end, interior vertices go to the nearest corner). At parameter s, x and z are interpolated
+    linearly and the height is sampled from the heightmap (bilinear; exact samples at s = 0 and 1).
+
+    At s = 1 the vertices coincide with split level t+1's, but the collapsed fine triangles may pick the
+    other diagonal of a coarse rectangle than split level t+1's own triangulation: the one jump left
+    at integer levels (benchmarks/results/polytree.md measures it).
 
     Attributes:
         t: the fine level.
-        rects: (R, 4) int32 split tiling; split_added: R minus level t's polygon count.
+        rects: (R, 4) int32 split level t; split_added: R minus level t's polygon count.
         src, dst: (n, 2) int32 grid (i, j) of each vertex at s = 0 and at s = 1.
         triangles: (m, 3) int32 counter-clockwise from +y at s = 0.
     """
@@ -141,6 +147,7 @@ class Polytree:
     _labels: dict = field(default_factory=dict, repr=False)
     _grids: dict = field(default_factory=dict, repr=False)
     _morphs: dict = field(default_factory=dict, repr=False)
+    _splits: dict = field(default_factory=dict, repr=False)
 
     @property
     def n_levels(self) -> int:
@@ -183,34 +190,54 @@ class Polytree:
         return Mesh(positions=pos, eye=eye, triangles=np.ascontiguousarray(tri, np.int32), uv=uv,
                     level=np.full(n, level, np.int32), patch_id=np.zeros(n, np.int32))
 
-    def mesh(self, t: int, eye=None) -> Mesh:
+    def mesh(self, t: int, eye=None, *, split: bool = False) -> Mesh:
         """Level t as a watertight :class:`Mesh` (positions relative to ``eye``, default the heightmap
-        origin at height 0); ``level`` holds t."""
-        verts, tri = self.grid_triangulation(t)
+        origin at height 0); ``level`` holds t. ``split``: the split level t of :meth:`split_level` (what
+        :meth:`morph_mesh` shows at integer levels)."""
+        if split:
+            hm = self.heightmap
+            rects, lab = self.split_level(t)
+            verts, tri = _k.triangulate_tiling(hm.heights, rects, lab, hm.dx, hm.dz, device=self.device)
+        else:
+            verts, tri = self.grid_triangulation(t)
         eye3, rel = self._rel(eye)
         pos = _k.morph_positions(self.heightmap.heights, verts, verts, 0.0, self.heightmap.dx, self.heightmap.dz,
                                  rel, device=self.device)
         return self._mesh(verts, pos, tri, eye3, int(t))
 
+    def split_level(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """Level t with its polygons split along the borders of every coarser level (section 2.5's split,
+        carried down from the top so the split levels nest: each rectangle of split level t lies inside one
+        of split level t+1). Returns (rects (R, 4) int32, label (H-1, W-1) int32); the last level is
+        unsplit."""
+        t = self.polygons._check(t)
+        u = self.n_levels - 1
+        if u not in self._splits:
+            self._splits[u] = (self.polygons.level(u), self.label_map(u))
+        while t not in self._splits:
+            u = min(k for k in self._splits if k > t) - 1
+            rb, lb = self._splits[u + 1]
+            ra, la = self.polygons.level(u), self.label_map(u)
+            key = la.astype(np.int64) * len(rb) + lb  # link each level-u polygon to the coarser ones it meets
+            uniq, inv = np.unique(key.reshape(-1), return_inverse=True)
+            a, b = ra[uniq // len(rb)], rb[uniq % len(rb)]
+            rects = np.stack([np.maximum(a[:, 0], b[:, 0]), np.minimum(a[:, 1], b[:, 1]),
+                              np.maximum(a[:, 2], b[:, 2]), np.minimum(a[:, 3], b[:, 3])], 1).astype(np.int32)
+            self._splits[u] = (rects, inv.reshape(la.shape).astype(np.int32))
+        return self._splits[t]
+
     def morph(self, t: int) -> TinMorph:
-        """The :class:`TinMorph` from level t to level t+1 (cached)."""
+        """The :class:`TinMorph` from (split) level t to (split) level t+1 (cached)."""
         t = self.polygons._check(t)
         if t + 1 >= self.n_levels:
             raise ValueError(f"t: expected a level below the last ({self.n_levels - 1}), got {t}")
         if t not in self._morphs:
             hm = self.heightmap
-            la, lb = self.label_map(t), self.label_map(t + 1)
-            ra, rb = self.polygons.level(t), self.polygons.level(t + 1)
-            # link level t to t+1 and split: the common refinement of the two tilings
-            key = la.astype(np.int64) * len(rb) + lb
-            uniq, inv = np.unique(key.reshape(-1), return_inverse=True)
-            a, b = ra[uniq // len(rb)], rb[uniq % len(rb)]
-            rects = np.stack([np.maximum(a[:, 0], b[:, 0]), np.minimum(a[:, 1], b[:, 1]),
-                              np.maximum(a[:, 2], b[:, 2]), np.minimum(a[:, 3], b[:, 3])], 1).astype(np.int32)
-            lab = inv.reshape(la.shape).astype(np.int32)
+            rects, lab = self.split_level(t)
+            rb, lb = self.split_level(t + 1)
             src, tri = _k.triangulate_tiling(hm.heights, rects, lab, hm.dx, hm.dz, device=self.device)
             dst = _k.morph_targets(src, rb, lb, device=self.device)
-            self._morphs[t] = TinMorph(t, rects, int(len(rects) - len(ra)), src, dst, tri)
+            self._morphs[t] = TinMorph(t, rects, int(len(rects) - self.polygons.n_polygons(t)), src, dst, tri)
         return self._morphs[t]
 
     def morph_mesh(self, x: float, eye=None) -> Mesh:

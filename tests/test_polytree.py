@@ -8,7 +8,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, rasterize
+from terrainwarp import Camera, Heightmap, check_watertight, rasterize
 from terrainwarp.kernels.polytree import FLAG_HIGH_J, FLAG_LOW_J
 from terrainwarp.polytree import (
     build_polytree,
@@ -265,6 +265,8 @@ def test_triangulations_are_watertight(rough):
     for t in sorted({0, 3, 8, pt.n_levels // 2, pt.n_levels - 1}):
         m = pt.mesh(t)
         a = _check_watertight(m, hm.shape)
+        rep = check_watertight(m)
+        assert rep.watertight and rep.n_degenerate == 0 and rep.n_triangles == m.n_triangles, rep
         assert a == pytest.approx(area, rel=1e-5)
         rects = pt.polygons.level(t)
         ratios.append(m.n_triangles / len(rects))
@@ -289,10 +291,11 @@ def test_morph_end_points_equal_the_two_levels(rough):
         mo = pt.morph(t)
         m0 = pt.morph_mesh(float(t))
         fine = pt.mesh(t)
-        coarse = pt.mesh(t + 1)
-        # s = 0: the split level t (level t's rectangles cut along level t+1's borders): its vertices are
-        # level t's vertices plus the cut points, at their exact sample heights, watertight
+        coarse = pt.mesh(t + 1, split=True)
+        # s = 0: the split level t (level t's rectangles cut along the borders of the coarser levels): its
+        # vertices are level t's vertices plus the cut points, at their exact sample heights, watertight
         _check_watertight(m0, hm.shape)
+        assert check_watertight(m0).watertight
         fine_set = {tuple(p) for p in fine.positions.tolist()}
         m0_set = {tuple(p) for p in m0.positions.tolist()}
         assert fine_set <= m0_set
@@ -303,6 +306,13 @@ def test_morph_end_points_equal_the_two_levels(rough):
         m1 = pt.morph_at(t, 1.0)
         assert {tuple(p) for p in m1.positions.tolist()} == {tuple(p) for p in coarse.positions.tolist()}
         np.testing.assert_array_equal(pt.morph_at(t, 0.0).positions, m0.positions)
+        assert {tuple(p) for p in pt.morph_mesh(t + 1.0).positions.tolist()} == \
+            {tuple(p) for p in coarse.positions.tolist()}  # the next morph starts where this one ends
+        # split levels nest: each split rectangle lies inside one rectangle of the next split level
+        ra, _ = pt.split_level(t)
+        rb, lb = pt.split_level(t + 1)
+        q = rb[lb[ra[:, 0], ra[:, 2]]]
+        assert np.all((q[:, 0] <= ra[:, 0]) & (ra[:, 1] <= q[:, 1]) & (q[:, 2] <= ra[:, 2]) & (ra[:, 3] <= q[:, 3]))
         # in between, positions move continuously and heights come from the heightmap
         pa = pt.morph_mesh(t + 0.5).positions
         pb = pt.morph_mesh(t + 0.51).positions
