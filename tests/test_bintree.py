@@ -219,6 +219,8 @@ def test_watertight_along_a_path_with_propagation(name, fbm_tree, dem_tree):
     for cam in _ground_path(t, 8):
         f = select_bintree(t, cam, frustum=False)
         assert _crack_report(t, f) == {"bad_edges": 0, "same_direction": 0, "t_junctions": 0}
+        w = tw.check_watertight(f.mesh)  # the project's checker, on the float32 positions
+        assert (w.n_open_edges, w.n_t_junctions, w.n_nonmanifold_edges, w.n_degenerate) == (0, 0, 0, 0)
         no_fix_cracks += _crack_report(t, select_bintree(t, cam, hole_fix=False, propagate=False,
                                                          frustum=False))["bad_edges"]
     assert no_fix_cracks > 0  # without any fix the LOD rule does crack: the check can fail
@@ -239,9 +241,12 @@ def test_paper_hole_fix_counter_example():
     rp = _crack_report(t, paper)
     assert 0 < rp["bad_edges"] <= none["bad_edges"]
     assert rp["t_junctions"] > 0
+    w = tw.check_watertight(paper.mesh)
+    assert w.n_open_edges == rp["bad_edges"] and w.n_t_junctions > 0
     fixed = select_bintree(t, cam, hole_fix=True, propagate=True, frustum=False)
     assert fixed.stats["forced_splits"] > 0
     assert _crack_report(t, fixed) == {"bad_edges": 0, "same_direction": 0, "t_junctions": 0}
+    assert tw.check_watertight(fixed.mesh).n_open_edges == 0
     # propagation only adds splits: it refines the paper's selection, never coarsens it
     assert fixed.stats["triangles"] > paper.stats["triangles"]
     # every triangle of the paper's selection that propagation replaced is an ancestor of new ones
