@@ -4,6 +4,11 @@ The full-resolution grid mesh: one vertex per sample, two counter-clockwise (see
 per cell, split along the (i, j+1)-(i+1, j) diagonal. Positions are camera-relative: the host
 subtracts the eye from the grid origin in float64, and the kernel adds ``j*dx`` and ``i*dz`` in float32
 to that offset, so a terrain 10,000 km from the world origin is as precise as one at the origin.
+
+No-data holes: a NaN height makes its vertex a hole. No triangle references a hole vertex (a cell
+whose triangle touches one drops that triangle: count per cell, ``wp.utils.array_scan``, emit), so
+holes render as background; the hole vertex itself stays in the vertex array (index ``i*W + j`` is
+kept for every sample) with height 0 so that every position is finite.
 """
 
 from __future__ import annotations
@@ -25,7 +30,10 @@ def _grid_vertices_kernel(
     i, j = wp.tid()
     w = h.shape[1]
     k = i * w + j
-    out_pos[k] = wp.vec3(rel_origin[0] + float(j) * dx, h[i, j] - rel_origin[1], rel_origin[2] + float(i) * dz)
+    hv = h[i, j]
+    if wp.isnan(hv):
+        hv = 0.0  # a hole: no triangle uses this vertex; keep the array finite
+    out_pos[k] = wp.vec3(rel_origin[0] + float(j) * dx, hv - rel_origin[1], rel_origin[2] + float(i) * dz)
     out_uv[k] = wp.vec2(float(j) / float(wp.max(w - 1, 1)), float(i) / float(wp.max(h.shape[0] - 1, 1)))
 
 
@@ -50,18 +58,66 @@ def _grid_triangles_kernel(
     out_tri[t + 1, 2] = v11
 
 
+@wp.func
+def _cell_tri_ok(h: wp.array2d(dtype=wp.float32), i: int, j: int, t: int) -> int:
+    """1 if triangle t (0: v00-v10-v01, 1: v01-v10-v11) of cell (i, j) touches no NaN sample."""
+    ok = int(1)
+    if wp.isnan(h[i + 1, j]) or wp.isnan(h[i, j + 1]):
+        ok = 0
+    if t == 0 and wp.isnan(h[i, j]):
+        ok = 0
+    if t == 1 and wp.isnan(h[i + 1, j + 1]):
+        ok = 0
+    return ok
+
+
+@wp.kernel(enable_backward=False)
+def _hole_count_kernel(
+    h: wp.array2d(dtype=wp.float32),
+    # outputs
+    out_count: wp.array(dtype=wp.int32),
+):
+    i, j = wp.tid()  # cell (i, j)
+    out_count[i * (h.shape[1] - 1) + j] = _cell_tri_ok(h, i, j, 0) + _cell_tri_ok(h, i, j, 1)
+
+
+@wp.kernel(enable_backward=False)
+def _hole_emit_kernel(
+    h: wp.array2d(dtype=wp.float32),
+    start: wp.array(dtype=wp.int32),
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+):
+    i, j = wp.tid()  # cell (i, j)
+    w = h.shape[1]
+    t = start[i * (w - 1) + j]
+    v00 = i * w + j
+    v01 = v00 + 1
+    v10 = v00 + w
+    v11 = v10 + 1
+    if _cell_tri_ok(h, i, j, 0) == 1:
+        out_tri[t, 0] = v00
+        out_tri[t, 1] = v10
+        out_tri[t, 2] = v01
+        t += 1
+    if _cell_tri_ok(h, i, j, 1) == 1:
+        out_tri[t, 0] = v01
+        out_tri[t, 1] = v10
+        out_tri[t, 2] = v11
+
+
 def grid_mesh(heights: np.ndarray, dx: float, dz: float, rel_origin: tuple[float, float, float],
               device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Full-resolution grid mesh.
 
     Args:
-        heights: (H, W) float32.
+        heights: (H, W) float32; NaN samples are no-data holes (no triangle touches them).
         rel_origin: (x0 - eye_x, eye_y, z0 - eye_z): grid origin relative to the eye, and the eye
             height (subtracted from every height).
 
     Returns:
         positions (H*W, 3) float32 camera-relative, uv (H*W, 2) float32 in [0, 1],
-        triangles (2*(H-1)*(W-1), 3) int32.
+        triangles (m, 3) int32: m = 2*(H-1)*(W-1) without holes, fewer with them (cell order kept).
     """
     hh, ww = heights.shape
     h = wp.array(np.ascontiguousarray(heights, dtype=np.float32), dtype=wp.float32, device=device)
@@ -70,6 +126,17 @@ def grid_mesh(heights: np.ndarray, dx: float, dz: float, rel_origin: tuple[float
     wp.launch(_grid_vertices_kernel, dim=(hh, ww), inputs=[h, float(dx), float(dz), wp.vec3(*rel_origin)],
               outputs=[pos, uv], device=device)
     m = 2 * max(hh - 1, 0) * max(ww - 1, 0)
+    if m and np.isnan(heights).any():  # holes: count -> scan -> emit
+        cells = (hh - 1) * (ww - 1)
+        cnt = wp.empty(cells, dtype=wp.int32, device=device)
+        wp.launch(_hole_count_kernel, dim=(hh - 1, ww - 1), inputs=[h], outputs=[cnt], device=device)
+        start = wp.empty_like(cnt)
+        wp.utils.array_scan(cnt, start, inclusive=False)
+        m = int(start.numpy()[-1] + cnt.numpy()[-1])
+        tri = wp.empty((max(m, 1), 3), dtype=wp.int32, device=device)
+        if m:
+            wp.launch(_hole_emit_kernel, dim=(hh - 1, ww - 1), inputs=[h, start], outputs=[tri], device=device)
+        return (pos.numpy().reshape(-1, 3), uv.numpy().reshape(-1, 2), tri.numpy()[:m].reshape(-1, 3))
     tri = wp.empty((max(m, 1), 3), dtype=wp.int32, device=device)
     if m:
         wp.launch(_grid_triangles_kernel, dim=(hh - 1, ww - 1), inputs=[ww], outputs=[tri], device=device)
