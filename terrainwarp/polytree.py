@@ -240,6 +240,20 @@ class Polytree:
             self._morphs[t] = TinMorph(t, rects, int(len(rects) - self.polygons.n_polygons(t)), src, dst, tri)
         return self._morphs[t]
 
+    def level_for_distance(self, distance: float, fine_distance: float, coarse_distance: float,
+                           levels: tuple[float, float] | None = None) -> float:
+        """A continuous level for :meth:`morph_mesh` chosen from a camera distance (metres): ``levels[0]``
+        (default 0) at ``fine_distance`` or nearer, ``levels[1]`` (default the last level) at
+        ``coarse_distance`` or farther, linear in between."""
+        lo, hi = (0.0, float(self.n_levels - 1)) if levels is None else (float(levels[0]), float(levels[1]))
+        if not (0.0 <= lo <= self.n_levels - 1 and 0.0 <= hi <= self.n_levels - 1):
+            raise ValueError(f"levels: expected two levels in [0, {self.n_levels - 1}], got {levels!r}")
+        if not (np.isfinite(fine_distance) and np.isfinite(coarse_distance) and 0 <= fine_distance < coarse_distance):
+            raise ValueError(f"fine_distance, coarse_distance: expected 0 <= fine < coarse, got {fine_distance}, "
+                             f"{coarse_distance}")
+        a = float(np.clip((float(distance) - fine_distance) / (coarse_distance - fine_distance), 0.0, 1.0))
+        return lo + a * (hi - lo)
+
     def morph_mesh(self, x: float, eye=None) -> Mesh:
         """The mesh at continuous level ``x`` in [0, T-1]: level floor(x) morphed by s = x - floor(x)
         towards the next level; at an integer x < T-1, the split level floor(x) (see :class:`TinMorph`)."""

@@ -339,3 +339,28 @@ def test_figure5_gradients_and_threshold():
     np.testing.assert_array_equal(gradients(hm.heights, [[0, 1, 0, 1], [0, 1, 1, 2]]), [[7, -9], [15, -11]])
     assert _sorted(merge_rectangles(hm, 9.99)) == [(0, 1, 0, 1), (0, 1, 1, 2)]
     assert _sorted(merge_rectangles(hm, 10.0)) == [(0, 1, 0, 2)]  # <= (the paper merges above 10)
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (2, 9), (9, 2), (3, 3), (5, 2)])
+def test_tiny_grids(shape):
+    rng = np.random.default_rng(sum(shape))
+    hm = _hm(rng.normal(size=shape))
+    pt = build_polytree(hm, [0.0, 0.5, 1.0, 100.0])
+    assert pt.polygons.n_polygons(pt.n_levels - 1) == 1
+    for t in range(pt.n_levels):
+        assert _sorted(pt.polygons.level(t)) == _ref_merge(hm.heights, float(pt.polygons.tolerances[t]))
+        assert check_watertight(pt.mesh(t)).watertight
+    if pt.n_levels > 1:
+        assert check_watertight(pt.morph_mesh(0.5)).n_triangles > 0
+
+
+def test_level_for_distance():
+    hm = Heightmap.fbm(33, seed=1, max_height=200.0, feature_size=8.0)
+    pt = build_polytree(hm, default_tolerances(hm, 20))
+    last = pt.n_levels - 1
+    assert pt.level_for_distance(10.0, 100.0, 1000.0) == 0.0
+    assert pt.level_for_distance(5000.0, 100.0, 1000.0) == last
+    assert pt.level_for_distance(550.0, 100.0, 1000.0) == pytest.approx(last / 2)
+    assert pt.level_for_distance(550.0, 100.0, 1000.0, levels=(1, 3)) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="fine_distance"):
+        pt.level_for_distance(1.0, 10.0, 5.0)
