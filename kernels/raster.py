@@ -29,8 +29,6 @@ Output images have row 0 at the top (window y is flipped once, here).
 """
 
 
-from typing import NamedTuple
-
 import numpy as np
 import warp as wp
 
@@ -403,7 +401,7 @@ def _clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.
     a = wp.vec3(c0[0] - p[0] * c0[3], c1[0] - p[0] * c1[3], c2[0] - p[0] * c2[3])
     c = wp.vec3(c0[1] - p[1] * c0[3], c1[1] - p[1] * c1[3], c2[1] - p[1] * c2[3])
     b = wp.cross(a, c)
-    return b / (b[0] + b[1] + b[2])
+    return b * (1.0 / (b[0] + b[1] + b[2]))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -583,32 +581,41 @@ def _tile_kernel(
 @wp.kernel(enable_backward=False)
 def _resolve_ids_kernel(
     key: wp.array(dtype=wp.uint64),
-    clip: wp.array(dtype=wp.vec4),
-    tris: wp.array2d(dtype=wp.int32),
-    width: int,
-    height: int,
     # outputs
     out_id: wp.array(dtype=wp.int32),
     out_depth: wp.array(dtype=wp.float32),
-    out_bary: wp.array(dtype=wp.vec2),
 ):
+    """Decode the depth|id keys: triangle id (-1 background) and window depth (1 background)."""
     p = wp.tid()
     k = key[p]
     if k == wp.uint64(0xFFFFFFFFFFFFFFFF):
         out_id[p] = -1
         out_depth[p] = 1.0
-        out_bary[p] = wp.vec2(0.0, 0.0)
         return
-    t = int(k & wp.uint64(0xFFFFFFFF))
-    out_id[p] = t
+    out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
     out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
-    row = p / width
-    col = p - row * width
-    b = _clip_barycentrics(clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]], _pixel_ndc(row, col, height, width))
+
+
+@wp.kernel(enable_backward=False)
+def _barycentrics_kernel(
+    tri_id: wp.array2d(dtype=wp.int32),
+    clip: wp.array(dtype=wp.vec4),
+    tris: wp.array2d(dtype=wp.int32),
+    # outputs
+    out_bary: wp.array2d(dtype=wp.vec2),
+):
+    """Perspective-correct barycentrics (b0, b1) of each pixel centre on its visible triangle."""
+    i, j = wp.tid()
+    t = tri_id[i, j]
+    if t < 0:
+        out_bary[i, j] = wp.vec2(0.0, 0.0)
+        return
+    b = _clip_barycentrics(clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]],
+                           _pixel_ndc(i, j, tri_id.shape[0], tri_id.shape[1]))
     if wp.isfinite(b):
-        out_bary[p] = wp.vec2(b[0], b[1])
+        out_bary[i, j] = wp.vec2(b[0], b[1])
     else:  # a triangle seen edge-on through this centre (not drawn by the coverage test in practice)
-        out_bary[p] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
+        out_bary[i, j] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
 
 
 @wp.kernel
@@ -642,22 +649,51 @@ def _interpolate_kernel(
 # ------------------------------------------------------------------------------------------------
 
 
-class Fragments(NamedTuple):
+class Fragments:
     """The visibility pass's output; images have row 0 at the top.
 
     Attributes:
         triangle_id: (H, W) int32, the visible triangle per pixel, -1 for background.
         depth: (H, W) float32 window depth in [0, 1] (1.0 for background).
         barycentrics: (H, W, 2) float32 perspective-correct weights (b0, b1) of the triangle's
-            vertices 0 and 1 at the pixel centre (b2 = 1 - b0 - b1); 0 for background.
-        stats: counters: triangles_in, triangles_rasterized (after rejection, clipping and culling),
-            fragments_tested, pixels_covered.
+            vertices 0 and 1 at the pixel centre (b2 = 1 - b0 - b1); 0 for background. Computed from
+            the clip-space vertices on first access (the resolve half of a visibility buffer: the
+            visibility pass itself produces ids and depth, as a GPU's depth pre-pass would).
+        stats: per-frame counters: triangles_in; triangles_rasterized (that reached the coverage test
+            after trivial rejection, clipping, zero-area and back-face culling); triangles_binned (large
+            triangles drawn tile by tile) and tile_entries; fragments_tested (pixel centres
+            evaluated), fragments_inside (centres covered), pixels_written (depth tests passed), and
+            pixels_covered (non-background pixels in the end).
+
+    Iterating yields (triangle_id, depth, barycentrics, stats), as the earlier NamedTuple did.
     """
 
-    triangle_id: np.ndarray
-    depth: np.ndarray
-    barycentrics: np.ndarray
-    stats: dict
+    __slots__ = ("triangle_id", "depth", "stats", "_bary", "_clip", "_tris", "_device")
+
+    def __init__(self, triangle_id, depth, barycentrics, stats, *, clip=None, tris=None, device="cpu"):
+        self.triangle_id = triangle_id
+        self.depth = depth
+        self.stats = stats
+        self._bary = barycentrics
+        self._clip, self._tris, self._device = clip, tris, device
+
+    @property
+    def barycentrics(self) -> np.ndarray:
+        if self._bary is None:
+            hh, ww = self.triangle_id.shape
+            out = wp.empty((hh, ww), dtype=wp.vec2, device=self._device)
+            wp.launch(_barycentrics_kernel, dim=(hh, ww),
+                      inputs=[wp.array(self.triangle_id, dtype=wp.int32, device=self._device), self._clip,
+                              self._tris], outputs=[out], device=self._device)
+            self._bary = out.numpy().reshape(hh, ww, 2)
+            self._clip = self._tris = None
+        return self._bary
+
+    def __iter__(self):
+        return iter((self.triangle_id, self.depth, self.barycentrics, self.stats))
+
+    def __repr__(self) -> str:
+        return f"Fragments(shape={self.triangle_id.shape}, stats={self.stats})"
 
 
 def _as_matrix(name: str, m: object) -> np.ndarray:
@@ -692,7 +728,12 @@ def _check_size(width: object, height: object) -> tuple[int, int]:
 def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
                     device: str) -> Fragments:
     npx = width * height
-    key = wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
+    if wp.get_device(device).is_cpu:
+        key_np = np.empty(npx, np.uint64)
+        key_np.view(np.uint8).fill(255)  # all ones: the empty key (a byte fill is faster than wp.full)
+        key = wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
+    else:
+        key = wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
     stats = wp.zeros(6, dtype=wp.int64, device=device)
     m = int(tri.shape[0])
     tri_wp = wp.array(tri if m else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
@@ -718,16 +759,14 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                       outputs=[key, stats], device=device)
     out_id = wp.empty(npx, dtype=wp.int32, device=device)
     out_depth = wp.empty(npx, dtype=wp.float32, device=device)
-    out_bary = wp.empty(npx, dtype=wp.vec2, device=device)
-    wp.launch(_resolve_ids_kernel, dim=npx, inputs=[key, clip, tri_wp, width, height],
-              outputs=[out_id, out_depth, out_bary], device=device)
+    wp.launch(_resolve_ids_kernel, dim=npx, inputs=[key], outputs=[out_id, out_depth], device=device)
     ids = out_id.numpy().reshape(height, width)
     c = stats.numpy()
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
                "pixels_written": int(c[3]), "pixels_covered": int(np.count_nonzero(ids >= 0))}
-    return Fragments(ids, out_depth.numpy().reshape(height, width),
-                     out_bary.numpy().reshape(height, width, 2), stats_d)
+    return Fragments(ids, out_depth.numpy().reshape(height, width), None, stats_d, clip=clip, tris=tri_wp,
+                     device=device)
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
