@@ -16,7 +16,9 @@ Requiring all four neighbours, the literal reading of the issue, would miss ever
 one pixel (along a line crack the neighbours along the line are crack pixels too). Other mismatches
 are *silhouette* pixels.
 
-All of this is host-side float64 numpy: it measures the float32 pipeline, it is not part of it.
+It runs in float64 (one Warp launch over pixels, :mod:`terrainwarp.kernels.metrics`): it measures the
+float32 pipeline, it is not part of it. :func:`pixel_positions` and :func:`reference_height` are the
+same maths in numpy, for tests and for users.
 """
 
 from __future__ import annotations
@@ -115,23 +117,17 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
             depth (for the coverage and depth comparisons; optional).
         image, ref_image: hillshaded images for PSNR and SSIM (optional).
     """
+    from .kernels.metrics import pixel_error
+
     hh, ww = triangle_id.shape
-    rel = pixel_positions(positions, triangles, triangle_id, barycentrics)
     cov = triangle_id >= 0
-    e = np.asarray(eye, np.float64)
-    p = rel[cov]
-    world_x = p[:, 0] + e[0]
-    world_z = p[:, 2] + e[2]
-    ry = reference_height(heightmap, world_x, world_z) - e[1]
-    r = np.stack([p[:, 0], ry, p[:, 2]], 1)
     m = camera.proj_matrix() @ camera.view_matrix(relative=True)
-    pp, _ = _project(m, p, ww, hh)
-    rp, rw = _project(m, r, ww, hh)
-    err = np.linalg.norm(pp - rp, axis=1)
-    err = np.where(rw > 0, err, np.inf)
-    dist = np.linalg.norm(p, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        approx = np.where(dist > 0, np.abs(p[:, 1] - ry) * camera.focal_px / dist, np.inf)
+    emap, amap = pixel_error(triangle_id, barycentrics, positions, triangles, heightmap.heights, eye,
+                             heightmap.origin, (heightmap.dx, heightmap.dz), m, camera.focal_px)
+    err = emap[cov]
+    err = np.where(err >= 1e300, np.inf, err)
+    approx = amap[cov]
+    approx = np.where(approx >= 1e300, np.inf, approx)
     n = int(cov.sum())
 
     def q(a: np.ndarray, f) -> float:

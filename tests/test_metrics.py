@@ -80,3 +80,25 @@ def test_forced_crack_is_detected_and_located():
     ok = frame_error(hm, cam, pos, cam.position, tri, ref.triangle_id, ref.barycentrics, ref.depth,
                      ref.triangle_id, ref.depth)
     assert ok.cracks == 0
+
+
+def test_kernel_error_matches_the_numpy_formula():
+    from terrainwarp.metrics import pixel_positions
+
+    hm = Heightmap.fbm(65, seed=8, dx=7.0, max_height=300.0)
+    cam = Camera.default_for(hm, 120, 90)
+    pos, tri = _grid(hm, cam, dy=0.5)
+    f = _draw(pos, tri, cam)
+    st = frame_error(hm, cam, pos, cam.position, tri, f.triangle_id, f.barycentrics, keep_maps=True)
+    cov = f.triangle_id >= 0
+    p = pixel_positions(pos, tri, f.triangle_id, f.barycentrics)[cov]
+    e = np.asarray(cam.position)
+    ry = reference_height(hm, p[:, 0] + e[0], p[:, 2] + e[2]) - e[1]
+    m = cam.proj_matrix() @ cam.view_matrix(relative=True)
+
+    def pix(q):
+        c = np.c_[q, np.ones(len(q))] @ m.T
+        return np.stack([(c[:, 0] / c[:, 3] * 0.5 + 0.5) * 120, (c[:, 1] / c[:, 3] * 0.5 + 0.5) * 90], 1)
+
+    ref = np.linalg.norm(pix(p) - pix(np.c_[p[:, 0], ry, p[:, 2]]), axis=1)
+    np.testing.assert_allclose(st.error_map[cov], ref, rtol=1e-5, atol=1e-6)
