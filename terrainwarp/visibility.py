@@ -258,6 +258,10 @@ def precompute_visibility(tree: Bintree, cells: int | tuple[int, int] = 16, coar
         eye_height: metres above the terrain (the paper: 1.8).
         blocker_cells: blocker squares per side (a power of two dividing G / 2 when M is even; default
             G / 4, at least 1).
+        raised: True (default): eye samples at the cell's highest surface point + eye height and targets
+            at the node's highest subtree point (each tested segment is then only lifted, see the module
+            docstring); False: the paper's vertex-to-vertex sampling at the surface, tighter but it can
+            miss a visible triangle (tests/test_visibility.py has a DEM viewpoint where it does).
 
     Returns:
         :class:`VisibilityTable` (only the base set and the changes kept).
