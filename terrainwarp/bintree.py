@@ -40,7 +40,7 @@ from .mesh import Mesh
 __all__ = ["Bintree", "BintreeFrame", "select_bintree", "lod_threshold", "HEIGHT_METHODS"]
 
 HEIGHT_METHODS = tuple(_k.HEIGHT_METHODS)
-MAX_DEPTH = 24
+MAX_DEPTH = 22  # 2**23 heap nodes, ~200 MB of device arrays
 
 
 def lod_threshold(distance: object, depth: int, short_side: float) -> np.ndarray:
@@ -255,8 +255,9 @@ def select_bintree(tree: Bintree, camera: Camera, *, lod: bool = True, hole_fix:
     gid = r["grid_id"].astype(np.int32)
     g = tree.vertex_grid_xz(gid).astype(np.float64)
     (hx0, hz0), (hx1, hz1) = tree.heightmap.bounds_xz
-    uv = np.stack([(tree.origin[0] + g[:, 0] * tree.step - hx0) / max(hx1 - hx0, 1e-300),
-                   (tree.origin[1] + g[:, 1] * tree.step - hz0) / max(hz1 - hz0, 1e-300)], axis=1)
+    ex, ez = hx1 - hx0, hz1 - hz0  # one of them is 0 for a single row or column: u or v is then 0
+    uv = np.stack([(tree.origin[0] + g[:, 0] * tree.step - hx0) / ex if ex > 0 else 0.0 * g[:, 0],
+                   (tree.origin[1] + g[:, 1] * tree.step - hz0) / ez if ez > 0 else 0.0 * g[:, 1]], axis=1)
     mesh = Mesh(positions=pos, eye=tuple(float(v) for v in eye), triangles=r["triangles"].astype(np.int32),
                 uv=uv.astype(np.float32).reshape(-1, 2), level=np.zeros(len(pos), np.int32),
                 patch_id=np.zeros(len(pos), np.int32))

@@ -329,3 +329,19 @@ def test_bad_input(fbm_tree):
     bad[1, 1] = np.nan
     with pytest.raises(ValueError, match="finite"):
         Bintree.build(tw.Heightmap.from_array(bad, 1.0, allow_nan=True), 4)
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (1, 5), (5, 1), (3, 7)])
+def test_tiny_grids(shape):
+    hm = tw.Heightmap.from_array(np.arange(np.prod(shape), dtype=np.float32).reshape(shape), 1.0)
+    for depth in (1, 2, 3):
+        t = Bintree.build(hm, depth)
+        f = select_bintree(t, tw.Camera(position=(0.5, 5.0, 0.5), target=(0.6, 0.0, 0.6)), frustum=False)
+        assert 2 <= f.stats["triangles"] <= 2 ** depth
+        assert np.all(np.isfinite(f.mesh.uv)) and np.all(np.isfinite(f.mesh.positions))
+        assert _crack_report(t, f)["bad_edges"] == 0
+
+
+def test_uv_spans_the_heightmap(fbm_tree):
+    f = select_bintree(fbm_tree, _ground_path(fbm_tree, 1)[0], lod=False, frustum=False)
+    assert f.mesh.uv.min() == 0.0 and f.mesh.uv.max() == 1.0  # a square heightmap fills the root square
