@@ -345,3 +345,17 @@ def test_tiny_grids(shape):
 def test_uv_spans_the_heightmap(fbm_tree):
     f = select_bintree(fbm_tree, _ground_path(fbm_tree, 1)[0], lod=False, frustum=False)
     assert f.mesh.uv.min() == 0.0 and f.mesh.uv.max() == 1.0  # a square heightmap fills the root square
+
+
+_DEVICES = ["cpu"] + (["cuda:0"] if __import__("warp").is_cuda_available() else [])
+
+
+@pytest.mark.parametrize("device", _DEVICES)
+def test_devices_agree(device):
+    hm = tw.Heightmap.fbm(65, seed=2, dx=10.0, max_height=300.0)
+    cpu = Bintree.build(hm, 12)
+    other = Bintree.build(hm, 12, device=device)
+    cam = _ground_path(cpu, 2)[1]
+    a, b = select_bintree(cpu, cam), select_bintree(other, cam)
+    assert np.array_equal(a.node, b.node) and np.array_equal(a.mesh.triangles, b.mesh.triangles)
+    np.testing.assert_allclose(a.mesh.positions, b.mesh.positions, rtol=0, atol=1e-3)
