@@ -14,14 +14,14 @@ Usage::
 
     oracle = GLOracle()                     # raises OracleUnavailable without EGL / GL 4.5
     tris = oracle.triangles(levels, "fractional_odd")   # levels (P, 6): outer[4], inner[2]
-    # tris[p] is a set of ((u0, v0), (u1, v1), (u2, v2)) tuples, rotation-normalised
+    # tris[p] is a set of rotation-normalised triangles (24-byte keys: u0 v0 u1 v1 u2 v2 float32)
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["GLOracle", "OracleUnavailable", "normalise", "triangle_set"]
+__all__ = ["GLOracle", "OracleUnavailable", "normalise", "normalise_array", "triangle_set"]
 
 _VS = """
 #version 450
@@ -96,9 +96,22 @@ def normalise(tri) -> tuple:
     return tuple(tri[k:] + tri[:k])
 
 
+def normalise_array(tris: np.ndarray) -> set:
+    """Vectorised :func:`normalise` of (m, 3, 2) triangles, as a set of 24-byte keys (float32 bits)."""
+    t = np.ascontiguousarray(tris, dtype=np.float32).reshape(-1, 3, 2)
+    if t.shape[0] == 0:
+        return set()
+    # lexicographic (u, then v), exactly: u is a multiple of 2^-16, so steps of 2^17 u exceed any v in [0, 1]
+    key = t[:, :, 0].astype(np.float64) * 131072.0 + t[:, :, 1]
+    k = np.argmin(key, axis=1)
+    idx = (k[:, None] + np.arange(3)[None, :]) % 3
+    rot = np.ascontiguousarray(np.take_along_axis(t, idx[:, :, None], axis=1))
+    return set(rot.reshape(-1, 6).view(np.dtype((np.void, 24))).reshape(-1).tolist())
+
+
 def triangle_set(uv: np.ndarray, triangles: np.ndarray) -> set:
-    """The set of normalised triangles of a mesh in domain coordinates."""
-    return {normalise(uv[t]) for t in np.asarray(triangles).reshape(-1, 3)}
+    """The set of normalised triangles of a mesh in domain coordinates (see :func:`normalise_array`)."""
+    return normalise_array(np.asarray(uv, np.float32)[np.asarray(triangles, np.int64).reshape(-1, 3)])
 
 
 class GLOracle:
@@ -170,5 +183,5 @@ class GLOracle:
         return [np.concatenate(o) if o else np.zeros((0, 3, 2), np.float32) for o in out]
 
     def triangles(self, levels: np.ndarray, spacing: str, max_triangles=None) -> list[set]:
-        """Per patch, the set of normalised triangles (see :func:`normalise`)."""
-        return [{normalise(t) for t in r} for r in self.raw(levels, spacing, max_triangles)]
+        """Per patch, the set of normalised triangles (see :func:`normalise_array`)."""
+        return [normalise_array(r) for r in self.raw(levels, spacing, max_triangles)]
