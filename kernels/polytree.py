@@ -179,6 +179,7 @@ def _merge_border(h: wp.array2d(dtype=wp.float32), vertical: int, fixed: int, st
 
 @wp.kernel(enable_backward=False)
 def _leaf_count_kernel(
+    active: wp.array(dtype=wp.int32),
     depth: int,
     ch: int,
     cw: int,
@@ -187,7 +188,7 @@ def _leaf_count_kernel(
     # outputs
     out_count: wp.array(dtype=wp.int32),
 ):
-    k = wp.tid()
+    k = active[wp.tid()]
     ij = _demorton(k, depth)
     c = int(0)
     if ij[0] < ch and ij[1] < cw:
@@ -200,6 +201,7 @@ def _leaf_count_kernel(
 
 @wp.kernel(enable_backward=False)
 def _merge_kernel(
+    active: wp.array(dtype=wp.int32),
     h: wp.array2d(dtype=wp.float32),
     m: int,
     depth: int,
@@ -221,7 +223,7 @@ def _merge_kernel(
     out_count: wp.array(dtype=wp.int32),
     stats: wp.array(dtype=wp.int64),
 ):
-    k = wp.tid()
+    k = active[wp.tid()]
     if m < depth:
         if single_prev[node_base[m + 1] + (k >> 2)] != 0:
             out_count[k] = 0
@@ -260,6 +262,7 @@ def _merge_kernel(
 
 @wp.kernel(enable_backward=False)
 def _emit_kernel(
+    active: wp.array(dtype=wp.int32),
     h: wp.array2d(dtype=wp.float32),
     m: int,
     depth: int,
@@ -282,7 +285,7 @@ def _emit_kernel(
     rec_father: wp.array(dtype=wp.int32),
     single_rec: wp.array(dtype=wp.int32),
 ):
-    k = wp.tid()
+    k = active[wp.tid()]
     cnt = count[k]
     o = level_base[m] + off[k]
     if cnt == 1:
@@ -732,34 +735,45 @@ class MergeState:
         self.count = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
         self.off = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
         self.stats = wp.zeros(4, dtype=wp.int64, device=device)
+        self._cmds = None
+        # nodes that hold at least one cell, per level (Morton order)
+        self._inside = []
+        for m in range(d + 1):
+            code = np.arange(self.n_nodes[m], dtype=np.int64)
+            i = np.zeros_like(code)
+            j = np.zeros_like(code)
+            for b in range(d - m):
+                j |= ((code >> (2 * b)) & 1) << b
+                i |= ((code >> (2 * b + 1)) & 1) << b
+            self._inside.append(((i << m) < self.ch) & ((j << m) < self.cw))
+        self.active = [wp.zeros(c, dtype=wp.int32, device=device) for c in self.n_nodes]
+        self.n_active = [0] * (d + 1)
+        self._update_active()
 
     def run_pass(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Merge every level at ``tol``; returns the root's polygons: rects (P, 4) int32 (i0, i1, j0, j1),
         gradients (P, 2) float32 (Xgr, Ygr), flags (P,) int32."""
         dev = self.device
         d = self.depth
+        if self._cmds is None:
+            self._cmds = self._record()
         for m in range(d + 1):
-            n = self.n_nodes[m]
-            cnt = self.count[m]
-            if m == 0:
-                wp.launch(_leaf_count_kernel, dim=n, inputs=[d, self.ch, self.cw, self.single_prev, self.node_base],
-                          outputs=[cnt], device=dev)
-            else:
-                wp.launch(_merge_kernel, dim=n,
-                          inputs=[self.h, m, d, self.ch, self.cw, float(tol), self.single_prev, self.node_base,
-                                  self.level_base, self.off[m - 1], self.rec_rect, self.rec_flags, self.rec_father,
-                                  self.single_rec],
-                          outputs=[self.sc_rect, self.sc_fwd, self.sc_flags, cnt, self.stats], device=dev)
-            wp.utils.array_scan(cnt, self.off[m], inclusive=False)  # count[n] is 0: off[n] = total
-            wp.launch(_emit_kernel, dim=n,
-                      inputs=[self.h, m, d, self.ch, self.cw, self.single_prev, self.node_base, self.level_base,
-                              cnt, self.off[m], self.off[m - 1] if m else self.off[0], self.sc_rect, self.sc_fwd,
-                              self.sc_flags],
-                      outputs=[self.sc_out, self.rec_rect, self.rec_grad, self.rec_flags, self.rec_father,
-                               self.single_rec], device=dev)
+            first, emit = self._cmds[m]
+            na = self.n_active[m]
+            self.count[m].zero_()
+            if na:
+                if m > 0:
+                    first.set_param_by_name("tol", float(tol))
+                first.set_dim(na)
+                first.launch()
+            wp.utils.array_scan(self.count[m], self.off[m], inclusive=False)  # count[n] is 0: off[n] = total
+            if na:
+                emit.set_dim(na)
+                emit.launch()
         # step j: nodes holding one polygon keep it for every higher tolerance
         wp.launch(_keep_single_kernel, dim=self.single_rec.shape[0], inputs=[self.single_rec],
                   outputs=[self.single_prev], device=dev)
+        self._update_active()
         base = d * self.ncells
         total = int(self.off[d].numpy()[1])
         # copies: on the CPU .numpy() is a view of memory the next pass overwrites
@@ -767,6 +781,49 @@ class MergeState:
         grads = self.rec_grad[base:base + total].numpy().reshape(total, 2).copy()
         flags = self.rec_flags[base:base + total].numpy().reshape(total).copy()
         return rects, grads, flags
+
+    def _update_active(self) -> None:
+        """Next pass's work lists: per level, the nodes that hold cells and whose father does not hold a
+        single polygon already (the nodes under a single one are never visited again; their stale
+        ``single_rec`` entries are never read, as every neighbour search stops at the single ancestor)."""
+        sp = self.single_prev.numpy()
+        nb = self.node_base_np
+        for m in range(self.depth + 1):
+            keep = self._inside[m].copy()
+            if m < self.depth:
+                keep &= np.repeat(sp[nb[m + 1]:nb[m + 2]] == 0, 4)
+            idx = np.flatnonzero(keep).astype(np.int32)
+            self.n_active[m] = len(idx)
+            if len(idx):
+                self.active[m][:len(idx)].assign(idx)
+
+    def _record(self) -> list:
+        """Recorded launches per level (packing the arguments once; a pass only changes the tolerance)."""
+        dev = self.device
+        d = self.depth
+        cmds = []
+        for m in range(d + 1):
+            n = self.n_nodes[m]
+            cnt = self.count[m]
+            if m == 0:
+                first = wp.launch(_leaf_count_kernel, dim=n,
+                                  inputs=[self.active[m], d, self.ch, self.cw, self.single_prev, self.node_base],
+                                  outputs=[cnt], device=dev, record_cmd=True)
+            else:
+                first = wp.launch(_merge_kernel, dim=n,
+                                  inputs=[self.active[m], self.h, m, d, self.ch, self.cw, 0.0, self.single_prev,
+                                          self.node_base, self.level_base, self.off[m - 1], self.rec_rect,
+                                          self.rec_flags, self.rec_father, self.single_rec],
+                                  outputs=[self.sc_rect, self.sc_fwd, self.sc_flags, cnt, self.stats], device=dev,
+                                  record_cmd=True)
+            emit = wp.launch(_emit_kernel, dim=n,
+                             inputs=[self.active[m], self.h, m, d, self.ch, self.cw, self.single_prev, self.node_base,
+                                     self.level_base, cnt, self.off[m], self.off[m - 1] if m else self.off[0],
+                                     self.sc_rect, self.sc_fwd, self.sc_flags],
+                             outputs=[self.sc_out, self.rec_rect, self.rec_grad, self.rec_flags, self.rec_father,
+                                      self.single_rec], device=dev, record_cmd=True)
+            cmds.append((first, emit))
+        return cmds
 
     def take_stats(self) -> np.ndarray:
         s = self.stats.numpy().copy()
