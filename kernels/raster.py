@@ -1,33 +1,42 @@
-"""The rasterizer: a visibility pass (coverage + depth test) and a barycentric pass, as Warp kernels.
+"""The rasterizer: a visibility pass (coverage + depth test) and a resolve pass, as Warp kernels.
 
-Visibility (one launch over triangles, non-differentiable):
+The rules are OpenGL's as Mesa's llvmpipe implements them (checked pixel for pixel against llvmpipe
+through EGL in tests/test_raster.py, with the same clip-space vertices):
 
-1. Vertices are transformed to clip space by one kernel (``clip = proj @ view @ (p, 1)``, float32).
-2. Each triangle is trivially rejected when all three vertices lie outside one clip plane, then
-   clipped against the near plane ``z >= -w`` (Sutherland-Hodgman), and against guard-band planes
-   ``|x|, |y| <= GB * w`` only when a vertex lies outside the guard band, so window coordinates stay
-   well inside the fixed-point range. The far plane and the viewport are applied per pixel (depth in
-   [0, 1], pixel inside the viewport), which covers the same pixels as geometric clipping.
-3. Window coordinates are snapped to a fixed-point grid with 8 bits of sub-pixel precision
-   (round to nearest), and the clipped polygon is drawn as a fan.
-4. Coverage uses 64-bit integer edge functions at pixel centres (x + 0.5, y + 0.5) with the top-left
-   fill rule (a pixel centre exactly on an edge belongs to the triangle for which that edge is a top
-   edge or a left edge, in the visual sense: image row 0 at the top), so a centre on an edge shared
-   by two triangles is covered by exactly one of them.
-5. Depth is interpolated linearly in window space (z_ndc is affine in screen space) and the test keeps
-   the nearest fragment with one ``atomic_min`` on a 64-bit key ``(float bits of depth) << 32 | id``:
-   window depth is a non-negative float, whose bit pattern orders like its value, so ties go to the
-   lower triangle id and the result never depends on the order of the launch.
+1. Vertices go to clip space in one kernel (``clip = (proj @ view) @ (p, 1)``, the matrix product
+   rounded to float32 first, like a uniform); :func:`rasterize_clip` starts from clip coordinates.
+2. A triangle is trivially rejected when all three vertices lie outside one clip plane. When a vertex
+   lies outside the viewport's x or y planes (llvmpipe here has no guard band: matching its pixels
+   needs the viewport planes), or outside near ``z >= -w`` or far ``z <= w``, the triangle is clipped
+   (Sutherland-Hodgman, x and y planes first, then near, then far, interpolating from the outside
+   vertex to the inside one, as Mesa's clipper does) and drawn as a fan of triangles, each on its
+   own. Clipping far as well as near matters: a vertex with ``-w <= z`` but ``z > w`` may have w < 0.
+3. Window coordinates are ``x / w * (W / 2) + W / 2`` (fused multiply-add, as llvmpipe's vertex
+   stage), snapped to 8 sub-pixel bits by rounding half to even (``lrintf``). Zero-area triangles
+   (in fixed point) are dropped, and clockwise ones too with ``cull_back``; the others are made
+   counter-clockwise.
+4. Coverage: 64-bit integer edge functions at pixel centres with llvmpipe's fill convention for an
+   OpenGL framebuffer (lower-left origin): a centre exactly on an edge belongs to the triangle for
+   which the edge is a *left* edge or a *bottom* edge in the image (interior above it, window y up).
+   A centre on an edge shared by two triangles is covered by exactly one of them.
+5. Depth: the plane through the unsnapped window positions (x, y, z_window) of each (fan) triangle,
+   evaluated at the pixel centre in float32 and clamped to [0, 1]. The test keeps the nearest fragment
+   with one ``atomic_min`` on a 64-bit key ``(float bits of depth) << 32 | id``: window depth is a
+   non-negative float, whose bit pattern orders like its value, so ties go to the lower triangle id
+   and the result never depends on launch order (as ``GL_LESS`` in submission order).
+6. Speed: small triangles (pixel box < SMALL_PX each way; most terrain triangles, many without any
+   pixel centre) are set up and drawn by their own thread without clipping arrays; larger ones are
+   binned into TILE x TILE screen tiles (count -> scan -> emit) and drawn tile by tile, each tile
+   touched only by triangles whose edges do not exclude it.
 
-The barycentric pass (one launch over pixels) decodes the key and computes perspective-correct
-barycentrics of the pixel centre on the original (unclipped) triangle from its clip-space vertices:
-with ``a_i = x_i - px*w_i`` and ``c_i = y_i - py*w_i`` (px, py the centre in NDC), the barycentrics
-are ``cross(a, c) / sum(cross(a, c))``. They stay exact for clipped triangles, whose clipped vertices
-lie on the original plane.
+Resolve: the key decodes to the triangle id and depth; perspective-correct barycentrics of each pixel
+centre on the original (unclipped) triangle come from its clip-space vertices: with
+``a_i = x_i - px*w_i`` and ``c_i = y_i - py*w_i`` (px, py the centre in NDC) they are
+``cross(a, c) / sum(cross(a, c))``, exact for clipped triangles too. :func:`interpolate_warp` is the
+same computation as a differentiable kernel (gradients to clip positions and attributes).
 
 Output images have row 0 at the top (window y is flipped once, here).
 """
-
 
 import numpy as np
 import warp as wp
