@@ -167,6 +167,21 @@ def _cmd_stability(args: argparse.Namespace) -> int:
     return 1 if unexplained else 0
 
 
+def _cmd_tessellate(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from ._io import write_json
+    from .tessellate import tessellation_json, write_tessellation_picture
+
+    out = Path(args.out)
+    doc = tessellation_json(args.outer, args.inner, args.spacing)
+    write_tessellation_picture(out / "tessellation.png", args.outer, args.inner, args.spacing)
+    write_json(out / "tessellation.json", doc)
+    print(json.dumps(doc))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.")
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
@@ -226,6 +241,14 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--width", type=int, default=None)
     ft.add_argument("--height", type=int, default=None)
     ft.set_defaults(func=_cmd_fit)
+    te = sub.add_parser("tessellate", help="one quad patch through the GPU tessellator: tessellation.png and the "
+                                          "triangles as JSON")
+    te.add_argument("--outer", type=float, nargs=4, required=True, metavar="L",
+                    help="4 outer levels: u=0, v=0, u=1, v=1 edges (gl_TessLevelOuter order)")
+    te.add_argument("--inner", type=float, nargs=2, required=True, metavar="L", help="2 inner levels: along u, v")
+    te.add_argument("--spacing", choices=["equal", "fractional_even", "fractional_odd"], default="equal")
+    te.add_argument("--out", default="out/tessellate")
+    te.set_defaults(func=_cmd_tessellate)
     return p
 
 

@@ -423,3 +423,49 @@ def tessellate_patch(outer, inner, spacing: str) -> tuple[np.ndarray, np.ndarray
     tris = _connectivity(lay)
     uv = np.asarray(pts, dtype=np.float64).reshape(-1, 2) / FXP_ONE
     return uv.astype(np.float32), np.asarray(tris, dtype=np.int32).reshape(-1, 3)
+
+
+# ------------------------------------------------------------------------------------------------
+# picture and JSON (the `terrainwarp tessellate` command)
+# ------------------------------------------------------------------------------------------------
+
+
+def tessellation_json(outer, inner, spacing: str) -> dict:
+    """One patch as a JSON-ready dict: levels, spacing, points (u, v) and triangles (ccw indices)."""
+    uv, tri = tessellate_patch(outer, inner, spacing)
+    lv = lambda a: [None if not np.isfinite(x) else float(x) for x in np.asarray(a, np.float32)]  # noqa: E731
+    return {"outer": lv(outer), "inner": lv(inner), "spacing": spacing, "n_points": int(uv.shape[0]),
+            "n_triangles": int(tri.shape[0]), "points": uv.tolist(), "triangles": tri.tolist()}
+
+
+def write_tessellation_picture(path, outer, inner, spacing: str, size_px: int = 800):
+    """Draw the domain triangulation of one patch (u right, v up) to a PNG; returns the path."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from ._io import atomic_path
+
+    uv, tri = tessellate_patch(outer, inner, spacing)
+    fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    o = ", ".join(f"{x:g}" for x in np.asarray(outer, np.float32))
+    i = ", ".join(f"{x:g}" for x in np.asarray(inner, np.float32))
+    ax.set_title(f"{spacing}: outer [{o}], inner [{i}]\n{uv.shape[0]} points, {tri.shape[0]} triangles")
+    if tri.shape[0]:
+        ax.triplot(uv[:, 0], uv[:, 1], tri, color="#1f4e79", linewidth=0.6)
+        ax.plot(uv[:, 0], uv[:, 1], "o", color="#c0392b", markersize=2)
+    else:
+        ax.text(0.5, 0.5, "patch discarded (an outer level <= 0 or NaN)", ha="center", va="center")
+    for label, xy in (("outer[0] (u=0)", (-0.06, 0.5)), ("outer[1] (v=0)", (0.5, -0.06)),
+                      ("outer[2] (u=1)", (1.06, 0.5)), ("outer[3] (v=1)", (0.5, 1.06))):
+        ax.text(*xy, label, ha="center", va="center", fontsize=8, color="#555555",
+                rotation=90 if xy[1] == 0.5 else 0)
+    ax.set_xlim(-0.12, 1.12)
+    ax.set_ylim(-0.12, 1.12)
+    ax.set_aspect("equal")
+    ax.set_xlabel("u")
+    ax.set_ylabel("v")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path

@@ -299,3 +299,23 @@ def test_tessellate_patches_is_deterministic():
         return hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in t[:8])).hexdigest()
 
     assert run() == run()
+
+
+def test_cli_tessellate(tmp_path, capsys):
+    import json
+
+    from terrainwarp.cli import main
+
+    assert main(["tessellate", "--outer", "3", "5", "1", "7", "--inner", "4", "4", "--spacing", "fractional_odd",
+                 "--out", str(tmp_path)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    uv, tri = tessellate_patch([3, 5, 1, 7], [4, 4], "fractional_odd")
+    assert doc["triangles"] == tri.tolist() and doc["points"] == uv.tolist()
+    assert (tmp_path / "tessellation.png").stat().st_size > 1000
+    assert json.loads((tmp_path / "tessellation.json").read_text())["n_triangles"] == tri.shape[0]
+    for bad in (["--outer", "3", "5", "1", "--inner", "4", "4"], ["--outer", "1", "1", "1", "1", "--inner", "4", "4",
+                                                                 "--spacing", "pow2"]):
+        with pytest.raises(SystemExit) as e:
+            main(["tessellate", *bad, "--out", str(tmp_path)])
+        assert e.value.code == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
