@@ -430,6 +430,19 @@ def _vertex_kernel(
     out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
 
 
+@wp.kernel
+def _transform_kernel(
+    pos: wp.array(dtype=wp.vec3),
+    mvp: wp.mat44,
+    # outputs
+    out_clip: wp.array(dtype=wp.vec4),
+):
+    """Differentiable twin of _vertex_kernel (the same arithmetic), for gradients to positions."""
+    k = wp.tid()
+    p = pos[k]
+    out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+
+
 @wp.kernel(enable_backward=False)
 def _small_count_kernel(
     clip: wp.array(dtype=wp.vec4),
@@ -850,6 +863,16 @@ def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, 
         raise ValueError("clip: expected finite coordinates")
     clip_wp = wp.array(c32 if len(c32) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     return _rasterize_clip(clip_wp, len(c32), tri, width, height, cull_back, device)
+
+
+def transform_warp(positions: wp.array, view: object, proj: object) -> wp.array:
+    """Differentiable vertex transform on Warp arrays, recorded by an active ``wp.Tape``: (n,) vec3
+    positions -> (n,) vec4 clip coordinates, bit-identical to what :func:`rasterize` uses."""
+    mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
+    out = wp.zeros(positions.shape[0], dtype=wp.vec4, device=positions.device, requires_grad=positions.requires_grad)
+    wp.launch(_transform_kernel, dim=positions.shape[0], inputs=[positions, wp.mat44(*mvp.reshape(-1).tolist())],
+              outputs=[out], device=positions.device)
+    return out
 
 
 def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr: wp.array) -> wp.array:

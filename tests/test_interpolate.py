@@ -11,7 +11,7 @@ import warp as wp
 import terrainwarp as tw
 from terrainwarp.interpolate import clip_positions
 from terrainwarp.interpolate import interpolate as jinterp
-from terrainwarp.kernels.raster import interpolate, interpolate_warp, rasterize, rasterize_clip
+from terrainwarp.kernels.raster import clip_coordinates, interpolate, interpolate_warp, rasterize, rasterize_clip
 
 
 def ref_interpolate(attr, ids, clip, tri):
@@ -167,3 +167,26 @@ def test_background_pixels_get_zero_and_no_gradient():
     # a loss only on background pixels has zero gradient
     g = jax.grad(lambda a: jnp.sum(jinterp(a, ids, clip, tri) * jnp.asarray(bg)[..., None]))(jnp.asarray(attr))
     assert np.all(np.asarray(g) == 0)
+
+
+def test_warp_tape_gradients_reach_vertex_positions():
+    from terrainwarp.kernels.raster import transform_warp
+
+    pos, tri, view, proj, clip, ids, attr = small_scene()
+    h, w = ids.shape
+    wts = np.random.default_rng(4).normal(size=(h, w, 3)).astype(np.float32)
+    pid = wp.array(np.ascontiguousarray(np.broadcast_to(ids[..., None], (h, w, 3))), dtype=wp.int32)
+    pos_wp = wp.array(pos, dtype=wp.vec3, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        c = transform_warp(pos_wp, view, proj)
+        out = interpolate_warp(pid, c, wp.array(tri, dtype=wp.int32), wp.array(attr, dtype=wp.float32))
+    assert np.array_equal(c.numpy(), clip_coordinates(pos, view, proj))
+    tape.backward(grads={out: wp.array(wts, dtype=wp.float32)})
+
+    def loss_pos(p):
+        cc = np.c_[p, np.ones(len(p))] @ (proj @ view).T
+        return float((ref_interpolate(attr, ids, cc, tri) * wts).sum())
+
+    fd = _fd_grad(loss_pos, pos, 1e-4)
+    np.testing.assert_allclose(pos_wp.grad.numpy(), fd, rtol=2e-3, atol=2e-3 * np.abs(fd).max())
