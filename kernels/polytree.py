@@ -41,7 +41,8 @@ FLAG_LOW_I = 4  # ... across its i0 side
 FLAG_HIGH_I = 8  # ... across its i1 side
 
 # stats counters of a pass
-STAT_TESTS, STAT_BOUNDS_FAIL, STAT_SIMILARITY_FAIL, STAT_MERGES = range(4)
+STAT_TESTS, STAT_BOUNDS_FAIL, STAT_SIMILARITY_FAIL, STAT_MERGES, STAT_FIND_STEPS, STAT_FIND_MAX = range(6)
+# (two neighbour searches per pair test: mean steps per search = STAT_FIND_STEPS / (2 * STAT_TESTS))
 
 # ------------------------------------------------------------------------------------------------
 # functions
@@ -87,24 +88,29 @@ def _node_rect(k: int, level: int, depth: int, ch: int, cw: int) -> wp.vec4i:
 @wp.func
 def _find(r: int, c: int, m: int, depth: int, single_rec: wp.array(dtype=wp.int32),
           node_base: wp.array(dtype=wp.int32), rec_father: wp.array(dtype=wp.int32),
-          level_base: wp.array(dtype=wp.int32), sc_fwd: wp.array(dtype=wp.int32)) -> int:
-    """Scratch index (level m-1 numbering) of the live polygon of the node being merged at level m that
-    contains cell (r, c): section 2.1's descent plus father pointers, O(depth)."""
+          level_base: wp.array(dtype=wp.int32), sc_fwd: wp.array(dtype=wp.int32)) -> wp.vec2i:
+    """(scratch index (level m-1 numbering) of the live polygon of the node being merged at level m that
+    contains cell (r, c), pointer steps taken): section 2.1's descent to the topmost node holding a single
+    polygon, then father pointers up to the sons' level and merge pointers inside the node, O(depth)."""
     code = _morton(r, c, depth)
     lv = m - 1
     rec = int(-1)
+    steps = int(0)
     while lv >= 0:
         rec = single_rec[node_base[lv] + (code >> (2 * lv))]
+        steps = steps + 1
         if rec >= 0:
             break
         lv = lv - 1
     while lv < m - 1:
         rec = rec_father[rec]
         lv = lv + 1
+        steps = steps + 1
     s = rec - level_base[m - 1]
     while sc_fwd[s] >= 0:
         s = sc_fwd[s]
-    return s
+        steps = steps + 1
+    return wp.vec2i(s, steps)
 
 
 @wp.func
@@ -119,16 +125,24 @@ def _merge_border(h: wp.array2d(dtype=wp.float32), vertical: int, fixed: int, st
     tests = int(0)
     bfail = int(0)
     sfail = int(0)
+    steps = int(0)
+    max_steps = int(0)
     p = start
     while p < end:
         a = int(0)
         b = int(0)
+        fa = wp.vec2i()
+        fb = wp.vec2i()
         if vertical != 0:
-            a = _find(p, fixed - 1, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
-            b = _find(p, fixed, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
+            fa = _find(p, fixed - 1, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
+            fb = _find(p, fixed, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
         else:
-            a = _find(fixed - 1, p, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
-            b = _find(fixed, p, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
+            fa = _find(fixed - 1, p, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
+            fb = _find(fixed, p, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
+        a = fa[0]
+        b = fb[0]
+        steps = steps + fa[1] + fb[1]
+        max_steps = wp.max(max_steps, wp.max(fa[1], fb[1]))
         ra = sc_rect[a]
         rb = sc_rect[b]
         k0 = 2  # extent along the border: rows for a vertical border, columns for a horizontal one
@@ -169,6 +183,8 @@ def _merge_border(h: wp.array2d(dtype=wp.float32), vertical: int, fixed: int, st
     wp.atomic_add(stats, 1, wp.int64(bfail))
     wp.atomic_add(stats, 2, wp.int64(sfail))
     wp.atomic_add(stats, 3, wp.int64(merges))
+    wp.atomic_add(stats, 4, wp.int64(steps))
+    wp.atomic_max(stats, 5, wp.int64(max_steps))
     return merges
 
 
@@ -734,7 +750,7 @@ class MergeState:
         self.sc_out = wp.zeros(self.ncells, dtype=wp.int32, device=device)
         self.count = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
         self.off = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
-        self.stats = wp.zeros(4, dtype=wp.int64, device=device)
+        self.stats = wp.zeros(6, dtype=wp.int64, device=device)
         self._cmds = None
         # nodes that hold at least one cell, per level (Morton order)
         self._inside = []

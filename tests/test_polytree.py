@@ -7,6 +7,7 @@ import hashlib
 
 import numpy as np
 import pytest
+import warp as wp
 
 from terrainwarp import Camera, Heightmap, check_watertight, rasterize
 from terrainwarp.kernels.polytree import FLAG_HIGH_J, FLAG_LOW_J
@@ -120,6 +121,9 @@ def _check_watertight(mesh, shape: tuple[int, int]) -> None:
     return float(ny.sum() / 2.0)
 
 
+DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+
+
 def _hm(h, dx=1.0):
     return Heightmap.from_array(np.asarray(h, np.float32), dx)
 
@@ -176,18 +180,20 @@ def test_ridge_is_never_merged_across_below_its_gradient_jump(col):
     assert pt.polygons.n_polygons(0) <= 12
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("shape,seed", [((33, 33), 1), ((29, 19), 2)])
-def test_merge_matches_sequential_reference_and_step_j_reuse(shape, seed):
+def test_merge_matches_sequential_reference_and_step_j_reuse(shape, seed, device):
     rng = np.random.default_rng(seed)
     h = np.cumsum(rng.normal(size=shape), axis=1).astype(np.float32) * 3.0
     h[:, : shape[1] // 3] = 5.0  # a flat part that merges early
     hm = _hm(h)
     tols = [0.0, 0.5, 2.0, 5.0, 12.0, 30.0]
-    pt = build_polytree(hm, tols, stop_at_one=False)
+    pt = build_polytree(hm, tols, stop_at_one=False, device=device)
     for t, tol in enumerate(tols):
         ref = _ref_merge(hm.heights, tol)
         assert _sorted(pt.polygons.level(t)) == ref, f"tolerance {tol}"
-        assert _sorted(merge_rectangles(hm, tol)) == ref  # a single pass gives the same as with reuse
+        assert _sorted(merge_rectangles(hm, tol, device=device)) == ref  # one pass equals the pass with reuse
+        assert check_watertight(pt.mesh(t)).watertight
     counts = [pt.polygons.n_polygons(t) for t in range(pt.n_levels)]
     assert counts == sorted(counts, reverse=True) and counts[0] > counts[-1]
 
