@@ -27,7 +27,12 @@ parallel and each node sequential (deterministic):
    pointer (the polygon of this level it merged into); ``single_rec`` marks nodes holding one polygon.
 
 Nodes that held a single polygon after an earlier (lower) tolerance keep it without merging, and their
-descendants do nothing (step j of the paper: single is hereditary and monotone in the tolerance).
+descendants are not launched at all (step j of the paper: single is hereditary and monotone in the
+tolerance); the launches are recorded once per quadtree and replayed with the new tolerance and work-list
+length, so a late tolerance costs what is left to merge.
+
+Section 2.4 (``_tri_count_kernel`` / ``_tri_emit_kernel``) and section 2.5 (``_morph_target_kernel``,
+``_morph_positions_kernel``) follow; the host side is :mod:`terrainwarp.polytree`.
 """
 
 from __future__ import annotations
