@@ -181,7 +181,12 @@ def _setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, gb: w
     hw = 0.5 * float(width)
     hh = 0.5 * float(height)
     for k in range(n):
-        f = _window(poly[k], hw, hh)
+        v = poly[k]
+        f = _window(v, hw, hh)
+        if not (_same(v, c0) or _same(v, c1) or _same(v, c2)):
+            # a vertex made by the clipper: Mesa computes its window position in C, x * (1 / w) * scale
+            # + translate with separate roundings (the original vertices come from its fused JIT path)
+            f = _window_unfused(v, hw, hh)
         fxs[k] = f[0]
         fys[k] = f[1]
         zs[k] = f[2]
@@ -201,6 +206,17 @@ def _window(c: wp.vec4, hw: float, hh: float) -> wp.vec3:
     x / w * scale + translate, fused."""
     iw = 1.0 / c[3]
     return wp.vec3(_fma(c[0] * iw, hw, hw), _fma(c[1] * iw, hh, hh), _fma(c[2] * iw, 0.5, 0.5))
+
+
+@wp.func
+def _same(a: wp.vec4, b: wp.vec4) -> wp.bool:
+    return a[0] == b[0] and a[1] == b[1] and a[2] == b[2] and a[3] == b[3]
+
+
+@wp.func
+def _window_unfused(c: wp.vec4, hw: float, hh: float) -> wp.vec3:
+    iw = 1.0 / c[3]
+    return wp.vec3(c[0] * iw * hw + hw, c[1] * iw * hh + hh, c[2] * iw * 0.5 + 0.5)
 
 
 @wp.func
