@@ -719,6 +719,37 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
         A :class:`Tessellation`. Not differentiable (discrete topology; heights are sampled with the
         same ``@wp.func`` as :func:`terrainwarp.kernels.sampling.sample_grid`).
     """
+    args, e = _prepare(patches, heights, dx, dz, eye, spacing, filter, origin)
+    n, m, dom, pid, tri, v_off, t_off, pos, uv, lev = _frame_device(*args, device)
+    tri_np = tri.numpy()[:m].reshape(-1, 3)
+    tri_np[:, [1, 2]] = tri_np[:, [2, 1]]  # GL ccw in (u, v) = (x, z) is clockwise seen from +y: swap, in place
+    return Tessellation(
+        positions=pos.numpy()[:n].reshape(-1, 3), uv=uv.numpy()[:n].reshape(-1, 2),
+        domain=dom.numpy()[:n].reshape(-1, 2).astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
+        patch_id=pid.numpy()[:n], level=lev.numpy()[:n], triangles=tri_np,
+        vertex_offsets=v_off.numpy().copy(), triangle_offsets=t_off.numpy().copy(),
+        eye=(float(e[0]), float(e[1]), float(e[2])))
+
+
+def _frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device):
+    """Device stages of :func:`tessellate_patches` (count, scan, emit, displace); Warp arrays out."""
+    n, m, dom, pid, tri, v_off, t_off = _tessellate(o, i, code, device)
+    pos = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
+    uv = wp.empty(max(n, 1), dtype=wp.vec2, device=device)
+    lev = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+    if n:
+        wp.launch(_displace_kernel, dim=n,
+                  inputs=[dom, pid, wp.array(box, dtype=vec4l, device=device),
+                          wp.array(lvl, dtype=wp.int32, device=device),
+                          wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device),
+                          int(el_int[0]), int(el_int[1]), wp.vec3(*eye_rem),
+                          wp.vec2(float(cell[0]), float(cell[1])), method],
+                  outputs=[pos, uv, lev], device=device)
+    return n, m, dom, pid, tri, v_off, t_off, pos, uv, lev
+
+
+def _prepare(patches, heights, dx, dz, eye, spacing, filter, origin):
+    """Validate :func:`tessellate_patches`' arguments; -> (arguments of _frame_device but the device, eye)."""
     o, i = _levels(_get(patches, "outer"), _get(patches, "inner"))
     p = o.shape[0]
     org = np.asarray(_get(patches, "origin_xz"), dtype=np.float64)
@@ -762,22 +793,5 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     rem = (el - el_int) / scale
     cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
 
-    n, m, dom, pid, tri, v_off, t_off = _tessellate(o, i, code, device)
-    pos = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
-    uv = wp.empty(max(n, 1), dtype=wp.vec2, device=device)
-    lev = wp.empty(max(n, 1), dtype=wp.int32, device=device)
-    if n:
-        wp.launch(_displace_kernel, dim=n,
-                  inputs=[dom, pid, wp.array(box, dtype=vec4l, device=device),
-                          wp.array(lvl, dtype=wp.int32, device=device),
-                          wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device),
-                          int(el_int[0]), int(el_int[1]), wp.vec3(float(rem[0]), float(e[1]), float(rem[1])),
-                          wp.vec2(float(cell[0]), float(cell[1])), FILTER_CODES[filter]],
-                  outputs=[pos, uv, lev], device=device)
-    return Tessellation(
-        positions=pos.numpy()[:n].reshape(-1, 3), uv=uv.numpy()[:n].reshape(-1, 2),
-        domain=(dom.numpy()[:n].astype(np.float64) / FXP_ONE).astype(np.float32).reshape(-1, 2),
-        patch_id=pid.numpy()[:n].copy(), level=lev.numpy()[:n].copy(),
-        triangles=np.ascontiguousarray(tri.numpy()[:m].reshape(-1, 3)[:, [0, 2, 1]]).astype(np.int32),
-        vertex_offsets=v_off.numpy().copy(), triangle_offsets=t_off.numpy().copy(),
-        eye=(float(e[0]), float(e[1]), float(e[2])))
+    return (o, i, code, box, lvl, h, el_int, (float(rem[0]), float(e[1]), float(rem[1])), cell,
+            FILTER_CODES[filter]), e

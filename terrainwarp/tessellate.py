@@ -5,52 +5,57 @@ domain; :mod:`terrainwarp.kernels.tessellator` runs the same rules as Warp kerne
 and the tests check both against Mesa's llvmpipe (a real OpenGL 4.5 implementation whose tessellator
 is the D3D11 reference tessellator) bit for bit.
 
-Sources: the Direct3D 11.3 functional specification, section 11.7 ("Tessellator"), with 11.7.1-11.7.4
-(partitioning, TessFactor clamping and rounding, fixed-point arithmetic, point placement and
-stitching), and the OpenGL 4.6 core specification, section 11.2.2 ("Tessellation Primitive
-Generation") with 11.2.2.2 ("Quad Tessellation"). The rules, each with its section:
+Sources: the OpenGL 4.6 core specification, section 11.2.2 ("Tessellation Primitive Generation"),
+with 11.2.2.2 ("Quad Tessellation"); the Direct3D 11.3 functional specification, "Tessellator" chapter
+(partitioning, TessFactor range and rounding, fixed-point arithmetic, pattern); and the D3D11 reference
+tessellator that defines it bit for bit (Mesa: src/gallium/auxiliary/tessellator/tessellator.cpp),
+cited below by function name (``CHWTessellator::...``). "GL" and "ref" below mean those. The rules:
 
-1. Levels (GL 11.2.2.2; D3D 11.7.4 "TessFactor range"): ``outer[0]`` is the u=0 edge, ``outer[1]`` v=0,
-   ``outer[2]`` u=1, ``outer[3]`` v=1 (the same order as D3D's ``SV_TessFactor`` Ueq0, Veq0, Ueq1,
-   Veq1); ``inner[0]`` runs along u, ``inner[1]`` along v. Levels are float32.
-2. Culling (GL 11.2.2: "if any relevant outer level is <= 0 or NaN the patch is discarded"; D3D
-   11.7.4): the patch produces no points and no triangles.
-3. Clamping per spacing (GL 11.2.2 table "tessellation spacing"; D3D 11.7.4): ``equal`` clamps to
-   [1, 64] then rounds up to an integer (``ceil``); ``fractional_even`` clamps to [2, 64];
-   ``fractional_odd`` clamps to [1, 63]. Inner levels that are NaN become the lower bound (the clamp
-   is ``fmin(hi, fmax(lo, x))`` with IEEE fmin/fmax, which drop a NaN operand).
-4. Picture frame (D3D 11.7.4, reference tessellator ``QuadProcessTessFactors``): with
-   ``fractional_odd``, if any outer or inner level exceeds ``1 + 2^-17`` the inner levels are clamped
-   below by ``1 + 2^-16`` instead of 1, so a ring of transition triangles always exists.
-5. Parity (D3D 11.7.2): fractional_even is even, fractional_odd is odd; with ``equal`` each level has
-   its own parity from its integer value, and an inner level of exactly 1 counts as even (it is then
-   placed like 2: one centre point).
-6. Fixed point (D3D 11.7.3): levels are converted to unsigned 16.16 fixed point, rounding to
-   nearest (ties to even). All following arithmetic is integer. If every level is exactly 1 with
-   ``equal`` or ``fractional_odd``, the patch is the unit quad split into two triangles along the
-   (1,0)-(0,1) diagonal.
-7. Point placement on one edge (D3D 11.7.5, ``ComputeTessFactorContext`` / ``PlacePointIn1D``): half
-   of the (rounded) level is split into floor and ceil parts; points are placed on the first half of
-   the edge by lerping their position on the floor-level and ceil-level partitions (reciprocals
-   ``round(2^16 / n)``) by the fractional part, then rounding ``(x + 2^15) >> 16``; the insertion
-   point of the new segment follows the ruler function (``RemoveMSB``). The second half mirrors the
-   first (``1 - x``, exact in fixed point), the middle of an even partition is exactly 0.5. Thus the
-   two short segments of a fractional level are symmetric about the edge's middle, a point's
-   position is continuous in the level, and new points are born on existing ones.
-8. Points (D3D 11.7.6, ``QuadGeneratePoints``): the outer ring first, from (0,1) down the u=0 edge,
+1. Levels (GL 11.2.2.2; ref ``TessellateQuadDomain``): ``outer[0]`` is the u=0 edge, ``outer[1]`` v=0,
+   ``outer[2]`` u=1, ``outer[3]`` v=1 (the same order as D3D's ``SV_TessFactor`` Ueq0, Veq0, Ueq1, Veq1);
+   ``inner[0]`` runs along u, ``inner[1]`` along v. Levels are float32.
+2. Culling (GL 11.2.2: a patch with any relevant outer level <= 0 or NaN is discarded; ref
+   ``QuadProcessTessFactors``): the patch produces no points and no triangles.
+3. Clamping per spacing (GL 11.2.2, the spacing paragraphs; ref ``QuadProcessTessFactors``): ``equal``
+   clamps to [1, 64] then rounds up to an integer (``ceil``); ``fractional_even`` clamps to [2, 64];
+   ``fractional_odd`` clamps to [1, 63]. Inner levels that are NaN become the lower bound (the clamp is
+   ``fmin(hi, fmax(lo, x))`` with IEEE fmin/fmax, which drop a NaN operand).
+4. Picture frame (GL 11.2.2.2: unless every level is one, an inner level of one is treated as 1 + eps;
+   ref ``QuadProcessTessFactors``): with ``fractional_odd``, if any outer or inner level exceeds ``1 +
+   2^-17`` the inner levels are clamped below by ``1 + 2^-16`` instead of 1; with ``equal`` an inner 1 is
+   placed as 2 (rule 5); ``fractional_even`` clamps to 2 anyway.
+5. Parity (GL 11.2.2; ref ``QuadProcessTessFactors``, ``isEven``): fractional_even is even,
+   fractional_odd is odd; with ``equal`` each level has its own parity from its integer value, and an
+   inner level of exactly 1 counts as even (it is then placed like 2: one centre point).
+6. Fixed point (D3D spec, fixed-point TessFactor arithmetic; ref ``floatToFixed``): levels are converted
+   to unsigned 16.16 fixed point, rounding to nearest, ties to even (checked on llvmpipe). All following
+   arithmetic is integer. If every level is exactly 1 with ``equal`` or ``fractional_odd``, the patch is
+   the unit quad split into two triangles along the (1,0)-(0,1) diagonal.
+7. Point placement on one edge (GL 11.2.2 (the segment lengths); ref ``ComputeTessFactorContext``,
+   ``NumPointsForTessFactor``, ``PlacePointIn1D``, ``RemoveMSB``): half of the (rounded) level is split
+   into floor and ceil parts; points are placed on the first half of the edge by lerping their position
+   on the floor-level and ceil-level partitions (reciprocals ``round(2^16 / n)``) by the fractional part,
+   then rounding ``(x + 2^15) >> 16``; the insertion point of the new segment follows the ruler function
+   (``RemoveMSB``). The second half mirrors the first (``1 - x``, exact in fixed point), the middle of an
+   even partition is exactly 0.5. Thus the two short segments of a fractional level are symmetric about
+   the edge's middle, a point's position is continuous in the level, and new points are born on existing
+   ones.
+8. Points (GL 11.2.2.2; ref ``QuadGeneratePoints``): the outer ring first, from (0,1) down the u=0 edge,
    along v=0, up u=1, back along v=1; then the inner rings spiralling inwards with the inner levels'
    partitions (ring r uses partition points r .. n-1-r); with even inner parity the innermost ring
    degenerates into a row (or column, or single point) through the centre.
-9. Stitching (D3D 11.7.7, ``QuadGenerateConnectivity``): the outer ring is joined to the first inner
-   ring edge by edge with the transition stitch (``StitchTransition``: both rows walked in
-   ruler-function order, first half forwards, the middle (a quad or one triangle when the parities
-   differ), then the second half backwards, so the triangulation is symmetric about each edge's
-   middle); deeper rings are joined with regular trapezoid strips whose diagonals mirror about the
-   middle; with odd inner parity a centre strip of quads closes the patch (diagonals inside-to-outside,
-   except the middle quad of a strip along v when both parities are odd).
-10. Winding (GL 11.2.2 "ccw"; D3D output topology): the reference tessellator emits triangles
-    clockwise in D3D's domain (v down); Mesa requests D3D's CW output for GL's ``ccw``, which is
-    counter-clockwise in GL's (u right, v up) domain. Our triangles are counter-clockwise in (u, v).
+9. Stitching (GL 11.2.2.2 leaves the triangulation implementation-dependent; ref
+   ``QuadGenerateConnectivity``, ``StitchTransition``, ``StitchRegular``): the outer ring is joined to
+   the first inner ring edge by edge with the transition stitch (``StitchTransition``: both rows walked
+   in ruler-function order, first half forwards, the middle (a quad or one triangle when the parities
+   differ), then the second half backwards, so the triangulation is symmetric about each edge's middle);
+   deeper rings are joined with regular trapezoid strips whose diagonals mirror about the middle; with
+   odd inner parity a centre strip of quads closes the patch (diagonals inside-to-outside, except the
+   middle quad of a strip along v when both parities are odd).
+10. Winding (GL 11.2.2, ``cw``/``ccw``; ref ``DefineClockwiseTriangle``): the reference stitches
+    triangles "clockwise" in D3D's domain (v down) and orders their corners for the requested output;
+    with GL's ``ccw`` every triangle is counter-clockwise in the (u right, v up) domain (checked on
+    llvmpipe, corner order included up to rotation). Our triangles are counter-clockwise in (u, v).
 
 Point and triangle ORDER equals the reference tessellator's (points ring by ring; triangles ring by
 ring, edge by edge), though only the set of triangles is observable on a GPU.
