@@ -370,3 +370,38 @@ def test_level_for_distance():
     assert pt.level_for_distance(550.0, 100.0, 1000.0, levels=(1, 3)) == pytest.approx(2.0)
     with pytest.raises(ValueError, match="fine_distance"):
         pt.level_for_distance(1.0, 10.0, 5.0)
+
+
+def test_polytree_father_pointers_nest_level_by_level():
+    from terrainwarp.kernels.polytree import MergeState
+
+    hm = Heightmap.fbm(41, 37, seed=5, max_height=300.0, feature_size=16.0)
+    st = MergeState(hm.heights)
+    root, _, _ = st.run_pass(20.0)
+    rect = st.rec_rect.numpy()
+    father = st.rec_father.numpy()
+    base = st.level_base.numpy()
+    totals = [int(st.off[m].numpy()[-1]) for m in range(st.depth + 1)]
+    assert totals[0] == 40 * 36 and totals[-1] == len(root)
+    for m in range(st.depth):
+        lo, hi = base[m], base[m] + totals[m]
+        f = father[lo:hi]
+        # every polygon of level m points to the polygon of level m+1 it became part of, which contains it
+        assert np.all((f >= base[m + 1]) & (f < base[m + 1] + totals[m + 1]))
+        a, b = rect[lo:hi], rect[f]
+        assert np.all((b[:, 0] <= a[:, 0]) & (a[:, 1] <= b[:, 1]) & (b[:, 2] <= a[:, 2]) & (a[:, 3] <= b[:, 3]))
+        # and the sons' polygons tile each father exactly
+        area = np.zeros(totals[m + 1], np.int64)
+        np.add.at(area, f - base[m + 1], (a[:, 1] - a[:, 0]) * (a[:, 3] - a[:, 2]))
+        c = rect[base[m + 1]:base[m + 1] + totals[m + 1]]
+        np.testing.assert_array_equal(area, (c[:, 1] - c[:, 0]) * (c[:, 3] - c[:, 2]))
+    # following the father pointers from every cell ends at the root polygon covering it (section 2.1)
+    lab = np.full((40, 36), -1)
+    for c in range(totals[0]):
+        r = c
+        for _ in range(st.depth):
+            r = father[r]
+        i0, i1, j0, j1 = rect[base[0] + c]
+        lab[i0, j0] = r - base[st.depth]
+    for k, (i0, i1, j0, j1) in enumerate(root):
+        assert np.all(lab[i0:i1, j0:j1] == k)
