@@ -139,8 +139,12 @@ def _cmd_fit(args: argparse.Namespace) -> int:
              f"| fit | {res.value:.4g} | {res.validated.worst_p99:.3g} | {res.validated.cost:.0f} | {res.evaluations} "
              f"| {res.wall_s:.1f} |"]
     if g:
-        lines.append(f"| grid search ({g['points']} points) | {g['value']} | {g['worst_p99_px']} | {g['cost']} | "
-                     f"{g['evaluations']} | {g['wall_s']:.1f} |")
+        if g["value"] is None:
+            lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} | "
+                         f"{g['wall_s']:.1f} |")
+        else:
+            lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
+                         f"{g['cost']:.0f} | {g['evaluations']} | {g['wall_s']:.1f} |")
     lines += ["", res.message, ""]
     write_text(out / "report.md", "\n".join(lines))
     print(res.message)

@@ -222,7 +222,8 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
             cost = cost + leaf.sum(axis=1) * tri_per_patch
             # soft maximum of the leaves' projected error, in log space: log sum p exp(log e / t)
             le = jnp.log(jnp.maximum(jnp.minimum(sse[lvl], 1e6), 1e-6))
-            lse.append(jnp.log(jnp.maximum(leaf, 1e-30)) + le / err_temp)
+            # weights leaf**4: leaves the policy almost surely does not draw do not leak into the maximum
+            lse.append(4.0 * jnp.log(jnp.maximum(leaf, 1e-30)) + le / err_temp)
             reach_prev, s_prev = reach, s  # noqa: F841
         stacked = jnp.concatenate(lse, axis=1)
         soft_log_err = err_temp * jax.scipy.special.logsumexp(stacked, axis=1)
@@ -282,16 +283,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
                             "cost": evals[v].cost})
         return evals[v]
 
-    # Can the budget be met at all? The finest setting is the floor.
     finest = lo if _COARSER_UP[policy] else hi
-    floor = exact(finest)
-    if floor.worst_p99 > budget_px:
-        res = FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, n_eval,
-                        time.perf_counter() - t_start,
-                        f"budget {budget_px:g} px cannot be met: even the finest setting "
-                        f"({_name(policy)} = {finest:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px",
-                        history)
-        return res
 
     # -- relaxed fit -------------------------------------------------------------------------------
     if policy == "continuous":
@@ -320,13 +312,29 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
                             "cost": float(c), "error_proxy_px": float(math.exp(float(le))),
                             "value": float(math.exp(float(log_v)))})
 
-    # slope of the (relaxed) log error in log value, for the Newton correction
-    def log_err_of(lv):
-        return model(lv, 0.05)[1]
-
-    slope_fn = jax.grad(log_err_of)
-
     # -- validation and correction -----------------------------------------------------------------
+    # The relaxed error is an estimate: calibrate it on the exact pipeline. Each round evaluates the exact
+    # pipeline once, sets the offset between exact and relaxed log error there, and solves the relaxed
+    # model (monotone in the parameter) for the budget with that offset; once a feasible and an
+    # infeasible value bracket the budget, interpolate in log-log between them (regula falsi).
+    log_model = jax.jit(lambda lv: model(lv, 0.05)[1])
+    target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
+
+    def solve_relaxed(offset: float) -> float:
+        a, b = math.log(lo), math.log(hi)
+        fa = float(log_model(jnp.asarray(a))) + offset - target
+        fb = float(log_model(jnp.asarray(b))) + offset - target
+        if fa * fb > 0:  # no sign change: the end nearest the target
+            return math.exp(a if abs(fa) < abs(fb) else b)
+        for _ in range(40):
+            m = 0.5 * (a + b)
+            fm = float(log_model(jnp.asarray(m))) + offset - target
+            if (fm > 0) == (fa > 0):
+                a, fa = m, fm
+            else:
+                b = m
+        return math.exp(0.5 * (a + b))
+
     v = float(math.exp(float(log_v)))
     good: Evaluation | None = None  # feasible (met), coarsest so far
     bad: Evaluation | None = None  # infeasible, finest so far
@@ -337,20 +345,34 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
                 good = e
             if e.worst_p99 >= budget_px * (1 - rel_tol):
                 break
-        else:
-            if bad is None or _coarser(policy, bad.value, e.value):
-                bad = e
-        if good is not None and bad is not None:  # bracketed: bisect in log space
-            v = math.sqrt(good.value * bad.value)
-            if abs(math.log(good.value / bad.value)) < 0.02:
+        elif bad is None or _coarser(policy, bad.value, e.value):
+            bad = e
+        if good is not None and bad is not None:
+            lg, lb = math.log(good.value), math.log(bad.value)
+            # cost is monotone in the parameter: nothing in the bracket is cheaper than bad.cost, so
+            # the remaining gain is at most the cost gap; the exact error is a step function of the
+            # parameter (discrete levels), so a narrow bracket is as far as refining can go
+            if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < 0.08:
                 break
-            continue
-        sl = float(slope_fn(jnp.asarray(math.log(v))))
-        if not math.isfinite(sl) or abs(sl) < 0.05:
-            sl = 0.5 if _COARSER_UP[policy] else -0.5
-        step = (log_budget - math.log(max(e.worst_p99, 1e-9))) / sl
-        v = float(np.clip(v * math.exp(float(np.clip(step, -2.0, 2.0))), lo, hi))
-    if good is None:
+            eg, eb = math.log(max(good.worst_p99, 1e-9)), math.log(max(bad.worst_p99, 1e-9))
+            t = (target - eg) / (eb - eg) if eb > eg else 0.5
+            t = min(max(t, 0.1), 0.9)  # keep clear of the ends: the curve is not straight
+            nv = math.exp(lg + t * (lb - lg))
+        else:
+            offset = math.log(max(e.worst_p99, 1e-9)) - float(log_model(jnp.asarray(math.log(v))))
+            nv = solve_relaxed(offset)
+            if abs(math.log(nv / v)) < 1e-3:  # the relaxed model is flat here (the error floor): step out
+                nv = v * (math.e if (e.worst_p99 <= budget_px) == _COARSER_UP[policy] else 1 / math.e)
+        v = float(np.clip(nv, lo, hi))
+        history.append({"stage": "correct", "next_value": v})
+    if good is None:  # never met: is the budget reachable at all?
+        floor = exact(finest)
+        if floor.worst_p99 > budget_px:
+            return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, n_eval,
+                             time.perf_counter() - t_start,
+                             f"budget {budget_px:g} px cannot be met: even the finest setting "
+                             f"({_name(policy)} = {finest:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px",
+                             history)
         good = floor
     res = FitResult(policy, budget_px, good.worst_p99 <= budget_px, good.value, _params(policy, good.value), good,
                     n_eval, time.perf_counter() - t_start, "", history)
@@ -422,7 +444,7 @@ def _continuous_model(terrain: Terrain, cameras: list[Camera], level: int):
     def model(log_target, temp, err_temp=0.25):
         costs, errs = [], []
         for raw, dist, gerr, spacing, size_cells in per_cam:
-            f = softclamp(jnp.asarray(raw) / jnp.exp(log_target), 1.0, 64.0, max(temp, 0.05))
+            f = softclamp(jnp.asarray(raw) / jnp.exp(log_target), 1.0, 64.0, jnp.maximum(temp, 0.05))
             inner_u = 0.5 * (f[:, 1] + f[:, 3])
             inner_v = 0.5 * (f[:, 0] + f[:, 2])
             costs.append(jnp.sum(2.0 * inner_u * inner_v))

@@ -16,3 +16,10 @@ def _load(name):
 def test_first_frame(tmp_path):
     f = _load("first_frame").main(["--out", str(tmp_path), "--width", "64", "--height", "48"])
     assert (tmp_path / "frame.png").exists() and f.image.shape == (48, 64, 3)
+
+
+def test_error_vs_time(tmp_path):
+    summ = _load("error_vs_time").main(["--out", str(tmp_path), "--frames", "1", "--width", "64", "--height", "48",
+                                        "--quick"])
+    assert {r["policy"] for r in summ} >= {"grid", "sse", "martini", "delatin"}
+    assert (tmp_path / "pareto.png").exists()

@@ -1,0 +1,35 @@
+"""Error against run time on the bundled SRTM DEM: sweep the LOD policies and the peers Martini and
+Delatin over a flyover, measure every frame against the full-resolution reference, draw the Pareto front.
+
+    python examples/error_vs_time.py --out out/error_vs_time [--frames 8 --width 1280 --height 720 --quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import terrainwarp as tw
+from terrainwarp.report import default_settings, summarise, sweep, write_report
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--out", default="out/error_vs_time")
+    ap.add_argument("--frames", type=int, default=8)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args(argv)
+    hm = tw.Heightmap.example()
+    scene = tw.Scene(hm, camera=tw.Camera.default_for(hm, a.width, a.height), lod=tw.LodConfig(roots=16, tess=16))
+    cams = scene.camera_path(a.frames)
+    rows = sweep(scene, cams, default_settings(hm, quick=a.quick))
+    write_report(scene, cams, rows, a.out)
+    summ = summarise(rows)
+    for r in summ:
+        print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  {r['frame_ms']:8.2f} ms/frame  {int(r['triangles']):>8} tris")
+    return summ
+
+
+if __name__ == "__main__":
+    main()
