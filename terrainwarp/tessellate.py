@@ -396,9 +396,26 @@ def _check_levels(outer, inner) -> tuple[np.ndarray, np.ndarray]:
 
 
 def patch_counts(outer, inner, spacing: str) -> tuple[int, int]:
-    """(number of domain points, number of triangles) of one patch, without building it."""
-    uv, tri = tessellate_patch(outer, inner, spacing)
-    return uv.shape[0], tri.shape[0]
+    """(number of domain points, number of triangles) of one patch, from the layout alone (what the
+    count kernel computes)."""
+    _check_spacing(spacing)
+    proc = process_levels(*_check_levels(outer, inner), spacing)
+    if proc is None:
+        return 0, 0
+    fx, odd, minimal = proc
+    if minimal:
+        return 4, 2
+    lay = _Layout(fx, odd)
+    nu, nv = lay.n_in
+    n_rings = min((nu + 1) >> 1, (nv + 1) >> 1)
+    tris = sum(lay.n_out[e] + lay.counts(1)[e] - 2 for e in range(4))
+    tris += sum(2 * lay.counts(r)[e] for r in range(2, n_rings) for e in range(4))
+    last = lay.counts(n_rings - 1)
+    if nu > nv and odd[5]:
+        tris += 2 * (last[1] - 1)
+    elif nv >= nu and odd[4]:
+        tris += 2 * (last[0] - 1)
+    return sum(lay.n_out) - 4 + (nu - 2) * (nv - 2), tris
 
 
 def tessellate_patch(outer, inner, spacing: str) -> tuple[np.ndarray, np.ndarray]:

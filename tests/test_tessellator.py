@@ -142,6 +142,7 @@ def test_fixed_point_details():
 def test_triangles_are_ccw_and_cover_the_domain(spacing):
     for lv in _random_levels(40, 5, hi=20.0):
         uv, tri = tessellate_patch(lv[:4], lv[4:], spacing)
+        assert patch_counts(lv[:4], lv[4:], spacing) == (uv.shape[0], tri.shape[0])
         if tri.shape[0] == 0:
             continue
         a = _area(uv, tri)
