@@ -180,3 +180,19 @@ def test_lod_frames_are_watertight(name):
         assert rep.watertight and rep.n_triangles > 1000, (type(pol).__name__, rep)
         levels |= set(np.unique(pl.level).tolist())
     assert len(levels) >= 2  # the frames mix levels
+
+
+@pytest.mark.parametrize("spacing", SPACINGS)
+def test_shared_edge_vertices_are_bit_identical(spacing):
+    rng = np.random.default_rng(11)
+    p = _tiling_2x2(rng, spacing)
+    t = _frame(p, spacing, filt="bicubic")
+
+    def edge(pid, axis, value):
+        sel = (t.patch_id == pid) & (t.domain[:, axis] == value)
+        return {r.tobytes() for r in t.positions[sel]}
+
+    # patches: 0 (x0, z0), 1 (x0 + s, z0), 2 (x0, z0 + s), 3 (x0 + s, z0 + s)
+    for a, b, axis in ((0, 1, 0), (2, 3, 0), (0, 2, 1), (1, 3, 1)):
+        ea, eb = edge(a, axis, 1.0), edge(b, axis, 0.0)
+        assert len(ea) >= 2 and ea == eb
