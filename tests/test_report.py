@@ -23,7 +23,7 @@ def small():
     return sc, sc.camera_path(2)
 
 
-SETTINGS = [Setting("grid", 0.0), Setting("sse", 1.0), Setting("sse", 8.0), Setting("continuous", 8.0),
+SETTINGS = [Setting("grid", 0.0), Setting("sse", 0.1), Setting("sse", 8.0), Setting("continuous", 8.0),
             Setting("delatin", 2.0), Setting("martini", 8.0)]
 
 
@@ -44,7 +44,7 @@ def test_sweep_is_reproducible_apart_from_timings(small):
     grid = [r for r in a if r["policy"] == "grid"]
     assert all(r["p99_px"] < 1e-2 and r["cracks"] == 0 for r in grid)
     coarse = [r for r in a if r["setting"] == "sse=8"]
-    fine = [r for r in a if r["setting"] == "sse=1"]
+    fine = [r for r in a if r["setting"] == "sse=0.1"]
     assert sum(r["triangles"] for r in coarse) < sum(r["triangles"] for r in fine)
     assert all(r["cracks"] == 0 for r in a if r["policy"] in ("sse", "continuous"))
 
