@@ -128,7 +128,8 @@ def main() -> None:
         "stage; '+ to numpy' is the whole public call including the host-side arrays. 'numpy/warp' > 1 "
         "means the Warp kernels beat the vectorised numpy grid of the same size in the same run (numpy "
         "builds the plain grid; the kernels run the real tessellator: ring order, transition stitching, "
-        "fixed-point placement). Warp's CPU backend runs a launch on one thread. Memory: output bytes "
+        "fixed-point placement). Warp runs a CPU launch on one thread; timings on this shared 2-core "
+        "machine vary by about 2x between runs. Memory: output bytes "
         "(positions 12, uv 8, domain 8, patch id 4, level 4, triangles 2 x 12 per vertex).\n")
     if args.full:
         pt = frame(32)
