@@ -3,7 +3,7 @@
 Public API::
 
     Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
-    Terrain, LodState, select, compute_normals, compute_curvature,
+    Terrain, LodState, select, fit_lod, FitResult, compute_normals, compute_curvature,
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
     rasterize_clip, clip_coordinates, build_polytree, Polytree
 
@@ -22,6 +22,7 @@ if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
 from .analysis import compute_curvature, compute_normals  # noqa: E402
 from .bintree import Bintree, select_bintree  # noqa: E402
 from .camera import Camera, flyover, orbit  # noqa: E402
+from .fit import FitResult, fit_lod  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
 from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
 from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
@@ -35,7 +36,8 @@ from .visibility import precompute_visibility  # noqa: E402
 from .watertight import WatertightReport, check_watertight  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize", "Fragments",
+__all__ = ["fit_lod", "FitResult", "Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize",
+           "Fragments",
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
            "rasterize_clip", "clip_coordinates", "Bintree", "select_bintree", "precompute_visibility",
