@@ -139,6 +139,8 @@ def test_border_modes_and_plain_arrays():
     tri3 = np.array([[0, 3, 1], [1, 3, 2], [1, 4, 2]], np.int32)
     rep3 = check_watertight(pos3, tri3)
     assert rep3.watertight and rep3.n_degenerate == 1
+    empty = check_watertight(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
+    assert empty.watertight and empty.n_vertices == 0 and empty.n_triangles == 0
 
 
 def test_bad_input():
