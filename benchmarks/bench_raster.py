@@ -78,6 +78,32 @@ def silhouettes(ids: np.ndarray, depth: np.ndarray) -> np.ndarray:
     return grow
 
 
+_GL1_SCRIPT = """
+import sys, numpy as np
+sys.path.insert(0, {tests!r})
+import gl_raster_oracle as gl
+clip = np.load({clip!r}); tri = np.load({tri!r})
+g = gl.GLRaster({w}, {h}); up = g.upload(clip, tri); g.draw(up)
+print(min(g.draw(up)[2] for _ in range({reps})))
+"""
+
+
+def gl_one_thread(clip, tri, w, h, reps) -> float:
+    """llvmpipe's draw time with LP_NUM_THREADS=1 (one core, like ours), in a child process: llvmpipe
+    reads the variable when its first context is made."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        np.save(f"{d}/clip.npy", clip)
+        np.save(f"{d}/tri.npy", tri)
+        code = _GL1_SCRIPT.format(tests=str(ROOT / "tests"), clip=f"{d}/clip.npy", tri=f"{d}/tri.npy", w=w, h=h,
+                                  reps=reps)
+        out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "LP_NUM_THREADS": "1"},
+                             capture_output=True, text=True, check=True)
+    return float(out.stdout.strip().splitlines()[-1])
+
+
 class VTKFrame:
     def __init__(self, width, height):
         import pyvista as pv
@@ -156,6 +182,7 @@ def run(sizes, reps_small=3, reps_big=2, out_md=None):
                 t_gl = min(t_gl, dt)
             glr.release(up)
             glr.close()
+            t_gl1 = gl_one_thread(clip, tri, w, h, reps)
             # agreement with llvmpipe (moderngl): same clip coordinates
             ours_cov = f.triangle_id >= 0
             id_diff = int((f.triangle_id != gid).sum())
@@ -171,13 +198,14 @@ def run(sizes, reps_small=3, reps_big=2, out_md=None):
             s = f.stats
             rows.append({
                 "tris": k, "n": len(tri), "res": f"{w}x{h}", "ours_s": t_ours, "bary_s": t_bary, "gl_s": t_gl,
-                "vtk_s": t_vtk,
+                "gl1_s": t_gl1, "vtk_s": t_vtk,
                 "after_cull": s["triangles_rasterized"], "binned": s["triangles_binned"],
                 "tested": s["fragments_tested"], "written": s["pixels_written"], "covered": s["pixels_covered"],
                 "id_diff": id_diff, "cov_diff": cov_diff, "dmax_gl": dmax_gl, "vtk_cov_diff": int(vdiff.sum()),
                 "vtk_on_sil": int((vdiff & sil).sum()), "dmax_vtk": dmax_vtk})
             r = rows[-1]
-            print(f"{k} {r['res']}: ours {t_ours:.3f}s gl {t_gl:.3f}s vtk {t_vtk:.3f}s  id diff {id_diff} "
+            print(f"{k} {r['res']}: ours {t_ours:.3f}s gl {t_gl:.3f}s gl1 {t_gl1:.3f}s vtk {t_vtk:.3f}s  "
+                  f"id diff {id_diff} "
                   f"dmax {dmax_gl:.2g}  vtk cov diff {r['vtk_cov_diff']} ({r['vtk_on_sil']} on silhouettes)",
                   flush=True)
         vt.close()
@@ -195,17 +223,19 @@ def run(sizes, reps_small=3, reps_big=2, out_md=None):
         "`rasterize` (vertex transform, clipping, binning, coverage, depth test, id and depth images); "
         "+bary = the same plus the perspective-correct barycentric image (computed on first access of "
         "`Fragments.barycentrics`); gl = draw + glFinish of the "
-        "pre-uploaded clip coordinates; vtk = `Render` + `WaitForCompletion`, unlit. Ratio = their / ours.",
+        "pre-uploaded clip coordinates (gl 1 thread: the same with LP_NUM_THREADS=1, in a child process); "
+        "vtk = `Render` + `WaitForCompletion`, unlit. Ratio = their / ours.",
         "",
-        "| triangles | res | ours s | +bary s | gl s | gl/ours | vtk s | vtk/ours | after cull | binned | frags tested "
+        "| triangles | res | ours s | +bary s | gl s | gl/ours | gl 1 thread s | gl1/ours | vtk s | vtk/ours "
+        "| after cull | binned | frags tested "
         "| px written | px covered | id diff vs gl | cov diff vs gl | max dz vs gl | cov diff vs vtk "
         "(on silhouette) | max dz vs vtk (off sil.) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['n']:,} | {r['res']} | {r['ours_s']:.3f} | {r['ours_s'] + r['bary_s']:.3f} | {r['gl_s']:.3f} "
-            f"| {r['gl_s'] / r['ours_s']:.2f} "
+            f"| {r['gl_s'] / r['ours_s']:.2f} | {r['gl1_s']:.3f} | {r['gl1_s'] / r['ours_s']:.2f} "
             f"| {r['vtk_s']:.3f} | {r['vtk_s'] / r['ours_s']:.2f} | {r['after_cull']:,} | {r['binned']:,} "
             f"| {r['tested']:,} | {r['written']:,} | {r['covered']:,} | {r['id_diff']} | {r['cov_diff']} "
             f"| {r['dmax_gl']:.2g} | {r['vtk_cov_diff']} ({r['vtk_on_sil']}) | {r['dmax_vtk']:.2g} |")
