@@ -23,7 +23,8 @@ through EGL in tests/test_raster.py, with the same clip-space vertices):
    evaluated at the pixel centre in float32 and clamped to [0, 1]. The test keeps the nearest fragment
    with one ``atomic_min`` on a 64-bit key ``(float bits of depth) << 32 | id``: window depth is a
    non-negative float, whose bit pattern orders like its value, so ties go to the lower triangle id
-   and the result never depends on launch order (as ``GL_LESS`` in submission order).
+   and the result never depends on launch order (as ``GL_LESS`` in submission order). As with
+   ``GL_LESS`` against a depth buffer cleared to 1.0, a fragment at depth exactly 1.0 is not drawn.
 6. Speed: small triangles (pixel box < SMALL_PX each way; most terrain triangles, many without any
    pixel centre) are set up and drawn by their own thread without clipping arrays; larger ones are
    binned into TILE x TILE screen tiles (count -> scan -> emit) and drawn tile by tile, each tile
@@ -353,12 +354,14 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
             if (e0 | e1 | e2) >= wp.int64(0):
                 inside += wp.int64(1)
                 # coverage is geometric (the polygon is clipped to near and far); depth is clamped
-                # to [0, 1] as GL does, so a rounding excursion below 0 at the near plane stays drawn
+                # to [0, 1] as GL does, so a rounding excursion below 0 at the near plane stays drawn;
+                # the depth test is GL_LESS against a buffer cleared to 1.0: depth 1.0 is never drawn
                 d = wp.clamp(zr + dzdx * float(i), 0.0, 1.0)
-                key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | tid
-                old = wp.atomic_min(out_key, row + i, key)
-                if key < old:
-                    written += wp.int64(1)
+                if d < 1.0:
+                    key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | tid
+                    old = wp.atomic_min(out_key, row + i, key)
+                    if key < old:
+                        written += wp.int64(1)
             e0 += e0dx
             e1 += e1dx
             e2 += e2dx

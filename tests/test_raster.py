@@ -419,3 +419,16 @@ def test_binning_tests_only_tiles_a_large_triangle_can_cover():
     assert s["tile_entries"] < 0.2 * (w // 16) * (h // 16)
     assert s["fragments_tested"] < 20 * covered
     assert s["fragments_tested"] == s["tile_entries"] * 16 * 16 or s["fragments_tested"] < s["tile_entries"] * 256
+
+
+@needs_gl
+def test_depth_one_is_not_drawn_as_gl_less_against_a_cleared_buffer():
+    w, h = 32, 24
+    clip = np.array([[-0.9, -0.9, 1.0, 1.0], [0.9, -0.8, 1.0, 1.0], [0.0, 0.9, 1.0, 1.0],  # on the far plane
+                     [-0.9, 0.9, 0.0, 1.0], [0.9, 0.9, 2.0, 1.0], [0.0, -0.9, 0.0, 1.0]], np.float32)  # crosses it
+    tris = np.array([[0, 1, 2], [3, 4, 5]], np.int32)
+    f = rasterize_clip(clip, tris, w, h)
+    ids, dep = gl.gl_rasterize(clip, tris, w, h)
+    assert not (f.triangle_id == 0).any()
+    assert (f.triangle_id == 1).sum() > 50
+    assert np.array_equal(f.triangle_id, ids)
