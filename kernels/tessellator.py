@@ -683,12 +683,17 @@ class Tessellation(NamedTuple):
     triangle_offsets: np.ndarray
     eye: tuple[float, float, float]
 
-    def to_mesh(self):
-        """The frame as a :class:`terrainwarp.Mesh`."""
+    def to_mesh(self, normals: np.ndarray | None = None):
+        """The frame as a :class:`terrainwarp.Mesh` (``normals``: optional (n, 3) float32 unit vertex
+        normals, e.g. a normal map sampled at ``uv``; exported as point data by ``Mesh.to_pyvista``)."""
         from terrainwarp.mesh import Mesh
 
+        if normals is not None:
+            normals = np.asarray(normals, dtype=np.float32)
+            if normals.shape != self.positions.shape:
+                raise ValueError(f"normals: expected shape {self.positions.shape}, got {normals.shape}")
         return Mesh(positions=self.positions, eye=self.eye, triangles=self.triangles, uv=self.uv,
-                    level=self.level, patch_id=self.patch_id)
+                    level=self.level, patch_id=self.patch_id, normals=normals)
 
 
 def _get(patches, name: str, required: bool = True):

@@ -283,10 +283,12 @@ def test_frame_on_the_real_dem_is_watertight_and_exports(tmp_path):
     t = tessellate_patches(pt, hm.heights, hm.dx, hm.dz, eye, spacing="fractional_even", filter="bicubic",
                            origin=hm.origin)
     assert check_watertight(t).watertight
-    mesh = t.to_mesh()
+    mesh = t.to_mesh(normals=np.tile(np.float32([0, 1, 0]), (len(t.uv), 1)))
     pd = mesh.to_pyvista()
     assert pd.n_points == t.positions.shape[0] and pd.n_cells == t.triangles.shape[0]
-    assert "level" in pd.point_data and "patch_id" in pd.point_data
+    assert "level" in pd.point_data and "patch_id" in pd.point_data and "Normals" in pd.point_data
+    with pytest.raises(ValueError, match="normals"):
+        t.to_mesh(normals=np.zeros((2, 3)))
     pd.save(tmp_path / "frame.vtp")
     assert (tmp_path / "frame.vtp").stat().st_size > 0
 
