@@ -64,6 +64,16 @@ def _positive_float(s: str) -> float:
     return v
 
 
+def _nonnegative_int(s: str) -> int:
+    try:
+        v = int(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected >= 0, got {v}")
+    return v
+
+
 def _lod_policy(args: argparse.Namespace):
     from .lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy
 
@@ -106,7 +116,15 @@ def _cmd_report(args: argparse.Namespace) -> int:
         if bad:
             raise ValueError(f"--policies: unknown {sorted(bad)}")
         settings = [s for s in settings if s.policy in want]
-    rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images)
+    from pathlib import Path
+
+    # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
+    # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
+    rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
+                 scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv")
+    failed = [r for r in rows if r["error"]]
+    for r in failed[:5]:
+        print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
     paths = write_report(sc, cams, rows, args.out)
     for r in summarise(rows):
         print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  {r['frame_ms']:9.2f} ms  {int(r['triangles']):>9} tris")
@@ -226,6 +244,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--no-progress", action="store_true")
     rp.add_argument("--width", type=int, default=None)
     rp.add_argument("--height", type=int, default=None)
+    rp.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                    help="run the jobs on this Dask scheduler's cluster (default: a local cluster)")
+    rp.add_argument("--workers", type=_nonnegative_int, default=None,
+                    help="local worker processes (default: one per core; 0: in this process)")
     rp.set_defaults(func=_cmd_report)
     st = sub.add_parser("stability", help="run the extreme-case stability suite through every stage: stability.md")
     st.add_argument("--out", required=True, help="output folder for stability.md")

@@ -28,9 +28,9 @@ from .camera import Camera
 from .heightmap import Heightmap
 from .scene import LodConfig, Scene
 
-__all__ = ["Setting", "default_settings", "sweep", "summarise", "write_report", "TIMING_COLUMNS"]
+__all__ = ["Setting", "default_settings", "sweep", "run_sweep", "summarise", "write_report", "TIMING_COLUMNS"]
 
-TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms")
+TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
 
 
 @dataclass(frozen=True)
@@ -69,98 +69,184 @@ def _lod_config(setting: Setting, base: LodConfig) -> LodConfig:
     return LodConfig(**d)
 
 
-def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
-          images: bool = True, device: str = "cpu") -> list[dict]:
-    """Render every setting from every camera; one row per (setting, frame), sorted by (setting, frame).
+@dataclass(frozen=True)
+class _Context:
+    """What every job of a report sweep shares; sent to each worker once."""
 
-    Args:
-        images: also shade the frames and report PSNR/SSIM of the hillshaded images (costs a shade pass).
-    """
-    from tqdm import tqdm
+    token: str
+    scene: Scene
+    cameras: tuple
+    images: bool
+    device: str
+    need_lod: bool
 
+
+_STATE: dict = {}  # per worker process: the context's Terrain, peer meshes and normal map, made once
+
+
+def _state(ctx: _Context) -> dict:
+    if _STATE.get("token") != ctx.token:
+        _STATE.clear()
+        # the first copy of the scene this process received: a later copy (same token, same content) is
+        # another object, and a Terrain belongs to the heightmap object it was prepared from
+        _STATE.update(token=ctx.token, scene=ctx.scene, terrain=None, prepare_ms=0.0, peers={}, nmap=None)
+    if ctx.need_lod and _STATE["terrain"] is None:
+        from .lod import Terrain
+
+        t0 = time.perf_counter()
+        hm, lod = _STATE["scene"].heightmap, ctx.scene.lod
+        _STATE["terrain"] = Terrain.prepare(hm, roots=lod.roots, tess=lod.tess, device=ctx.device)
+        _STATE["prepare_ms"] = (time.perf_counter() - t0) * 1e3
+    return _STATE
+
+
+def _reference_job(ctx: _Context, k: int) -> tuple:
+    """Camera k's full-resolution grid frame: (triangle_id, depth, image or None)."""
+    from .pipeline import render
+
+    f = render(ctx.scene.with_(camera=ctx.cameras[k], mesh="grid", outputs=("depth", "image") if ctx.images else
+                               ("depth",)), device=ctx.device)
+    return f.triangle_id, f.depth, f.image
+
+
+def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
+    """One row: ``setting`` rendered from camera k and measured against that camera's reference."""
     from .kernels.displacement import sample_normal_map
     from .kernels.raster import rasterize
     from .kernels.shading import hillshade
-    from .lod import Terrain
     from .metrics import frame_error
     from .peers import delatin_mesh, martini_mesh, mesh_vertical_error
-    from .pipeline import _srgb8, render
+    from .pipeline import Frame, Report, _srgb8, render
 
+    st_ = _state(ctx)
+    scene, cam, device, images = st_["scene"], ctx.cameras[k], ctx.device, ctx.images
     hm = scene.heightmap
     outs = ("error", "image") if images else ("error",)
-    refs = []
-    terrain = None
-    need_lod = any(s.policy in ("sse", "distance", "continuous") for s in settings)
-    t_prep = 0.0
-    if need_lod:
-        t0 = time.perf_counter()
-        terrain = Terrain.prepare(hm, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
-        t_prep = (time.perf_counter() - t0) * 1e3
-    rows: list[dict] = []
-    total = len(settings) * len(cameras) + len(cameras)
-    bar = tqdm(total=total, desc="report", unit="frame", disable=not progress, leave=False)
-    for cam in cameras:  # references first: the grid, rendered once per camera
-        refs.append(render(scene.with_(camera=cam, mesh="grid", outputs=("depth", "image") if images else
-                                       ("depth",)), device=device))
-        bar.update(1)
-    nmap = None
-    for setting in settings:
-        peer = None
-        peer_err = math.nan
-        if setting.policy in ("martini", "delatin"):
+    if isinstance(refs[k], BaseException):
+        raise RuntimeError(f"reference frame {k} failed: {refs[k]}")
+    tri, depth, image = refs[k]
+    ref = Frame(scene.with_(camera=cam, mesh="grid"), Report(), image=image, depth=depth, triangle_id=tri)
+    row = {}
+    if setting.policy in ("martini", "delatin"):
+        if setting not in st_["peers"]:
             peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
-            peer_err = mesh_vertical_error(hm, peer)
-            if images and nmap is None:
-                from .kernels.normals import sobel_normals
+            st_["peers"][setting] = (peer, mesh_vertical_error(hm, peer))
+        peer, peer_err = st_["peers"][setting]
+        if images and st_["nmap"] is None:
+            from .kernels.normals import sobel_normals
 
-                nmap = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
-        for k, cam in enumerate(cameras):
-            ref = refs[k]
-            row = {"policy": setting.policy, "param": setting.param, "setting": setting.label, "frame": k}
-            if peer is None:
-                if setting.policy == "grid":
-                    sc = scene.with_(camera=cam, mesh="grid", outputs=outs)
-                    f = render(sc, reference=ref, device=device)
-                else:
-                    sc = scene.with_(camera=cam, mesh="lod", lod=_lod_config(setting, scene.lod), outputs=outs)
-                    f = render(sc, terrain=terrain, reference=ref, device=device)
-                st = {s.name: s for s in f.report.stages}
-                sel = st["select"].time_ms if "select" in st else 0.0
-                row.update(select_ms=sel, mesh_ms=st["mesh"].time_ms, raster_ms=st["raster"].time_ms,
-                           frame_ms=sel + st["mesh"].time_ms + st["raster"].time_ms,
-                           patches=st["mesh"].counters.get("patches", 1), vertices=f.mesh.n_vertices,
-                           triangles=f.mesh.n_triangles, peer_mesh_ms=0.0, peer_error_m=math.nan)
-                err = f.error
-            else:
-                t0 = time.perf_counter()
-                m = peer.to_mesh(hm, cam)
-                t_mesh = (time.perf_counter() - t0) * 1e3
-                t0 = time.perf_counter()
-                fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                               cam.width, cam.height, cull_back=scene.cull_back, device=device)
-                t_ras = (time.perf_counter() - t0) * 1e3
-                img = None
-                if images:
-                    uv = np.stack([peer.grid_xy[:, 0] / max(hm.shape[1] - 1, 1),
-                                   peer.grid_xy[:, 1] / max(hm.shape[0] - 1, 1)], 1).astype(np.float32)
-                    nrm = sample_normal_map(nmap, uv, device=device)
-                    rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm,
-                                       peer.heights.astype(np.float32), azimuth_deg=scene.light_azimuth_deg,
-                                       elevation_deg=scene.light_elevation_deg, device=device)
-                    img = _srgb8(rgb)
-                err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics,
-                                  fr.depth, ref.triangle_id, ref.depth, image=img, ref_image=ref.image)
-                row.update(select_ms=0.0, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=t_mesh + t_ras, patches=0,
-                           vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=peer.mesh_ms,
-                           peer_error_m=peer_err)
-            row.update(max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
-                       cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
-                       psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
-                       ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=t_prep)
-            rows.append(row)
-            bar.update(1)
-    bar.close()
-    return rows
+            st_["nmap"] = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
+        t0 = time.perf_counter()
+        m = peer.to_mesh(hm, cam)
+        t_mesh = (time.perf_counter() - t0) * 1e3
+        t0 = time.perf_counter()
+        fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+                       cam.width, cam.height, cull_back=scene.cull_back, device=device)
+        t_ras = (time.perf_counter() - t0) * 1e3
+        img = None
+        if images:
+            uv = np.stack([peer.grid_xy[:, 0] / max(hm.shape[1] - 1, 1),
+                           peer.grid_xy[:, 1] / max(hm.shape[0] - 1, 1)], 1).astype(np.float32)
+            nrm = sample_normal_map(st_["nmap"], uv, device=device)
+            rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm,
+                               peer.heights.astype(np.float32), azimuth_deg=scene.light_azimuth_deg,
+                               elevation_deg=scene.light_elevation_deg, device=device)
+            img = _srgb8(rgb)
+        err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics,
+                          fr.depth, ref.triangle_id, ref.depth, image=img, ref_image=ref.image)
+        row.update(select_ms=0.0, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=t_mesh + t_ras, patches=0,
+                   vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=peer.mesh_ms,
+                   peer_error_m=peer_err)
+    else:
+        if setting.policy == "grid":
+            f = render(scene.with_(camera=cam, mesh="grid", outputs=outs), reference=ref, device=device)
+        else:
+            sc = scene.with_(camera=cam, mesh="lod", lod=_lod_config(setting, scene.lod), outputs=outs)
+            f = render(sc, terrain=st_["terrain"], reference=ref, device=device)
+        st = {s.name: s for s in f.report.stages}
+        sel = st["select"].time_ms if "select" in st else 0.0
+        row.update(select_ms=sel, mesh_ms=st["mesh"].time_ms, raster_ms=st["raster"].time_ms,
+                   frame_ms=sel + st["mesh"].time_ms + st["raster"].time_ms,
+                   patches=st["mesh"].counters.get("patches", 1), vertices=f.mesh.n_vertices,
+                   triangles=f.mesh.n_triangles, peer_mesh_ms=0.0, peer_error_m=math.nan)
+        err = f.error
+    row.update(max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
+               cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
+               psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
+               ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=st_["prepare_ms"])
+    return row
+
+
+#: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``).
+COLUMNS = ("policy", "param", "setting", "frame", "select_ms", "mesh_ms", "raster_ms", "frame_ms", "patches",
+           "vertices", "triangles", "peer_mesh_ms", "peer_error_m", "max_px", "p99_px", "mean_px", "approx_p99_px",
+           "cracks", "mismatched", "silhouette", "psnr_db", "ssim", "prepare_ms")
+
+
+def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    hm = scene.heightmap
+    h.update(np.ascontiguousarray(hm.heights).tobytes())
+    h.update(repr((hm.shape, hm.dx, hm.dz, scene.lod, scene.light_azimuth_deg, scene.light_elevation_deg,
+                   scene.cull_back, scene.shading, list(cameras), images, device)).encode())
+    return h.hexdigest()[:32]
+
+
+def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
+    """The sweep's jobs: one per (setting, camera), keyed by (setting's place in the list, frame)."""
+    from .sweep import Job
+
+    return [Job(id=f"{s.policy}={s.param!r}|{k}", sort_key=(i, k),
+                fields={"policy": s.policy, "param": s.param, "setting": s.label, "frame": k}, args=(s, k))
+            for i, s in enumerate(settings) for k in range(n_cameras)]
+
+
+def run_sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
+              images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
+              out: str | Path | None = None, runner=None):
+    """:func:`sweep`, returning the :class:`terrainwarp.sweep.SweepResult` (rows plus what the run cost).
+
+    ``runner`` (a :class:`terrainwarp.sweep.Runner`) overrides ``scheduler`` and ``workers``.
+    """
+    from .sweep import Runner, pending_jobs
+
+    if runner is None:
+        runner = Runner(scheduler, workers)
+    cameras = list(cameras)
+    jobs = sweep_jobs(list(settings), len(cameras))
+    fp = _fingerprint(scene, cameras, images, device)
+    ctx = _Context(fp, scene, tuple(cameras), images, device,
+                   any(s.policy in ("sse", "distance", "continuous") for s in settings))
+    ctx_h = runner.share(ctx)
+    need = sorted({j.args[1] for j in pending_jobs(jobs, out, fp)})  # references only for frames still to do
+    refs = dict(zip(need, runner.map(_reference_job, need, ctx_h)))
+    refs_h = runner.share(refs)
+    return runner.run(jobs, _frame_job, ctx_h, refs_h, out=out, fingerprint=fp, columns=COLUMNS,
+                      to_csv=rows_to_csv, progress=progress, desc="report")
+
+
+def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
+          images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
+          out: str | Path | None = None) -> list[dict]:
+    """Render every setting from every camera; one row per (setting, frame), sorted by (setting, frame).
+
+    The jobs (setting, camera) run through :mod:`terrainwarp.sweep`: by default on a LocalCluster with one
+    worker process per core; the scene and the reference frames (the full-resolution grid, rendered once per
+    camera) go to each worker once. Rows carry ``error`` ("" or the job's exception) and ``retries`` (times
+    rescheduled after a worker died); everything but those and :data:`TIMING_COLUMNS` is identical whatever
+    the number of workers.
+
+    Args:
+        images: also shade the frames and report PSNR/SSIM of the hillshaded images (costs a shade pass).
+        scheduler: ``tcp://HOST:PORT`` of a Dask scheduler (default: a LocalCluster).
+        workers: LocalCluster worker processes (default: one per core; 0: in this process).
+        out: CSV path: rows are saved to ``out.partial`` as they arrive and the sorted table to ``out``; a
+            sweep interrupted before the end resumes from the partial file without redoing finished jobs.
+    """
+    return run_sweep(scene, cameras, settings, progress=progress, images=images, device=device,
+                     scheduler=scheduler, workers=workers, out=out).rows
 
 
 def summarise(rows: list[dict]) -> list[dict]:
