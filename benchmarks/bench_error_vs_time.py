@@ -55,8 +55,8 @@ def main() -> None:
         write_report(sc, cams, rows, OUT / name)
         summ = summarise(rows)
         tab = budget_table(summ, BUDGETS)
-        body.append(f"### {name}: {hm.shape[0]}x{hm.shape[1]}, {len(cams)} cameras at 1920x1080, LOD {lod.roots} roots, "
-                    f"tess {lod.tess} (sweep {time.perf_counter() - t0:.0f} s)\n")
+        body.append(f"### {name}: {hm.shape[0]}x{hm.shape[1]}, {len(cams)} cameras at 1920x1080, LOD {lod.roots} "
+                    f"roots, tess {lod.tess} (sweep {time.perf_counter() - t0:.0f} s)\n")
         body.append(md_table(["budget_px", "policy", "cheapest setting", "p99_px", "triangles", "ms/frame",
                               "peer mesh ms"], tab))
         # the project's bar: LOD vs Delatin at each budget

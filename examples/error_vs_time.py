@@ -27,7 +27,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     write_report(scene, cams, rows, a.out)
     summ = summarise(rows)
     for r in summ:
-        print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  {r['frame_ms']:8.2f} ms/frame  {int(r['triangles']):>8} tris")
+        print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  {r['frame_ms']:8.2f} ms/frame  "
+              f"{int(r['triangles']):>8} tris")
     return summ
 
 

@@ -124,10 +124,11 @@ class FitResult:
 # ------------------------------------------------------------------------------------------------
 def _config(scene: Scene, policy: str, value: float) -> LodConfig:
     d = dict(scene.lod.__dict__)
+    quad_spacing = "equal" if d["spacing"] == "fractional_odd" else d["spacing"]
     if policy == "sse":
-        d.update(policy="sse", tolerance_px=value)
+        d.update(policy="sse", tolerance_px=value, spacing=quad_spacing)
     elif policy == "distance":
-        d.update(policy="distance", k=value)
+        d.update(policy="distance", k=value, spacing=quad_spacing)
     else:
         d.update(policy="continuous", target_px=value, spacing="fractional_odd")
     return LodConfig(**d)

@@ -60,10 +60,11 @@ def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]
 
 def _lod_config(setting: Setting, base: LodConfig) -> LodConfig:
     d = dict(base.__dict__)
+    quad_spacing = "equal" if d["spacing"] == "fractional_odd" else d["spacing"]
     if setting.policy == "sse":
-        d.update(policy="sse", tolerance_px=setting.param)
+        d.update(policy="sse", tolerance_px=setting.param, spacing=quad_spacing)
     elif setting.policy == "distance":
-        d.update(policy="distance", k=setting.param)
+        d.update(policy="distance", k=setting.param, spacing=quad_spacing)
     else:
         d.update(policy="continuous", target_px=setting.param, spacing="fractional_odd")
     return LodConfig(**d)

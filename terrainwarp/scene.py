@@ -73,6 +73,16 @@ class LodConfig:
             raise ValueError(f"lod.spacing: expected one of {list(SPACINGS)}, got {self.spacing!r}")
         if self.filter not in FILTERS:
             raise ValueError(f"lod.filter: expected one of {list(FILTERS)}, got {self.filter!r}")
+        if self.policy != "continuous":
+            # A quadtree doubles the factor on edges toward a finer neighbour. The hardware's fixed-point
+            # 1/L is exact only for powers of two, and 2L is even: so power-of-two levels and equal or
+            # fractional_even spacing are the only crack-free choices (measured by the tessellator tests).
+            if self.spacing == "fractional_odd":
+                raise ValueError("lod.spacing: fractional_odd cannot stitch doubled edges (2L is even); use "
+                                 "'equal' or 'fractional_even' with a quadtree, or policy 'continuous'")
+            if int(self.tess) not in (1, 2, 4, 8, 16, 32):
+                raise ValueError(f"lod.tess: expected a power of two in 1..32 for a quadtree (doubled edges are "
+                                 f"crack-free only then), got {self.tess}")
         self.make_policy()  # validates the numbers
 
     def make_policy(self):

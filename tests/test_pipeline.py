@@ -148,3 +148,31 @@ def test_error_output_of_the_grid_is_zero(tmp_path):
     assert f.report.stage("reference").counters["reused"] is True
     names = {p.name for p in f.save(tmp_path)}
     assert "error_px.exr" in names and "report.json" in names
+
+
+def test_lod_config_refuses_settings_that_crack():
+    from terrainwarp import LodConfig
+
+    with pytest.raises(ValueError, match="fractional_odd"):
+        LodConfig(policy="sse", spacing="fractional_odd")
+    with pytest.raises(ValueError, match="power of two"):
+        LodConfig(policy="sse", tess=12)
+    LodConfig(policy="continuous", spacing="fractional_odd", tess=12)  # a uniform grid: no doubled edges
+
+
+def test_lod_frame_is_watertight_and_close_to_the_reference():
+    from terrainwarp import LodConfig, Terrain, check_watertight
+
+    hm = Heightmap.example()
+    cam = Camera.default_for(hm, 320, 240)
+    terrain = Terrain.prepare(hm, roots=16, tess=16)
+    for spacing in ("equal", "fractional_even"):
+        sc = Scene(hm, camera=cam, mesh="lod", lod=LodConfig(tolerance_px=1.0, roots=16, tess=16, spacing=spacing),
+                   outputs=("error", "mesh", "patches"))
+        f = render(sc, terrain=terrain)
+        wt = check_watertight(f.mesh)
+        assert wt.n_open_edges == 0 and wt.n_t_junctions == 0
+        assert f.error.cracks == 0
+        assert f.error.p99_px < 1.0
+        assert f.mesh.n_triangles < 2 * 343 * 402 / 2  # far fewer triangles than the grid
+        assert "prepare" not in [s.name for s in f.report.stages]  # the caller's terrain was used
