@@ -450,9 +450,14 @@ def _stage_raster(case: ExtremeCase, scene) -> Row:
     if len(m.triangles):
         fn = rasterize(naive, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width, cam.height)
         changed = int(np.sum(fn.triangle_id != fr.triangle_id))
-    cov = float(np.mean(fr.triangle_id >= 0))
+    covm = fr.triangle_id >= 0
+    cov = float(np.mean(covm))
+    dv = d[covm]
+    depth_note = (f"; depth of covered px in [{float(dv.min()):.7g}, {float(dv.max()):.7g}], "
+                  f"{len(np.unique(dv))} distinct values") if dv.size else ""
     return Row(case.name, "raster", PASS, f"{_g(err_m)} m, {_g(err_px)} px", f"{_g(nerr_m)} m, {_g(nerr_px)} px, "
-               f"{changed} px changed", f"grid mesh {m.n_triangles} triangles, coverage {cov:.1%}; depth in [0, 1]",
+               f"{changed} px changed", f"grid mesh {m.n_triangles} triangles, coverage {cov:.1%}; depth in [0, 1]"
+               + depth_note,
                _digest(fr.triangle_id, fr.depth, fr.barycentrics))
 
 
