@@ -177,3 +177,76 @@ def sample_normal_map(nmap: np.ndarray, uv: np.ndarray, device: str = "cpu") -> 
                           wp.array(np.ascontiguousarray(uv, np.float32), dtype=wp.vec2, device=device)],
                   outputs=[out], device=device)
     return out.numpy()[:n].reshape(n, 3)
+
+
+@wp.kernel(enable_backward=False)
+def _finite_tri_count_kernel(
+    pos: wp.array(dtype=wp.vec3),
+    tri: wp.array2d(dtype=wp.int32),
+    # outputs
+    out_flag: wp.array(dtype=wp.int32),
+):
+    t = wp.tid()
+    ok = int(1)
+    for c in range(3):
+        p = pos[tri[t, c]]
+        if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+            ok = 0
+    out_flag[t] = ok
+
+
+@wp.kernel(enable_backward=False)
+def _finite_tri_emit_kernel(
+    pos: wp.array(dtype=wp.vec3),
+    tri: wp.array2d(dtype=wp.int32),
+    flag: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int32),
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+    out_pos: wp.array(dtype=wp.vec3),
+):
+    t = wp.tid()
+    if flag[t] == 1:
+        s = start[t]
+        for c in range(3):
+            out_tri[s, c] = tri[t, c]
+    # every vertex is visited by the triangles that use it; non-finite ones become 0 (referenced by none)
+    for c in range(3):
+        k = tri[t, c]
+        p = pos[k]
+        if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+            out_pos[k] = wp.vec3(0.0, 0.0, 0.0)
+
+
+def drop_nonfinite_triangles(positions: np.ndarray, triangles: np.ndarray,
+                             device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """No-data holes for any displaced mesh: drop every triangle with a non-finite vertex (count ->
+    ``wp.utils.array_scan`` -> emit, triangle order kept) and set the non-finite positions to 0, so that
+    the rasterizer gets finite positions and no triangle touches a hole.
+
+    Args:
+        positions: (n, 3) float32 (NaN where a vertex sampled a NaN height).
+        triangles: (m, 3) int32 indices into ``positions``.
+
+    Returns:
+        positions (n, 3) float32, all finite (a copy when something changed), triangles (k, 3) int32, k <= m.
+    """
+    pos_np = np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3)
+    tri_np = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)
+    m = len(tri_np)
+    if m == 0 or np.isfinite(pos_np).all():
+        return pos_np, tri_np
+    pos = wp.array(pos_np, dtype=wp.vec3, device=device)
+    tri = wp.array(tri_np, dtype=wp.int32, device=device)
+    flag = wp.empty(m, dtype=wp.int32, device=device)
+    wp.launch(_finite_tri_count_kernel, dim=m, inputs=[pos, tri], outputs=[flag], device=device)
+    start = wp.empty_like(flag)
+    wp.utils.array_scan(flag, start, inclusive=False)
+    k = int(start.numpy()[-1] + flag.numpy()[-1])
+    out_tri = wp.empty((max(k, 1), 3), dtype=wp.int32, device=device)
+    out_pos = wp.clone(pos)
+    wp.launch(_finite_tri_emit_kernel, dim=m, inputs=[pos, tri, flag, start], outputs=[out_tri, out_pos],
+              device=device)
+    p = out_pos.numpy().reshape(-1, 3)
+    p[~np.isfinite(p).all(axis=1)] = 0.0  # vertices no triangle uses at all
+    return p, out_tri.numpy()[:k].reshape(-1, 3)

@@ -362,5 +362,10 @@ def _lod_mesh(scene: Scene, patches, nmap, device: str) -> Mesh:
                            cam.position, spacing=scene.lod.spacing, filter=scene.lod.filter, origin=hm.origin,
                            device=device)
     normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
-    return Mesh(positions=t.positions, eye=cam.position, triangles=t.triangles, uv=t.uv, level=t.level,
+    positions, triangles = t.positions, t.triangles
+    if np.isnan(hm.heights).any():  # no-data holes: no triangle may touch a vertex that sampled NaN
+        from .kernels.displacement import drop_nonfinite_triangles
+
+        positions, triangles = drop_nonfinite_triangles(positions, triangles, device=device)
+    return Mesh(positions=positions, eye=cam.position, triangles=triangles, uv=t.uv, level=t.level,
                 patch_id=t.patch_id, normals=normals)

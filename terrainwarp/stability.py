@@ -319,8 +319,9 @@ def _stage_lod_mesh(case: ExtremeCase, scene) -> Row:
 
 def lod_watertight(mesh, patches, heightmap) -> dict:
     """Watertight census of a LOD mesh: vertices merged by exact (position, uv); an edge used once is
-    allowed only where the surface legitimately ends: on the heightmap's border, or on the outline of the
-    drawn patches (a culled neighbour). Anything else is a crack (``open``)."""
+    allowed only where the surface legitimately ends: on the heightmap's border, on the outline of the
+    drawn patches (a culled neighbour), or beside a no-data hole (a NaN sample within one vertex spacing
+    of the drawn patches, whose triangles were dropped). Anything else is a crack (``open``)."""
     keys = np.concatenate([mesh.positions.astype(_F32), mesh.uv.astype(_F32)], 1)
     (gx0, gz0), (gx1, gz1) = heightmap.bounds_xz
     eye = np.asarray(mesh.eye, np.float64)
@@ -328,10 +329,24 @@ def lod_watertight(mesh, patches, heightmap) -> dict:
     sx, sz = patches.size[:, 0], patches.size[:, 1]
     eps = 1e-3 * float(np.min(patches.size)) if len(patches) else 1e-3
 
+    hi, hj = np.nonzero(np.isnan(heightmap.heights))
+    hole_x = heightmap.origin[0] + hj * heightmap.dx
+    hole_z = heightmap.origin[1] + hi * heightmap.dz
+    reach = float(np.max(patches.size / np.maximum(patches.inner, 1.0))) + max(heightmap.dx, heightmap.dz) \
+        if len(patches) else 0.0
+
+    def near_hole(x, z):
+        out = np.zeros(len(x), bool)
+        for a in range(0, len(hole_x), 4096):  # blocks keep (probes x holes) small
+            out |= np.any((np.abs(x[:, None] - hole_x[None, a:a + 4096]) <= reach)
+                          & (np.abs(z[:, None] - hole_z[None, a:a + 4096]) <= reach), axis=1)
+        return out
+
     def inside(x, z):
         x, z = x[:, None], z[:, None]
         in_p = np.any((x > ox) & (x < ox + sx) & (z > oz) & (z < oz + sz), axis=1)
-        return in_p & (x[:, 0] > gx0) & (x[:, 0] < gx1) & (z[:, 0] > gz0) & (z[:, 0] < gz1)
+        ok = in_p & (x[:, 0] > gx0) & (x[:, 0] < gx1) & (z[:, 0] > gz0) & (z[:, 0] < gz1)
+        return ok & ~near_hole(x[:, 0], z[:, 0]) if len(hole_x) else ok
 
     def allowed(k):
         if _unit_square_border(k[:, :, 3:5]).all():
@@ -578,11 +593,6 @@ EXPLANATIONS = {
                       "rewritten by a colleague; while the two disagree on the PatchList contract every LOD "
                       "frame fails the same way, whatever the case (the factor cases test the tessellator "
                       "itself and pass)",
-    "non-finite positions": "NaN no-data holes reach the LOD frame: the tessellator's domain shader "
-                            "(kernels/tessellator.py, being written by a colleague) samples NaN heights and "
-                            "emits NaN positions, which the rasterizer refuses; the grid mesh drops every "
-                            "triangle touching a hole (kernels/displacement.grid_mesh), the LOD path needs "
-                            "the same rule (drop triangles with a NaN vertex in the emit stage)",
 }
 
 

@@ -156,6 +156,26 @@ def test_nan_holes_no_triangle_touches_a_hole_and_render_as_background():
     assert np.array_equal(np.isnan(k).any(-1), np.isnan(hm.heights))
 
 
+def test_lod_frame_with_holes_drops_triangles_touching_them():
+    from terrainwarp.kernels.displacement import drop_nonfinite_triangles
+
+    pos = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [np.nan, 0, 1], [1, 0, 1]], np.float32)
+    tri = np.array([[0, 2, 1], [1, 2, 4], [2, 3, 4], [0, 3, 1]], np.int32)
+    p, t = drop_nonfinite_triangles(pos, tri)
+    assert np.array_equal(t, tri[:2]) and np.all(np.isfinite(p)) and np.array_equal(p[:3], pos[:3])
+    hm = _holes()
+    cam = tw.Camera(position=(16.0, 60.0, 16.001), target=(16.0, 0.0, 16.0), up=(0.0, 0.0, -1.0), width=64,
+                    height=64, near=1.0, far=1000.0)
+    fr = tw.render(tw.Scene(hm, camera=cam, outputs=("image", "depth", "error", "mesh"), mesh="lod",
+                            lod={"roots": 4, "tess": 8}))
+    assert np.all(np.isfinite(fr.mesh.positions)) and fr.triangle_id[32, 32] == -1
+    assert np.all(np.isfinite(fr.depth)) and np.isfinite(fr.error.max_px) and fr.error.max_px >= 0
+    # the dropped triangles are exactly those whose vertices sampled a NaN height (the hole stays a hole)
+    from terrainwarp.stability import lod_watertight
+
+    assert lod_watertight(fr.mesh, fr.patches, hm)["open"] == 0
+
+
 def test_nan_free_grid_mesh_unchanged_by_hole_path():
     from terrainwarp.kernels.displacement import grid_mesh
 
