@@ -400,7 +400,7 @@ class Runner:
             if on_row is not None:
                 on_row(row)
             bar.update(1)
-            bar.set_postfix(failed=n_failed, retried=n_retried, refresh=False)
+            bar.set_postfix(failed=n_failed, retried=n_retried, refresh=status != "ok" or retries > 0)
 
         futures: dict = {}
         try:
