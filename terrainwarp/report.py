@@ -315,14 +315,20 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--"}
+    others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]
+    floor = 0.5 * min(others) if others else 1e-3  # the exact grid (0 px) is drawn on this floor
+
+    def y(r):
+        return max(r["p99_px"], floor)
+
     for ax, cost, lab in ((axes[0], "frame_ms", "time per frame (ms)"), (axes[1], "triangles", "triangles per frame")):
         for pol in dict.fromkeys(r["policy"] for r in summary):
             rs = sorted([r for r in summary if r["policy"] == pol], key=lambda r: r[cost])
-            ax.plot([r[cost] for r in rs], [max(r["p99_px"], 1e-4) for r in rs], marks.get(pol, "o-"), label=pol,
-                    ms=6)
+            ax.plot([r[cost] for r in rs], [y(r) for r in rs], marks.get(pol, "o-"),
+                    label=pol if pol != "grid" else "grid (exact: drawn at the bottom)", ms=6)
         front = pareto(summary, cost)
-        ax.plot([r[cost] for r in front], [max(r["p99_px"], 1e-4) for r in front], color="red", lw=3, alpha=0.3,
-                label="Pareto front")
+        ax.plot([r[cost] for r in front], [y(r) for r in front], color="red", lw=3, alpha=0.3, label="Pareto front")
+        ax.set_ylim(bottom=0.8 * floor)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel(lab)
