@@ -238,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default="out/report")
     rp.add_argument("--frames", type=int, default=None, help="cameras on the path (default: the scene's, or 8)")
     rp.add_argument("--policies", default=None,
-                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin")
+                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree")
     rp.add_argument("--quick", action="store_true", help="two settings per policy")
     rp.add_argument("--no-images", action="store_true", help="skip shading (no PSNR/SSIM)")
     rp.add_argument("--no-progress", action="store_true")

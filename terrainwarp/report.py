@@ -4,9 +4,12 @@ the full-resolution reference, and draw the Pareto front.
 A sweep is a list of settings (policy, parameter) crossed with the scene's cameras. Every frame is
 measured by :mod:`terrainwarp.metrics` against the full-resolution grid rendered once per camera.
 Policies: ``grid`` (the full-resolution mesh), ``sse`` (screen-space-error tolerance, px), ``distance``
-(k node sizes), ``continuous`` (target pixels per edge, fractional_odd), and the peers ``martini`` and
+(k node sizes), ``continuous`` (target pixels per edge, fractional_odd), the peers ``martini`` and
 ``delatin`` (max error in metres; their view-independent meshing time is reported apart from render
-time, and their measured vertical error beside the setting).
+time, and their measured vertical error beside the setting), and the other mesh families of the source
+papers: ``polytree`` (taylor-barrett bottom-up merging; param = tolerance level of 64; built once) and
+``bintree`` (mrbsp right-triangle bisection with the apparent-size LOD rule, hole fixing and forced
+splits; param = tree depth M; selected per frame).
 
 Frame cost: for LOD policies ``select + mesh + raster`` (the per-frame work); for the grid and the
 peers ``mesh + raster`` (their meshes are static, only made camera-relative per frame). The error and
@@ -30,6 +33,7 @@ from .scene import LodConfig, Scene
 
 __all__ = ["Setting", "default_settings", "sweep", "run_sweep", "summarise", "write_report", "TIMING_COLUMNS"]
 
+_BUILT = ("martini", "delatin", "polytree", "bintree")  # meshes built once, apart from frames
 TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
 
 
@@ -55,6 +59,12 @@ def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]
     s += [Setting("sse", v) for v in sse] + [Setting("distance", v) for v in dist]
     s += [Setting("continuous", v) for v in cont]
     s += [Setting("martini", round(v, 4)) for v in peer] + [Setting("delatin", round(v, 4)) for v in peer]
+    rows, cols = heightmap.shape
+    if rows * cols <= 2_000_000:  # the polytree keeps ~32 bytes per cell per quadtree level
+        s += [Setting("polytree", float(t)) for t in ((2, 4, 8, 12) if not quick else (4, 12))]
+    m_full = 2 * max(1, math.ceil(math.log2(max(rows, cols, 2) - 1))) + 1
+    if m_full <= 22:  # 2^(M+1) tree nodes
+        s += [Setting("bintree", float(m)) for m in ((m_full, m_full + 2) if not quick else (m_full,))]
     return s
 
 
@@ -128,35 +138,64 @@ def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
     tri, depth, image = refs[k]
     ref = Frame(scene.with_(camera=cam, mesh="grid"), Report(), image=image, depth=depth, triangle_id=tri)
     row = {}
-    if setting.policy in ("martini", "delatin"):
-        if setting not in st_["peers"]:
-            peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
-            st_["peers"][setting] = (peer, mesh_vertical_error(hm, peer))
-        peer, peer_err = st_["peers"][setting]
-        if images and st_["nmap"] is None:
-            from .kernels.normals import sobel_normals
+    if setting.policy in ("martini", "delatin", "polytree", "bintree"):
+        select_ms, built_ms, peer_err = 0.0, 0.0, math.nan
+        if setting.policy in ("martini", "delatin"):
+            if setting not in st_["peers"]:
+                peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
+                st_["peers"][setting] = (peer, mesh_vertical_error(hm, peer))
+            peer, peer_err = st_["peers"][setting]
+            built_ms = peer.mesh_ms
+            t0 = time.perf_counter()
+            m = peer.to_mesh(hm, cam)
+            t_mesh = (time.perf_counter() - t0) * 1e3
+        elif setting.policy == "polytree":  # taylor-barrett: view-independent levels of one polytree
+            from .polytree import build_polytree, default_tolerances
 
-            st_["nmap"] = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
-        t0 = time.perf_counter()
-        m = peer.to_mesh(hm, cam)
-        t_mesh = (time.perf_counter() - t0) * 1e3
+            if "polytree" not in st_:
+                t0 = time.perf_counter()
+                st_["polytree"] = build_polytree(hm, default_tolerances(hm, 64), device=device)
+                st_["polytree_ms"] = (time.perf_counter() - t0) * 1e3
+            pt = st_["polytree"]
+            built_ms = st_["polytree_ms"]
+            t0 = time.perf_counter()
+            m = pt.mesh(min(int(setting.param), pt.n_levels - 1), eye=cam.position)
+            t_mesh = (time.perf_counter() - t0) * 1e3
+        else:  # mrbsp bintree: the paper's apparent-size rule at tree depth M = param, per frame
+            from .bintree import Bintree, select_bintree
+
+            key = ("bintree", int(setting.param))
+            if key not in st_:
+                t0 = time.perf_counter()
+                st_[key] = Bintree.build(hm, int(setting.param), device=device)
+                st_[key + ("ms",)] = (time.perf_counter() - t0) * 1e3
+            built_ms = st_[key + ("ms",)]
+            t0 = time.perf_counter()
+            m = select_bintree(st_[key], cam).mesh
+            select_ms = (time.perf_counter() - t0) * 1e3
+            t_mesh = 0.0
         t0 = time.perf_counter()
         fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
                        cam.width, cam.height, cull_back=scene.cull_back, device=device)
         t_ras = (time.perf_counter() - t0) * 1e3
         img = None
         if images:
-            uv = np.stack([peer.grid_xy[:, 0] / max(hm.shape[1] - 1, 1),
-                           peer.grid_xy[:, 1] / max(hm.shape[0] - 1, 1)], 1).astype(np.float32)
-            nrm = sample_normal_map(st_["nmap"], uv, device=device)
-            rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm,
-                               peer.heights.astype(np.float32), azimuth_deg=scene.light_azimuth_deg,
-                               elevation_deg=scene.light_elevation_deg, device=device)
+            if st_["nmap"] is None:
+                from .kernels.normals import sobel_normals
+
+                st_["nmap"] = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
+            world = m.positions.astype(np.float64) + np.asarray(m.eye)
+            uv = np.stack([(world[:, 0] - hm.origin[0]) / hm.dx / max(hm.shape[1] - 1, 1),
+                           (world[:, 2] - hm.origin[1]) / hm.dz / max(hm.shape[0] - 1, 1)], 1)
+            nrm = sample_normal_map(st_["nmap"], np.clip(uv, 0, 1).astype(np.float32), device=device)
+            rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm, world[:, 1].astype(np.float32),
+                               azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
+                               device=device)
             img = _srgb8(rgb)
         err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics,
                           fr.depth, ref.triangle_id, ref.depth, image=img, ref_image=ref.image)
-        row.update(select_ms=0.0, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=t_mesh + t_ras, patches=0,
-                   vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=peer.mesh_ms,
+        row.update(select_ms=select_ms, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=select_ms + t_mesh + t_ras,
+                   patches=0, vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=built_ms,
                    peer_error_m=peer_err)
     else:
         if setting.policy == "grid":
@@ -291,7 +330,7 @@ def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0)) -> list[list
                 continue
             r = min(ok, key=lambda r: r["triangles"])
             rows.append([b, pol, r["setting"], round(r["p99_px"], 3), int(r["triangles"]), round(r["frame_ms"], 2),
-                         round(r["peer_mesh_ms"], 1) if r["policy"] in ("martini", "delatin") else "-"])
+                         round(r["peer_mesh_ms"], 1) if r["policy"] in _BUILT else "-"])
     return rows
 
 
@@ -314,7 +353,8 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
     from ._io import atomic_path
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
-    marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--"}
+    marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
+             "polytree": "P:", "bintree": "X:"}
     others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]
     floor = 0.5 * min(others) if others else 1e-3  # the exact grid (0 px) is drawn on this floor
 

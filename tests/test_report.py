@@ -24,7 +24,7 @@ def small():
 
 
 SETTINGS = [Setting("grid", 0.0), Setting("sse", 0.1), Setting("sse", 8.0), Setting("continuous", 8.0),
-            Setting("delatin", 2.0), Setting("martini", 8.0)]
+            Setting("delatin", 2.0), Setting("martini", 8.0), Setting("polytree", 4.0), Setting("bintree", 15.0)]
 
 
 def _strip(text: str) -> list[dict]:
@@ -46,12 +46,13 @@ def test_sweep_is_reproducible_apart_from_timings(small):
     coarse = [r for r in a if r["setting"] == "sse=8"]
     fine = [r for r in a if r["setting"] == "sse=0.1"]
     assert sum(r["triangles"] for r in coarse) < sum(r["triangles"] for r in fine)
-    assert all(r["cracks"] == 0 for r in a if r["policy"] in ("sse", "continuous"))
+    assert all(r["cracks"] == 0 for r in a if r["policy"] in ("sse", "continuous", "polytree", "bintree"))
+    assert all(r["triangles"] > 0 and r["peer_mesh_ms"] > 0 for r in a if r["policy"] in ("polytree", "bintree"))
 
 
 def test_report_files_and_tables(small, tmp_path):
     sc, cams = small
-    rows = sweep(sc, cams, SETTINGS[:1] + SETTINGS[4:], progress=False, images=False)
+    rows = sweep(sc, cams, SETTINGS[:1] + SETTINGS[4:6], progress=False, images=False)
     paths = {p.name for p in write_report(sc, cams, rows, tmp_path)}
     assert paths == {"frames.csv", "pareto.png", "report.md"}
     summ = summarise(rows)
