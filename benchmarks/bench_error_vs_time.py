@@ -46,8 +46,8 @@ def main() -> None:
     ap.add_argument("--only", default=None)
     ap.add_argument("--frames", type=int, default=8)
     a = ap.parse_args()
-    body = []
     for name, hm, lod in terrains(a.only, a.quick):
+        body = []
         t0 = time.perf_counter()
         sc = Scene(hm, camera=Camera.default_for(hm, 1920, 1080), lod=lod)
         cams = sc.camera_path(a.frames)
@@ -82,7 +82,8 @@ def main() -> None:
                     "tessellator mirrors its diagonals about each patch's centre lines, the reference grid "
                     f"does not). Pareto front (time): {', '.join(r['setting'] for r in pareto(summ))}. "
                     f"Full tables and the plot: `out/bench_error_vs_time/{name}/report.md`.\n")
-    write_result("error_vs_time", "Error against run time (bench_error_vs_time.py)", "\n".join(body))
+        write_result(f"error_vs_time_{name}", f"Error against run time: {name} (bench_error_vs_time.py)",
+                     "\n".join(body))
 
 
 if __name__ == "__main__":

@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ORDER = ["frame", "lod", "tessellate", "raster", "normals_curvature", "error_vs_time", "fit", "stability"]
+ORDER = ["frame", "terrain_frame", "lod", "tessellate", "raster", "normals_curvature", "error_vs_time_jacksboro",
+         "error_vs_time_fbm4097", "fit", "stability", "sweep", "bintree", "polytree"]
 
 
 def main() -> None:
