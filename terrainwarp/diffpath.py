@@ -54,7 +54,7 @@ written as ``|dy| * |d proj / dy|`` (no difference of two nearby projections).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -63,7 +63,7 @@ from .heightmap import Heightmap
 from .lod import MAX_TESS, ContinuousPolicy, Terrain, select
 
 __all__ = ["DiffFrame", "prepare", "levels", "domain_points", "positions", "pixel_error", "soft_max_px",
-           "frame_loss", "place_fixed"]
+           "frame_loss", "loss_and_grads", "place_fixed"]
 
 FXP_ONE = 65536
 _RECIP = np.array([0] + [int(65536.0 / n + 0.5) for n in range(1, 130)], np.int64)  # round(2^16 / n)
@@ -250,6 +250,7 @@ class DiffFrame:
     width: int
     height: int
     patches: object
+    _jit: dict = field(default_factory=dict, repr=False)
 
 
 def _raw_factors(heightmap: Heightmap, camera: Camera, origin: np.ndarray, size: np.ndarray):
@@ -494,3 +495,26 @@ def frame_loss(frame: DiffFrame, log_target, temperature_px: float = 0.25):
     err, valid = pixel_error(frame, log_target)
     n = jnp.maximum(jnp.sum(valid), 1)
     return soft_max_px(err, valid, temperature_px), jnp.sum(err) / n
+
+
+def loss_and_grads(frame: DiffFrame, log_target, temperature_px: float = 0.25):
+    """Values and derivatives of (soft maximum px, mean px) with respect to ``log_target``, one compiled
+    function per frame (cached on it): ``(values (2,), d values / d log_target (2,))`` numpy float64.
+
+    One forward pass and two reverse passes through the same VJP (``jax.jacrev`` would vmap the
+    cotangents through the Warp kernel's backward, which ``warp.jax_kernel`` does not support)."""
+    import jax
+    import jax.numpy as jnp
+
+    key = ("loss_and_grads", float(temperature_px))
+    fn = frame._jit.get(key)
+    if fn is None:
+        def run(lt):
+            out, vjp = jax.vjp(lambda x: jnp.stack(frame_loss(frame, x, temperature_px)), lt)
+            (g0,) = vjp(jnp.array([1.0, 0.0], jnp.float32))
+            (g1,) = vjp(jnp.array([0.0, 1.0], jnp.float32))
+            return out, jnp.stack([g0, g1])
+
+        fn = frame._jit[key] = jax.jit(run)
+    v, g = fn(jnp.asarray(log_target, jnp.float32))
+    return np.asarray(v, np.float64), np.asarray(g, np.float64)

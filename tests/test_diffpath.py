@@ -16,6 +16,7 @@ import pytest
 from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
 from terrainwarp import diffpath as dp
 from terrainwarp.kernels.tessellator import tessellate_domains
+from terrainwarp.lod import Terrain
 from terrainwarp.tessellate import tessellate_patch
 
 LEVEL, ROOTS = 2, 4
@@ -32,18 +33,20 @@ def cam():
                   near=1.0, far=5000.0)
 
 
-def _exact(hm, cam, t):
+@pytest.fixture(scope="module")
+def terrain(hm):
+    return Terrain.prepare(hm, roots=ROOTS, tess=8)
+
+
+def _exact(hm, cam, t, terrain):
     """The exact pipeline (render) of the continuous policy at target ``t``."""
     lod = LodConfig(policy="continuous", target_px=float(t), level=LEVEL, roots=ROOTS, tess=8, spacing="fractional_odd")
-    return render(Scene(hm, camera=cam, mesh="lod", outputs=("error",), lod=lod))
+    return render(Scene(hm, camera=cam, mesh="lod", outputs=("error",), lod=lod), terrain=terrain)
 
 
 def _loss_fns(frame):
-    f = jax.jit(lambda lt: jnp.stack(dp.frame_loss(frame, lt)))
-    # one jax.grad per output: jax.jacrev vmaps the cotangents, which the Warp kernel's backward (a
-    # jax_kernel custom_vjp) does not support -- it returned wrong numbers here, not an error
-    gs = [jax.jit(jax.grad(lambda lt, k=k: dp.frame_loss(frame, lt)[k])) for k in (0, 1)]
-    return f, lambda lt: jnp.stack([g(lt) for g in gs])
+    """(values at lt, gradients at lt) of (soft maximum, mean), through one compiled function per frame."""
+    return (lambda lt: dp.loss_and_grads(frame, lt)[0]), (lambda lt: dp.loss_and_grads(frame, lt)[1])
 
 
 def _levels_sample(rng, n):
@@ -101,30 +104,30 @@ def test_points_move_continuously_and_are_born_on_existing_ones():
         assert np.all(np.isfinite(np.asarray(jac))) and np.abs(np.asarray(jac)).max() > 0.01
 
 
-def test_frame_forward_is_the_exact_pipeline(hm, cam):
+def test_frame_forward_is_the_exact_pipeline(hm, cam, terrain):
     t = 3.0
-    fr = dp.prepare(hm, cam, t, level=LEVEL, roots=ROOTS)
-    ex = _exact(hm, cam, t)
+    fr = dp.prepare(hm, cam, t, level=LEVEL, terrain=terrain)
+    ex = _exact(hm, cam, t, terrain)
     assert np.array_equal(ex.mesh.positions, fr.positions)
     assert np.array_equal(ex.triangle_id, fr.triangle_id)
-    err, ok = dp.pixel_error(fr, math.log(t))
+    err, ok = jax.jit(lambda lt: dp.pixel_error(fr, lt))(math.log(t))
     err, ok = np.asarray(err), np.asarray(ok)
     assert ok.sum() == (fr.triangle_id >= 0).sum() > 1000
     # float32 JAX against the float64 metric
     assert np.abs(err[ok] - ex.error.error_map[ok]).max() < 1e-3
-    smax, mean = (float(x) for x in dp.frame_loss(fr, math.log(t)))
+    smax, mean = dp.loss_and_grads(fr, math.log(t))[0]
     assert mean == pytest.approx(ex.error.mean_px, rel=1e-4)
     assert ex.error.mean_px < smax < ex.error.max_px
 
 
 @pytest.mark.parametrize("target", [3.0, 2.7])
-def test_gradient_matches_finite_differences_of_the_same_function(hm, cam, target):
+def test_gradient_matches_finite_differences_of_the_same_function(hm, cam, terrain, target):
     """The frozen function (topology and visibility of the current factors) is piecewise smooth: JAX's
     gradient of both the soft maximum and the mean agrees with central differences over steps that cross
     few kinks (a pixel's P crossing a reference cell or diagonal, a point crossing a heightmap cell, the
     error's |dy| changing sign). With h >= 3e-3 the soft maximum's difference quotient is off by ~2%:
     it spans such kinks on the few pixels the soft maximum weighs."""
-    fr = dp.prepare(hm, cam, target, level=LEVEL, roots=ROOTS)
+    fr = dp.prepare(hm, cam, target, level=LEVEL, terrain=terrain)
     f, g = _loss_fns(fr)
     lt = fr.log_target0
     grad = np.asarray(g(lt), np.float64)
@@ -135,33 +138,33 @@ def test_gradient_matches_finite_differences_of_the_same_function(hm, cam, targe
         assert np.all(rel < 1e-2), (h, grad, fd, rel)
 
 
-def test_gradient_matches_the_exact_pipeline_where_topology_holds(hm, cam):
+def test_gradient_matches_the_exact_pipeline_where_topology_holds(hm, cam, terrain):
     """Central differences of the exact pipeline's mean pixel error (select, tessellate, rasterize, float64
     metric) at a target where no patch's topology changes over the step."""
     h = 0.003
 
     def exact_mean(t):
-        return _exact(hm, cam, t).error.mean_px
+        return _exact(hm, cam, t, terrain).error.mean_px
 
     def key(frame):
         return tuple(getattr(frame.coords, k).tobytes() for k in ("slot", "fl", "a", "b"))
 
     for t in np.geomspace(2.5, 4.0, 40):
-        fr = dp.prepare(hm, cam, float(t), level=LEVEL, roots=ROOTS)
-        if all(key(dp.prepare(hm, cam, float(t * math.exp(s * h)), level=LEVEL, roots=ROOTS)) == key(fr)
+        fr = dp.prepare(hm, cam, float(t), level=LEVEL, terrain=terrain)
+        if all(key(dp.prepare(hm, cam, float(t * math.exp(s * h)), level=LEVEL, terrain=terrain)) == key(fr)
                for s in (-1, 1)):
             break
     else:
         pytest.fail("no target in [2.5, 4] keeps the topology over the step")
-    grad = float(jax.grad(lambda lt: dp.frame_loss(fr, lt)[1])(fr.log_target0))
+    grad = float(dp.loss_and_grads(fr, fr.log_target0)[1][1])
     fd = (exact_mean(t * math.exp(h)) - exact_mean(t * math.exp(-h))) / (2 * h)
     assert grad > 0 and abs(grad - fd) / abs(fd) < 5e-2, (t, grad, fd)
 
 
-def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam):
+def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam, terrain):
     cases = {
         "all factors at 1": (cam, 1e4),
-        "all factors at 64": (cam, 1e-3),
+        "all factors at 64": (cam, 1e-3),  # level 1 below: fewer patches, 4 x 63^2 x 2 triangles each
         "camera on the terrain": (Camera(position=(640.0, float(hm.sample(640.0, 640.0)) + 0.5, 640.0),
                                          target=(900.0, 150.0, 400.0), width=48, height=32, near=0.1,
                                          far=5000.0), 3.0),
@@ -172,7 +175,7 @@ def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam):
     cases["eye on an edge midpoint"] = (Camera(position=(x, mid_y, 0.5 * (z0 + z1)), target=(700.0, 100.0, 900.0),
                                                width=48, height=32, near=0.1, far=5000.0), 3.0)
     for name, (c, t) in cases.items():
-        fr = dp.prepare(hm, c, t, level=LEVEL, roots=ROOTS)
+        fr = dp.prepare(hm, c, t, level=1 if t < 0.01 else LEVEL, terrain=terrain)
         lv = np.asarray(dp.levels(fr, fr.log_target0))
         _, g = _loss_fns(fr)
         g = np.asarray(g(fr.log_target0))
@@ -186,12 +189,12 @@ def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam):
             assert fr.const.any()
 
 
-def test_deterministic_and_bad_input(hm, cam):
+def test_deterministic_and_bad_input(hm, cam, terrain):
     def run():
-        fr = dp.prepare(hm, cam, 3.0, level=LEVEL, roots=ROOTS)
-        err, _ = dp.pixel_error(fr, fr.log_target0 + 0.05)
-        g = jax.grad(lambda lt: dp.frame_loss(fr, lt)[0])(fr.log_target0)
-        return hashlib.sha256(np.asarray(err).tobytes() + np.asarray(g).tobytes()).hexdigest()
+        fr = dp.prepare(hm, cam, 3.0, level=LEVEL, terrain=terrain)
+        v0, g0 = dp.loss_and_grads(fr, fr.log_target0)
+        v1, g1 = dp.loss_and_grads(fr, fr.log_target0 + 0.05)
+        return hashlib.sha256(b"".join(a.tobytes() for a in (v0, g0, v1, g1))).hexdigest()
 
     assert run() == run()
     for bad in (0.0, -1.0, float("nan"), float("inf"), "3"):
@@ -201,4 +204,4 @@ def test_deterministic_and_bad_input(hm, cam):
         dp.prepare(hm, "cam", 3.0)
     away = Camera(position=(640.0, 2000.0, 640.0), target=(640.0, 4000.0, 100.0), width=32, height=24)
     with pytest.raises(ValueError, match="sees no terrain"):
-        dp.prepare(hm, away, 3.0, level=LEVEL, roots=ROOTS)
+        dp.prepare(hm, away, 3.0, level=LEVEL, terrain=terrain)
