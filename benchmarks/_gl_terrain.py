@@ -165,12 +165,13 @@ class GLTerrain:
         mvp = (np.asarray(proj, np.float64) @ np.asarray(view, np.float64)).astype(np.float32)
         self.prog["mvp"].write(np.ascontiguousarray(mvp.T).tobytes())  # GLSL matrices are column-major
 
-    def draw(self, records: np.ndarray, ranges: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray, float]:
+    def draw(self, records: np.ndarray, ranges: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray, float, float]:
         """Upload the (P, 12) patch records, clear, draw every batch, ``glFinish``.
 
         Returns:
             patch ids (H, W) int32 (-1 background), depth (H, W) float32 window depth (1.0 background),
-            row 0 at the top, and the seconds from the upload to the end of ``glFinish``.
+            row 0 at the top, the seconds from the upload to the end of ``glFinish``, and the CPU seconds
+            this process (every llvmpipe thread) spent meanwhile.
         """
         ctx, mgl = self.ctx, self._mgl
         data = np.ascontiguousarray(records, np.float32).tobytes()
@@ -187,7 +188,7 @@ class GLTerrain:
         self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         self.color.write(np.full(self.width * self.height, -1, np.int32).tobytes())
         ctx.finish()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         if data:
             self.ssbo.write(data)
         self.ssbo.bind_to_storage_buffer(1)
@@ -196,10 +197,10 @@ class GLTerrain:
             base.value = start
             self.vao.render(mode=mgl.PATCHES, vertices=4 * (stop - start))
         ctx.finish()
-        dt = time.perf_counter() - t0
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
         ids = np.frombuffer(self.color.read(), dtype=np.int32).reshape(self.height, self.width)[::-1]
         dep = np.frombuffer(self.depth.read(), dtype=np.float32).reshape(self.height, self.width)[::-1]
-        return np.ascontiguousarray(ids), np.ascontiguousarray(dep), dt
+        return np.ascontiguousarray(ids), np.ascontiguousarray(dep), dt, dc
 
     def close(self) -> None:
         for o in (self.ssbo, self.fbo, self.color, self.depth, self.tex, self.vao, self.prog):
@@ -208,8 +209,9 @@ class GLTerrain:
         self.ctx.release()
 
 
-def run_saved(path: str, reps: int) -> float:
-    """Best draw time of ``reps`` after a warm-up, for a frame saved by the benchmark (child processes)."""
+def run_saved(path: str, reps: int) -> tuple[float, float]:
+    """Best draw wall and CPU seconds of ``reps`` after a warm-up, for a frame saved by the benchmark (child
+    processes)."""
     d = np.load(path)
     g = GLTerrain(int(d["width"]), int(d["height"]), d["heights"], float(d["dx"]), float(d["dz"]),
                   str(d["spacing"]))
@@ -217,10 +219,11 @@ def run_saved(path: str, reps: int) -> float:
         g.set_camera(d["eye"], d["grid_origin"], d["view"], d["proj"])
         ranges = [tuple(r) for r in d["ranges"].tolist()]
         g.draw(d["records"], ranges)
-        return min(g.draw(d["records"], ranges)[2] for _ in range(reps))
+        runs = [g.draw(d["records"], ranges)[2:] for _ in range(reps)]
+        return min(r[0] for r in runs), min(r[1] for r in runs)
     finally:
         g.close()
 
 
 if __name__ == "__main__":
-    print(run_saved(sys.argv[1], int(sys.argv[2])))
+    print(*run_saved(sys.argv[1], int(sys.argv[2])))
