@@ -112,7 +112,7 @@ def gl_child(hm, cam, spacing, rec, ranges, reps: int, threads: str) -> tuple[fl
     return float(wall), float(cpu)
 
 
-def measure(label: str, hm, cam, terrain, cfg: LodConfig, children: bool, reps: int) -> dict:
+def measure(label: str, hm, cam, terrain, cfg: LodConfig, children: bool, reps: int, unbatched: bool = False) -> dict:
     sc = Scene(hm, camera=cam, mesh="lod", lod=cfg, outputs=("depth", "mesh", "patches"))
     _, _, f = ours_once(sc, terrain)  # warm-up; its PatchList is what llvmpipe draws (selection is deterministic)
     mesh, pl = f.mesh, f.patches
@@ -138,6 +138,7 @@ def measure(label: str, hm, cam, terrain, cfg: LodConfig, children: bool, reps: 
             c_ours = min(c_ours, ours_cpu(hm, cam, terrain, cfg, view, proj))
             gids, gdep, dt, dc = g.draw(rec, ranges)
             t_gl, c_gl = min(t_gl, dt), min(c_gl, dc)
+        one = g.draw(rec, [(0, len(pl))]) if unbatched else None  # why the batches: one draw of everything
     finally:
         g.close()
     total, st, f = best
@@ -157,6 +158,8 @@ def measure(label: str, hm, cam, terrain, cfg: LodConfig, children: bool, reps: 
          "ours_cpu_ms": c_ours * 1e3, "gl_cpu_ms": c_gl * 1e3, "gl1_cpu_ms": c_gl1 * 1e3, "gl0_cpu_ms": c_gl0 * 1e3,
          "covered": int(cov.sum()), "cov_diff": int((cov != gcov).sum()), "patch_diff": int((pids != gids).sum()),
          "dz_max": float(dz.max()) if dz.size else 0.0, "renderer": renderer}
+    if one is not None:
+        r["unbatched"] = (one[2] * 1e3, int((cov != (one[0] >= 0)).sum()), int((pids != one[0]).sum()))
     print(f"{label}: {r['triangles']:,} triangles, ours {total:.1f} ms (select {r['select_ms']:.1f}, mesh "
           f"{r['mesh_ms']:.1f}, raster {r['raster_ms']:.1f}), gl {r['gl_ms']:.1f} ms, LP_NUM_THREADS=1 "
           f"{r['gl1_ms']:.1f} ms, =0 {r['gl0_ms']:.1f} ms; CPU ours {r['ours_cpu_ms']:.1f} gl {r['gl_cpu_ms']:.1f} "
@@ -181,7 +184,7 @@ def main(argv=None) -> None:
     terrain = Terrain.prepare(hm, roots=base.roots, tess=base.tess)
     for tol in (1.0, 0.25):
         rows.append(measure(f"DEM {hm.shape[1]}x{hm.shape[0]}", hm, cam, terrain, LodConfig(tolerance_px=tol),
-                            kids, reps))
+                            kids, reps, unbatched=tol < 1.0))
     if not args.quick:
         hm = Heightmap.fbm(1025, seed=7, dx=10.0, max_height=800.0)
         cam = Camera.default_for(hm, WIDTH, HEIGHT)
@@ -220,6 +223,13 @@ def main(argv=None) -> None:
                    f"in wall time; CPU {r['ours_cpu_ms']:.1f} ms vs {r['gl_cpu_ms']:.1f} ms, "
                    f"{'met' if r['ours_cpu_ms'] < np.nanmin([r['gl_cpu_ms'], r['gl0_cpu_ms']]) else 'NOT met'}"
                    for r in near) + ".")
+    ub = [r for r in rows if "unbatched" in r]
+    unbatched = "".join(
+        f"Why the batches: the {r['frame']} frame ({r['patches']} patches, {r['triangles']:,} triangles) in one "
+        f"draw call instead of {r['draws']}: {r['unbatched'][0]:.0f} ms, {r['unbatched'][1]:,} pixels of coverage "
+        f"and {r['unbatched'][2]:,} of patch numbers differ from ours (batched: {r['cov_diff']} and "
+        f"{r['patch_diff']}): llvmpipe's tessellated draws go wrong past ~65,536 generated vertices.\n\n"
+        for r in ub)
     body = (
         f"A whole LOD frame at {WIDTH}x{HEIGHT}: ours = `select` + `mesh` (tessellate + displace) + `raster` from "
         f"`render`'s report (Warp CPU backend, one thread; the fastest of {reps} renders after a warm-up; the "
@@ -248,7 +258,7 @@ def main(argv=None) -> None:
         "machine disturbs less than wall time; and agreement with llvmpipe: pixels covered by one and not the "
         "other, pixels whose patch number differs, max window-depth difference where both cover (float32 "
         "ordering of the displacement and the transform).\n\n" + cpu
-        + f"\n\n{verdict}\n\nWhole benchmark: {time.perf_counter() - t_start:.0f} s; 1-minute load average "
+        + f"\n\n{verdict}\n\n{unbatched}Whole benchmark: {time.perf_counter() - t_start:.0f} s; 1-minute load average "
         f"{load0:.1f} at the start, {load1:.1f} at the end (other work on this shared {os.cpu_count()}-core "
         "machine makes wall times noisy).\n")
     write_result("terrain_frame", "Tessellated terrain frame vs llvmpipe tessellation shaders "
