@@ -250,10 +250,17 @@ def run_sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, p
 
     ``runner`` (a :class:`terrainwarp.sweep.Runner`) overrides ``scheduler`` and ``workers``.
     """
-    from .sweep import Runner, pending_jobs
+    from .sweep import Runner
 
-    if runner is None:
-        runner = Runner(scheduler, workers)
+    if runner is not None:
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
+    with Runner(scheduler, workers) as runner:
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
+
+
+def _run_sweep(runner, scene, cameras, settings, progress, images, device, out):
+    from .sweep import pending_jobs
+
     cameras = list(cameras)
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device)

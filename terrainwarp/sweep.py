@@ -146,7 +146,7 @@ def _local_client(n: int):
         return c
     close_local_clusters()  # one local cluster at a time: its workers hold a core each
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=logging.ERROR)
+                           silence_logs=logging.CRITICAL)  # faults are in the table
     c = Client(cluster, set_as_default=False)
     _LOCAL[n] = c
     return c
@@ -291,14 +291,14 @@ class Runner:
             from distributed import Client
 
             addr = _check_address(scheduler)
+            if workers == 0:
+                raise ValueError("workers: expected >= 1 with a scheduler, got 0")
             try:
                 self.client = Client(addr, timeout=connect_timeout_s, set_as_default=False)
             except (OSError, TimeoutError) as e:
                 raise SchedulerUnreachableError(
                     f"scheduler: no Dask scheduler answered at {addr} within {connect_timeout_s:g} s "
                     f"({type(e).__name__})") from None
-            if workers == 0:
-                raise ValueError("workers: expected >= 1 with a scheduler, got 0")
             try:
                 self.client.wait_for_workers(workers or 1, timeout=60)
             except TimeoutError:
@@ -311,6 +311,18 @@ class Runner:
         else:
             self.client = _local_client(workers or _cores())
             self.where = "LocalCluster, processes"
+
+    def close(self) -> None:
+        """Disconnect from a remote scheduler (a LocalCluster stays up for the next sweep)."""
+        if self.client is not None and self.where not in ("in-process", "LocalCluster, processes"):
+            self.client.close()
+            self.client = None
+
+    def __enter__(self) -> Runner:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     @property
     def n_workers(self) -> int:

@@ -97,6 +97,10 @@ def test_any_job_order_gives_the_same_table():
     b = r.run(shuffled, _square, progress=False)
     assert a.rows == b.rows
     assert [row["i"] for row in a.rows] == list(range(12))
+    # the same through the scheduler's address, as an existing cluster is used
+    with Runner(scheduler=r.client.scheduler.address) as remote:
+        assert remote.n_workers == 2
+        assert remote.run(shuffled, _square, progress=False).rows == a.rows
 
 
 def test_a_raising_job_is_recorded_and_the_sweep_goes_on(small, capsys):
