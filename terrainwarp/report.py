@@ -406,6 +406,7 @@ def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir:
           f"dz={scene.heightmap.dz:.4g} m; {len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}; "
           f"LOD: {scene.lod.roots} roots, tess {scene.lod.tess}. Errors are per-frame p99 of the exact per-pixel "
           "reprojection error (worst frame); frame_ms = select + mesh + raster (LOD), mesh + raster (grid, peers).",
+          "", _jobs_line(rows),
           "", "## Settings", "", _md(["setting", "p99_px", "max_px", "frame_ms", "triangles", "cracks", "psnr_db",
                                       "peer_mesh_ms", "peer_error_m"], summ),
           "", "## Cheapest setting per budget (triangles)", "",
@@ -419,6 +420,16 @@ def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir:
     md += ["", "![pareto](pareto.png)", ""]
     paths.append(write_text(out / "report.md", "\n".join(md)))
     return paths
+
+
+def _jobs_line(rows: list[dict]) -> str:
+    """How the sweep's jobs went: failures (with the first error) and retries after a worker died."""
+    failed = [r for r in rows if r.get("error")]
+    retried = [r for r in rows if r.get("retries", 0)]
+    line = f"Jobs (setting, frame): {len(rows)}, failed {len(failed)}, retried after a worker died {len(retried)}."
+    if failed:
+        line += f" First failure: {failed[0]['setting']} frame {failed[0]['frame']}: {failed[0]['error']}"
+    return line
 
 
 def _md(cols: list[str], rows: list[dict]) -> str:

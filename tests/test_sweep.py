@@ -192,3 +192,4 @@ def test_report_cli_uses_the_runner_and_leaves_no_partial_file(tmp_path, capsys)
     assert names == ["frames.csv", "pareto.png", "report.md"]
     rows = list(csv.DictReader(io.StringIO((tmp_path / "frames.csv").read_text())))
     assert len(rows) == 3 and all(r["error"] == "" and r["retries"] == "0" for r in rows)
+    assert "Jobs (setting, frame): 3, failed 0, retried after a worker died 0." in (tmp_path / "report.md").read_text()
