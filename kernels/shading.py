@@ -12,6 +12,8 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from .noise import _hash
+
 
 @wp.func
 def _ramp(t: float) -> wp.vec3:
@@ -169,10 +171,8 @@ def _smooth_band(x: float, lo: float, hi: float, band: float) -> float:
 
 @wp.func
 def _hash2(ix: int, iz: int, seed: int) -> float:
-    h = wp.uint32(ix) * wp.uint32(374761393) + wp.uint32(iz) * wp.uint32(668265263) + wp.uint32(seed) * wp.uint32(
-        2246822519)
-    h = (h ^ (h >> wp.uint32(13))) * wp.uint32(1274126177)
-    h = h ^ (h >> wp.uint32(16))
+    """A lattice value in [0, 1]: the terrain noise's integer hash (kernels/noise.py), 24 bits of it."""
+    h = _hash(wp.uint32(ix), wp.uint32(iz), wp.uint32(seed))
     return float(h & wp.uint32(0xFFFFFF)) / 16777215.0
 
 
