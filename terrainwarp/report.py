@@ -108,7 +108,28 @@ def _state(ctx: _Context) -> dict:
         hm, lod = _STATE["scene"].heightmap, ctx.scene.lod
         _STATE["terrain"] = Terrain.prepare(hm, roots=lod.roots, tess=lod.tess, device=ctx.device)
         _STATE["prepare_ms"] = (time.perf_counter() - t0) * 1e3
+    if not _STATE.get("warm"):
+        _STATE["warm"] = True
+        try:
+            _warm_up(ctx)
+        except Exception:  # noqa: BLE001 - only an optimisation: a real problem shows in the job itself
+            pass
     return _STATE
+
+
+def _warm_up(ctx: _Context) -> None:
+    """Load this process's Warp modules (from the kernel cache) with tiny frames, so that loading them is not
+    timed in the first frame each worker renders."""
+    from .pipeline import render
+
+    scene = _STATE["scene"]
+    cam = ctx.cameras[0].with_(width=16, height=12)
+    outs = ("error", "image") if ctx.images else ("error",)
+    render(scene.with_(camera=cam, mesh="grid", outputs=outs), device=ctx.device)
+    if _STATE["terrain"] is not None:
+        for s in (Setting("sse", 2.0), Setting("continuous", 8.0)):
+            render(scene.with_(camera=cam, mesh="lod", lod=_lod_config(s, scene.lod), outputs=outs),
+                   terrain=_STATE["terrain"], device=ctx.device)
 
 
 def _reference_job(ctx: _Context, k: int) -> tuple:
