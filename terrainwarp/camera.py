@@ -161,7 +161,7 @@ class Camera:
         hmin = float(finite.min()) if finite.size else 0.0
         hmax = float(finite.max()) if finite.size else 0.0
         cx, cz = 0.5 * (x0 + x1), 0.5 * (z0 + z1)
-        size = max(x1 - x0, z1 - z0, hmax - hmin, 1e-6)
+        size = max(x1 - x0, z1 - z0, hmax - hmin, heightmap.dx, heightmap.dz)  # a 1x1 grid still has a size
         target = (cx, hmin + 0.25 * (hmax - hmin), cz)
         dist = 0.62 * size / math.tan(math.radians(fov_y_deg) / 2.0)
         el = math.radians(35.0)

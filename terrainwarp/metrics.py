@@ -159,7 +159,8 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
         b = ref_image.astype(np.float64) / 255.0
         same = np.array_equal(a, b)
         stats.psnr_db = float("inf") if same else float(peak_signal_noise_ratio(b, a, data_range=1.0))
-        stats.ssim = float(structural_similarity(b, a, channel_axis=-1, data_range=1.0))
+        if min(a.shape[0], a.shape[1]) >= 7:  # SSIM's 7x7 window needs at least that many pixels
+            stats.ssim = float(structural_similarity(b, a, channel_axis=-1, data_range=1.0))
     if keep_maps:
         emap = np.full((hh, ww), np.nan, np.float32)
         emap[cov] = err

@@ -95,3 +95,8 @@ def test_default_camera_sees_the_whole_terrain():
                 q = m @ [x, y, z, 1.0]
                 assert q[3] > 0
                 assert np.all(np.abs(q[:3] / q[3]) <= 1.0)
+
+
+def test_default_camera_for_a_single_sample():
+    c = Camera.default_for(Heightmap.from_array(np.array([[5.0]]), 2.0))
+    assert c.far > c.near and np.isfinite(c.position).all()

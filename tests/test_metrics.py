@@ -102,3 +102,13 @@ def test_kernel_error_matches_the_numpy_formula():
 
     ref = np.linalg.norm(pix(p) - pix(np.c_[p[:, 0], ry, p[:, 2]]), axis=1)
     np.testing.assert_allclose(st.error_map[cov], ref, rtol=1e-5, atol=1e-6)
+
+
+def test_tiny_viewport_with_images_has_no_ssim_but_no_crash():
+    hm = Heightmap.fbm(17, seed=1, dx=5.0, max_height=40.0)
+    cam = Camera.default_for(hm, 5, 4)
+    pos, tri = _grid(hm, cam)
+    f = _draw(pos, tri, cam)
+    img = np.zeros((4, 5, 3), np.uint8)
+    st = frame_error(hm, cam, pos, cam.position, tri, f.triangle_id, f.barycentrics, image=img, ref_image=img + 1)
+    assert st.ssim is None and st.psnr_db is not None
