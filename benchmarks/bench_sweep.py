@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import pickle
 import time
 
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, Scene
 from terrainwarp.report import TIMING_COLUMNS, Setting, _Context, rows_to_csv, run_sweep
-from terrainwarp.sweep import Runner, close_local_clusters
+from terrainwarp.sweep import Runner, _nbytes, close_local_clusters
 
 
 def settings() -> list[Setting]:
@@ -94,7 +93,7 @@ def main(argv=None) -> None:
                      f"{t1 / wall:.2f}", f"{cpu:.1f}", f"{cpu / wall:.2f}", f"{frame_ms:.1f}",
                      "yes" if table(res.rows) == ref_table else "NO", f"{load:.1f}"])
     two = results[2]
-    ctx_bytes = len(pickle.dumps(_Context("x" * 32, sc, tuple(cams), True, "cpu", True), protocol=5))
+    ctx_bytes = _nbytes(_Context("x" * 32, sc, tuple(cams), True, "cpu", True))
     refs_bytes = two.bytes_shared / two.workers - ctx_bytes
     per_job = two.bytes_jobs / two.n_run
     naive = per_job + ctx_bytes + refs_bytes / n_cams  # scene in every job + its camera's reference
@@ -127,7 +126,7 @@ def main(argv=None) -> None:
             ["per job, the row sent back", f"{two.bytes_results / two.n_run:,.0f}"],
         ]),
         "",
-        "Sizes are pickle (protocol 5) sizes of what the client hands to Dask; the shared inputs are sent with "
+        "Sizes are cloudpickle (protocol 5) sizes of what the client hands to Dask; the shared inputs are sent with "
         "`client.scatter(..., broadcast=True)` and each job receives them as a future, so a job's own payload "
         "is its setting and camera index.",
     ]

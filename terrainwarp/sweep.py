@@ -41,7 +41,6 @@ import json
 import logging
 import math
 import os
-import pickle
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
@@ -172,6 +171,13 @@ def _attempt(fn: Callable, n_shared: int, *args) -> tuple[str, Any]:
     except Exception as e:  # noqa: BLE001 - every job error is recorded, not raised
         msg = str(e).splitlines()[0] if str(e) else ""
         return "error", f"{type(e).__name__}: {msg}" if msg else type(e).__name__
+
+
+def _nbytes(obj: Any) -> int:
+    """Pickled size (cloudpickle, as Dask sends functions and arguments)."""
+    import cloudpickle
+
+    return len(cloudpickle.dumps(obj, protocol=5))
 
 
 def _suspicious(dask_scheduler, keys: list[str]) -> dict[str, int]:
@@ -332,9 +338,9 @@ class Runner:
 
     def share(self, obj: Any) -> Any:
         """Send ``obj`` to every worker once; returns what to pass to :meth:`run` / :meth:`map` as shared."""
-        nbytes = len(pickle.dumps(obj, protocol=5))
-        if self.client is None:
+        if self.client is None:  # nothing is sent
             return obj
+        nbytes = _nbytes(obj)
         n = self.n_workers
         fut = self.client.scatter([obj], broadcast=True, hash=False)[0]  # a list: a dict is one object
         self.bytes_shared += nbytes * n
@@ -405,7 +411,8 @@ class Runner:
                    "retries": retries}
             n_failed += status != "ok"
             n_retried += retries > 0
-            bytes_results += len(pickle.dumps(value, protocol=5))
+            if self.client is not None:
+                bytes_results += _nbytes(value)
             done[job.id] = row
             if journal is not None:
                 journal.append(job.id, row)
@@ -417,7 +424,7 @@ class Runner:
         futures: dict = {}
         try:
             for j in todo:
-                bytes_jobs += len(pickle.dumps((fn, j.args), protocol=5))
+                bytes_jobs += _nbytes((fn, j.args)) if self.client is not None else 0
             if self.client is None:
                 for j in todo:
                     status, value = _attempt(fn, len(shared), *shared, *j.args)

@@ -193,3 +193,28 @@ def test_report_cli_uses_the_runner_and_leaves_no_partial_file(tmp_path, capsys)
     rows = list(csv.DictReader(io.StringIO((tmp_path / "frames.csv").read_text())))
     assert len(rows) == 3 and all(r["error"] == "" and r["retries"] == "0" for r in rows)
     assert "Jobs (setting, frame): 3, failed 0, retried after a worker died 0." in (tmp_path / "report.md").read_text()
+
+
+def test_an_interrupted_report_sweep_resumes(small, tmp_path, monkeypatch):
+    import terrainwarp.report as report
+
+    sc, cams = small
+    out = tmp_path / "frames.csv"
+    real, calls = report._frame_job, []
+
+    def interrupted_after_5(*args):
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        calls.append(args[-2:])
+        return real(*args)
+
+    monkeypatch.setattr(report, "_frame_job", interrupted_after_5)
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(sc, cams, SETTINGS, workers=0, progress=False, out=out)
+    monkeypatch.setattr(report, "_frame_job", real)
+    assert not out.exists() and out.with_name("frames.csv.partial").exists()
+    res = run_sweep(sc, cams, SETTINGS, workers=2, progress=False, out=out)
+    assert res.n_resumed == 5 and res.n_run == len(SETTINGS) * len(cams) - 5
+    full = run_sweep(sc, cams, SETTINGS, workers=2, progress=False)
+    assert _table(res.rows) == _table(full.rows)
+    assert out.read_text() == rows_to_csv(res.rows)
