@@ -63,7 +63,7 @@ from .heightmap import Heightmap
 from .lod import MAX_TESS, ContinuousPolicy, Terrain, select
 
 __all__ = ["DiffFrame", "prepare", "levels", "domain_points", "positions", "pixel_error", "soft_max_px",
-           "frame_loss", "loss_and_grads", "place_fixed"]
+           "frame_loss", "loss_and_grads", "log_slope", "place_fixed"]
 
 FXP_ONE = 65536
 _RECIP = np.array([0] + [int(65536.0 / n + 0.5) for n in range(1, 130)], np.int64)  # round(2^16 / n)
@@ -488,20 +488,39 @@ def soft_max_px(err, valid, temperature_px: float = 0.25):
     return jnp.where(n > 0, temperature_px * (logsumexp(z) - jnp.log(jnp.maximum(n, 1))), 0.0)
 
 
-def frame_loss(frame: DiffFrame, log_target, temperature_px: float = 0.25):
-    """(soft maximum px, mean px) of the per-pixel error at ``log_target``; both differentiable."""
+def tail_mean_px(err, valid, q: float = 0.99):
+    """Mean of the largest ``ceil((1 - q) N)`` errors over the ``valid`` pixels (the expected shortfall
+    above the q-quantile, >= the q-quantile). Differentiable almost everywhere: the set of tail pixels is
+    chosen at the current value (its derivative is that of the tail's values)."""
+    import jax
+    import jax.numpy as jnp
+
+    flat = jnp.where(jnp.asarray(valid), err, -1.0).reshape(-1)
+    n = flat.shape[0]
+    k = max(int(math.ceil((1.0 - q) * n)), 1)  # static: of all pixels, then of the valid ones below
+    top, _ = jax.lax.top_k(flat, k)
+    nv = jnp.sum(jnp.asarray(valid))
+    kv = jnp.maximum(jnp.ceil((1.0 - q) * nv), 1.0)
+    w = (jnp.arange(k) < kv) & (top >= 0)
+    return jnp.sum(jnp.where(w, top, 0.0)) / jnp.maximum(jnp.sum(w), 1)
+
+
+def frame_loss(frame: DiffFrame, log_target, temperature_px: float = 0.25, q: float = 0.99):
+    """(soft maximum px, mean px, tail mean above the q-quantile px) of the per-pixel error at
+    ``log_target``; all differentiable."""
     import jax.numpy as jnp
 
     err, valid = pixel_error(frame, log_target)
     n = jnp.maximum(jnp.sum(valid), 1)
-    return soft_max_px(err, valid, temperature_px), jnp.sum(err) / n
+    return soft_max_px(err, valid, temperature_px), jnp.sum(err) / n, tail_mean_px(err, valid, q)
 
 
 def loss_and_grads(frame: DiffFrame, log_target, temperature_px: float = 0.25):
-    """Values and derivatives of (soft maximum px, mean px) with respect to ``log_target``, one compiled
-    function per frame (cached on it): ``(values (2,), d values / d log_target (2,))`` numpy float64.
+    """Values and derivatives of :func:`frame_loss` (soft maximum px, mean px, tail mean px) with respect
+    to ``log_target``, one compiled function per frame (cached on it): ``(values (3,), d values /
+    d log_target (3,))`` numpy float64.
 
-    One forward pass and two reverse passes through the same VJP (``jax.jacrev`` would vmap the
+    One forward pass and three reverse passes through the same VJP (``jax.jacrev`` would vmap the
     cotangents through the Warp kernel's backward, which ``warp.jax_kernel`` does not support)."""
     import jax
     import jax.numpy as jnp
@@ -511,10 +530,19 @@ def loss_and_grads(frame: DiffFrame, log_target, temperature_px: float = 0.25):
     if fn is None:
         def run(lt):
             out, vjp = jax.vjp(lambda x: jnp.stack(frame_loss(frame, x, temperature_px)), lt)
-            (g0,) = vjp(jnp.array([1.0, 0.0], jnp.float32))
-            (g1,) = vjp(jnp.array([0.0, 1.0], jnp.float32))
-            return out, jnp.stack([g0, g1])
+            gs = [vjp(jnp.eye(3, dtype=jnp.float32)[k])[0] for k in range(3)]
+            return out, jnp.stack(gs)
 
         fn = frame._jit[key] = jax.jit(run)
     v, g = fn(jnp.asarray(log_target, jnp.float32))
     return np.asarray(v, np.float64), np.asarray(g, np.float64)
+
+
+def log_slope(heightmap: Heightmap, camera: Camera, target_px: float, level: int, terrain: Terrain, *,
+              cull_back: bool = False, temperature_px: float = 0.25, device: str = "cpu") -> tuple[float, float]:
+    """(tail mean above the 99th percentile px, its d log / d log(target_px)) of one frame at ``target_px``:
+    the exact pipeline once, then the differentiable path (the slope a Newton step on log p99 needs; the
+    tail mean tracks the p99's slope more closely than the soft maximum, which follows a few pixels)."""
+    fr = prepare(heightmap, camera, target_px, level, terrain=terrain, cull_back=cull_back, device=device)
+    v, g = loss_and_grads(fr, fr.log_target0, temperature_px)
+    return float(v[2]), float(g[2]) / max(float(v[2]), 1e-12)

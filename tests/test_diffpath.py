@@ -115,15 +115,16 @@ def test_frame_forward_is_the_exact_pipeline(hm, cam, terrain):
     assert ok.sum() == (fr.triangle_id >= 0).sum() > 1000
     # float32 JAX against the float64 metric
     assert np.abs(err[ok] - ex.error.error_map[ok]).max() < 1e-3
-    smax, mean = dp.loss_and_grads(fr, math.log(t))[0]
+    smax, mean, tail = dp.loss_and_grads(fr, math.log(t))[0]
     assert mean == pytest.approx(ex.error.mean_px, rel=1e-4)
     assert ex.error.mean_px < smax < ex.error.max_px
+    assert ex.error.p99_px <= tail * (1 + 1e-4) and tail <= ex.error.max_px * (1 + 1e-4)
 
 
 @pytest.mark.parametrize("target", [3.0, 2.7])
 def test_gradient_matches_finite_differences_of_the_same_function(hm, cam, terrain, target):
     """The frozen function (topology and visibility of the current factors) is piecewise smooth: JAX's
-    gradient of both the soft maximum and the mean agrees with central differences over steps that cross
+    gradient of the soft maximum and the mean agrees with central differences over steps that cross
     few kinks (a pixel's P crossing a reference cell or diagonal, a point crossing a heightmap cell, the
     error's |dy| changing sign). With h >= 3e-3 the soft maximum's difference quotient is off by ~2%:
     it spans such kinks on the few pixels the soft maximum weighs."""
@@ -135,7 +136,9 @@ def test_gradient_matches_finite_differences_of_the_same_function(hm, cam, terra
     for h in (1e-3, 3e-4):
         fd = (np.asarray(f(lt + h), np.float64) - np.asarray(f(lt - h), np.float64)) / (2 * h)
         rel = np.abs(grad - fd) / np.abs(fd)
-        assert np.all(rel < 1e-2), (h, grad, fd, rel)
+        # soft maximum and mean: smooth; the tail mean (~20 pixels above the p99) switches its pixel set
+        # often (each switch a kink): looser
+        assert np.all(rel[:2] < 1e-2) and rel[2] < 1e-1, (h, grad, fd, rel)
 
 
 def test_gradient_matches_the_exact_pipeline_where_topology_holds(hm, cam, terrain):
@@ -205,3 +208,19 @@ def test_deterministic_and_bad_input(hm, cam, terrain):
     away = Camera(position=(640.0, 2000.0, 640.0), target=(640.0, 4000.0, 100.0), width=32, height=24)
     with pytest.raises(ValueError, match="sees no terrain"):
         dp.prepare(hm, away, 3.0, level=LEVEL, terrain=terrain)
+
+
+def test_fit_lod_with_pixel_gradients_meets_the_budget(hm, cam):
+    """``fit_lod(..., gradient="pixels")``: the corrections before bracketing are Newton steps with the
+    slope of the worst frame's tail error from this path; the exact validation decides."""
+    from terrainwarp.fit import fit_lod
+
+    sc = Scene(hm, camera=cam, lod=LodConfig(roots=ROOTS, tess=8, level=LEVEL))
+    res = fit_lod(sc, 0.5, policy="continuous", cameras=[cam], steps=5, max_validations=6, gradient="pixels")
+    assert res.met and res.validated.worst_p99 <= 0.5, res.message
+    slopes = [h["dlog_err_dlog_value"] for h in res.history if h["stage"] == "pixel_slope"]
+    assert slopes and all(math.isfinite(s) for s in slopes)
+    with pytest.raises(ValueError, match="gradient"):
+        fit_lod(sc, 0.5, policy="sse", cameras=[cam], gradient="pixels")
+    with pytest.raises(ValueError, match="gradient"):
+        fit_lod(sc, 0.5, policy="continuous", cameras=[cam], gradient="magic")
