@@ -238,7 +238,7 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 # ------------------------------------------------------------------------------------------------
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
-            seed: int = 0, progress: bool = False, device: str = "cpu") -> FitResult:
+            seed: int = 0, progress: bool = False, gradient: str = "relaxed", device: str = "cpu") -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
     within ``budget_px`` at the lowest cost (triangles).
 
@@ -251,6 +251,11 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
         grid_points: if > 0, also run the grid-search baseline with that many points.
         seed: reserved for stochastic variants; the fit is deterministic.
+        gradient: the slope of the correction steps before the budget is bracketed: ``"relaxed"`` (the
+            calibrated relaxed model) or, for the continuous policy, ``"pixels"`` (Newton steps in log space
+            with d log(mean pixel error above the p99) / d log(target_px) of the worst frame from
+            :mod:`terrainwarp.diffpath`: the per-pixel error through the Warp resolve kernel; one extra
+            pipeline run per step, counted in ``evaluations``).
     """
     import jax
     import jax.numpy as jnp
@@ -258,6 +263,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
 
     if policy not in POLICIES:
         raise ValueError(f"policy: expected one of {list(POLICIES)}, got {policy!r}")
+    if gradient not in ("relaxed", "pixels") or (gradient == "pixels" and policy != "continuous"):
+        raise ValueError(f"gradient: expected 'relaxed', or 'pixels' with the continuous policy, got {gradient!r}")
     if isinstance(budget_px, bool) or not isinstance(budget_px, int | float) or not math.isfinite(budget_px) \
             or budget_px <= 0:
         raise ValueError(f"budget_px: expected a positive finite number of pixels, got {budget_px!r}")
@@ -359,6 +366,17 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             t = (target - eg) / (eb - eg) if eb > eg else 0.5
             t = min(max(t, 0.1), 0.9)  # keep clear of the ends: the curve is not straight
             nv = math.exp(lg + t * (lb - lg))
+        elif gradient == "pixels":
+            from .diffpath import log_slope
+
+            w = int(np.argmax(e.p99_px))
+            _, slope = log_slope(scene.heightmap, cams[w], v, scene.lod.level, terrain, cull_back=scene.cull_back,
+                                 device=device)
+            n_eval += 1
+            history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
+            step = (target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
+                (1.0 if (e.worst_p99 <= budget_px) == _COARSER_UP[policy] else -1.0)
+            nv = v * math.exp(min(max(step, -1.0), 1.0))
         else:
             offset = math.log(max(e.worst_p99, 1e-9)) - float(log_model(jnp.asarray(math.log(v))))
             nv = solve_relaxed(offset)
