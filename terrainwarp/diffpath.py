@@ -15,7 +15,7 @@ opposite edges. The chain, and what is differentiable in it::
                   Warp kernel ``terrainwarp.kernels.raster._interpolate_kernel`` via
                   ``warp.jax_kernel(..., enable_backward=True)`` (:mod:`terrainwarp.interpolate`)
           ──► e = |proj(P) - proj(R)| px, R the full-resolution surface point below/above P (JAX)
-          ──► soft maximum / mean over pixels
+          ──► soft maximum / mean / mean above the p99 over pixels
 
 Held fixed (the non-differentiable, discrete part, frozen at the current factors by :func:`prepare`):
 the topology of every patch (the number of points per edge and ring, the ruler-function split point, the
@@ -29,11 +29,12 @@ with the level f, ``half = (f + 1) / 2``, ``fl = floor(half)``, ``frac = half - 
 ``point``); the second half mirrors it (``1 - x``). The hardware evaluates it in 16.16 fixed point (the
 level rounded to 2^-16, the result rounded to 2^-16); we evaluate the same formula in float32 with the
 topology (fl, ceil(half), split, the flip) held fixed, so ``d uv / d f = (point R_c - idx_f R_f) / 2``
-exists. Within a topology (f between two odd integers) the formula is linear in f; at an odd integer the
-point count changes: there a new pair of points is born on an existing point (``frac = 0``: both
-partitions agree), so positions are continuous, but the derivative is one-sided (with the topology held
-at the current factors, an exactly odd level has ``frac = 0`` and ``ceil(half) = fl``, and the points do
-not move: the derivative from above, zero, not the one from below).
+exists. Within a topology (f between two odd integers) the formula is linear in f. When f rises
+through an odd integer 2k+1 the point count grows: at f = 2k+1 both partitions coincide (the new pair
+of points is born on an existing point), so positions are continuous in f but have a kink there; the
+derivative we give is that of the piece the current factor lies in (one-sided at the kink, towards the
+current topology). At exactly an odd level (in practice only the clamps 1 and 63, where the derivative is
+zero anyway) the frozen formula does not move the points: zero derivative, neither side's.
 
 Forward values: at the current factors the frame is the exact pipeline's, bit for bit (domain points from
 the Warp tessellator, positions from its displacement kernel); the JAX model contributes the motion away
@@ -44,7 +45,12 @@ Relaxed (not the exact pipeline): (1) the rounding of levels and points to 16.16
 lattice coordinates to 2^-16 cells is dropped in the derivative; (2) the topology and the triangle id
 image are those of the current factors (no gradient through coverage: silhouettes and the pixels whose
 visible triangle would change are extrapolated on the frozen triangle); (3) the maximum is a soft maximum
-(log-mean-exp with a temperature in pixels). Bilinear height filtering only (``filter="bilinear"``).
+(log-mean-exp with a temperature in pixels) or the mean above the 99th percentile (its pixel set frozen
+at the current value). Bilinear height filtering only (``filter="bilinear"``).
+
+Reverse mode only, one scalar at a time (``jax.grad``, ``jax.vjp``): ``jax.jacfwd`` is refused by the
+``jax_kernel`` custom VJP, and ``jax.jacrev`` (which vmaps the cotangents through the Warp kernel's
+backward) returns wrong numbers without an error; :func:`loss_and_grads` calls one VJP per output.
 
 Precision: float32 like the pipeline; the reference height and the error are float32 too (the exact
 :mod:`terrainwarp.metrics` runs in float64), so absolute errors below ~1e-4 px are noise; the error is

@@ -17,7 +17,7 @@ from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
 from terrainwarp import diffpath as dp
 from terrainwarp.kernels.tessellator import tessellate_domains
 from terrainwarp.lod import Terrain
-from terrainwarp.tessellate import tessellate_patch
+from terrainwarp.tessellate import num_points, place, tessellate_patch
 
 LEVEL, ROOTS = 2, 4
 
@@ -47,6 +47,11 @@ def _exact(hm, cam, t, terrain):
 def _loss_fns(frame):
     """(values at lt, gradients at lt) of (soft maximum, mean), through one compiled function per frame."""
     return (lambda lt: dp.loss_and_grads(frame, lt)[0]), (lambda lt: dp.loss_and_grads(frame, lt)[1])
+
+
+def _sum_grad(frame, lt):
+    """d(soft maximum + mean + tail mean)/d log target: one VJP (a NaN or inf in any term shows in the sum)."""
+    return float(jax.jit(jax.grad(lambda x: sum(dp.frame_loss(frame, x))))(lt))
 
 
 def _levels_sample(rng, n):
@@ -81,8 +86,12 @@ def test_model_points_equal_the_warp_and_python_tessellators():
         uv_p, _ = tessellate_patch(outer[p], inner[p], "fractional_odd")
         assert np.array_equal(uv_p, ref["uv"][a:b])
         assert np.abs(uv[a:b] - uv_p).max() <= 2.0**-16 + 1e-6
-    assert np.array_equal(dp.place_fixed(np.array([5 * 65536 + 123]), np.array([2])),
-                          dp.place_fixed(np.array([5 * 65536 + 123]), np.array([2])))
+    # the vectorised fixed-point placement is the reference's PlacePointIn1D
+    fxs = np.concatenate([[65536, 65537, 3 * 65536, 63 * 65536], rng.integers(65536, 63 * 65536, 60)])
+    for fx in fxs:
+        n = num_points(int(fx), True)
+        got = dp.place_fixed(np.full(n, fx), np.arange(n))
+        assert got.tolist() == [place(int(fx), True, q) for q in range(n)]
 
 
 def test_points_move_continuously_and_are_born_on_existing_ones():
@@ -152,16 +161,20 @@ def test_gradient_matches_the_exact_pipeline_where_topology_holds(hm, cam, terra
     def key(frame):
         return tuple(getattr(frame.coords, k).tobytes() for k in ("slot", "fl", "a", "b"))
 
+    # measured here: 0.7% .. 4.6% apart at such targets in [2.5, 3.7] (the exact mean also moves by
+    # re-rasterisation and 2^-16 rounding of the points: ~1e-4 px against a change of ~1e-3 px over the step)
+    found = []
     for t in np.geomspace(2.5, 4.0, 40):
         fr = dp.prepare(hm, cam, float(t), level=LEVEL, terrain=terrain)
         if all(key(dp.prepare(hm, cam, float(t * math.exp(s * h)), level=LEVEL, terrain=terrain)) == key(fr)
                for s in (-1, 1)):
-            break
-    else:
-        pytest.fail("no target in [2.5, 4] keeps the topology over the step")
-    grad = float(dp.loss_and_grads(fr, fr.log_target0)[1][1])
-    fd = (exact_mean(t * math.exp(h)) - exact_mean(t * math.exp(-h))) / (2 * h)
-    assert grad > 0 and abs(grad - fd) / abs(fd) < 5e-2, (t, grad, fd)
+            grad = float(dp.loss_and_grads(fr, fr.log_target0)[1][1])
+            fd = (exact_mean(t * math.exp(h)) - exact_mean(t * math.exp(-h))) / (2 * h)
+            found.append((float(t), grad, fd))
+            assert grad > 0 and abs(grad - fd) / abs(fd) < 1e-1, (t, grad, fd)
+            if len(found) == 2:
+                break
+    assert len(found) == 2, f"too few targets in [2.5, 4] keep the topology over the step: {found}"
 
 
 def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam, terrain):
@@ -180,10 +193,8 @@ def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam, terrain):
     for name, (c, t) in cases.items():
         fr = dp.prepare(hm, c, t, level=1 if t < 0.01 else LEVEL, terrain=terrain)
         lv = np.asarray(dp.levels(fr, fr.log_target0))
-        _, g = _loss_fns(fr)
-        g = np.asarray(g(fr.log_target0))
-        gr = g[0]
-        assert np.all(np.isfinite(g)), name
+        gr = _sum_grad(fr, fr.log_target0)
+        assert math.isfinite(gr), name
         if name == "all factors at 1":
             assert np.all(lv == 1.0) and float(gr) == 0.0
         if name == "all factors at 64":
@@ -195,9 +206,9 @@ def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam, terrain):
 def test_deterministic_and_bad_input(hm, cam, terrain):
     def run():
         fr = dp.prepare(hm, cam, 3.0, level=LEVEL, terrain=terrain)
-        v0, g0 = dp.loss_and_grads(fr, fr.log_target0)
-        v1, g1 = dp.loss_and_grads(fr, fr.log_target0 + 0.05)
-        return hashlib.sha256(b"".join(a.tobytes() for a in (v0, g0, v1, g1))).hexdigest()
+        err, _ = jax.jit(lambda lt: dp.pixel_error(fr, lt))(fr.log_target0 + 0.05)
+        g = np.float64(_sum_grad(fr, fr.log_target0))
+        return hashlib.sha256(np.asarray(err).tobytes() + g.tobytes()).hexdigest()
 
     assert run() == run()
     for bad in (0.0, -1.0, float("nan"), float("inf"), "3"):
