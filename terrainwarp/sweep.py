@@ -436,13 +436,21 @@ class Runner:
                     key = f"tw-{desc}-{j.id}-{fingerprint[:12]}-{time.time_ns()}"
                     futures[self.client.submit(_attempt, fn, len(shared), *shared, *j.args, key=key,
                                                pure=False)] = j
-                for batch in as_completed(futures, loop=self.client.loop).batches():
-                    keys = [f.key for f in batch]
+                finished: list = []
+                last = time.monotonic()
+
+                def flush() -> None:
+                    # one scheduler round trip for the retry counts of everything finished since the last
+                    # flush (at most every 0.5 s); the futures are held until then so the scheduler still
+                    # knows their tasks
+                    nonlocal last
+                    if not finished:
+                        return
                     try:
-                        susp = self.client.run_on_scheduler(_suspicious, keys=keys)
+                        susp = self.client.run_on_scheduler(_suspicious, keys=[f.key for f in finished])
                     except Exception:  # noqa: BLE001 - the count is informative; never fail the sweep over it
                         susp = {}
-                    for f in batch:
+                    for f in finished:
                         j = futures.pop(f)
                         try:
                             status, value = f.result()
@@ -451,6 +459,14 @@ class Runner:
                             status, value = "error", f"{type(e).__name__}: {msg}"
                         record(j, status, value, susp.get(f.key, 0))
                         f.release()
+                    finished.clear()
+                    last = time.monotonic()
+
+                for f in as_completed(futures, loop=self.client.loop):
+                    finished.append(f)
+                    if time.monotonic() - last >= 0.5:
+                        flush()
+                flush()
         except BaseException:
             for f in futures:
                 f.cancel()
