@@ -82,7 +82,10 @@ def _lod_config(setting: Setting, base: LodConfig) -> LodConfig:
 
 @dataclass(frozen=True)
 class _Context:
-    """What every job of a report sweep shares; sent to each worker once."""
+    """What every job of a report sweep shares; sent to each worker once.
+
+    ``token`` identifies the scene without its camera: a worker keeps its Terrain and peer meshes for the
+    next sweep of the same scene (e.g. other cameras)."""
 
     token: str
     scene: Scene
@@ -244,15 +247,23 @@ COLUMNS = ("policy", "param", "setting", "frame", "select_ms", "mesh_ms", "raste
            "cracks", "mismatched", "silhouette", "psnr_db", "ssim", "prepare_ms")
 
 
-def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str) -> str:
+def _scene_token(scene: Scene, device: str) -> str:
+    """Identifies what a worker keeps between sweeps (Terrain, peer meshes): the scene but its camera."""
     import hashlib
 
     h = hashlib.sha256()
     hm = scene.heightmap
     h.update(np.ascontiguousarray(hm.heights).tobytes())
     h.update(repr((hm.shape, hm.dx, hm.dz, scene.lod, scene.light_azimuth_deg, scene.light_elevation_deg,
-                   scene.cull_back, scene.shading, list(cameras), images, device)).encode())
+                   scene.cull_back, scene.shading, device)).encode())
     return h.hexdigest()[:32]
+
+
+def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str) -> str:
+    """Identifies a sweep's inputs (the partial file of another sweep is not resumed)."""
+    import hashlib
+
+    return hashlib.sha256(repr((_scene_token(scene, device), list(cameras), images)).encode()).hexdigest()[:32]
 
 
 def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
@@ -285,7 +296,7 @@ def _run_sweep(runner, scene, cameras, settings, progress, images, device, out):
     cameras = list(cameras)
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device)
-    ctx = _Context(fp, scene, tuple(cameras), images, device,
+    ctx = _Context(_scene_token(scene, device), scene, tuple(cameras), images, device,
                    any(s.policy in ("sse", "distance", "continuous") for s in settings))
     ctx_h = runner.share(ctx)
     need = sorted({j.args[1] for j in pending_jobs(jobs, out, fp)})  # references only for frames still to do
