@@ -144,6 +144,16 @@ def _reference_job(ctx: _Context, k: int) -> tuple:
     return f.triangle_id, f.depth, f.image
 
 
+def _peer_job(ctx: _Context, setting: Setting) -> tuple:
+    """A Martini/Delatin mesh of the heightmap (view-independent: built once per sweep, then shared) and its
+    measured vertical error."""
+    from .peers import delatin_mesh, martini_mesh, mesh_vertical_error
+
+    hm = ctx.scene.heightmap
+    peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
+    return peer, mesh_vertical_error(hm, peer)
+
+
 def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
     """One row: ``setting`` rendered from camera k and measured against that camera's reference."""
     from .kernels.displacement import sample_normal_map
@@ -165,9 +175,12 @@ def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
     if setting.policy in ("martini", "delatin", "polytree", "bintree"):
         select_ms, built_ms, peer_err = 0.0, 0.0, math.nan
         if setting.policy in ("martini", "delatin"):
-            if setting not in st_["peers"]:
-                peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
-                st_["peers"][setting] = (peer, mesh_vertical_error(hm, peer))
+            if setting not in st_["peers"]:  # built once for the sweep by _peer_job, else here
+                built = refs.get(("peer", setting))
+                if built is None or isinstance(built, BaseException):
+                    peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
+                    built = (peer, mesh_vertical_error(hm, peer))
+                st_["peers"][setting] = built
             peer, peer_err = st_["peers"][setting]
             built_ms = peer.mesh_ms
             t0 = time.perf_counter()
@@ -299,9 +312,12 @@ def _run_sweep(runner, scene, cameras, settings, progress, images, device, out):
     ctx = _Context(_scene_token(scene, device), scene, tuple(cameras), images, device,
                    any(s.policy in ("sse", "distance", "continuous") for s in settings))
     ctx_h = runner.share(ctx)
-    need = sorted({j.args[1] for j in pending_jobs(jobs, out, fp)})  # references only for frames still to do
+    todo = pending_jobs(jobs, out, fp)
+    need = sorted({j.args[1] for j in todo})  # references only for frames still to do
     refs = dict(zip(need, runner.map(_reference_job, need, ctx_h)))
-    refs_h = runner.share(refs)
+    peers = list(dict.fromkeys(j.args[0] for j in todo if j.args[0].policy in ("martini", "delatin")))
+    refs.update(zip((("peer", s) for s in peers), runner.map(_peer_job, peers, ctx_h)))
+    refs_h = runner.share(refs)  # reference frames by camera, peer meshes by ("peer", setting)
     return runner.run(jobs, _frame_job, ctx_h, refs_h, out=out, fingerprint=fp, columns=COLUMNS,
                       to_csv=rows_to_csv, progress=progress, desc="report")
 
