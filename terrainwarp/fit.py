@@ -380,8 +380,11 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         else:
             offset = math.log(max(e.worst_p99, 1e-9)) - float(log_model(jnp.asarray(math.log(v))))
             nv = solve_relaxed(offset)
-            if abs(math.log(nv / v)) < 1e-3:  # the relaxed model is flat here (the error floor): step out
-                nv = v * (math.e if (e.worst_p99 <= budget_px) == _COARSER_UP[policy] else 1 / math.e)
+            # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
+            # finer after an infeasible one). The exact error is flat over wide ranges (whole levels,
+            # the triangulation floor), where a calibrated step alone can stall.
+            coarser = (e.worst_p99 <= budget_px) == _COARSER_UP[policy]
+            nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
         v = float(np.clip(nv, lo, hi))
         history.append({"stage": "correct", "next_value": v})
     if good is None:  # never met: is the budget reachable at all?
