@@ -21,7 +21,8 @@ Faults:
 - a worker that dies mid-sweep has its jobs rescheduled by the Dask scheduler (up to
   ``distributed.scheduler.allowed-failures`` times); the ``retries`` column says how many times each job
   was rescheduled (the scheduler's count of workers that died holding it) and the summary counts them;
-- with ``out=PATH`` every row is appended, as it arrives, to ``PATH.partial`` (CSV, each cell JSON-encoded
+- with ``out=PATH`` every row is appended, as it arrives (rows are collected at most 0.5 s, the time
+  between two asks to the scheduler for retry counts), to ``PATH.partial`` (CSV, each cell JSON-encoded
   so floats and strings read back exactly); at the end the sorted table is written to a temporary name and
   renamed to ``PATH`` and the partial file removed. A sweep interrupted before that resumes from the
   partial file: jobs whose id is there are not run again (the file's first line holds the sweep's
