@@ -51,8 +51,9 @@ def main() -> None:
         t0 = time.perf_counter()
         sc = Scene(hm, camera=Camera.default_for(hm, 1920, 1080), lod=lod)
         cams = sc.camera_path(a.frames)
-        # one worker process: per-frame timings are not shared with a second process on the 2 cores
-        rows = sweep(sc, cams, settings_for(hm, a.quick, hm.shape[0] > 2000), images=False, workers=1)
+        # in this process (workers=0): frames timed inside Dask workers run 1.5-2x slower (bench_sweep.py),
+        # and one process keeps the timings from sharing the 2 cores
+        rows = sweep(sc, cams, settings_for(hm, a.quick, hm.shape[0] > 2000), images=False, workers=0)
         write_report(sc, cams, rows, OUT / name)
         summ = summarise(rows)
         tab = budget_table(summ, BUDGETS)
