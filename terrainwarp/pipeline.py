@@ -269,7 +269,11 @@ def render(scene: Scene, terrain=None, state=None, reference: Frame | None = Non
             frags = rasterize(mesh.positions, mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
                               cam.width, cam.height, cull_back=scene.cull_back, device=device)
             r.counters.update(frags.stats)
-        frame.triangle_id, frame.barycentrics = frags.triangle_id, frags.barycentrics
+            # the perspective-correct barycentric image (computed on first access) is part of the visibility
+            # pass only when a later stage interpolates with it: depth alone leaves it out
+            if "shade" in stages or "error" in stages:
+                frame.barycentrics = frags.barycentrics
+        frame.triangle_id = frags.triangle_id
         frame.depth = frags.depth
     rgb = None
     if "shade" in stages:
