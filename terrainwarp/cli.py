@@ -140,7 +140,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
     sc = _scene(args)
     cams = sc.camera_path(args.frames)
-    res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points)
+    res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points,
+                  grid_workers=args.workers)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
@@ -261,6 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--policy", choices=["sse", "distance", "continuous"], default="sse")
     ft.add_argument("--frames", type=int, default=None)
     ft.add_argument("--grid-points", type=int, default=0, help="also run a grid search baseline with N points")
+    ft.add_argument("--workers", type=int, default=0,
+                    help="grid search on the sweep runner with N worker processes (0: in this process)")
     ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[],
                     help="also fit these budgets for the cost-against-budget curve")
     ft.add_argument("--out", default="out/fit")

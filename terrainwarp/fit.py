@@ -153,11 +153,31 @@ def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str,
 
 
 def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float, refs: list,
-                points: int = 24, device: str = "cpu") -> dict:
-    """Evaluate ``points`` log-spaced values on the exact pipeline; the cheapest that meets the budget."""
+                points: int = 24, device: str = "cpu", workers: int | None = 0, scheduler: str | None = None) -> dict:
+    """Evaluate ``points`` log-spaced values on the exact pipeline; the cheapest that meets the budget.
+
+    With the default ``workers=0`` the evaluations run here, on the caller's ``terrain`` and ``refs``.
+    Otherwise they are jobs of the report's sweep runner (:mod:`terrainwarp.sweep`, dask.distributed):
+    ``workers`` local worker processes (None: one per core) or an existing ``scheduler``; the workers
+    prepare their own terrain and references, and the table is the same.
+    """
     lo, hi = _RANGE[policy]
     t0 = time.perf_counter()
-    evs = [evaluate(scene, terrain, cameras, policy, v, refs, device) for v in np.geomspace(lo, hi, points)]
+    values = [float(v) for v in np.geomspace(lo, hi, points)]
+    if workers == 0 and scheduler is None:
+        evs = [evaluate(scene, terrain, cameras, policy, v, refs, device) for v in values]
+    else:
+        from .report import Setting, sweep
+
+        rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
+                     device=device, scheduler=scheduler, workers=workers)
+        evs = []
+        for v in values:
+            rs = sorted((r for r in rows if r["policy"] == policy and r["param"] == v), key=lambda r: r["frame"])
+            if any(r.get("error") for r in rs):
+                raise RuntimeError(f"grid search: evaluating {_name(policy)} = {v:g} failed: {rs[0]['error']}")
+            evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
+                                  [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs]))
     ok = [e for e in evs if e.worst_p99 <= budget_px]
     best = min(ok, key=lambda e: e.cost) if ok else None
     return {"points": points, "evaluations": points * len(cameras), "wall_s": time.perf_counter() - t0,
@@ -238,6 +258,7 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 # ------------------------------------------------------------------------------------------------
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
+            grid_workers: int | None = 0,
             seed: int = 0, progress: bool = False, gradient: str = "relaxed", device: str = "cpu") -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
     within ``budget_px`` at the lowest cost (triangles).
@@ -250,6 +271,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         max_validations: exact-pipeline validations (each runs every camera) for the correction.
         rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
         grid_points: if > 0, also run the grid-search baseline with that many points.
+        grid_workers: the grid search's workers (0: in this process; see :func:`grid_search`).
         seed: reserved for stochastic variants; the fit is deterministic.
         gradient: the slope of the correction steps before the budget is bracketed: ``"relaxed"`` (the
             calibrated relaxed model) or, for the continuous policy, ``"pixels"`` (Newton steps in log space
@@ -401,7 +423,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px with {_name(policy)} = "
                    f"{good.value:.4g}, {good.cost:.0f} triangles per frame")
     if grid_points:
-        res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device)
+        res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
+                               workers=grid_workers)
     _ = seed
     return res
 

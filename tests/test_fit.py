@@ -64,3 +64,15 @@ def test_impossible_and_bad_budgets(scene):
             fit_lod(sc, bad, cameras=cams)
     with pytest.raises(ValueError, match="policy"):
         fit_lod(sc, 1.0, policy="magic", cameras=cams)
+
+
+def test_grid_search_on_the_sweep_runner_matches_in_process(scene):
+    from terrainwarp.fit import grid_search
+    from terrainwarp.pipeline import render
+
+    sc, cams = scene
+    terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
+    refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
+    here = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5)
+    dask = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5, workers=1)
+    assert here["table"] == dask["table"] and here["value"] == dask["value"]
