@@ -258,6 +258,20 @@ def _edge_bias(dx: wp.int64, dy: wp.int64) -> wp.int64:
 
 
 @wp.func
+def _edge_misses_rect(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, x0: wp.int64, y0: wp.int64,
+                      x1: wp.int64, y1: wp.int64) -> wp.bool:
+    """Whether edge a->b's function (with its fill-rule bias) is negative at every pixel centre of the
+    rectangle: tested at the corner where the edge function is largest."""
+    ex = x0
+    ey = y0
+    if ay - by > wp.int64(0):
+        ex = x1
+    if bx - ax > wp.int64(0):
+        ey = y1
+    return (bx - ax) * (ey - ay) - (by - ay) * (ex - ax) + _edge_bias(bx - ax, by - ay) < wp.int64(0)
+
+
+@wp.func
 def _tri_rect(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
               r: wp.vec4i) -> wp.bool:
     """Whether the CCW triangle may cover a pixel centre of the pixel rectangle r = (x0, x1, y0, y1)."""
@@ -267,30 +281,11 @@ def _tri_rect(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int
     x1 = wp.int64(r[1]) * one + half
     y0 = wp.int64(r[2]) * one + half
     y1 = wp.int64(r[3]) * one + half
-    # each edge: the corner where the edge function is largest
-    ex = x0
-    ey = y0
-    if by - cy > wp.int64(0):
-        ex = x1
-    if cx - bx > wp.int64(0):
-        ey = y1
-    if (cx - bx) * (ey - by) - (cy - by) * (ex - bx) + _edge_bias(cx - bx, cy - by) < wp.int64(0):
+    if _edge_misses_rect(bx, by, cx, cy, x0, y0, x1, y1):
         return False
-    ex = x0
-    ey = y0
-    if cy - ay > wp.int64(0):
-        ex = x1
-    if ax - cx > wp.int64(0):
-        ey = y1
-    if (ax - cx) * (ey - cy) - (ay - cy) * (ex - cx) + _edge_bias(ax - cx, ay - cy) < wp.int64(0):
+    if _edge_misses_rect(cx, cy, ax, ay, x0, y0, x1, y1):
         return False
-    ex = x0
-    ey = y0
-    if ay - by > wp.int64(0):
-        ex = x1
-    if bx - ax > wp.int64(0):
-        ey = y1
-    if (bx - ax) * (ey - ay) - (by - ay) * (ex - ax) + _edge_bias(bx - ax, by - ay) < wp.int64(0):
+    if _edge_misses_rect(ax, ay, bx, by, x0, y0, x1, y1):
         return False
     return True
 
