@@ -44,7 +44,7 @@ import numpy as np
 
 from .camera import Camera
 from .lod import Terrain, node_metrics
-from .scene import LodConfig, Scene
+from .scene import Scene
 
 __all__ = ["LodParams", "FitResult", "fit_lod", "evaluate", "grid_search", "relaxed_model"]
 
@@ -122,25 +122,13 @@ class FitResult:
 # ------------------------------------------------------------------------------------------------
 # exact pipeline
 # ------------------------------------------------------------------------------------------------
-def _config(scene: Scene, policy: str, value: float) -> LodConfig:
-    d = dict(scene.lod.__dict__)
-    quad_spacing = "equal" if d["spacing"] == "fractional_odd" else d["spacing"]
-    if policy == "sse":
-        d.update(policy="sse", tolerance_px=value, spacing=quad_spacing)
-    elif policy == "distance":
-        d.update(policy="distance", k=value, spacing=quad_spacing)
-    else:
-        d.update(policy="continuous", target_px=value, spacing="fractional_odd")
-    return LodConfig(**d)
-
-
 def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list,
              device: str = "cpu") -> Evaluation:
     """Run the exact pipeline at one parameter value over all cameras (references given)."""
     from .pipeline import render
 
     ev = Evaluation(float(value), [], [], [], [])
-    cfg = _config(scene, policy, float(value))
+    cfg = scene.lod.with_policy(policy, value)
     for cam, ref in zip(cameras, refs):
         f = render(scene.with_(camera=cam, mesh="lod", lod=cfg, outputs=("error",)), terrain=terrain,
                    reference=ref, device=device)

@@ -29,7 +29,7 @@ import numpy as np
 
 from .camera import Camera
 from .heightmap import Heightmap
-from .scene import LodConfig, Scene
+from .scene import Scene
 
 __all__ = ["Setting", "default_settings", "sweep", "run_sweep", "summarise", "write_report", "TIMING_COLUMNS"]
 
@@ -66,18 +66,6 @@ def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]
     if m_full <= 22:  # 2^(M+1) tree nodes
         s += [Setting("bintree", float(m)) for m in ((m_full, m_full + 2) if not quick else (m_full,))]
     return s
-
-
-def _lod_config(setting: Setting, base: LodConfig) -> LodConfig:
-    d = dict(base.__dict__)
-    quad_spacing = "equal" if d["spacing"] == "fractional_odd" else d["spacing"]
-    if setting.policy == "sse":
-        d.update(policy="sse", tolerance_px=setting.param, spacing=quad_spacing)
-    elif setting.policy == "distance":
-        d.update(policy="distance", k=setting.param, spacing=quad_spacing)
-    else:
-        d.update(policy="continuous", target_px=setting.param, spacing="fractional_odd")
-    return LodConfig(**d)
 
 
 @dataclass(frozen=True)
@@ -131,8 +119,9 @@ def _warm_up(ctx: _Context) -> None:
     render(scene.with_(camera=cam, mesh="grid", outputs=outs), device=ctx.device)
     if _STATE["terrain"] is not None:
         for s in (Setting("sse", 2.0), Setting("continuous", 8.0)):
-            render(scene.with_(camera=cam, mesh="lod", lod=_lod_config(s, scene.lod), outputs=outs),
-                   terrain=_STATE["terrain"], device=ctx.device)
+            lod = scene.lod.with_policy(s.policy, s.param)
+            render(scene.with_(camera=cam, mesh="lod", lod=lod, outputs=outs), terrain=_STATE["terrain"],
+                   device=ctx.device)
 
 
 def _reference_job(ctx: _Context, k: int) -> tuple:
@@ -238,7 +227,8 @@ def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
         if setting.policy == "grid":
             f = render(scene.with_(camera=cam, mesh="grid", outputs=outs), reference=ref, device=device)
         else:
-            sc = scene.with_(camera=cam, mesh="lod", lod=_lod_config(setting, scene.lod), outputs=outs)
+            lod = scene.lod.with_policy(setting.policy, setting.param)
+            sc = scene.with_(camera=cam, mesh="lod", lod=lod, outputs=outs)
             f = render(sc, terrain=st_["terrain"], reference=ref, device=device)
         st = {s.name: s for s in f.report.stages}
         sel = st["select"].time_ms if "select" in st else 0.0

@@ -85,6 +85,23 @@ class LodConfig:
                                  f"crack-free only then), got {self.tess}")
         self.make_policy()  # validates the numbers
 
+    def with_policy(self, policy: str, value: float) -> LodConfig:
+        """This configuration with one policy at one parameter value (the sweeps' and the fit's unit):
+        ``"sse"`` sets ``tolerance_px``, ``"distance"`` sets ``k``, ``"continuous"`` sets ``target_px``.
+        Quadtree policies keep the spacing unless it is ``fractional_odd`` (which cannot stitch doubled
+        edges: then ``equal``); the continuous policy uses ``fractional_odd``."""
+        d = dict(self.__dict__)
+        quad_spacing = "equal" if d["spacing"] == "fractional_odd" else d["spacing"]
+        if policy == "sse":
+            d.update(policy="sse", tolerance_px=float(value), spacing=quad_spacing)
+        elif policy == "distance":
+            d.update(policy="distance", k=float(value), spacing=quad_spacing)
+        elif policy == "continuous":
+            d.update(policy="continuous", target_px=float(value), spacing="fractional_odd")
+        else:
+            raise ValueError(f"policy: expected one of {list(LOD_POLICIES)}, got {policy!r}")
+        return LodConfig(**d)
+
     def make_policy(self):
         from .lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, _check_policy
 

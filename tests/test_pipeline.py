@@ -176,3 +176,17 @@ def test_lod_frame_is_watertight_and_close_to_the_reference():
         assert f.error.p99_px < 1.0
         assert f.mesh.n_triangles < 2 * 343 * 402 / 2  # far fewer triangles than the grid
         assert "prepare" not in [s.name for s in f.report.stages]  # the caller's terrain was used
+
+
+def test_lod_config_with_policy():
+    from terrainwarp import LodConfig
+
+    base = LodConfig(roots=4, tess=8, spacing="fractional_even")
+    s = base.with_policy("sse", 2.5)
+    assert s.tolerance_px == 2.5 and s.spacing == "fractional_even"
+    assert base.with_policy("distance", 3).k == 3.0
+    c = base.with_policy("continuous", 6.0)
+    assert (c.policy, c.target_px, c.spacing) == ("continuous", 6.0, "fractional_odd")
+    assert c.with_policy("sse", 1.0).spacing == "equal"  # fractional_odd cannot stitch a quadtree
+    with pytest.raises(ValueError, match="policy"):
+        base.with_policy("bogus", 1.0)
