@@ -17,8 +17,8 @@ import numpy as np
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, rasterize
-from terrainwarp.bintree import Bintree, select_bintree
-from terrainwarp.visibility import precompute_visibility
+from terrainwarp.lod.bintree import Bintree, select_bintree
+from terrainwarp.lod.visibility import precompute_visibility
 
 W, H = 800, 600
 

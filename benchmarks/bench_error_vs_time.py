@@ -17,7 +17,15 @@ from pathlib import Path
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, LodConfig, Scene
-from terrainwarp.report import Setting, budget_table, default_settings, pareto, summarise, sweep, write_report
+from terrainwarp.experiments.pareto import (
+    Setting,
+    budget_table,
+    default_settings,
+    pareto,
+    summarise,
+    sweep,
+    write_report,
+)
 
 BUDGETS = (0.5, 1.0, 2.0, 4.0)
 OUT = Path(__file__).resolve().parents[1] / "out" / "bench_error_vs_time"

@@ -15,7 +15,7 @@ from _common import md_table, write_result
 from terrainwarp import Camera, Heightmap, LodConfig, Scene
 from terrainwarp.fit import fit_lod, grid_search
 from terrainwarp.lod import Terrain
-from terrainwarp.pipeline import render
+from terrainwarp.rendering.pipeline import render
 
 BUDGETS = (0.5, 1.0, 2.0, 4.0)
 

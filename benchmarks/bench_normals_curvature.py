@@ -31,7 +31,7 @@ from analytic_surfaces import (  # noqa: E402
 )
 
 from terrainwarp import Heightmap, compute_curvature, compute_normals  # noqa: E402
-from terrainwarp.analysis import surface_curvature  # noqa: E402
+from terrainwarp.surface.differential import surface_curvature  # noqa: E402
 
 NORMALS = ["sobel", "edge", "triangle", "quad"]
 CURVS = ["two_normal", "three_normal", "three_vertex", "edge_angle"]

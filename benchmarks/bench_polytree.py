@@ -15,8 +15,8 @@ import numpy as np
 from _common import best_of, md_table, write_result
 
 from terrainwarp import Camera, Heightmap, rasterize
-from terrainwarp.analysis import compute_curvature, max_curvature
-from terrainwarp.polytree import build_polytree, default_tolerances
+from terrainwarp.lod.polytree import build_polytree, default_tolerances
+from terrainwarp.surface.differential import compute_curvature, max_curvature
 
 PAPER_TIME_S = 55.0  # 100 tolerances of a rough 256x256 terrain, HP 9000/750 (section 3.4)
 PAPER_RATIO = 2.5  # all tolerances vs the zero-tolerance pass (section 2.3)
@@ -154,7 +154,7 @@ def uniform_grid(h: np.ndarray, n_tri: int) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def peer_at(kind: str, hm: Heightmap, n_tri: int):
-    from terrainwarp.peers import delatin_mesh, martini_mesh
+    from terrainwarp.lod.peers import delatin_mesh, martini_mesh
 
     f = martini_mesh if kind == "martini" else delatin_mesh
     lo, hi = 0.0, float(hm.height_range[1] - hm.height_range[0])
@@ -308,8 +308,8 @@ def pareto_section(frames: int, width: int, height: int, quick: bool) -> str:
     peers) and a continuous level from the camera distance (morphed per frame), measured with the report's
     metric against the same full-resolution reference, beside a few of the report's own settings."""
     from terrainwarp import Scene, render
-    from terrainwarp.metrics import frame_error
-    from terrainwarp.report import Setting, pareto, summarise, sweep
+    from terrainwarp.experiments.pareto import Setting, pareto, summarise, sweep
+    from terrainwarp.measure.error import frame_error
 
     hm = Heightmap.example()
     sc = Scene(hm, name="demo")
@@ -373,8 +373,8 @@ def pareto_section(frames: int, width: int, height: int, quick: bool) -> str:
                        r["cracks"], "yes" if r["setting"] in front else ""] for r in summ])
     return table + (
         f"\n\n`{hm.name}` ({hm.shape[0]}x{hm.shape[1]}), {len(cams)} cameras of the scene's path at "
-        f"{width}x{height}, measured with `terrainwarp.metrics.frame_error` against the full grid (the "
-        "report's metric; the sse/martini/delatin rows come from `terrainwarp.report.sweep`). Polytree "
+        f"{width}x{height}, measured with `terrainwarp.measure.error.frame_error` against the full grid (the "
+        "report's metric; the sse/martini/delatin rows come from `terrainwarp.experiments.pareto.sweep`). Polytree "
         "costs are per frame like the peers' (positions made camera-relative, plus the morph for the "
         f"continuous policy); building the multiresolution polytree ({pt.n_levels} tolerances) took "
         f"{build_ms:.0f} ms once, triangulating the fixed levels and preparing the morphs between them "

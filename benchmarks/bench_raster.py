@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
 import terrainwarp as tw  # noqa: E402
-from terrainwarp._io import write_text  # noqa: E402
+from terrainwarp.io.files import write_text  # noqa: E402
 from terrainwarp.kernels.displacement import grid_mesh  # noqa: E402
 from terrainwarp.kernels.raster import clip_coordinates, rasterize  # noqa: E402
 

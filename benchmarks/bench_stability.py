@@ -104,7 +104,7 @@ def scale(sizes: list[int], budget_s: float) -> list[dict]:
 
 
 def suite_table(full: bool) -> tuple[str, float]:
-    from terrainwarp.stability import FAIL, NOT_BUILT, PASS, RAISED, run_suite
+    from terrainwarp.experiments.stability import FAIL, NOT_BUILT, PASS, RAISED, run_suite
 
     t0 = time.perf_counter()
     rows = run_suite(129 if full else 33)
@@ -119,7 +119,7 @@ def suite_table(full: bool) -> tuple[str, float]:
             ("far_1e+05", "raster"), ("relief_1e+06", "normals"), ("spacing_0.001", "normals")}
     rem = md_table(["case", "stage", "float32 with remedy", "float32 without"],
                    [[r.case, r.stage, r.error, r.naive] for r in rows if (r.case, r.stage) in pick])
-    from terrainwarp.stability import EXPLANATIONS
+    from terrainwarp.experiments.stability import EXPLANATIONS
 
     fails = [f"- {r.case}/{r.stage}: {r.note}; why: "
              f"{next((v for k, v in EXPLANATIONS.items() if k in r.note), 'UNEXPLAINED')}" for r in rows

@@ -19,8 +19,8 @@ import time
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, Scene
-from terrainwarp.report import TIMING_COLUMNS, Setting, _Context, rows_to_csv, run_sweep
-from terrainwarp.sweep import Runner, _nbytes, close_local_clusters
+from terrainwarp.experiments.pareto import TIMING_COLUMNS, Setting, _Context, rows_to_csv, run_sweep
+from terrainwarp.experiments.runner import Runner, _nbytes, close_local_clusters
 
 
 def settings() -> list[Setting]:

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 
 import terrainwarp as tw
-from terrainwarp._io import write_image, write_json
-from terrainwarp.analysis import max_curvature, normal_map_image
-from terrainwarp.strokes import hatch_strokes, line_strokes
+from terrainwarp.io.files import write_image, write_json
+from terrainwarp.surface.differential import max_curvature, normal_map_image
+from terrainwarp.surface.strokes import hatch_strokes, line_strokes
 
 STYLE = {"3 norm": "three_normal", "2 norm": "two_normal", "Edge": "edge_angle", "3 Vert": "three_vertex"}
 # curtis2004 figure 3: curv style, curv dist, curv scale, has contours, min len, line width

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 
 import terrainwarp as tw
-from terrainwarp.report import default_settings, summarise, sweep, write_report
+from terrainwarp.experiments.pareto import default_settings, summarise, sweep, write_report
 
 
 def main(argv: list[str] | None = None) -> list[dict]:

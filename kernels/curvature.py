@@ -46,8 +46,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from terrainwarp.kernels.normals import METHODS as NORMAL_METHODS
-from terrainwarp.kernels.normals import _check_spacing, _device_heights, fetch, vertex_normals_device
+from .normals import METHODS as NORMAL_METHODS
+from .normals import _check_spacing, _device_heights, fetch, vertex_normals_device
 
 DIRECTIONS = ("x", "z", "diag_xz", "diag_x_negz")
 CURVATURE_METHODS = {"two_normal": 0, "three_normal": 1, "three_vertex": 2, "edge_angle": 3}

@@ -2,7 +2,7 @@
 
 This is measurement, not pipeline: it runs in float64 (Warp's ``wp.float64`` types) so that the
 error of the float32 pipeline is not hidden by the rounding of the measurement itself. The maths is
-:mod:`terrainwarp.metrics`'s (see there): P interpolated from the visible triangle with the pixel's
+:mod:`terrainwarp.measure.error`'s (see there): P interpolated from the visible triangle with the pixel's
 barycentrics, R the reference grid's height under P (two triangles per cell, the (i, j+1)-(i+1, j)
 diagonal), error = distance between the projections of P and R in pixels; beside it the estimate
 ``|P.y - R.y| * focal_px / |P|``.

@@ -32,7 +32,7 @@ tolerance); the launches are recorded once per quadtree and replayed with the ne
 length, so a late tolerance costs what is left to merge.
 
 Section 2.4 (``_tri_count_kernel`` / ``_tri_emit_kernel``) and section 2.5 (``_morph_target_kernel``,
-``_morph_positions_kernel``) follow; the host side is :mod:`terrainwarp.polytree`.
+``_morph_positions_kernel``) follow; the host side is :mod:`terrainwarp.lod.polytree`.
 """
 
 from __future__ import annotations

@@ -914,7 +914,7 @@ def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr
 def interpolate(attr: object, triangle_id: object, clip: object, triangles: object, *,
                 device: str = "cpu") -> np.ndarray:
     """Perspective-correct interpolation of vertex attributes at pixel centres (forward only; see
-    :func:`interpolate_warp` for the tape and ``terrainwarp.interpolate`` for JAX).
+    :func:`interpolate_warp` for the tape and ``terrainwarp.rendering.interpolate`` for JAX).
 
     Args:
         attr: (n, C) or (n,) float32 per-vertex attributes (position, normal, uv, level, ...).

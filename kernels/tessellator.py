@@ -2,8 +2,9 @@
 
 The rules (level clamping and rounding per spacing, culling, 16.16 fixed-point point placement,
 ring-by-ring stitching, winding) are those of the Direct3D 11 reference tessellator, stated with
-their specification sections in :mod:`terrainwarp.tessellate` (the pure-Python reference these kernels
-are tested against, itself tested against Mesa's llvmpipe). This file ports them to ``@wp.func``.
+their specification sections in :mod:`terrainwarp.rendering.reference_tessellator` (the pure-Python
+reference these kernels are tested against, itself tested against Mesa's llvmpipe).
+This file ports them to ``@wp.func``.
 
 One frame, one launch per stage, no loop over patches on the host:
 
@@ -39,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from terrainwarp.kernels.sampling import sample_height
+from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES"]
 
@@ -53,7 +54,7 @@ vec6f = wp.types.vector(length=6, dtype=wp.float32)
 vec4l = wp.types.vector(length=4, dtype=wp.int64)
 
 # ------------------------------------------------------------------------------------------------
-# levels (rules 2-6 of terrainwarp.tessellate)
+# levels (rules 2-6 of terrainwarp.rendering.reference_tessellator)
 # ------------------------------------------------------------------------------------------------
 
 

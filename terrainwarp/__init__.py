@@ -7,7 +7,7 @@ Public API::
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
     rasterize_clip, clip_coordinates, build_polytree, Polytree
 
-Differentiable resolve for JAX (imports JAX): ``terrainwarp.interpolate.interpolate``.
+Differentiable resolve for JAX (imports JAX): ``terrainwarp.rendering.interpolate.interpolate``.
 """
 
 from __future__ import annotations
@@ -33,21 +33,21 @@ if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
     except OSError:  # no file descriptors to juggle (unusual embedding): let Warp print
         _wp.init()
 
-from .analysis import compute_curvature, compute_normals  # noqa: E402
-from .bintree import Bintree, select_bintree  # noqa: E402
 from .camera import Camera, flyover, orbit  # noqa: E402
-from .fit import FitResult, fit_lod  # noqa: E402
+from .fit.lod_fit import FitResult, fit_lod  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
 from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
 from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
-from .lod import LodState, Terrain, select  # noqa: E402
+from .lod.bintree import Bintree, select_bintree  # noqa: E402
+from .lod.polytree import Polytree, build_polytree  # noqa: E402
+from .lod.quadtree import LodState, Terrain, select  # noqa: E402
+from .lod.visibility import precompute_visibility  # noqa: E402
 from .mesh import Mesh  # noqa: E402
-from .pipeline import Frame, Report, render  # noqa: E402
-from .polytree import Polytree, build_polytree  # noqa: E402
+from .rendering.pipeline import Frame, Report, render  # noqa: E402
+from .rendering.reference_tessellator import tessellate_patch  # noqa: E402
+from .rendering.watertight import WatertightReport, check_watertight  # noqa: E402
 from .scene import LodConfig, Scene  # noqa: E402
-from .tessellate import tessellate_patch  # noqa: E402
-from .visibility import precompute_visibility  # noqa: E402
-from .watertight import WatertightReport, check_watertight  # noqa: E402
+from .surface.differential import compute_curvature, compute_normals  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["fit_lod", "FitResult", "Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize",

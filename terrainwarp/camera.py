@@ -26,7 +26,17 @@ import numpy as np
 if TYPE_CHECKING:
     from .heightmap import Heightmap
 
-__all__ = ["Camera", "orbit", "flyover"]
+__all__ = ["Camera", "orbit", "flyover", "relative_origin"]
+
+
+def relative_origin(origin_xz, eye) -> tuple[float, float, float]:
+    """Where a grid whose sample (0, 0) sits at world ``origin_xz`` = (x, z) lies seen from ``eye``:
+    ``(x - eye_x, eye_y, z - eye_z)``, subtracted in float64 on the host.
+
+    This is the one place the camera-relative rule lives (the GPU's remedy for large world coordinates):
+    kernels add float32 offsets to it and subtract the returned ``eye_y`` from heights, so vertices near the
+    camera keep their precision wherever the terrain sits in the world."""
+    return (float(origin_xz[0]) - float(eye[0]), float(eye[1]), float(origin_xz[1]) - float(eye[2]))
 
 
 def _vec3(name: str, v: object) -> tuple[float, float, float]:

@@ -42,7 +42,7 @@ def _scene(args: argparse.Namespace):
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from .pipeline import render
+    from .rendering.pipeline import render
 
     sc = _scene(args)
     if "report" not in sc.outputs:
@@ -75,7 +75,7 @@ def _nonnegative_int(s: str) -> int:
 
 
 def _lod_policy(args: argparse.Namespace):
-    from .lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy
+    from .lod.quadtree import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy
 
     if args.policy == "sse":
         return ScreenErrorPolicy(args.tolerance_px, hysteresis=args.hysteresis)
@@ -88,8 +88,8 @@ def _cmd_lod(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from .lod import Terrain, select
-    from .plots import plot_patches
+    from .experiments.plots import plot_patches
+    from .lod.quadtree import Terrain, select
 
     sc = _scene(args)
     terrain = Terrain.prepare(sc.heightmap, roots=args.roots, tess=args.tess)
@@ -105,7 +105,7 @@ def _cmd_lod(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from .report import default_settings, summarise, sweep, write_report
+    from .experiments.pareto import default_settings, summarise, sweep, write_report
 
     sc = _scene(args)
     cams = sc.camera_path(args.frames)
@@ -135,8 +135,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def _cmd_fit(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ._io import write_json, write_text
-    from .fit import fit_lod, plot_fit
+    from .fit.lod_fit import fit_lod, plot_fit
+    from .io.files import write_json, write_text
 
     sc = _scene(args)
     cams = sc.camera_path(args.frames)
@@ -172,7 +172,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
-    from .stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
+    from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
 
     n = 129 if args.full else 33
     cases = [c for c in args.cases.split(",") if c] if args.cases else None
@@ -194,8 +194,8 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from ._io import write_json
-    from .tessellate import tessellation_json, write_tessellation_picture
+    from .io.files import write_json
+    from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
 
     out = Path(args.out)
     doc = tessellation_json(args.outer, args.inner, args.spacing)
@@ -253,7 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("stability", help="run the extreme-case stability suite through every stage: stability.md")
     st.add_argument("--out", required=True, help="output folder for stability.md")
     st.add_argument("--full", action="store_true", help="129 x 129 grids instead of 33 x 33")
-    st.add_argument("--cases", default=None, help="comma-separated subset of terrainwarp.scenes.extreme.CASES")
+    st.add_argument("--cases", default=None, help="comma-separated subset of terrainwarp.experiments.extreme.CASES")
     st.add_argument("--no-progress", action="store_true")
     st.set_defaults(func=_cmd_stability)
     ft = sub.add_parser("fit", help="fit LOD thresholds to a screen-space error budget (fit.json, fit.png)")

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from ._io import atomic_path, write_image
+from .io.files import atomic_path, write_image
 
 __all__ = ["Heightmap", "metres_per_degree"]
 
@@ -154,7 +154,7 @@ class Heightmap:
         metres. Multi-channel images use ``channel``. Spacing ``dx`` defaults to 1 m, ``dz`` to ``dx``.
 
         A georeferenced TIFF (GeoTIFF) and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...; see
-        :data:`terrainwarp.geotiff.GDAL_EXTS`) go through :func:`terrainwarp.geotiff.read_geotiff`: metre
+        :data:`terrainwarp.io.geotiff.GDAL_EXTS`) go through :func:`terrainwarp.io.geotiff.read_geotiff`: metre
         spacing, heights and orientation come from the georeferencing (``dx``/``dz`` override the spacing),
         band ``channel + 1`` is read, no-data cells become NaN (whatever ``allow_nan`` says), and
         ``raster_options`` (``window``, ``bounds``, ``decimate``, ``resampling``) are passed on. What was
@@ -168,7 +168,7 @@ class Heightmap:
         if p.stat().st_size == 0:
             raise ValueError(f"path: file is empty: {p}")
         ext = p.suffix.lower()
-        from . import geotiff
+        from .io import geotiff
 
         if geotiff.is_gdal_raster(p):
             if max_height is not None:
@@ -327,13 +327,13 @@ class Heightmap:
         suggests a float format). Written to a temporary name, then renamed.
 
         A heightmap read from a GeoTIFF / GDAL raster saves ``.tif``/``.tiff`` as a GeoTIFF with its CRS,
-        transform, nodata, scale/offset and source dtype (see :func:`terrainwarp.geotiff.write_geotiff`).
+        transform, nodata, scale/offset and source dtype (see :func:`terrainwarp.io.geotiff.write_geotiff`).
         """
         p = Path(path)
         ext = p.suffix.lower()
         h = self.heights
         if ext in (".tif", ".tiff"):
-            from . import geotiff
+            from .io import geotiff
 
             if geotiff.is_georeferenced(self.meta):
                 return geotiff.write_geotiff(self, p)

@@ -103,7 +103,7 @@ class LodConfig:
         return LodConfig(**d)
 
     def make_policy(self):
-        from .lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, _check_policy
+        from .lod.quadtree import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, _check_policy
 
         if self.policy == "sse":
             p = ScreenErrorPolicy(float(self.tolerance_px), hysteresis=float(self.hysteresis))

@@ -38,7 +38,7 @@ def compute() -> dict[str, str]:
     from terrainwarp.kernels.displacement import grid_mesh
     from terrainwarp.kernels.noise import fbm
     from terrainwarp.kernels.normals import sobel_normals
-    from terrainwarp.tessellate import tessellate_patch
+    from terrainwarp.rendering.reference_tessellator import tessellate_patch
 
     hm = tw.Heightmap.example("jacksboro")
     cam = tw.Camera.default_for(hm, 96, 72)

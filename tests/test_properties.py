@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import terrainwarp as tw
-from terrainwarp.stability import _unit_square_border, watertight_report
-from terrainwarp.tessellate import SPACINGS, tessellate_patch
+from terrainwarp.experiments.stability import _unit_square_border, watertight_report
+from terrainwarp.rendering.reference_tessellator import SPACINGS, tessellate_patch
 
 SETTINGS = settings(max_examples=15, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

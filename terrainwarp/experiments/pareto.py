@@ -1,0 +1,481 @@
+"""Error against run time: sweep LOD settings and peers over a camera path, measure every frame against
+the full-resolution reference, and draw the Pareto front.
+
+A sweep is a list of settings (policy, parameter) crossed with the scene's cameras. Every frame is
+measured by :mod:`terrainwarp.measure.error` against the full-resolution grid rendered once per camera.
+Policies: ``grid`` (the full-resolution mesh), ``sse`` (screen-space-error tolerance, px), ``distance``
+(k node sizes), ``continuous`` (target pixels per edge, fractional_odd), the peers ``martini`` and
+``delatin`` (max error in metres; their view-independent meshing time is reported apart from render
+time, and their measured vertical error beside the setting), and the other mesh families of the source
+papers: ``polytree`` (taylor-barrett bottom-up merging; param = tolerance level of 64; built once) and
+``bintree`` (mrbsp right-triangle bisection with the apparent-size LOD rule, hole fixing and forced
+splits; param = tree depth M; selected per frame).
+
+Frame cost: for LOD policies ``select + mesh + raster`` (the per-frame work); for the grid and the
+peers ``mesh + raster`` (their meshes are static, only made camera-relative per frame). The error and
+reference stages are measurement, not cost.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..heightmap import Heightmap
+from ..scene import Scene
+
+__all__ = ["Setting", "default_settings", "sweep", "run_sweep", "summarise", "write_report", "TIMING_COLUMNS"]
+
+_BUILT = ("martini", "delatin", "polytree", "bintree")  # meshes built once, apart from frames
+TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
+
+
+@dataclass(frozen=True)
+class Setting:
+    policy: str
+    param: float
+
+    @property
+    def label(self) -> str:
+        return "grid" if self.policy == "grid" else f"{self.policy}={self.param:g}"
+
+
+def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]:
+    """A range of each policy's parameter, from fine to coarse."""
+    lo, hi = heightmap.height_range
+    relief = max(hi - lo, 1e-6)
+    s = [Setting("grid", 0.0)]
+    sse = (0.5, 1.0, 2.0, 4.0, 8.0) if not quick else (1.0, 4.0)
+    dist = (8.0, 4.0, 2.0, 1.0) if not quick else (4.0, 1.0)
+    cont = (2.0, 4.0, 8.0, 16.0) if not quick else (4.0, 16.0)
+    peer = tuple(relief * f for f in ((0.0005, 0.002, 0.008, 0.03) if not quick else (0.002, 0.03)))
+    s += [Setting("sse", v) for v in sse] + [Setting("distance", v) for v in dist]
+    s += [Setting("continuous", v) for v in cont]
+    s += [Setting("martini", round(v, 4)) for v in peer] + [Setting("delatin", round(v, 4)) for v in peer]
+    rows, cols = heightmap.shape
+    if rows * cols <= 2_000_000:  # the polytree keeps ~32 bytes per cell per quadtree level
+        s += [Setting("polytree", float(t)) for t in ((2, 4, 8, 12) if not quick else (4, 12))]
+    m_full = 2 * max(1, math.ceil(math.log2(max(rows, cols, 2) - 1))) + 1
+    if m_full <= 22:  # 2^(M+1) tree nodes
+        s += [Setting("bintree", float(m)) for m in ((m_full, m_full + 2) if not quick else (m_full,))]
+    return s
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What every job of a report sweep shares; sent to each worker once.
+
+    ``token`` identifies the scene without its camera: a worker keeps its Terrain and peer meshes for the
+    next sweep of the same scene (e.g. other cameras)."""
+
+    token: str
+    scene: Scene
+    cameras: tuple
+    images: bool
+    device: str
+    need_lod: bool
+
+
+_STATE: dict = {}  # per worker process: the context's Terrain, peer meshes and normal map, made once
+
+
+def _state(ctx: _Context) -> dict:
+    if _STATE.get("token") != ctx.token:
+        _STATE.clear()
+        # the first copy of the scene this process received: a later copy (same token, same content) is
+        # another object, and a Terrain belongs to the heightmap object it was prepared from
+        _STATE.update(token=ctx.token, scene=ctx.scene, terrain=None, prepare_ms=0.0, peers={}, nmap=None)
+    if ctx.need_lod and _STATE["terrain"] is None:
+        from ..lod.quadtree import Terrain
+
+        t0 = time.perf_counter()
+        hm, lod = _STATE["scene"].heightmap, ctx.scene.lod
+        _STATE["terrain"] = Terrain.prepare(hm, roots=lod.roots, tess=lod.tess, device=ctx.device)
+        _STATE["prepare_ms"] = (time.perf_counter() - t0) * 1e3
+    if not _STATE.get("warm"):
+        _STATE["warm"] = True
+        try:
+            _warm_up(ctx)
+        except Exception:  # noqa: BLE001 - only an optimisation: a real problem shows in the job itself
+            pass
+    return _STATE
+
+
+def _warm_up(ctx: _Context) -> None:
+    """Load this process's Warp modules (from the kernel cache) with tiny frames, so that loading them is not
+    timed in the first frame each worker renders."""
+    from ..rendering.pipeline import render
+
+    scene = _STATE["scene"]
+    cam = ctx.cameras[0].with_(width=16, height=12)
+    outs = ("error", "image") if ctx.images else ("error",)
+    render(scene.with_(camera=cam, mesh="grid", outputs=outs), device=ctx.device)
+    if _STATE["terrain"] is not None:
+        for s in (Setting("sse", 2.0), Setting("continuous", 8.0)):
+            lod = scene.lod.with_policy(s.policy, s.param)
+            render(scene.with_(camera=cam, mesh="lod", lod=lod, outputs=outs), terrain=_STATE["terrain"],
+                   device=ctx.device)
+
+
+def _reference_job(ctx: _Context, k: int) -> tuple:
+    """Camera k's full-resolution grid frame: (triangle_id, depth, image or None)."""
+    from ..rendering.pipeline import render
+
+    f = render(ctx.scene.with_(camera=ctx.cameras[k], mesh="grid", outputs=("depth", "image") if ctx.images else
+                               ("depth",)), device=ctx.device)
+    return f.triangle_id, f.depth, f.image
+
+
+def _peer_job(ctx: _Context, setting: Setting) -> tuple:
+    """A Martini/Delatin mesh of the heightmap (view-independent: built once per sweep, then shared) and its
+    measured vertical error."""
+    from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
+
+    hm = ctx.scene.heightmap
+    peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
+    return peer, mesh_vertical_error(hm, peer)
+
+
+def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
+    """One row: ``setting`` rendered from camera k and measured against that camera's reference."""
+    from ..kernels.displacement import sample_normal_map
+    from ..kernels.raster import rasterize
+    from ..kernels.shading import hillshade
+    from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
+    from ..measure.error import frame_error
+    from ..rendering.pipeline import Frame, Report, _srgb8, render
+
+    st_ = _state(ctx)
+    scene, cam, device, images = st_["scene"], ctx.cameras[k], ctx.device, ctx.images
+    hm = scene.heightmap
+    outs = ("error", "image") if images else ("error",)
+    if isinstance(refs[k], BaseException):
+        raise RuntimeError(f"reference frame {k} failed: {refs[k]}")
+    tri, depth, image = refs[k]
+    ref = Frame(scene.with_(camera=cam, mesh="grid"), Report(), image=image, depth=depth, triangle_id=tri)
+    row = {}
+    if setting.policy in ("martini", "delatin", "polytree", "bintree"):
+        select_ms, built_ms, peer_err = 0.0, 0.0, math.nan
+        if setting.policy in ("martini", "delatin"):
+            if setting not in st_["peers"]:  # built once for the sweep by _peer_job, else here
+                built = refs.get(("peer", setting))
+                if built is None or isinstance(built, BaseException):
+                    peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
+                    built = (peer, mesh_vertical_error(hm, peer))
+                st_["peers"][setting] = built
+            peer, peer_err = st_["peers"][setting]
+            built_ms = peer.mesh_ms
+            t0 = time.perf_counter()
+            m = peer.to_mesh(hm, cam)
+            t_mesh = (time.perf_counter() - t0) * 1e3
+        elif setting.policy == "polytree":  # taylor-barrett: view-independent levels of one polytree
+            from ..lod.polytree import build_polytree, default_tolerances
+
+            if "polytree" not in st_:
+                t0 = time.perf_counter()
+                st_["polytree"] = build_polytree(hm, default_tolerances(hm, 64), device=device)
+                st_["polytree_ms"] = (time.perf_counter() - t0) * 1e3
+            pt = st_["polytree"]
+            built_ms = st_["polytree_ms"]
+            t0 = time.perf_counter()
+            m = pt.mesh(min(int(setting.param), pt.n_levels - 1), eye=cam.position)
+            t_mesh = (time.perf_counter() - t0) * 1e3
+        else:  # mrbsp bintree: the paper's apparent-size rule at tree depth M = param, per frame
+            from ..lod.bintree import Bintree, select_bintree
+
+            key = ("bintree", int(setting.param))
+            if key not in st_:
+                t0 = time.perf_counter()
+                st_[key] = Bintree.build(hm, int(setting.param), device=device)
+                st_[key + ("ms",)] = (time.perf_counter() - t0) * 1e3
+            built_ms = st_[key + ("ms",)]
+            t0 = time.perf_counter()
+            m = select_bintree(st_[key], cam).mesh
+            select_ms = (time.perf_counter() - t0) * 1e3
+            t_mesh = 0.0
+        t0 = time.perf_counter()
+        fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+                       cam.width, cam.height, cull_back=scene.cull_back, device=device)
+        t_ras = (time.perf_counter() - t0) * 1e3
+        img = None
+        if images:
+            if st_["nmap"] is None:
+                from ..kernels.normals import sobel_normals
+
+                st_["nmap"] = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
+            world = m.positions.astype(np.float64) + np.asarray(m.eye)
+            uv = np.stack([(world[:, 0] - hm.origin[0]) / hm.dx / max(hm.shape[1] - 1, 1),
+                           (world[:, 2] - hm.origin[1]) / hm.dz / max(hm.shape[0] - 1, 1)], 1)
+            nrm = sample_normal_map(st_["nmap"], np.clip(uv, 0, 1).astype(np.float32), device=device)
+            rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm, world[:, 1].astype(np.float32),
+                               azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
+                               device=device)
+            img = _srgb8(rgb)
+        err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics,
+                          fr.depth, ref.triangle_id, ref.depth, image=img, ref_image=ref.image)
+        row.update(select_ms=select_ms, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=select_ms + t_mesh + t_ras,
+                   patches=0, vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=built_ms,
+                   peer_error_m=peer_err)
+    else:
+        if setting.policy == "grid":
+            f = render(scene.with_(camera=cam, mesh="grid", outputs=outs), reference=ref, device=device)
+        else:
+            lod = scene.lod.with_policy(setting.policy, setting.param)
+            sc = scene.with_(camera=cam, mesh="lod", lod=lod, outputs=outs)
+            f = render(sc, terrain=st_["terrain"], reference=ref, device=device)
+        st = {s.name: s for s in f.report.stages}
+        sel = st["select"].time_ms if "select" in st else 0.0
+        row.update(select_ms=sel, mesh_ms=st["mesh"].time_ms, raster_ms=st["raster"].time_ms,
+                   frame_ms=sel + st["mesh"].time_ms + st["raster"].time_ms,
+                   patches=st["mesh"].counters.get("patches", 1), vertices=f.mesh.n_vertices,
+                   triangles=f.mesh.n_triangles, peer_mesh_ms=0.0, peer_error_m=math.nan)
+        err = f.error
+    row.update(max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
+               cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
+               psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
+               ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=st_["prepare_ms"])
+    return row
+
+
+#: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``).
+COLUMNS = ("policy", "param", "setting", "frame", "select_ms", "mesh_ms", "raster_ms", "frame_ms", "patches",
+           "vertices", "triangles", "peer_mesh_ms", "peer_error_m", "max_px", "p99_px", "mean_px", "approx_p99_px",
+           "cracks", "mismatched", "silhouette", "psnr_db", "ssim", "prepare_ms")
+
+
+def _scene_token(scene: Scene, device: str) -> str:
+    """Identifies what a worker keeps between sweeps (Terrain, peer meshes): the scene but its camera."""
+    import hashlib
+
+    h = hashlib.sha256()
+    hm = scene.heightmap
+    h.update(np.ascontiguousarray(hm.heights).tobytes())
+    h.update(repr((hm.shape, hm.dx, hm.dz, scene.lod, scene.light_azimuth_deg, scene.light_elevation_deg,
+                   scene.cull_back, scene.shading, device)).encode())
+    return h.hexdigest()[:32]
+
+
+def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str) -> str:
+    """Identifies a sweep's inputs (the partial file of another sweep is not resumed)."""
+    import hashlib
+
+    return hashlib.sha256(repr((_scene_token(scene, device), list(cameras), images)).encode()).hexdigest()[:32]
+
+
+def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
+    """The sweep's jobs: one per (setting, camera), keyed by (setting's place in the list, frame)."""
+    from .runner import Job
+
+    return [Job(id=f"{s.policy}={s.param!r}|{k}", sort_key=(i, k),
+                fields={"policy": s.policy, "param": s.param, "setting": s.label, "frame": k}, args=(s, k))
+            for i, s in enumerate(settings) for k in range(n_cameras)]
+
+
+def run_sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
+              images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
+              out: str | Path | None = None, runner=None):
+    """:func:`sweep`, returning the :class:`terrainwarp.experiments.runner.SweepResult` (rows plus what the run cost).
+
+    ``runner`` (a :class:`terrainwarp.experiments.runner.Runner`) overrides ``scheduler`` and ``workers``.
+    """
+    from .runner import Runner
+
+    if runner is not None:
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
+    with Runner(scheduler, workers) as runner:
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
+
+
+def _run_sweep(runner, scene, cameras, settings, progress, images, device, out):
+    from .runner import pending_jobs
+
+    cameras = list(cameras)
+    jobs = sweep_jobs(list(settings), len(cameras))
+    fp = _fingerprint(scene, cameras, images, device)
+    ctx = _Context(_scene_token(scene, device), scene, tuple(cameras), images, device,
+                   any(s.policy in ("sse", "distance", "continuous") for s in settings))
+    ctx_h = runner.share(ctx)
+    todo = pending_jobs(jobs, out, fp)
+    need = sorted({j.args[1] for j in todo})  # references only for frames still to do
+    refs = dict(zip(need, runner.map(_reference_job, need, ctx_h)))
+    peers = list(dict.fromkeys(j.args[0] for j in todo if j.args[0].policy in ("martini", "delatin")))
+    refs.update(zip((("peer", s) for s in peers), runner.map(_peer_job, peers, ctx_h)))
+    refs_h = runner.share(refs)  # reference frames by camera, peer meshes by ("peer", setting)
+    return runner.run(jobs, _frame_job, ctx_h, refs_h, out=out, fingerprint=fp, columns=COLUMNS,
+                      to_csv=rows_to_csv, progress=progress, desc="report")
+
+
+def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
+          images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
+          out: str | Path | None = None) -> list[dict]:
+    """Render every setting from every camera; one row per (setting, frame), sorted by (setting, frame).
+
+    The jobs (setting, camera) run through :mod:`terrainwarp.experiments.runner`: by default on a LocalCluster with one
+    worker process per core; the scene and the reference frames (the full-resolution grid, rendered once per
+    camera) go to each worker once. Rows carry ``error`` ("" or the job's exception) and ``retries`` (times
+    rescheduled after a worker died); everything but those and :data:`TIMING_COLUMNS` is identical whatever
+    the number of workers.
+
+    Args:
+        images: also shade the frames and report PSNR/SSIM of the hillshaded images (costs a shade pass).
+        scheduler: ``tcp://HOST:PORT`` of a Dask scheduler (default: a LocalCluster).
+        workers: LocalCluster worker processes (default: one per core; 0: in this process).
+        out: CSV path: rows are saved to ``out.partial`` as they arrive and the sorted table to ``out``; a
+            sweep interrupted before the end resumes from the partial file without redoing finished jobs.
+    """
+    return run_sweep(scene, cameras, settings, progress=progress, images=images, device=device,
+                     scheduler=scheduler, workers=workers, out=out).rows
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """One row per setting: worst-frame p99 and max error, mean frame time and triangles."""
+    out = []
+    for label in dict.fromkeys(r["setting"] for r in rows):
+        rs = [r for r in rows if r["setting"] == label]
+        out.append({"policy": rs[0]["policy"], "param": rs[0]["param"], "setting": label,
+                    "p99_px": max(r["p99_px"] for r in rs), "max_px": max(r["max_px"] for r in rs),
+                    "mean_px": float(np.mean([r["mean_px"] for r in rs])),
+                    "frame_ms": float(np.mean([r["frame_ms"] for r in rs])),
+                    "select_ms": float(np.mean([r["select_ms"] for r in rs])),
+                    "mesh_ms": float(np.mean([r["mesh_ms"] for r in rs])),
+                    "triangles": float(np.mean([r["triangles"] for r in rs])),
+                    "cracks": int(sum(r["cracks"] for r in rs)),
+                    "peer_mesh_ms": rs[0]["peer_mesh_ms"], "peer_error_m": rs[0]["peer_error_m"],
+                    "psnr_db": float(np.nanmean([r["psnr_db"] for r in rs])) if any(
+                        np.isfinite(r["psnr_db"]) for r in rs) else math.nan})
+    return out
+
+
+def pareto(summary: list[dict], cost: str = "frame_ms") -> list[dict]:
+    """The settings no other setting beats on both p99 error and cost."""
+    pts = sorted(summary, key=lambda r: (r["p99_px"], r[cost]))
+    front, best = [], math.inf
+    for r in pts:
+        if r[cost] < best:
+            front.append(r)
+            best = r[cost]
+    return front
+
+
+def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0)) -> list[list]:
+    """For each budget and policy: the cheapest setting (by triangles) whose worst-frame p99 meets it."""
+    rows = []
+    for b in budgets:
+        for pol in dict.fromkeys(r["policy"] for r in summary):
+            ok = [r for r in summary if r["policy"] == pol and r["p99_px"] <= b]
+            if not ok:
+                rows.append([b, pol, "-", "-", "-", "-", "-"])
+                continue
+            r = min(ok, key=lambda r: r["triangles"])
+            rows.append([b, pol, r["setting"], round(r["p99_px"], 3), int(r["triangles"]), round(r["frame_ms"], 2),
+                         round(r["peer_mesh_ms"], 1) if r["policy"] in _BUILT else "-"])
+    return rows
+
+
+def rows_to_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    keys = list(rows[0].keys()) if rows else []
+    w = csv.DictWriter(buf, fieldnames=keys, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..io.files import atomic_path
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
+             "polytree": "P:", "bintree": "X:"}
+    others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]
+    floor = 0.5 * min(others) if others else 1e-3  # the exact grid (0 px) is drawn on this floor
+
+    def y(r):
+        return max(r["p99_px"], floor)
+
+    for ax, cost, lab in ((axes[0], "frame_ms", "time per frame (ms)"), (axes[1], "triangles", "triangles per frame")):
+        for pol in dict.fromkeys(r["policy"] for r in summary):
+            rs = sorted([r for r in summary if r["policy"] == pol], key=lambda r: r[cost])
+            ax.plot([r[cost] for r in rs], [y(r) for r in rs], marks.get(pol, "o-"),
+                    label=pol if pol != "grid" else "grid (exact: drawn at the bottom)", ms=6)
+        front = pareto(summary, cost)
+        ax.plot([r[cost] for r in front], [y(r) for r in front], color="red", lw=3, alpha=0.3, label="Pareto front")
+        ax.set_ylim(bottom=0.8 * floor)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(lab)
+        ax.set_ylabel("p99 screen error (px), worst frame")
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path) -> list[Path]:
+    """frames.csv, pareto.png and report.md for a sweep."""
+    from ..io.files import write_text
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    summ = summarise(rows)
+    paths = [write_text(out / "frames.csv", rows_to_csv(rows)),
+             plot_pareto(summ, out / "pareto.png", f"{scene.heightmap.name}: error against cost, "
+                                                   f"{len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}")]
+    md = [f"# Error against run time: {scene.heightmap.name}", "",
+          f"Heightmap {scene.heightmap.shape[0]}x{scene.heightmap.shape[1]}, dx={scene.heightmap.dx:.4g} m, "
+          f"dz={scene.heightmap.dz:.4g} m; {len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}; "
+          f"LOD: {scene.lod.roots} roots, tess {scene.lod.tess}. Errors are per-frame p99 of the exact per-pixel "
+          "reprojection error (worst frame); frame_ms = select + mesh + raster (LOD), mesh + raster (grid, peers).",
+          "", _jobs_line(rows),
+          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "frame_ms", "triangles", "cracks", "psnr_db",
+                                      "peer_mesh_ms", "peer_error_m"], summ),
+          "", "## Cheapest setting per budget (triangles)", "",
+          "| budget_px | policy | setting | p99_px | triangles | frame_ms | peer_mesh_ms |",
+          "|---|---|---|---|---|---|---|"]
+    md += ["| " + " | ".join(str(v) for v in r) + " |" for r in budget_table(summ)]
+    md += ["", "## Pareto front (time)", "", ", ".join(r["setting"] for r in pareto(summ, "frame_ms")),
+           "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]
+    md += [f"| {k} | {tuple(round(v, 1) for v in c.position)} | {tuple(round(v, 1) for v in c.target)} |"
+           for k, c in enumerate(cameras)]
+    md += ["", "![pareto](pareto.png)", ""]
+    paths.append(write_text(out / "report.md", "\n".join(md)))
+    return paths
+
+
+def _jobs_line(rows: list[dict]) -> str:
+    """How the sweep's jobs went: failures (with the first error) and retries after a worker died."""
+    failed = [r for r in rows if r.get("error")]
+    retried = [r for r in rows if r.get("retries", 0)]
+    line = f"Jobs (setting, frame): {len(rows)}, failed {len(failed)}, retried after a worker died {len(retried)}."
+    if failed:
+        line += f" First failure: {failed[0]['setting']} frame {failed[0]['frame']}: {failed[0]['error']}"
+    return line
+
+
+def _md(cols: list[str], rows: list[dict]) -> str:
+    def f(v):
+        if isinstance(v, float):
+            return "nan" if math.isnan(v) else f"{v:.4g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
+    lines += ["| " + " | ".join(f(r[c]) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)

@@ -1,0 +1,502 @@
+"""The sweep runner: independent jobs on ``dask.distributed``, one row of a table per job.
+
+A sweep is a list of :class:`Job` s. Each job is evaluated by a function ``fn(*shared, *job.args) -> dict``
+(a row) on a Dask worker; ``shared`` are the heavy inputs (heightmap, scene, reference frames), sent to
+every worker once (:meth:`Runner.share`, ``client.scatter(..., broadcast=True)``) and passed to each job as
+a future, never pickled into the job itself. Rows come back as jobs finish and are returned sorted by
+``Job.sort_key``, so the table does not depend on the number of workers or the completion order.
+
+Where it runs (:class:`Runner`):
+
+- default: a ``LocalCluster`` with one single-threaded worker *process* per core (Warp's CPU launches
+  are single-threaded; processes, not threads, give the parallelism). Clusters are kept per process and
+  reused by later sweeps of the same size (closed at exit, or by :func:`close_local_clusters`).
+- ``scheduler="tcp://HOST:PORT"``: an existing cluster; an unreachable address raises
+  :class:`SchedulerUnreachableError` after ``connect_timeout_s`` (3 s).
+- ``workers=0``: in this process, one job after another (debugging; no Dask).
+
+Faults:
+
+- a job that raises is recorded as a row with its ``error`` ("Type: message") and the sweep goes on;
+- a worker that dies mid-sweep has its jobs rescheduled by the Dask scheduler (up to
+  ``distributed.scheduler.allowed-failures`` times); the ``retries`` column says how many times each job
+  was rescheduled (the scheduler's count of workers that died holding it) and the summary counts them;
+- with ``out=PATH`` every row is appended, as it arrives (rows are collected at most 0.5 s, the time
+  between two asks to the scheduler for retry counts), to ``PATH.partial`` (CSV, each cell JSON-encoded
+  so floats and strings read back exactly); at the end the sorted table is written to a temporary name and
+  renamed to ``PATH`` and the partial file removed. A sweep interrupted before that resumes from the
+  partial file: jobs whose id is there are not run again (the file's first line holds the sweep's
+  ``fingerprint``; a partial file of another sweep is ignored).
+
+Warp compiles a kernel module on first use in each process (cached in ``~/.cache/warp``, so workers reuse
+the cache); JAX is not imported by the workers.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import csv
+import io
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["Job", "Runner", "SweepResult", "SchedulerUnreachableError", "close_local_clusters", "pending_jobs",
+           "RUN_COLUMNS"]
+
+#: Columns the runner adds to every row: the job's error ("" when it succeeded) and how many times the
+#: scheduler rescheduled it after a worker died. Not part of the result proper (``retries`` depends on
+#: the run, like timings).
+RUN_COLUMNS = ("error", "retries")
+
+_CONNECT_TIMEOUT_S = 3.0
+
+
+class SchedulerUnreachableError(ConnectionError, ValueError):
+    """No Dask scheduler answered at the given address (a ValueError too, so the CLI reports it in one line)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One unit of a sweep.
+
+    Attributes:
+        id: stable identity across runs (what a resumed sweep recognises as done), e.g. ``"sse=1|3"``.
+        sort_key: the row's place in the table (tuples of numbers/strings).
+        fields: columns every row of this job carries, also when it fails (e.g. setting, frame).
+        args: extra positional arguments of the job function (small: they are sent once per job).
+    """
+
+    id: str
+    sort_key: tuple
+    fields: dict = field(default_factory=dict)
+    args: tuple = ()
+
+
+@dataclass
+class SweepResult:
+    """Rows sorted by job key plus what the run cost."""
+
+    rows: list[dict]
+    n_jobs: int
+    n_run: int
+    n_resumed: int
+    n_failed: int
+    n_retried: int
+    workers: int
+    wall_s: float
+    bytes_shared: int
+    bytes_jobs: int
+    bytes_results: int
+    where: str
+
+    @property
+    def bytes_per_job(self) -> float:
+        """Bytes sent per job: the job's own payload plus the shared inputs' broadcast spread over the jobs."""
+        return (self.bytes_jobs + self.bytes_shared) / max(self.n_run, 1)
+
+    def summary(self) -> str:
+        return (f"{self.n_jobs} jobs: {self.n_run} run, {self.n_resumed} resumed, {self.n_failed} failed, "
+                f"{self.n_retried} retried after a worker died; {self.workers} worker(s) ({self.where}), "
+                f"{self.wall_s:.1f} s; sent {self.bytes_shared / 1e6:.2f} MB shared once per worker + "
+                f"{self.bytes_jobs / max(self.n_run, 1):.0f} B per job")
+
+
+# ------------------------------------------------------------------------------------------------
+# clusters
+# ------------------------------------------------------------------------------------------------
+_LOCAL: dict[int, Any] = {}
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def close_local_clusters() -> None:
+    """Close the LocalClusters this process started (also done at exit)."""
+    for n in list(_LOCAL):
+        client = _LOCAL.pop(n)
+        cluster = client.cluster
+        with contextlib.suppress(Exception):
+            client.close(timeout=10)
+        with contextlib.suppress(Exception):
+            cluster.close(timeout=10)
+    with contextlib.suppress(ValueError):
+        atexit.unregister(close_local_clusters)
+
+
+def _local_client(n: int):
+    from distributed import Client, LocalCluster
+
+    if not _LOCAL:  # registered after distributed's own exit handlers, so it runs before them
+        atexit.register(close_local_clusters)
+    c = _LOCAL.get(n)
+    if c is not None and c.status == "running":
+        return c
+    close_local_clusters()  # one local cluster at a time: its workers hold a core each
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                           silence_logs=logging.CRITICAL)  # faults are in the table
+    c = Client(cluster, set_as_default=False)
+    _LOCAL[n] = c
+    return c
+
+
+def _check_address(scheduler: str) -> str:
+    if not isinstance(scheduler, str):
+        raise TypeError(f"scheduler: expected an address string like tcp://HOST:PORT, got {type(scheduler).__name__}")
+    proto, sep, rest = scheduler.partition("://")
+    host, _, port = rest.rpartition(":")
+    if not sep or proto not in ("tcp", "tls", "ws", "wss", "inproc", "ucx") or not host or not port.isdigit():
+        raise ValueError(f"scheduler: expected an address like tcp://HOST:PORT, got {scheduler!r}")
+    return scheduler
+
+
+# ------------------------------------------------------------------------------------------------
+# worker side
+# ------------------------------------------------------------------------------------------------
+def _attempt(fn: Callable, n_shared: int, *args) -> tuple[str, Any]:
+    """Run one job; an exception becomes ("error", "Type: message") so the sweep goes on."""
+    try:
+        return "ok", fn(*args)
+    except Exception as e:  # noqa: BLE001 - every job error is recorded, not raised
+        msg = str(e).splitlines()[0] if str(e) else ""
+        return "error", f"{type(e).__name__}: {msg}" if msg else type(e).__name__
+
+
+def _nbytes(obj: Any) -> int:
+    """Pickled size (cloudpickle, as Dask sends functions and arguments)."""
+    import cloudpickle
+
+    return len(cloudpickle.dumps(obj, protocol=5))
+
+
+def _suspicious(dask_scheduler, keys: list[str]) -> dict[str, int]:
+    """(On the scheduler) how many workers died while holding each task."""
+    out = {}
+    for k in keys:
+        ts = dask_scheduler.tasks.get(k)
+        if ts is not None:
+            out[k] = int(ts.suspicious)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# partial results
+# ------------------------------------------------------------------------------------------------
+_MAGIC = "# terrainwarp sweep "
+
+
+def _partial_path(out: str | os.PathLike) -> Path:
+    p = Path(out)
+    return p.with_name(p.name + ".partial")
+
+
+def _read_partial(path: Path, fingerprint: str) -> dict[str, dict]:
+    """Rows of a partial file by job id; {} when absent, of another sweep, or unreadable."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        return {}
+    first, _, body = text.partition("\n")
+    if first != _MAGIC + fingerprint:
+        return {}
+    rows: dict[str, dict] = {}
+    reader = csv.reader(io.StringIO(body))
+    header = next(reader, None)
+    if not header or header[0] != "job_id":
+        return {}
+    for rec in reader:
+        if len(rec) != len(header):  # a line cut short by the interruption
+            continue
+        try:
+            vals = [json.loads(v) for v in rec[1:]]
+        except json.JSONDecodeError:
+            continue
+        rows[rec[0]] = dict(zip(header[1:], vals))
+    return rows
+
+
+class _Journal:
+    """Appends rows to ``out.partial`` as they arrive (flushed line by line)."""
+
+    def __init__(self, out: str | os.PathLike, fingerprint: str, columns: Sequence[str], resumed: dict[str, dict]):
+        self.path = _partial_path(out)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.columns = list(columns)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with open(tmp, "w", newline="") as f:  # rewrite what we keep, then append
+            f.write(_MAGIC + fingerprint + "\n")
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(["job_id", *self.columns])
+            for jid, row in resumed.items():
+                w.writerow(self._cells(jid, row))
+        os.replace(tmp, self.path)
+        self.f = open(self.path, "a", newline="")  # noqa: SIM115 - closed in close()
+        self.w = csv.writer(self.f, lineterminator="\n")
+
+    def _cells(self, jid: str, row: dict) -> list[str]:
+        return [jid] + [json.dumps(row.get(c, math.nan)) for c in self.columns]
+
+    def append(self, jid: str, row: dict) -> None:
+        self.w.writerow(self._cells(jid, row))
+        self.f.flush()
+
+    def close(self) -> None:
+        self.f.close()
+
+
+def pending_jobs(jobs: Sequence[Job], out: str | os.PathLike | None, fingerprint: str = "") -> list[Job]:
+    """The jobs a sweep with this ``out`` and ``fingerprint`` would still run (not in its partial file)."""
+    if out is None:
+        return list(jobs)
+    done = _read_partial(_partial_path(out), fingerprint)
+    return [j for j in jobs if j.id not in done]
+
+
+def _default_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(rows[0]) if rows else [], lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: repr(v) if isinstance(v, float) else v for k, v in r.items()})
+    return buf.getvalue()
+
+
+# ------------------------------------------------------------------------------------------------
+# the runner
+# ------------------------------------------------------------------------------------------------
+class Runner:
+    """Where a sweep's jobs run: a LocalCluster (default), a remote scheduler, or this process.
+
+    Args:
+        scheduler: ``"tcp://HOST:PORT"`` of a running Dask scheduler, or None for a LocalCluster.
+        workers: LocalCluster size (default: one process per core); 0 runs jobs in this process. With a
+            scheduler: wait until that many workers have joined (default 1).
+        connect_timeout_s: how long to try reaching ``scheduler`` before :class:`SchedulerUnreachableError`.
+    """
+
+    def __init__(self, scheduler: str | None = None, workers: int | None = None, *,
+                 connect_timeout_s: float = _CONNECT_TIMEOUT_S):
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)):
+            raise TypeError(f"workers: expected an int, got {type(workers).__name__}")
+        if workers is not None and workers < 0:
+            raise ValueError(f"workers: expected >= 0, got {workers}")
+        self.bytes_shared = 0
+        self.client = None
+        if scheduler is not None:
+            from distributed import Client
+
+            addr = _check_address(scheduler)
+            if workers == 0:
+                raise ValueError("workers: expected >= 1 with a scheduler, got 0")
+            try:
+                self.client = Client(addr, timeout=connect_timeout_s, set_as_default=False)
+            except (OSError, TimeoutError) as e:
+                raise SchedulerUnreachableError(
+                    f"scheduler: no Dask scheduler answered at {addr} within {connect_timeout_s:g} s "
+                    f"({type(e).__name__})") from None
+            try:
+                self.client.wait_for_workers(workers or 1, timeout=60)
+            except TimeoutError:
+                self.client.close()
+                raise SchedulerUnreachableError(
+                    f"scheduler: {addr} has fewer than {workers or 1} worker(s) after 60 s") from None
+            self.where = addr
+        elif workers == 0:
+            self.where = "in-process"
+        else:
+            self.client = _local_client(workers or _cores())
+            self.where = "LocalCluster, processes"
+
+    def close(self) -> None:
+        """Disconnect from a remote scheduler (a LocalCluster stays up for the next sweep)."""
+        if self.client is not None and self.where not in ("in-process", "LocalCluster, processes"):
+            self.client.close()
+            self.client = None
+
+    def __enter__(self) -> Runner:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def n_workers(self) -> int:
+        if self.client is None:
+            return 1
+        return len(self.client.scheduler_info(n_workers=-1)["workers"])
+
+    def share(self, obj: Any) -> Any:
+        """Send ``obj`` to every worker once; returns what to pass to :meth:`run` / :meth:`map` as shared."""
+        if self.client is None:  # nothing is sent
+            return obj
+        nbytes = _nbytes(obj)
+        n = self.n_workers
+        fut = self.client.scatter([obj], broadcast=True, hash=False)[0]  # a list: a dict is one object
+        self.bytes_shared += nbytes * n
+        return fut
+
+    def map(self, fn: Callable, items: Iterable, *shared) -> list:
+        """``[fn(*shared, item) for item in items]`` on the workers, in order; a job's exception is
+        returned in its place (not raised). For preparatory work whose results are not rows."""
+        items = list(items)
+        if self.client is None:
+            res = [_attempt(fn, len(shared), *shared, it) for it in items]
+        else:
+            futs = [self.client.submit(_attempt, fn, len(shared), *shared, it, pure=False) for it in items]
+            res = []
+            for f in futs:
+                try:
+                    res.append(f.result())
+                except Exception as e:  # noqa: BLE001 - a lost task (KilledWorker) is reported like an error
+                    res.append(("error", f"{type(e).__name__}: {e}"))
+        return [v if s == "ok" else RuntimeError(v) for s, v in res]
+
+    def run(self, jobs: Sequence[Job], fn: Callable, *shared, out: str | os.PathLike | None = None,
+            fingerprint: str = "", columns: Sequence[str] | None = None, to_csv: Callable | None = None,
+            progress: bool = True, desc: str = "sweep", on_row: Callable[[dict], None] | None = None) -> SweepResult:
+        """Run ``fn(*shared, *job.args)`` for every job; rows sorted by ``job.sort_key``.
+
+        Args:
+            jobs: the sweep; ids must be unique.
+            fn: an importable function returning a dict (the row, without the job's ``fields``).
+            shared: values from :meth:`share` (or plain small values).
+            out: final CSV path; rows are appended to ``out.partial`` as they arrive and a sweep with the
+                same ``fingerprint`` resumes from it.
+            fingerprint: identifies the sweep's inputs (scene, cameras...) so a partial file of another
+                sweep is not resumed.
+            columns: the table's columns in order (job fields first); default: the first successful row's.
+                Required with ``out``.
+            to_csv: ``rows -> str`` for the final file (default: repr floats).
+            on_row: called with each row as it arrives (in completion order).
+        """
+        from tqdm import tqdm
+
+        ids = [j.id for j in jobs]
+        if len(set(ids)) != len(ids):
+            raise ValueError("jobs: expected unique ids")
+        if out is not None and columns is None:
+            raise ValueError("columns: expected the table's columns when out is given")
+        cols = None if columns is None else [*columns, *(c for c in RUN_COLUMNS if c not in columns)]
+        t0 = time.perf_counter()
+        by_id = {j.id: j for j in jobs}
+        done: dict[str, dict] = {}
+        if out is not None:
+            done = {k: v for k, v in _read_partial(_partial_path(out), fingerprint).items() if k in by_id}
+        n_resumed = len(done)
+        todo = [j for j in jobs if j.id not in done]
+        journal = _Journal(out, fingerprint, cols, done) if out is not None else None
+        bar = tqdm(total=len(jobs), initial=n_resumed, desc=desc, unit="job", disable=not progress, leave=False,
+                   file=sys.stderr)
+        n_failed = sum(1 for r in done.values() if r.get("error"))
+        n_retried = 0
+        bytes_jobs = bytes_results = 0
+
+        def record(job: Job, status: str, value: Any, retries: int) -> None:
+            nonlocal n_failed, n_retried, bytes_results
+            if status == "ok":
+                if not isinstance(value, dict):
+                    status, value = "error", f"TypeError: fn: expected a dict row, got {type(value).__name__}"
+            row = {**job.fields, **(value if status == "ok" else {}), "error": "" if status == "ok" else value,
+                   "retries": retries}
+            n_failed += status != "ok"
+            n_retried += retries > 0
+            if self.client is not None:
+                bytes_results += _nbytes(value)
+            done[job.id] = row
+            if journal is not None:
+                journal.append(job.id, row)
+            if on_row is not None:
+                on_row(row)
+            bar.update(1)
+            bar.set_postfix(failed=n_failed, retried=n_retried, refresh=status != "ok" or retries > 0)
+
+        futures: dict = {}
+        try:
+            for j in todo:
+                bytes_jobs += _nbytes((fn, j.args)) if self.client is not None else 0
+            if self.client is None:
+                for j in todo:
+                    status, value = _attempt(fn, len(shared), *shared, *j.args)
+                    record(j, status, value, 0)
+            else:
+                from distributed import as_completed
+
+                for j in todo:
+                    key = f"tw-{desc}-{j.id}-{fingerprint[:12]}-{time.time_ns()}"
+                    futures[self.client.submit(_attempt, fn, len(shared), *shared, *j.args, key=key,
+                                               pure=False)] = j
+                finished: list = []
+                last = time.monotonic()
+
+                def flush() -> None:
+                    # one scheduler round trip for the retry counts of everything finished since the last
+                    # flush (at most every 0.5 s); the futures are held until then so the scheduler still
+                    # knows their tasks
+                    nonlocal last
+                    if not finished:
+                        return
+                    try:
+                        susp = self.client.run_on_scheduler(_suspicious, keys=[f.key for f in finished])
+                    except Exception:  # noqa: BLE001 - the count is informative; never fail the sweep over it
+                        susp = {}
+                    for f in finished:
+                        j = futures.pop(f)
+                        try:
+                            status, value = f.result()
+                        except Exception as e:  # noqa: BLE001 - KilledWorker (too many deaths) and the like
+                            msg = str(e).splitlines()[0] if str(e) else ""
+                            status, value = "error", f"{type(e).__name__}: {msg}"
+                        record(j, status, value, susp.get(f.key, 0))
+                        f.release()
+                    finished.clear()
+                    last = time.monotonic()
+
+                for f in as_completed(futures, loop=self.client.loop):
+                    finished.append(f)
+                    if time.monotonic() - last >= 0.5:
+                        flush()
+                flush()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            bar.close()
+            if journal is not None:
+                journal.close()
+            raise
+        bar.close()
+        if journal is not None:
+            journal.close()
+
+        if cols is None:
+            first = next((done[j.id] for j in jobs if j.id in done and not done[j.id].get("error")), None)
+            cols = list(first) if first else [*(jobs[0].fields if jobs else {}), *RUN_COLUMNS]
+            cols += [c for c in RUN_COLUMNS if c not in cols]
+        rows = []
+        for j in sorted(jobs, key=lambda j: j.sort_key):
+            r = done[j.id]
+            rows.append({c: r.get(c, "" if c == "error" else 0 if c == "retries" else math.nan) for c in cols})
+        if out is not None:
+            from ..io.files import write_text
+
+            write_text(out, (to_csv or _default_csv)(rows))
+            with contextlib.suppress(FileNotFoundError):
+                _partial_path(out).unlink()
+        res = SweepResult(rows=rows, n_jobs=len(jobs), n_run=len(todo), n_resumed=n_resumed, n_failed=n_failed,
+                          n_retried=n_retried, workers=self.n_workers, wall_s=time.perf_counter() - t0,
+                          bytes_shared=self.bytes_shared, bytes_jobs=bytes_jobs, bytes_results=bytes_results,
+                          where=self.where)
+        if progress:
+            print(f"{desc}: {res.summary()}", file=sys.stderr)
+        return res

@@ -1,0 +1,544 @@
+"""Fit LOD thresholds against a screen-space error budget (pixels) at the lowest cost, with JAX and optax,
+validated by the exact pipeline.
+
+Parameters live in a :class:`LodParams` pytree (log-space, so every value stays positive):
+``log_tolerance_px`` (the screen-space-error policy, malafeev2014 / Cesium), ``log_k`` (the distance
+policy of deaconu2021: split within ``k`` node sizes), ``log_target_px`` (pixels per triangle edge of the
+continuous fractional_odd factors). One policy is fitted at a time.
+
+Relaxation (documented, and biased where said):
+
+* Discrete policies: every node of the complete quadtree gets a split probability
+  ``s = sigmoid((log metric - log threshold) / temperature)`` (sse: split above the tolerance; distance:
+  split below ``k * size``), 0 at the deepest level and for culled nodes. A node is a drawn leaf with
+  probability ``prod(ancestors' s) * (1 - s)``. Expected cost = sum of leaf probabilities times the
+  patch's ``2 T^2`` triangles. Bias: the 2:1 balance pass's forced splits and the doubled edges are left
+  out, so the relaxed cost is slightly low.
+* Error: a leaf's screen error is taken as its projected geometric error (the d/dist estimate), and the
+  frame's error as a soft maximum over leaves weighted by their probabilities. Bias: this estimate
+  is pessimistic (maximum vertical error, seen face on) compared with the exact per-pixel p99, so the
+  relaxed fit lands on a too-fine setting; the validation step corrects it.
+* Continuous factors: ``f = softclamp(L * focal / (d * target), 1, 64)`` per edge from the edge's
+  endpoints; cost ``2 * inner_u * inner_v`` per patch; the error of a patch at vertex spacing ``s`` is
+  interpolated log-log between the geometric errors of the pyramid levels (spacing ``S_L / T``).
+* The temperature anneals from 1 to 0.05 over the optimisation (optax Adam), so the relaxed selection
+  approaches the exact one.
+
+Validation: after the relaxed fit, the exact pipeline (select + tessellate + rasterize + per-pixel error
+against the full-resolution reference) runs over the camera path, and the parameter is corrected by
+Newton steps in log space, ``log t <- log t + (log budget - log p99) / slope``, with the slope
+``d log(error) / d log(t)`` from ``jax.grad`` of the relaxed model, then bisection once bracketed. A
+fit that misses the budget in validation is reported as missed, never as met.
+
+Baseline: a grid search over the same parameter on the exact pipeline, in the same run.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from ..camera import Camera
+from ..lod.quadtree import Terrain, node_metrics
+from ..scene import Scene
+
+__all__ = ["LodParams", "FitResult", "fit_lod", "evaluate", "grid_search", "relaxed_model"]
+
+POLICIES = ("sse", "distance", "continuous")
+_FIELD = {"sse": "log_tolerance_px", "distance": "log_k", "continuous": "log_target_px"}
+_RANGE = {"sse": (0.05, 64.0), "distance": (0.25, 32.0), "continuous": (0.5, 64.0)}
+# larger parameter -> coarser mesh (cheaper, more error) for sse and continuous; the reverse for distance
+_COARSER_UP = {"sse": True, "distance": False, "continuous": True}
+
+
+class LodParams(NamedTuple):
+    """Fitted parameters (a pytree), in log space."""
+
+    log_tolerance_px: float = math.log(1.0)
+    log_k: float = math.log(2.0)
+    log_target_px: float = math.log(8.0)
+
+
+@dataclass
+class Evaluation:
+    """The exact pipeline at one parameter value over the camera path."""
+
+    value: float
+    p99_px: list[float]
+    max_px: list[float]
+    triangles: list[int]
+    frame_ms: list[float]
+
+    @property
+    def worst_p99(self) -> float:
+        return max(self.p99_px)
+
+    @property
+    def cost(self) -> float:
+        return float(np.mean(self.triangles))
+
+
+@dataclass
+class FitResult:
+    """What a fit found, validated by the exact pipeline.
+
+    Attributes:
+        met: True only if the exact pipeline's worst-frame p99 error is within the budget.
+        value: the fitted parameter (tolerance px, k, or target px); params: the LodParams pytree.
+        validated: the exact evaluation at ``value`` (per-frame p99, max, triangles, ms).
+        evaluations: exact pipeline frame evaluations the fit used (the grid search's are in ``grid``).
+        history: the relaxed optimisation (iteration, temperature, loss, cost, error proxy, value) and
+            the validation steps.
+        grid: the grid search baseline in the same run, or None.
+    """
+
+    policy: str
+    budget_px: float
+    met: bool
+    value: float
+    params: LodParams
+    validated: Evaluation | None
+    evaluations: int
+    wall_s: float
+    message: str = ""
+    history: list[dict] = field(default_factory=list)
+    grid: dict | None = None
+
+    def to_dict(self) -> dict:
+        v = self.validated
+        return {"policy": self.policy, "budget_px": self.budget_px, "met": self.met, "value": self.value,
+                "params": self.params._asdict(), "message": self.message, "evaluations": self.evaluations,
+                "wall_s": self.wall_s,
+                "validated": None if v is None else {"p99_px": v.p99_px, "max_px": v.max_px,
+                                                     "triangles": v.triangles, "frame_ms": v.frame_ms,
+                                                     "worst_p99_px": v.worst_p99, "mean_triangles": v.cost},
+                "history": self.history, "grid": self.grid}
+
+
+# ------------------------------------------------------------------------------------------------
+# exact pipeline
+# ------------------------------------------------------------------------------------------------
+def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list,
+             device: str = "cpu") -> Evaluation:
+    """Run the exact pipeline at one parameter value over all cameras (references given)."""
+    from ..rendering.pipeline import render
+
+    ev = Evaluation(float(value), [], [], [], [])
+    cfg = scene.lod.with_policy(policy, value)
+    for cam, ref in zip(cameras, refs):
+        f = render(scene.with_(camera=cam, mesh="lod", lod=cfg, outputs=("error",)), terrain=terrain,
+                   reference=ref, device=device)
+        st = {s.name: s.time_ms for s in f.report.stages}
+        ev.p99_px.append(float(f.error.p99_px))
+        ev.max_px.append(float(f.error.max_px))
+        ev.triangles.append(int(f.mesh.n_triangles))
+        ev.frame_ms.append(st.get("select", 0.0) + st["mesh"] + st["raster"])
+    return ev
+
+
+def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float, refs: list,
+                points: int = 24, device: str = "cpu", workers: int | None = 0, scheduler: str | None = None) -> dict:
+    """Evaluate ``points`` log-spaced values on the exact pipeline; the cheapest that meets the budget.
+
+    With the default ``workers=0`` the evaluations run here, on the caller's ``terrain`` and ``refs``.
+    Otherwise they are jobs of the report's sweep runner (:mod:`terrainwarp.experiments.runner`, dask.distributed):
+    ``workers`` local worker processes (None: one per core) or an existing ``scheduler``; the workers
+    prepare their own terrain and references, and the table is the same.
+    """
+    lo, hi = _RANGE[policy]
+    t0 = time.perf_counter()
+    values = [float(v) for v in np.geomspace(lo, hi, points)]
+    if workers == 0 and scheduler is None:
+        evs = [evaluate(scene, terrain, cameras, policy, v, refs, device) for v in values]
+    else:
+        from ..experiments.pareto import Setting, sweep
+
+        rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
+                     device=device, scheduler=scheduler, workers=workers)
+        evs = []
+        for v in values:
+            rs = sorted((r for r in rows if r["policy"] == policy and r["param"] == v), key=lambda r: r["frame"])
+            if any(r.get("error") for r in rs):
+                raise RuntimeError(f"grid search: evaluating {_name(policy)} = {v:g} failed: {rs[0]['error']}")
+            evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
+                                  [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs]))
+    ok = [e for e in evs if e.worst_p99 <= budget_px]
+    best = min(ok, key=lambda e: e.cost) if ok else None
+    return {"points": points, "evaluations": points * len(cameras), "wall_s": time.perf_counter() - t0,
+            "value": None if best is None else best.value, "cost": None if best is None else best.cost,
+            "worst_p99_px": None if best is None else best.worst_p99,
+            "table": [[e.value, e.worst_p99, e.cost] for e in evs]}
+
+
+# ------------------------------------------------------------------------------------------------
+# relaxed model (JAX)
+# ------------------------------------------------------------------------------------------------
+def _tree_arrays(terrain: Terrain, metrics: list) -> dict:
+    """Stack per-camera node metrics into padded arrays the JAX model indexes."""
+    depth = terrain.depth
+    out = {"sse": [], "dist": [], "size": [], "vis": [], "parent": []}
+    for lvl in range(depth + 1):
+        m0 = metrics[0]
+        x, y = m0.x[lvl], m0.y[lvl]
+        nxl = terrain.roots[0] << lvl
+        parent = ((y // 2) * (nxl // 2) + (x // 2)) if lvl > 0 else np.zeros(len(x), np.int64)
+        out["parent"].append(parent.astype(np.int32))
+        out["size"].append(m0.size[lvl])
+        out["sse"].append(np.stack([m.sse[lvl] for m in metrics]))
+        out["dist"].append(np.stack([m.dist[lvl] for m in metrics]))
+        out["vis"].append(np.stack([(m.inside[lvl] & ~m.culled[lvl]).astype(np.float64) for m in metrics]))
+    return out
+
+
+def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: str = "cpu"):
+    """A function ``(log_value, temperature) -> (expected triangles per frame (mean), error proxy px (max
+    over frames of the soft maximum))``, differentiable with JAX, for a discrete policy."""
+    import jax
+    import jax.numpy as jnp
+
+    metrics = [node_metrics(terrain, c, device) for c in cameras]
+    tree = _tree_arrays(terrain, metrics)
+    depth = terrain.depth
+    tri_per_patch = 2.0 * terrain.tess ** 2
+    sse = [jnp.asarray(np.minimum(a, 1e30)) for a in tree["sse"]]
+    dist = [jnp.asarray(np.maximum(a, 1e-9)) for a in tree["dist"]]
+    vis = [jnp.asarray(a) for a in tree["vis"]]
+    size = [jnp.asarray(a) for a in tree["size"]]
+    parent = [jnp.asarray(a) for a in tree["parent"]]
+
+    def split_prob(lvl, log_v, temp):
+        if lvl == depth:
+            return jnp.zeros_like(vis[lvl])
+        if policy == "sse":
+            z = (jnp.log(jnp.maximum(sse[lvl], 1e-12)) - log_v) / temp
+        else:  # distance: split while dist < k * size
+            z = (log_v + jnp.log(size[lvl]) - jnp.log(dist[lvl])) / temp
+        return jax.nn.sigmoid(z) * vis[lvl]
+
+    def model(log_v, temp, err_temp=0.25):
+        reach = vis[0]
+        cost = 0.0
+        lse = []
+        for lvl in range(depth + 1):
+            if lvl > 0:
+                reach = reach_prev[:, parent[lvl]] * s_prev[:, parent[lvl]]  # noqa: F821
+            s = split_prob(lvl, log_v, temp)
+            leaf = reach * (1.0 - s) * vis[lvl]
+            cost = cost + leaf.sum(axis=1) * tri_per_patch
+            # soft maximum of the leaves' projected error, in log space: log sum p exp(log e / t)
+            le = jnp.log(jnp.maximum(jnp.minimum(sse[lvl], 1e6), 1e-6))
+            # weights leaf**4: leaves the policy almost surely does not draw do not leak into the maximum
+            lse.append(4.0 * jnp.log(jnp.maximum(leaf, 1e-30)) + le / err_temp)
+            reach_prev, s_prev = reach, s  # noqa: F841
+        stacked = jnp.concatenate(lse, axis=1)
+        soft_log_err = err_temp * jax.scipy.special.logsumexp(stacked, axis=1)
+        return jnp.mean(cost), jnp.max(soft_log_err)  # (triangles, log error proxy)
+
+    return model
+
+
+# ------------------------------------------------------------------------------------------------
+# the fit
+# ------------------------------------------------------------------------------------------------
+def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
+            steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
+            grid_workers: int | None = 0,
+            seed: int = 0, progress: bool = False, gradient: str = "relaxed", device: str = "cpu") -> FitResult:
+    """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
+    within ``budget_px`` at the lowest cost (triangles).
+
+    Args:
+        scene: the scene (heightmap, LOD config: roots, tess); its camera path unless ``cameras``.
+        budget_px: the screen-space error budget, pixels (> 0).
+        policy: ``"sse"``, ``"distance"`` or ``"continuous"``.
+        steps: optax Adam steps of the relaxed fit.
+        max_validations: exact-pipeline validations (each runs every camera) for the correction.
+        rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
+        grid_points: if > 0, also run the grid-search baseline with that many points.
+        grid_workers: the grid search's workers (0: in this process; see :func:`grid_search`).
+        seed: reserved for stochastic variants; the fit is deterministic.
+        gradient: the slope of the correction steps before the budget is bracketed: ``"relaxed"`` (the
+            calibrated relaxed model) or, for the continuous policy, ``"pixels"`` (Newton steps in log space
+            with d log(mean pixel error above the p99) / d log(target_px) of the worst frame from
+            :mod:`terrainwarp.fit.diffpath`: the per-pixel error through the Warp resolve kernel; one extra
+            pipeline run per step, counted in ``evaluations``).
+    """
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    if policy not in POLICIES:
+        raise ValueError(f"policy: expected one of {list(POLICIES)}, got {policy!r}")
+    if gradient not in ("relaxed", "pixels") or (gradient == "pixels" and policy != "continuous"):
+        raise ValueError(f"gradient: expected 'relaxed', or 'pixels' with the continuous policy, got {gradient!r}")
+    if isinstance(budget_px, bool) or not isinstance(budget_px, int | float) or not math.isfinite(budget_px) \
+            or budget_px <= 0:
+        raise ValueError(f"budget_px: expected a positive finite number of pixels, got {budget_px!r}")
+    t_start = time.perf_counter()
+    cams = cameras if cameras is not None else scene.camera_path()
+    if not cams:
+        raise ValueError("cameras: expected at least one camera")
+    from ..rendering.pipeline import render
+
+    terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
+    refs = [render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device) for c in cams]
+    lo, hi = _RANGE[policy]
+    history: list[dict] = []
+    n_eval = 0
+    evals: dict[float, Evaluation] = {}
+
+    def exact(v: float) -> Evaluation:
+        nonlocal n_eval
+        v = float(np.clip(v, lo, hi))
+        if v not in evals:
+            evals[v] = evaluate(scene, terrain, cams, policy, v, refs, device)
+            n_eval += len(cams)
+            history.append({"stage": "validate", "value": v, "worst_p99_px": evals[v].worst_p99,
+                            "cost": evals[v].cost})
+        return evals[v]
+
+    finest = lo if _COARSER_UP[policy] else hi
+
+    # -- relaxed fit -------------------------------------------------------------------------------
+    if policy == "continuous":
+        model = _continuous_model(terrain, cams, scene.lod.level)
+    else:
+        model = relaxed_model(terrain, cams, policy, device)
+    log_budget = math.log(budget_px)
+    tri_scale = float(model(jnp.asarray(math.log(math.sqrt(lo * hi))), 1.0)[0]) + 1.0
+
+    def loss(log_v, temp, weight):
+        cost, log_err = model(log_v, temp)
+        return jnp.log(cost / tri_scale + 1e-9) + weight * jax.nn.softplus(8.0 * (log_err - log_budget)) / 8.0
+
+    opt = optax.adam(0.08)
+    log_v = jnp.asarray(math.log(math.sqrt(lo * hi)))
+    state = opt.init(log_v)
+    grad = jax.jit(jax.value_and_grad(loss), static_argnums=())
+    for it in range(steps):
+        temp = float(1.0 * (0.05 / 1.0) ** (it / max(steps - 1, 1)))
+        val, g = grad(log_v, temp, 20.0)
+        upd, state = opt.update(g, state)
+        log_v = jnp.clip(optax.apply_updates(log_v, upd), math.log(lo), math.log(hi))
+        if it % 10 == 0 or it == steps - 1:
+            c, le = model(log_v, temp)
+            history.append({"stage": "relaxed", "iter": it, "temperature": temp, "loss": float(val),
+                            "cost": float(c), "error_proxy_px": float(math.exp(float(le))),
+                            "value": float(math.exp(float(log_v)))})
+
+    # -- validation and correction -----------------------------------------------------------------
+    # The relaxed error is an estimate: calibrate it on the exact pipeline. Each round evaluates the exact
+    # pipeline once, sets the offset between exact and relaxed log error there, and solves the relaxed
+    # model (monotone in the parameter) for the budget with that offset; once a feasible and an
+    # infeasible value bracket the budget, interpolate in log-log between them (regula falsi).
+    log_model = jax.jit(lambda lv: model(lv, 0.05)[1])
+    target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
+
+    def solve_relaxed(offset: float) -> float:
+        a, b = math.log(lo), math.log(hi)
+        fa = float(log_model(jnp.asarray(a))) + offset - target
+        fb = float(log_model(jnp.asarray(b))) + offset - target
+        if fa * fb > 0:  # no sign change: the end nearest the target
+            return math.exp(a if abs(fa) < abs(fb) else b)
+        for _ in range(40):
+            m = 0.5 * (a + b)
+            fm = float(log_model(jnp.asarray(m))) + offset - target
+            if (fm > 0) == (fa > 0):
+                a, fa = m, fm
+            else:
+                b = m
+        return math.exp(0.5 * (a + b))
+
+    v = float(math.exp(float(log_v)))
+    good: Evaluation | None = None  # feasible (met), coarsest so far
+    bad: Evaluation | None = None  # infeasible, finest so far
+    for _ in range(max_validations):
+        e = exact(v)
+        if e.worst_p99 <= budget_px:
+            if good is None or _coarser(policy, e.value, good.value):
+                good = e
+            if e.worst_p99 >= budget_px * (1 - rel_tol):
+                break
+        elif bad is None or _coarser(policy, bad.value, e.value):
+            bad = e
+        if good is not None and bad is not None:
+            lg, lb = math.log(good.value), math.log(bad.value)
+            # cost is monotone in the parameter: nothing in the bracket is cheaper than bad.cost, so
+            # the remaining gain is at most the cost gap; the exact error is a step function of the
+            # parameter (discrete levels), so a narrow bracket is as far as refining can go
+            if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < 0.08:
+                break
+            eg, eb = math.log(max(good.worst_p99, 1e-9)), math.log(max(bad.worst_p99, 1e-9))
+            t = (target - eg) / (eb - eg) if eb > eg else 0.5
+            t = min(max(t, 0.1), 0.9)  # keep clear of the ends: the curve is not straight
+            nv = math.exp(lg + t * (lb - lg))
+        elif gradient == "pixels":
+            from .diffpath import log_slope
+
+            w = int(np.argmax(e.p99_px))
+            _, slope = log_slope(scene.heightmap, cams[w], v, scene.lod.level, terrain, cull_back=scene.cull_back,
+                                 device=device)
+            n_eval += 1
+            history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
+            step = (target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
+                (1.0 if (e.worst_p99 <= budget_px) == _COARSER_UP[policy] else -1.0)
+            nv = v * math.exp(min(max(step, -1.0), 1.0))
+        else:
+            offset = math.log(max(e.worst_p99, 1e-9)) - float(log_model(jnp.asarray(math.log(v))))
+            nv = solve_relaxed(offset)
+            # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
+            # finer after an infeasible one). The exact error is flat over wide ranges (whole levels,
+            # the triangulation floor), where a calibrated step alone can stall.
+            coarser = (e.worst_p99 <= budget_px) == _COARSER_UP[policy]
+            nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
+        v = float(np.clip(nv, lo, hi))
+        history.append({"stage": "correct", "next_value": v})
+    if good is None:  # never met: is the budget reachable at all?
+        floor = exact(finest)
+        if floor.worst_p99 > budget_px:
+            return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, n_eval,
+                             time.perf_counter() - t_start,
+                             f"budget {budget_px:g} px cannot be met: even the finest setting "
+                             f"({_name(policy)} = {finest:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px",
+                             history)
+        good = floor
+    res = FitResult(policy, budget_px, good.worst_p99 <= budget_px, good.value, _params(policy, good.value), good,
+                    n_eval, time.perf_counter() - t_start, "", history)
+    res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px with {_name(policy)} = "
+                   f"{good.value:.4g}, {good.cost:.0f} triangles per frame")
+    if grid_points:
+        res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
+                               workers=grid_workers)
+    _ = seed
+    return res
+
+
+def _coarser(policy: str, a: float, b: float) -> bool:
+    return a > b if _COARSER_UP[policy] else a < b
+
+
+def _name(policy: str) -> str:
+    return {"sse": "tolerance_px", "distance": "k", "continuous": "target_px"}[policy]
+
+
+def _params(policy: str, value: float) -> LodParams:
+    return LodParams()._replace(**{_FIELD[policy]: math.log(value)})
+
+
+def _continuous_model(terrain: Terrain, cameras: list[Camera], level: int):
+    """Relaxed cost/error of the continuous policy: per-edge factors from the edge endpoints, soft clamped."""
+    import jax
+    import jax.numpy as jnp
+
+    from ..lod.quadtree import ContinuousPolicy, select
+
+    lvl = min(level, terrain.depth)
+    focal = cameras[0].focal_px
+    per_cam = []
+    for cam in cameras:
+        pl = select(terrain, cam, ContinuousPolicy(1.0, level=lvl))
+        # outer factors at target 1 px are the projected edge lengths in px (clamped to [1, 64]: unclamp
+        # by recomputing the raw value from the geometry)
+        hm = terrain.heightmap
+        eye = np.asarray(cam.position)
+        o, s = pl.origin, pl.size
+        mids = []
+        lens = []
+        for a, b in (((0, 0), (0, 1)), ((0, 0), (1, 0)), ((1, 0), (1, 1)), ((0, 1), (1, 1))):
+            pa = np.stack([o[:, 0] + a[0] * s[:, 0], o[:, 1] + a[1] * s[:, 1]], 1)
+            pb = np.stack([o[:, 0] + b[0] * s[:, 0], o[:, 1] + b[1] * s[:, 1]], 1)
+            ha = hm.sample(pa[:, 0], pa[:, 1]).astype(np.float64)
+            hb = hm.sample(pb[:, 0], pb[:, 1]).astype(np.float64)
+            A = np.stack([pa[:, 0], ha, pa[:, 1]], 1)
+            B = np.stack([pb[:, 0], hb, pb[:, 1]], 1)
+            lens.append(np.linalg.norm(B - A, axis=1))
+            mids.append(np.linalg.norm(0.5 * (A + B) - eye, axis=1))
+        raw = np.stack(lens, 1) * cam.focal_px / np.maximum(np.stack(mids, 1), 1e-9)
+        dist = np.maximum(pl.distance.astype(np.float64), 1e-9)
+        # geometric error against vertex spacing (in cells), log-log through the pyramid levels
+        errs = []
+        for L in range(terrain.depth + 1):
+            cells = terrain.root_cells / 2 ** L
+            k = np.floor(pl.origin_cells / cells).astype(np.int64)
+            st = terrain.stats[L][2]
+            k[:, 0] = np.clip(k[:, 0], 0, st.shape[1] - 1)
+            k[:, 1] = np.clip(k[:, 1], 0, st.shape[0] - 1)
+            errs.append(st[k[:, 1], k[:, 0]].astype(np.float64))
+        spacing = np.array([terrain.root_cells / 2 ** L / terrain.tess for L in range(terrain.depth + 1)])
+        per_cam.append((raw, dist, np.stack(errs, 1), spacing, pl.size_cells.astype(np.float64)))
+
+    def softclamp(x, a, b, t=0.5):
+        return a + t * jax.nn.softplus((x - a) / t) - t * jax.nn.softplus((x - b) / t)
+
+    def model(log_target, temp, err_temp=0.25):
+        costs, errs = [], []
+        for raw, dist, gerr, spacing, size_cells in per_cam:
+            f = softclamp(jnp.asarray(raw) / jnp.exp(log_target), 1.0, 64.0, jnp.maximum(temp, 0.05))
+            inner_u = 0.5 * (f[:, 1] + f[:, 3])
+            inner_v = 0.5 * (f[:, 0] + f[:, 2])
+            costs.append(jnp.sum(2.0 * inner_u * inner_v))
+            s = jnp.asarray(size_cells) / jnp.maximum(0.5 * (inner_u + inner_v), 1.0)  # cells per segment
+            ls = jnp.log(jnp.asarray(spacing))
+            le = jnp.log(jnp.maximum(jnp.asarray(gerr), 1e-9))
+            # interpolate log error at log spacing (spacing decreases with level)
+            x = jnp.log(jnp.maximum(s, 1e-9))
+            e = jax.vmap(lambda xi, lei, lsr=ls[::-1]: jnp.interp(xi, lsr, lei[::-1]))(x, le)
+            sse = e + jnp.log(focal) - jnp.log(jnp.asarray(dist))  # log of the projected error, px
+            errs.append(err_temp * jax.scipy.special.logsumexp(sse / err_temp))
+        return jnp.mean(jnp.stack(costs)), jnp.max(jnp.stack(errs))
+
+    return model
+
+
+def plot_fit(result: FitResult, path, budgets_curve: list[tuple[float, float]] | None = None):
+    """fit.png: the relaxed optimisation (loss, cost, error proxy against iteration), the validation steps,
+    and, if given, the fitted cost against the budget."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from pathlib import Path
+
+    import matplotlib.pyplot as plt
+
+    from ..io.files import atomic_path
+
+    rel = [h for h in result.history if h.get("stage") == "relaxed"]
+    val = [h for h in result.history if h.get("stage") == "validate"]
+    n = 3 if budgets_curve else 2
+    fig, ax = plt.subplots(1, n, figsize=(5 * n, 4))
+    if rel:
+        it = [h["iter"] for h in rel]
+        ax[0].plot(it, [h["cost"] for h in rel], "o-", label="expected triangles")
+        ax[0].set_yscale("log")
+        a2 = ax[0].twinx()
+        a2.plot(it, [h["error_proxy_px"] for h in rel], "s--", color="C1", label="error proxy (px)")
+        a2.axhline(result.budget_px, color="C1", lw=0.8, ls=":")
+        ax[0].set_xlabel("iteration (relaxed, annealed)")
+        ax[0].set_title("relaxed fit")
+        ax[0].legend(loc="upper left", fontsize=8)
+        a2.legend(loc="upper right", fontsize=8)
+    if val:
+        ax[1].plot(range(len(val)), [h["worst_p99_px"] for h in val], "o-", label="exact worst-frame p99 (px)")
+        ax[1].axhline(result.budget_px, color="r", ls=":", label="budget")
+        ax[1].set_yscale("log")
+        ax[1].set_xlabel("exact validation")
+        ax[1].legend(fontsize=8)
+        ax[1].set_title(f"validation: {'met' if result.met else 'MISSED'}")
+    if budgets_curve:
+        b, c = zip(*budgets_curve)
+        ax[2].plot(b, c, "o-")
+        ax[2].set_xscale("log")
+        ax[2].set_yscale("log")
+        ax[2].set_xlabel("budget (px)")
+        ax[2].set_ylabel("fitted triangles per frame")
+        ax[2].set_title("cost against budget")
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p

@@ -1,0 +1,1 @@
+"""File I/O: images (OpenImageIO) and GeoTIFFs (rasterio). Nothing here knows about the pipeline's types."""

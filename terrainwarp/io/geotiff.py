@@ -1,0 +1,474 @@
+"""Real DEMs through rasterio (GDAL): GeoTIFF and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...).
+
+What a file's georeferencing becomes (every assumption is written into ``Heightmap.meta`` and the
+one-paragraph :func:`describe`):
+
+* Heights: band ``band`` (1-based, as in GDAL) of the file, ``raw * scale + offset`` from the band's
+  scale/offset tags, converted to metres when the band's unit tag names feet; no-data cells (the band's
+  nodata value, or its mask band) become NaN and are counted.
+* Spacing in metres: a projected CRS's pixel size in its linear unit times the unit's length in metres
+  (grid metres: the projection's scale factor is not applied); a geographic CRS's pixel size in degrees
+  converted at the latitude of the centre of the part read, on the CRS's own ellipsoid (dx shrinks with
+  cos(latitude), dz does not). A raster with a geotransform but no CRS: its pixel size taken as metres.
+  ``dx``/``dz`` given by the caller override all of this (and say so).
+* Orientation: row i of the heightmap runs along +z, which is south (x east, y up, z south is
+  right-handed). A north-up raster (negative y pixel size) is used as it is; a south-up one (positive y
+  pixel size) is flipped so that row 0 is its northern row, and an east-to-west one (negative x pixel size)
+  is mirrored so that column 0 is its western column. Rotated or sheared geotransforms are refused.
+* World origin: (0, 0) is the centre of the north-western sample read; ``meta["sample00_crs"]`` gives its
+  CRS coordinates.
+
+Large rasters: ``window`` (pixel rows/columns of the file) or ``bounds`` (CRS coordinates) read only that
+part, and ``decimate=k`` reads every k x k block as one sample (GDAL ``out_shape`` with ``resampling``,
+which uses the file's overviews when it has them), never the whole file.
+
+:func:`write_geotiff` writes a heightmap read here back as a GeoTIFF with its CRS, transform, nodata,
+scale/offset and dtype (int16, uint16 and float32 round trips are bit-exact).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import warnings
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .files import atomic_path
+
+if TYPE_CHECKING:
+    from ..heightmap import Heightmap
+
+__all__ = ["GDAL_EXTS", "describe", "is_gdal_raster", "is_georeferenced", "read_geotiff", "write_geotiff"]
+
+# Extensions always read through GDAL; .tif/.tiff only when the file carries georeferencing (plain TIFFs
+# stay with OpenImageIO, see Heightmap.load).
+GDAL_EXTS = (".vrt", ".img", ".asc", ".hgt", ".dem", ".bil", ".bt", ".ter", ".xyz", ".grd", ".nc", ".jp2")
+_TIFF_EXTS = (".tif", ".tiff", ".gtiff")
+
+# Vertical units (band unit tags) -> metres. Unknown units are reported and taken as metres.
+_VERTICAL_UNITS = {
+    "m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0,
+    "ft": 0.3048, "foot": 0.3048, "feet": 0.3048, "international foot": 0.3048,
+    "us survey foot": 1200.0 / 3937.0, "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0,
+    "us survey feet": 1200.0 / 3937.0,
+}
+_RESAMPLING = ("nearest", "average", "bilinear", "cubic", "cubic_spline", "lanczos", "mode", "min", "max",
+               "med", "rms")
+_SAVE_DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64")
+# Relative tolerance under which a transform's rotation/shear terms count as zero (float noise in files).
+_SHEAR_RTOL = 1e-12
+
+
+# -- helpers ---------------------------------------------------------------------------------------
+def _rasterio():
+    try:
+        import rasterio
+    except ImportError as e:  # pragma: no cover - rasterio is a dependency
+        raise ImportError("reading GeoTIFF/GDAL rasters needs rasterio: pip install rasterio") from e
+    return rasterio
+
+
+def _open(p: Path):
+    rasterio = _rasterio()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        try:
+            return rasterio.open(p)
+        except rasterio.errors.RasterioIOError as e:
+            raise ValueError(f"path: cannot read {p} as a GDAL raster: {e}") from e
+
+
+def is_gdal_raster(path: str | os.PathLike) -> bool:
+    """True when :meth:`Heightmap.load` should read ``path`` through rasterio: a GDAL-only extension, or a
+    TIFF that carries a CRS, a geotransform or ground control points (a GeoTIFF). Plain TIFFs, and
+    unreadable files, are False (left to OpenImageIO and its error messages)."""
+    p = Path(path)
+    ext = p.suffix.lower()
+    if ext in GDAL_EXTS:
+        return True
+    if ext not in _TIFF_EXTS:
+        return False
+    try:
+        with _open(p) as src:
+            return src.crs is not None or not src.transform.is_identity or bool(src.gcps[0])
+    except ValueError:
+        return False
+
+
+def _ellipsoid(crs) -> dict[str, Any]:
+    """(name, semi-major axis a in metres, inverse flattening) of a CRS's ellipsoid, parsed from its WKT;
+    WGS84 when the WKT does not name one."""
+    wkt = crs.to_wkt()
+    m = re.search(r'(?:SPHEROID|ELLIPSOID)\["([^"]*)",\s*([0-9.eE+-]+),\s*([0-9.eE+-]+)', wkt)
+    if m is None:
+        return {"name": "WGS 84 (assumed: the CRS names no ellipsoid)", "a": 6378137.0,
+                "inv_f": 298.257223563}
+    return {"name": m.group(1), "a": float(m.group(2)), "inv_f": float(m.group(3))}
+
+
+def _crs_name(crs) -> str:
+    try:
+        auth = crs.to_authority()
+    except Exception:  # noqa: BLE001 - some CRSs have no authority code
+        auth = None
+    m = re.match(r'\s*[A-Z_]+\["([^"]*)"', crs.to_wkt())
+    label = m.group(1) if m else crs.to_string()
+    return f"{label} ({auth[0]}:{auth[1]})" if auth else label
+
+
+def _int_arg(name: str, v: object, lo: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < lo:
+        raise ValueError(f"{name}: expected an integer >= {lo}, got {v!r}")
+    return int(v)
+
+
+def _pixel_window(src, window, bounds) -> tuple[int, int, int, int]:
+    """(row_off, col_off, height, width) in file pixels, inside the raster."""
+    H, W = src.height, src.width
+    if window is not None and bounds is not None:
+        raise ValueError("window: give a pixel window or bounds, not both")
+    if window is None and bounds is None:
+        return (0, 0, H, W)
+    if bounds is not None:
+        b = np.asarray(bounds, dtype=np.float64).reshape(-1)
+        if b.shape != (4,) or not np.all(np.isfinite(b)) or b[0] >= b[2] or b[1] >= b[3]:
+            raise ValueError(f"bounds: expected (left, bottom, right, top) in CRS units with left < right "
+                             f"and bottom < top, got {bounds!r}")
+        t = src.transform  # axis-aligned (checked by the caller)
+        cs = [(x - t.c) / t.a for x in (b[0], b[2])]
+        rs = [(y - t.f) / t.e for y in (b[1], b[3])]
+        # cells that the bounds touch (a cell is kept when any part of it lies inside; 1e-9 px of slack)
+        r0, r1 = math.floor(min(rs) + 1e-9), math.ceil(max(rs) - 1e-9)
+        c0, c1 = math.floor(min(cs) + 1e-9), math.ceil(max(cs) - 1e-9)
+        r0, c0, r1, c1 = max(r0, 0), max(c0, 0), min(r1, H), min(c1, W)
+        if r1 <= r0 or c1 <= c0:
+            raise ValueError(f"bounds: {tuple(float(v) for v in b)} does not overlap the raster "
+                             f"{tuple(float(v) for v in src.bounds)}")
+        return (r0, c0, r1 - r0, c1 - c0)
+    if hasattr(window, "row_off"):  # a rasterio Window
+        rw = (window.row_off, window.col_off, window.height, window.width)
+    else:
+        try:
+            (ra, rb), (ca, cb) = window
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"window: expected ((row_start, row_stop), (col_start, col_stop)) or a "
+                             f"rasterio Window, got {window!r}") from e
+        rw = (ra, ca, rb - ra, cb - ca)
+    if not all(isinstance(v, int | np.integer) or float(v).is_integer() for v in rw):
+        raise ValueError(f"window: expected whole pixels, got {window!r}")
+    r0, c0, h, w = (int(v) for v in rw)
+    if r0 < 0 or c0 < 0 or h <= 0 or w <= 0 or r0 + h > H or c0 + w > W:
+        raise ValueError(f"window: expected a non-empty window inside the {H}x{W} raster, got rows "
+                         f"[{r0}, {r0 + h}) and columns [{c0}, {c0 + w})")
+    return (r0, c0, h, w)
+
+
+# -- reading ---------------------------------------------------------------------------------------
+def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = None, bounds: object = None,
+                 decimate: int = 1, resampling: str = "average", dx: float | None = None,
+                 dz: float | None = None) -> Heightmap:
+    """Read a GeoTIFF (or any GDAL raster) as a :class:`Heightmap` in metres, north-up.
+
+    Args:
+        path: the raster file.
+        band: 1-based band number.
+        window: ``((row_start, row_stop), (col_start, col_stop))`` in file pixels, or a rasterio
+            ``Window``; only these pixels are read.
+        bounds: ``(left, bottom, right, top)`` in the CRS's units; every cell they touch is read.
+        decimate: read every ``decimate`` x ``decimate`` block of the window as one sample (rows and columns
+            past the last whole block are dropped); spacing grows by this factor.
+        resampling: how GDAL makes one sample from a block: ``"average"`` (default; the block mean, no-data
+            cells left out), ``"nearest"``, ``"bilinear"``, ... (a ``rasterio.enums.Resampling`` name).
+        dx, dz: spacing in metres overriding the one derived from the georeferencing.
+
+    Returns:
+        Heightmap with ``heights`` (H, W) float32 metres (NaN at no-data), row 0 the northern row, spacing
+        ``dx`` (east-west) and ``dz`` (north-south) in metres, origin (0, 0), and ``meta`` holding the CRS
+        (WKT), the transform of the part read (file orientation), nodata, scale/offset, dtype, the flips,
+        the latitude used for a geographic CRS, and ``meta["summary"]`` (:func:`describe`).
+
+    Raises:
+        ValueError: unreadable file, bad band/window/bounds/decimate, a rotated or sheared transform, a
+            window that holds only no-data.
+    """
+    from affine import Affine
+    from rasterio.enums import MaskFlags, Resampling
+    from rasterio.windows import Window
+
+    from ..heightmap import Heightmap, metres_per_degree
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"path: no such file: {p}")
+    k = _int_arg("decimate", decimate, 1)
+    if resampling not in _RESAMPLING:
+        raise ValueError(f"resampling: expected one of {list(_RESAMPLING)}, got {resampling!r}")
+    with _open(p) as src:
+        b = _int_arg("band", band, 1)
+        if b > src.count:
+            raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
+        t = src.transform
+        if t.is_identity and src.gcps[0]:
+            raise ValueError(f"path: {p} is georeferenced by {len(src.gcps[0])} ground control points, not "
+                             "a geotransform; resample it onto a grid first, e.g. `gdalwarp -t_srs <CRS> "
+                             "in.tif out.tif`")
+        scale_ref = max(abs(t.a), abs(t.e))
+        if abs(t.b) > _SHEAR_RTOL * scale_ref or abs(t.d) > _SHEAR_RTOL * scale_ref:  # b, d below: 0
+            raise ValueError(
+                f"path: {p} has a rotated or sheared geotransform (row/column terms b={t.b!r}, d={t.d!r}); "
+                "terrainwarp needs a grid aligned with east and north: resample it first, e.g. "
+                "`gdalwarp -t_srs <its CRS> in.tif north_up.tif`")
+        if t.a == 0.0 or t.e == 0.0:
+            raise ValueError(f"path: {p} has a degenerate geotransform (pixel size {t.a}, {t.e})")
+        georef = src.crs is not None or not t.is_identity
+        r0, c0, h, w = _pixel_window(src, window, bounds)
+        n, m = h // k, w // k
+        if n < 1 or m < 1:
+            raise ValueError(f"decimate: {k} leaves no sample of the {h}x{w} window")
+        win = Window(c0, r0, m * k, n * k)
+        rs = getattr(Resampling, resampling)
+        raw = src.read(b, window=win, out_shape=(n, m), resampling=rs) if k > 1 else src.read(b, window=win)
+        dtype = np.dtype(src.dtypes[b - 1])
+        nodata = src.nodatavals[b - 1]
+        if nodata is not None and not np.issubdtype(dtype, np.floating) and not math.isfinite(nodata):
+            nodata = None  # a NaN/inf nodata tag on an integer band matches no cell
+        flags = src.mask_flag_enums[b - 1]
+        if nodata is not None:
+            nd = np.asarray(nodata).astype(dtype)
+            holes = np.isnan(raw) if np.isnan(nd) else (raw == nd)
+        elif MaskFlags.all_valid not in flags:  # a mask band or alpha
+            mk = src.read_masks(b, window=win, out_shape=(n, m), resampling=Resampling.nearest) if k > 1 \
+                else src.read_masks(b, window=win)
+            holes = mk == 0
+        else:
+            holes = np.zeros(raw.shape, dtype=bool)
+        if np.issubdtype(dtype, np.floating):
+            holes |= np.isnan(raw)
+        scale = float(src.scales[b - 1] if src.scales[b - 1] is not None else 1.0)
+        offset = float(src.offsets[b - 1] if src.offsets[b - 1] is not None else 0.0)
+        unit = (src.units[b - 1] or "").strip()
+        crs = src.crs
+        area_or_point = src.tags().get("AREA_OR_POINT", "Area")
+        driver = src.driver
+        full_shape = (src.height, src.width)
+        count = src.count
+        tw = Affine(t.a * k, 0.0, t.c + t.a * c0, 0.0, t.e * k, t.f + t.e * r0)  # of the samples read
+    n_holes = int(holes.sum())
+    if n_holes == raw.size:
+        raise ValueError(f"path: every cell of band {b} in the part read of {p} is no-data ({nodata})")
+
+    vf = _VERTICAL_UNITS.get(unit.lower(), 1.0)
+    notes: list[str] = []
+    if unit and unit.lower() not in _VERTICAL_UNITS:
+        notes.append(f"unknown vertical unit {unit!r}: values taken as metres")
+    h64 = (raw.astype(np.float64) * scale + offset) * vf
+    h64[holes] = np.nan
+
+    # spacing
+    px, py = abs(tw.a), abs(tw.e)  # CRS units per sample
+    cx, cy = tw.c + tw.a * m / 2.0, tw.f + tw.e * n / 2.0  # centre of the part read, CRS coordinates
+    meta: dict[str, Any] = {}
+    if crs is not None and crs.is_geographic:
+        ell = _ellipsoid(crs)
+        to_deg = crs.units_factor[1] * 180.0 / math.pi  # CRS angular unit -> degrees
+        f = 1.0 / ell["inv_f"] if ell["inv_f"] else 0.0
+        lat = cy * to_deg
+        if not -90.0 < lat < 90.0:
+            raise ValueError(f"path: {p}: the centre latitude {lat} deg is outside (-90, 90)")
+        mlon, mlat = metres_per_degree(lat, a=ell["a"], f=f)
+        sdx, sdz = px * to_deg * mlon, py * to_deg * mlat
+        lat_n = max(min(tw.f * to_deg, 89.999999), -89.999999)
+        lat_s = max(min((tw.f + tw.e * n) * to_deg, 89.999999), -89.999999)
+        var = [metres_per_degree(v, a=ell["a"], f=f)[0] / mlon for v in (lat_n, lat_s)]
+        meta.update(crs_kind="geographic", latitude_deg=lat, ellipsoid=ell,
+                    spacing_deg=[px * to_deg, py * to_deg],
+                    dx_variation=[min(var), max(var)])
+        spacing_how = (f"geographic CRS: {px * to_deg:.6g} x {py * to_deg:.6g} deg converted at the centre "
+                       f"latitude {lat:.5f} deg on the {ell['name']} ellipsoid (a={ell['a']:.3f} m, "
+                       f"1/f={ell['inv_f']:.12g}); the true east-west spacing varies from "
+                       f"{min(var) * sdx:.4g} to {max(var) * sdx:.4g} m across the rows")
+    elif crs is not None:
+        try:
+            lu, lf = crs.linear_units_factor
+        except Exception as e:  # noqa: BLE001 - rasterio raises CRSError for unknown units
+            raise ValueError(f"path: {p}: cannot tell the linear unit of its CRS {crs.to_string()!r}; "
+                             "pass dx and dz in metres") from e
+        sdx, sdz = px * lf, py * lf
+        meta.update(crs_kind="projected", linear_unit=lu, linear_unit_m=lf)
+        spacing_how = (f"projected CRS: {px:.6g} x {py:.6g} {lu} (x {lf:.12g} m) grid metres; the "
+                       "projection's scale factor is not applied")
+    elif georef:
+        sdx, sdz = px, py
+        meta.update(crs_kind="none")
+        spacing_how = f"no CRS: the pixel size {px:.6g} x {py:.6g} taken as metres"
+    else:
+        sdx, sdz = 1.0, 1.0
+        meta.update(crs_kind="none")
+        spacing_how = "no georeferencing: spacing 1 m"
+    if dx is not None or dz is not None:  # as in Heightmap.load: dz defaults to dx
+        sdx, sdz = (float(dx), float(dz if dz is not None else dx)) if dx is not None else (sdx, float(dz))
+        spacing_how += f"; overridden by the caller to dx={sdx:.6g}, dz={sdz:.6g} m"
+
+    # orientation: row 0 north, column 0 west
+    flip_rows = georef and tw.e > 0
+    flip_cols = georef and tw.a < 0
+    if flip_rows:
+        h64 = h64[::-1]
+    if flip_cols:
+        h64 = h64[:, ::-1]
+    i00 = n - 1 if flip_rows else 0
+    j00 = m - 1 if flip_cols else 0
+    s00 = (tw.c + tw.a * (j00 + 0.5), tw.f + tw.e * (i00 + 0.5))
+
+    meta.update(
+        source=str(p), driver=driver, band=b, band_count=count,
+        crs=crs.to_wkt() if crs is not None else None,
+        crs_name=_crs_name(crs) if crs is not None else None,
+        transform=[tw.a, tw.b, tw.c, tw.d, tw.e, tw.f],
+        raster_shape=[int(full_shape[0]), int(full_shape[1])],
+        window=[r0, c0, n * k, m * k], decimate=k, resampling=resampling if k > 1 else None,
+        source_dtype=str(dtype), nodata=None if nodata is None else float(nodata), nodata_count=n_holes,
+        scale=scale, offset=offset, vertical_unit=unit or None, vertical_unit_m=vf,
+        area_or_point=area_or_point, flipped_rows=bool(flip_rows), flipped_cols=bool(flip_cols),
+        sample00_crs=[float(s00[0]), float(s00[1])], centre_crs=[float(cx), float(cy)],
+        spacing_note=spacing_how, notes=notes,
+    )
+    hm = Heightmap.from_array(h64, sdx, sdz, allow_nan=True, name=p.stem, meta=meta)
+    hm.meta["summary"] = describe(hm)
+    return hm
+
+
+def describe(hm: Heightmap) -> str:
+    """One paragraph saying what was read and every assumption made (for the CLI and reports)."""
+    mt = hm.meta
+    H, W = hm.shape
+    parts = [f"{mt.get('source', hm.name)}: {H} x {W} samples"]
+    if mt.get("band_count") is not None:
+        parts[0] += (f" from band {mt['band']} of {mt['band_count']} ({mt.get('driver')}, "
+                     f"{mt.get('source_dtype')})")
+    rs = mt.get("raster_shape")
+    win = mt.get("window")
+    if rs and win and (win != [0, 0, rs[0], rs[1]] or mt.get("decimate", 1) > 1):
+        parts.append(f"window rows {win[0]}..{win[0] + win[2]}, columns {win[1]}..{win[1] + win[3]} of "
+                     f"{rs[0]} x {rs[1]}" + (f", decimated {mt['decimate']}x by {mt['resampling']}"
+                                             if mt.get("decimate", 1) > 1 else ""))
+    parts.append(f"CRS {mt.get('crs_name') or 'none'}")
+    if "spacing_note" in mt:
+        parts.append(f"spacing dx={hm.dx:.6g} m, dz={hm.dz:.6g} m ({mt['spacing_note']})")
+    else:
+        parts.append(f"spacing dx={hm.dx:.6g} m, dz={hm.dz:.6g} m")
+    if mt.get("scale", 1.0) != 1.0 or mt.get("offset", 0.0) != 0.0:
+        parts.append(f"heights = raw x {mt['scale']:.9g} + {mt['offset']:.9g}")
+    if mt.get("vertical_unit"):
+        parts.append(f"vertical unit {mt['vertical_unit']!r} (x {mt.get('vertical_unit_m', 1.0):.9g} m)")
+    parts.append(f"{mt.get('nodata_count', int(np.isnan(hm.heights).sum()))} no-data cells as NaN holes"
+                 + (f" (nodata value {mt['nodata']:.9g})" if mt.get("nodata") is not None else ""))
+    flips = [s for s, on in (("rows flipped (the file is south-up)", mt.get("flipped_rows")),
+                             ("columns mirrored (the file runs east to west)", mt.get("flipped_cols"))) if on]
+    parts.append("; ".join(flips) if flips
+                 else "north-up as stored: row i along +z (south), column j along +x (east)")
+    if "sample00_crs" in mt:
+        parts.append(f"world (0, 0) is the sample centred at CRS ({mt['sample00_crs'][0]:.10g}, "
+                     f"{mt['sample00_crs'][1]:.10g})")
+    lo, hi = hm.height_range
+    parts.append(f"heights {lo:.6g}..{hi:.6g} m")
+    parts.extend(mt.get("notes", []))
+    return "; ".join(parts) + "."
+
+
+# -- writing ---------------------------------------------------------------------------------------
+def is_georeferenced(meta: dict) -> bool:
+    """True when ``meta`` came from :func:`read_geotiff` (it holds a transform to write back)."""
+    return isinstance(meta, dict) and "transform" in meta and "crs" in meta
+
+
+def _encode(h: np.ndarray, dtype: np.dtype, scale: float, offset: float, vf: float,
+            nodata: float | None) -> np.ndarray | None:
+    """Raw values of ``dtype`` whose decoding (as :func:`read_geotiff` does it) gives back ``h`` bit for
+    bit, or None when there are none."""
+    holes = np.isnan(h)
+    if holes.any() and nodata is None and not np.issubdtype(dtype, np.floating):
+        return None
+    raw64 = (h.astype(np.float64) / vf - offset) / scale
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        raw64 = np.round(raw64)
+        fin = ~holes
+        if fin.any() and (raw64[fin].min() < info.min or raw64[fin].max() > info.max):
+            return None
+    with np.errstate(invalid="ignore"):
+        raw = np.where(holes, 0, raw64).astype(dtype)
+    back = ((raw.astype(np.float64) * scale + offset) * vf).astype(np.float32)
+    ok = np.array_equal(back[~holes], h[~holes])
+    if nodata is not None:
+        nd = np.asarray(nodata).astype(dtype)
+        raw = np.where(holes, nd, raw).astype(dtype)
+        if not (np.isnan(nd) if np.issubdtype(dtype, np.floating) else False):
+            ok = ok and not np.any(raw[~holes] == nd)  # a real height must not read back as no-data
+    elif holes.any():
+        raw = np.where(holes, np.nan, raw).astype(dtype)
+    return raw if ok else None
+
+
+def write_geotiff(hm: Heightmap, path: str | os.PathLike) -> Path:
+    """Write ``hm`` as a single-band GeoTIFF with the CRS, transform, nodata, scale/offset, unit and dtype
+    it was read with (``hm.meta`` from :func:`read_geotiff`), in the file's original row/column order.
+
+    Heights that the source dtype cannot hold exactly (edited heightmaps) are written as float32 metres
+    (scale 1, offset 0), nodata NaN where there are holes. Written to a temporary name, then renamed.
+    """
+    rasterio = _rasterio()
+    from affine import Affine
+
+    mt = hm.meta
+    if not is_georeferenced(mt):
+        raise ValueError("hm: its meta holds no georeferencing (not read by read_geotiff)")
+    p = Path(path)
+    H, W = hm.shape
+    win = mt.get("window")
+    if win is not None and (H, W) != (win[2] // mt.get("decimate", 1), win[3] // mt.get("decimate", 1)):
+        raise ValueError(f"hm: shape {hm.shape} differs from the {win[2] // mt.get('decimate', 1)} x "
+                         f"{win[3] // mt.get('decimate', 1)} raster its georeferencing describes; build a "
+                         "Heightmap without that meta to save it as a plain TIFF")
+    h = hm.heights
+    if mt.get("flipped_rows"):
+        h = h[::-1]
+    if mt.get("flipped_cols"):
+        h = h[:, ::-1]
+    h = np.ascontiguousarray(h)
+    dtype = np.dtype(mt.get("source_dtype", "float32"))
+    if str(dtype) not in _SAVE_DTYPES:
+        dtype = np.dtype(np.float32)
+    scale, offset = float(mt.get("scale", 1.0)), float(mt.get("offset", 0.0))
+    vf = float(mt.get("vertical_unit_m", 1.0))
+    unit = mt.get("vertical_unit")
+    nodata = mt.get("nodata")
+    raw = _encode(h, dtype, scale, offset, vf, nodata)
+    if raw is None:  # fall back to float32 metres
+        dtype, scale, offset, vf, unit = np.dtype(np.float32), 1.0, 0.0, 1.0, "m"
+        if np.isnan(h).any() and (nodata is None or not np.isfinite(np.float32(nodata))
+                                  or np.any(h == np.float32(nodata))):
+            nodata = float("nan")
+        raw = _encode(h, dtype, scale, offset, vf, nodata)
+        assert raw is not None
+    profile = dict(driver="GTiff", width=W, height=H, count=1, dtype=str(dtype),
+                   crs=rasterio.crs.CRS.from_wkt(mt["crs"]) if mt.get("crs") else None,
+                   transform=Affine(*mt["transform"]), nodata=nodata, compress="deflate",
+                   BIGTIFF="IF_SAFER")
+    if H >= 512 and W >= 512:
+        profile.update(tiled=True, blockxsize=256, blockysize=256)
+    with atomic_path(p) as tmp:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(tmp, "w", **profile) as dst:
+                dst.write(raw, 1)
+                if scale != 1.0 or offset != 0.0:
+                    dst.scales = (scale,)
+                    dst.offsets = (offset,)
+                if unit:
+                    dst.units = (unit,)
+    return p

@@ -1,0 +1,670 @@
+"""Quadtree LOD selection: terrain pyramids, policies, hysteresis, 2:1 balance, neighbours, edge factors
+and frustum culling.
+
+The quadtree has a grid of ``nx x nz`` root nodes (deaconu2021 tests 4, 16, 32 and 64 roots). Every
+node is a square patch of ``S_L = S_0 / 2**L`` heightmap cells, tessellated with level ``T`` (its own
+resolution: T segments per side). ``S_0 = T * 2**D`` is chosen so that the deepest level D draws one
+vertex per heightmap sample and the roots cover the grid; parts of patches beyond the grid are
+clamped to its border by the displacement stage.
+
+Keys follow the zoom/x/y tile scheme of malafeev2014 (figures 6-7): ``zoom`` is the level, ``x`` the
+column of the tile among the ``nx * 2**zoom`` of its level, ``y`` the row (along +z). They pack into one
+int64 (``zoom << 58 | y << 29 | x``) and round-trip (:func:`tile_key`, :func:`tile_from_key`).
+
+Selection runs level by level: one kernel launch evaluates every candidate node of a level (distance,
+frustum, policy), children of split nodes become the next level's candidates. Then the tree is made
+**restricted** (2:1 balanced): a leaf with a neighbour more than one level finer is split, repeated
+until stable. We chose the restricted tree over the unrestricted O(log n) parent/child search of
+deaconu2021 ("Finding edges at the border") because the edge-factor rule (double the factor toward a
+finer neighbour) is only crack-free when neighbours differ by at most one level. Neighbour levels are
+then found by an O(log n) search all the same: leaves are sorted by the Morton code of their first
+finest-level cell (a quadtree node covers a contiguous Morton range), and the leaf containing a probe
+cell just across an edge is found with one binary search.
+
+Edge factors: with a constant tessellation level T, every edge gets T, and an edge whose neighbour is
+finer gets 2T (deaconu2021, "Finding edges at the border", figure 7), so both sides place the same
+vertices; hence T <= 32. Continuous factors (for fractional spacing) are computed per edge from the
+edge's own endpoints only (length / distance of the edge midpoint), so the two patches that share an
+edge compute the same value bit for bit; they are offered on a single-level patch grid
+(:class:`ContinuousPolicy`), where no level change breaks the vertex match.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from ..camera import Camera, relative_origin
+from ..heightmap import Heightmap
+
+__all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "PatchList", "LodState",
+           "NodeMetrics", "node_metrics",
+           "select", "tile_key", "tile_from_key", "tile_name", "MAX_TESS"]
+
+MAX_TESS = 64  # the hardware's maximum tessellation level
+_ZOOM_SHIFT = 58
+_Y_SHIFT = 29
+_MASK29 = (1 << 29) - 1
+
+
+# ------------------------------------------------------------------------------------------------
+# keys
+# ------------------------------------------------------------------------------------------------
+def tile_key(zoom, x, y):
+    """Pack zoom/x/y tile coordinates (scalars or arrays) into int64 keys."""
+    z = np.asarray(zoom, dtype=np.int64)
+    xx = np.asarray(x, dtype=np.int64)
+    yy = np.asarray(y, dtype=np.int64)
+    if np.any(z < 0) or np.any(z > 31) or np.any(xx < 0) or np.any(yy < 0) or np.any(xx > _MASK29) \
+            or np.any(yy > _MASK29):
+        raise ValueError("tile_key: expected 0 <= zoom <= 31 and 0 <= x, y < 2**29")
+    k = (z << _ZOOM_SHIFT) | (yy << _Y_SHIFT) | xx
+    return k if k.ndim else int(k)
+
+
+def tile_from_key(key):
+    """Inverse of :func:`tile_key`: (zoom, x, y)."""
+    k = np.asarray(key, dtype=np.int64)
+    z, x, y = k >> _ZOOM_SHIFT, k & _MASK29, (k >> _Y_SHIFT) & _MASK29
+    if k.ndim == 0:
+        return int(z), int(x), int(y)
+    return z, x, y
+
+
+def tile_name(key: int) -> str:
+    """The ``zoom/x/y`` name of a key (as in an OSM tile URL)."""
+    z, x, y = tile_from_key(int(key))
+    return f"{z}/{x}/{y}"
+
+
+# ------------------------------------------------------------------------------------------------
+# terrain (precomputed once per heightmap)
+# ------------------------------------------------------------------------------------------------
+def _roots_shape(roots: int | tuple[int, int], shape: tuple[int, int]) -> tuple[int, int]:
+    if isinstance(roots, tuple | list):
+        nx, nz = (int(roots[0]), int(roots[1]))
+    else:
+        if isinstance(roots, bool) or not isinstance(roots, int | np.integer):
+            raise TypeError(f"roots: expected an int or (nx, nz), got {roots!r}")
+        n = int(roots)
+        if n < 1:
+            raise ValueError(f"roots: expected >= 1 root nodes, got {n}")
+        # the factorisation nx * nz = n closest to the grid's aspect ratio (wider along the longer axis)
+        aspect = (shape[1] - 1) / max(shape[0] - 1, 1)
+        best = min(((a, n // a) for a in range(1, n + 1) if n % a == 0),
+                   key=lambda p: abs(math.log(p[0] / p[1]) - math.log(max(aspect, 1e-9))))
+        nx, nz = best
+    if nx < 1 or nz < 1:
+        raise ValueError(f"roots: expected positive counts, got {(nx, nz)}")
+    return nx, nz
+
+
+@dataclass(frozen=True, eq=False)
+class Terrain:
+    """A heightmap prepared for LOD selection: the quadtree layout and per-node pyramids.
+
+    Attributes:
+        heightmap: the source.
+        roots: (nx, nz) root nodes.
+        tess: tessellation level T of every patch (its own resolution).
+        depth: deepest level D.
+        root_cells: S_0, the side of a root node in cells.
+        stats: per level (min, max, geometric error) arrays of shape (nz * 2**L, nx * 2**L) float32.
+        time_ms: time spent building the pyramids.
+    """
+
+    heightmap: Heightmap
+    roots: tuple[int, int]
+    tess: int
+    depth: int
+    root_cells: float
+    stats: list = field(repr=False)
+    time_ms: float = 0.0
+    _dev: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def prepare(cls, heightmap: Heightmap, roots: int | tuple[int, int] = 16, tess: int = 32,
+                depth: int | None = None, device: str = "cpu") -> Terrain:
+        """Build the quadtree layout and its min/max/geometric-error pyramids (Warp kernels).
+
+        Args:
+            roots: number of root nodes (factorised to the grid's aspect) or (nx, nz).
+            tess: tessellation level T of every patch, 1..64.
+            depth: deepest level; default: the smallest D with roots * T * 2**D cells covering the grid
+                (one vertex per sample at level D).
+        """
+        import time
+
+        from ..kernels.pyramid import node_stats
+
+        if not isinstance(heightmap, Heightmap):
+            raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
+        if isinstance(tess, bool) or not isinstance(tess, int | np.integer) or not 1 <= int(tess) <= MAX_TESS:
+            raise ValueError(f"tess: expected an integer level in 1..{MAX_TESS}, got {tess!r}")
+        hh, ww = heightmap.shape
+        nx, nz = _roots_shape(roots, (hh, ww))
+        need = max((ww - 1) / nx, (hh - 1) / nz, 1e-9)
+        if depth is None:
+            depth = max(0, math.ceil(math.log2(max(need / tess, 1.0)) - 1e-12))
+        if isinstance(depth, bool) or not isinstance(depth, int | np.integer) or not 0 <= int(depth) <= 20:
+            raise ValueError(f"depth: expected an integer in 0..20, got {depth!r}")
+        depth = int(depth)
+        root_cells = float(tess) * 2.0 ** depth
+        if root_cells < need:  # an explicit, too-small depth: grow the patches to cover the grid
+            root_cells = need
+        t0 = time.perf_counter()
+        stats = node_stats(heightmap.heights, (nx, nz), root_cells, depth, int(tess), device=device)
+        return cls(heightmap, (nx, nz), int(tess), depth, root_cells, stats, (time.perf_counter() - t0) * 1e3)
+
+    @property
+    def n_leaves_full(self) -> int:
+        """Leaves of the complete tree (every node split to depth D)."""
+        return self.roots[0] * self.roots[1] * 4 ** self.depth
+
+    def node_size_world(self, level: int) -> tuple[float, float]:
+        s = self.root_cells / 2.0 ** level
+        return (s * self.heightmap.dx, s * self.heightmap.dz)
+
+    def device_stats(self, level: int, device: str = "cpu"):
+        import warp as wp
+
+        k = (level, device)
+        if k not in self._dev:
+            self._dev[k] = tuple(wp.array(a, dtype=wp.float32, device=device) for a in self.stats[level])
+        return self._dev[k]
+
+    def inside(self, level: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """True for nodes whose origin lies inside the sample grid (others are never drawn)."""
+        return _inside_many(self, np.full(len(x), level), x, y)
+
+
+# ------------------------------------------------------------------------------------------------
+# policies
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DistancePolicy:
+    """Split while the distance from the eye to the node's box is below the level's threshold
+    (deaconu2021 "Rendering"). ``thresholds[L]`` in metres; default ``k * node_size(L)``."""
+
+    k: float = 2.0
+    thresholds: tuple[float, ...] | None = None
+    hysteresis: float = 0.0
+    code: int = 0
+
+    def threshold(self, terrain: Terrain, level: int) -> float:
+        if self.thresholds is not None:
+            if level >= len(self.thresholds):
+                return 0.0
+            return float(self.thresholds[level])
+        return self.k * max(terrain.node_size_world(level))
+
+
+@dataclass(frozen=True)
+class ScreenErrorPolicy:
+    """Split while the projected geometric error exceeds ``tolerance_px`` pixels (malafeev2014; Cesium's
+    maximumScreenSpaceError): ``sse = geometric_error * focal_px / dist``."""
+
+    tolerance_px: float = 1.0
+    hysteresis: float = 0.0
+    code: int = 1
+
+    def threshold(self, terrain: Terrain, level: int) -> float:
+        return float(self.tolerance_px)
+
+
+@dataclass(frozen=True)
+class ContinuousPolicy:
+    """Every node of one ``level`` (a uniform patch grid), frustum-culled, with continuous per-edge
+    factors ``clamp(edge_length * focal_px / dist(eye, edge midpoint) / target_px, 1, 64)`` for
+    fractional spacing (one factor per edge, computed from the edge's own endpoints)."""
+
+    target_px: float = 8.0
+    level: int = 0
+    hysteresis: float = 0.0
+    code: int = 2
+
+    def threshold(self, terrain: Terrain, level: int) -> float:
+        return 0.0
+
+
+def _check_policy(policy: object) -> None:
+    if not isinstance(policy, DistancePolicy | ScreenErrorPolicy | ContinuousPolicy):
+        raise TypeError(f"policy: expected DistancePolicy, ScreenErrorPolicy or ContinuousPolicy, got "
+                        f"{type(policy).__name__}")
+    h = policy.hysteresis
+    if not (math.isfinite(h) and 0.0 <= h < 1.0):
+        raise ValueError(f"hysteresis: expected a band in [0, 1), got {h}")
+    if isinstance(policy, ScreenErrorPolicy) and not (math.isfinite(policy.tolerance_px) and policy.tolerance_px > 0):
+        raise ValueError(f"tolerance_px: expected a positive finite number of pixels, got {policy.tolerance_px}")
+    if isinstance(policy, DistancePolicy):
+        if not (math.isfinite(policy.k) and policy.k >= 0):
+            raise ValueError(f"k: expected a finite number >= 0, got {policy.k}")
+        if policy.thresholds is not None and not all(math.isfinite(t) and t >= 0 for t in policy.thresholds):
+            raise ValueError("thresholds: expected finite distances >= 0 in metres")
+    if isinstance(policy, ContinuousPolicy):
+        if not (math.isfinite(policy.target_px) and policy.target_px > 0):
+            raise ValueError(f"target_px: expected a positive number of pixels per edge, got {policy.target_px}")
+        if policy.level < 0:
+            raise ValueError(f"level: expected >= 0, got {policy.level}")
+
+
+# ------------------------------------------------------------------------------------------------
+# selection result
+# ------------------------------------------------------------------------------------------------
+class PatchList(NamedTuple):
+    """The selected, visible patches of a frame as a structure of arrays (P patches).
+
+    Attributes:
+        level: (P,) int32 quadtree level.
+        key: (P,) int64 zoom/x/y key.
+        origin: (P, 2) float64 world (x, z) of the patch's corner (u = v = 0).
+        size: (P, 2) float64 world extent (x, z).
+        origin_cells: (P, 2) float32 (column, row) of the corner in heightmap samples.
+        size_cells: (P,) float32 side in cells.
+        outer: (P, 4) float32 outer tessellation levels, OpenGL order (u=0, v=0, u=1, v=1 edges:
+            west, north, east, south).
+        inner: (P, 2) float32 inner levels (along u = x, along v = z).
+        neighbour_level: (P, 4) int32 level of the leaf across each edge (-1: terrain border).
+        distance: (P,) float32 eye-to-box distance, metres.
+        metric: (P,) float32 what the policy compared: distance (m) or screen error (px).
+        geometric_error: (P,) float32 metres.
+        stats: counters (nodes visited, leaves, culled, forced splits, ...).
+    """
+
+    level: np.ndarray
+    key: np.ndarray
+    origin: np.ndarray
+    size: np.ndarray
+    origin_cells: np.ndarray
+    size_cells: np.ndarray
+    outer: np.ndarray
+    inner: np.ndarray
+    neighbour_level: np.ndarray
+    distance: np.ndarray
+    metric: np.ndarray
+    geometric_error: np.ndarray
+    stats: dict
+
+    def __len__(self) -> int:  # type: ignore[override]
+        return int(self.level.shape[0])
+
+    def to_csv(self, path) -> None:
+        from ..io.files import write_text
+
+        head = ("key,zoom_x_y,level,origin_x,origin_z,size_x,size_z,outer0,outer1,outer2,outer3,inner0,inner1,"
+                "nbr0,nbr1,nbr2,nbr3,distance,metric,geometric_error")
+        lines = [head]
+        for i in range(len(self)):
+            lines.append(",".join([str(int(self.key[i])), tile_name(int(self.key[i])), str(int(self.level[i])),
+                                   *(f"{v:.6f}" for v in self.origin[i]), *(f"{v:.6f}" for v in self.size[i]),
+                                   *(f"{v:g}" for v in self.outer[i]), *(f"{v:g}" for v in self.inner[i]),
+                                   *(str(int(v)) for v in self.neighbour_level[i]),
+                                   f"{self.distance[i]:.6g}", f"{self.metric[i]:.6g}",
+                                   f"{self.geometric_error[i]:.6g}"]))
+        write_text(path, "\n".join(lines) + "\n")
+
+
+@dataclass
+class LodState:
+    """What persists between frames for hysteresis: the sorted keys of the previous frame's split
+    nodes. The caller holds it and passes it to :func:`select` frame after frame."""
+
+    split_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frames: int = 0
+
+
+# ------------------------------------------------------------------------------------------------
+# Morton helpers (host, vectorised)
+# ------------------------------------------------------------------------------------------------
+def _part1by1(v: np.ndarray) -> np.ndarray:
+    v = v.astype(np.uint64) & np.uint64(0xFFFFFFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x0000FFFF0000FFFF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x00FF00FF00FF00FF)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x3333333333333333)
+    v = (v | (v << np.uint64(1))) & np.uint64(0x5555555555555555)
+    return v
+
+
+def _finest_code(fx: np.ndarray, fy: np.ndarray, depth: int, nx: int) -> np.ndarray:
+    """Global ordering key of finest-level cells: root index (row-major) then Morton code in the root."""
+    r = (fy >> depth).astype(np.uint64) * np.uint64(nx) + (fx >> depth).astype(np.uint64)
+    mask = (1 << depth) - 1
+    m = _part1by1(fx & mask) | (_part1by1(fy & mask) << np.uint64(1))
+    return (r << np.uint64(2 * depth)) | m
+
+
+class _Leaves:
+    """The leaves of the tree sorted by their first finest-level cell, for O(log n) point location."""
+
+    def __init__(self, level, x, y, depth, nx, nz):
+        shift = depth - level
+        self.fx0 = (x.astype(np.int64) << shift)
+        self.fy0 = (y.astype(np.int64) << shift)
+        self.size = (np.int64(1) << shift.astype(np.int64))
+        code = _finest_code(self.fx0, self.fy0, depth, nx)
+        order = np.argsort(code, kind="stable")
+        self.order = order
+        self.code = code[order]
+        self.level = level
+        self.depth, self.nx, self.nz = depth, nx, nz
+
+    def locate(self, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
+        """Index (into the unsorted leaf arrays) of the leaf containing each finest cell; -1 outside."""
+        n_fx, n_fy = self.nx << self.depth, self.nz << self.depth
+        ok = (fx >= 0) & (fy >= 0) & (fx < n_fx) & (fy < n_fy)
+        out = np.full(fx.shape, -1, np.int64)
+        if ok.any():
+            c = _finest_code(fx[ok], fy[ok], self.depth, self.nx)
+            pos = np.searchsorted(self.code, c, side="right") - 1
+            out[ok] = self.order[pos]
+        return out
+
+    def neighbour_levels(self, leaf_level: np.ndarray, level_of: np.ndarray) -> np.ndarray:
+        """(n, 4) max level of the leaves across each edge (west, north, east, south), probing just
+        outside the edge at 1/4 and 3/4 of its length (which finds any leaf finer than level + 1)."""
+        s = self.size
+        q1 = s // 4
+        q3 = (3 * s) // 4
+        x0, y0 = self.fx0, self.fy0
+        probes = [  # (fx, fy) pairs per edge: u=0 west, v=0 north, u=1 east, v=1 south
+            ((x0 - 1, y0 + q1), (x0 - 1, y0 + q3)),
+            ((x0 + q1, y0 - 1), (x0 + q3, y0 - 1)),
+            ((x0 + s, y0 + q1), (x0 + s, y0 + q3)),
+            ((x0 + q1, y0 + s), (x0 + q3, y0 + s)),
+        ]
+        out = np.empty((len(x0), 4), np.int32)
+        for e, ((ax, ay), (bx, by)) in enumerate(probes):
+            ia = self.locate(ax, ay)
+            ib = self.locate(bx, by)
+            la = np.where(ia >= 0, level_of[np.maximum(ia, 0)], -1)
+            lb = np.where(ib >= 0, level_of[np.maximum(ib, 0)], -1)
+            out[:, e] = np.maximum(la, lb)
+        return out
+
+
+# ------------------------------------------------------------------------------------------------
+# selection
+# ------------------------------------------------------------------------------------------------
+def select(terrain: Terrain, camera: Camera, policy=None, state: LodState | None = None,
+           device: str = "cpu") -> PatchList:
+    """Select the visible patches of a frame.
+
+    Args:
+        terrain: the prepared terrain (:meth:`Terrain.prepare`).
+        camera: the frame's camera.
+        policy: :class:`DistancePolicy`, :class:`ScreenErrorPolicy` (default, 1 px) or
+            :class:`ContinuousPolicy`.
+        state: hysteresis state from the previous frame (updated in place), or None.
+
+    Returns:
+        A :class:`PatchList` of the visible leaves, with edge factors that never crack.
+    """
+    from ..kernels.lod import frustum_planes, select_level
+
+    if not isinstance(terrain, Terrain):
+        raise TypeError(f"terrain: expected a Terrain (Terrain.prepare(heightmap)), got {type(terrain).__name__}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
+    policy = ScreenErrorPolicy() if policy is None else policy
+    _check_policy(policy)
+    hm = terrain.heightmap
+    nx, nz = terrain.roots
+    depth = terrain.depth
+    eye = camera.position
+    rel_origin = relative_origin(hm.origin, eye)
+    planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+    prev = state.split_keys if (state is not None and policy.hysteresis > 0) else np.zeros(0, np.int64)
+    fixed_level = min(policy.level, depth) if isinstance(policy, ContinuousPolicy) else None
+
+    lv_l, lv_x, lv_y, lv_dist, lv_metric, lv_cull = [], [], [], [], [], []
+    split_keys = []
+    visited = 0
+    x, y = np.meshgrid(np.arange(nx, dtype=np.int64), np.arange(nz, dtype=np.int64))
+    x, y = x.reshape(-1), y.reshape(-1)
+    for lvl in range(depth + 1):
+        keep = terrain.inside(lvl, x, y)
+        x, y = x[keep], y[keep]
+        if len(x) == 0:
+            break
+        visited += len(x)
+        keys = tile_key(np.full(len(x), lvl), x, y)
+        if fixed_level is not None:
+            can = lvl < fixed_level
+            thr = 0.0
+            code = 0
+        else:
+            can = lvl < depth
+            thr = policy.threshold(terrain, lvl)
+            code = policy.code
+        sp, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), rel_origin,
+                                      terrain.node_size_world(lvl), planes, code, thr, camera.focal_px,
+                                      policy.hysteresis, can, prev, device=device)
+        if fixed_level is not None and lvl < fixed_level:
+            sp = np.ones_like(sp)  # a uniform grid: everything splits down to the level
+        split = sp.astype(bool)
+        split_keys.append(keys[split])
+        leaf = ~split
+        lv_l.append(np.full(int(leaf.sum()), lvl, np.int32))
+        lv_x.append(x[leaf])
+        lv_y.append(y[leaf])
+        lv_dist.append(di[leaf])
+        lv_metric.append(me[leaf])
+        lv_cull.append(cu[leaf])
+        cx, cy = x[split], y[split]
+        x = np.concatenate([2 * cx, 2 * cx + 1, 2 * cx, 2 * cx + 1])
+        y = np.concatenate([2 * cy, 2 * cy, 2 * cy + 1, 2 * cy + 1])
+    level = np.concatenate(lv_l)
+    lx = np.concatenate(lv_x)
+    ly = np.concatenate(lv_y)
+    dist = np.concatenate(lv_dist)
+    metric = np.concatenate(lv_metric)
+    culled = np.concatenate(lv_cull).astype(bool)
+
+    # Every node that was not split and lies outside the grid is also a (never drawn) leaf of the tiling:
+    # add them so point location works everywhere; they take part in no decision.
+    level, lx, ly, dist, metric, culled, outside = _complete_tiling(terrain, level, lx, ly, dist, metric, culled)
+
+    # 2:1 balance: split leaves that have a neighbour more than one level finer, until stable.
+    forced = 0
+    for _ in range(4 * (depth + 1) + 8):  # terminates: each pass only splits, and depth is bounded
+        leaves = _Leaves(level, lx, ly, depth, nx, nz)
+        nbr = leaves.neighbour_levels(level, level)
+        bad = (nbr.max(axis=1) > level + 1) & ~outside
+        if not bad.any():
+            break
+        forced += int(bad.sum())
+        bl, bx, by = level[bad], lx[bad], ly[bad]
+        nl = np.concatenate([bl + 1] * 4)
+        nxs = np.concatenate([2 * bx, 2 * bx + 1, 2 * bx, 2 * bx + 1])
+        nys = np.concatenate([2 * by, 2 * by, 2 * by + 1, 2 * by + 1])
+        split_keys.append(tile_key(bl, bx, by))
+        child_in = _inside_many(terrain, nl, nxs, nys)
+        nd, nm, nc = _child_stats(terrain, camera, nl, nxs, nys, planes, rel_origin, policy, device)
+        keep = ~bad
+        level = np.concatenate([level[keep], nl])
+        lx = np.concatenate([lx[keep], nxs])
+        ly = np.concatenate([ly[keep], nys])
+        dist = np.concatenate([dist[keep], nd])
+        metric = np.concatenate([metric[keep], nm])
+        culled = np.concatenate([culled[keep], nc])
+        outside = np.concatenate([outside[keep], ~child_in])
+    leaves = _Leaves(level, lx, ly, depth, nx, nz)
+    nbr = leaves.neighbour_levels(level, np.where(outside, -1, level))
+
+    draw = ~outside & ~culled
+    n_culled = int((~outside & culled).sum())
+    level, lx, ly, nbr = level[draw], lx[draw], ly[draw], nbr[draw]
+    dist, metric = dist[draw], metric[draw]
+    # deterministic order: by key
+    keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable")
+    level, lx, ly, nbr, dist, metric, keys = (a[order] for a in (level, lx, ly, nbr, dist, metric, keys))
+    s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
+    origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
+    origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
+    size = np.stack([s_cells * hm.dx, s_cells * hm.dz], axis=1)
+    gerr = _gather_err(terrain, level, lx, ly)
+    if isinstance(policy, ContinuousPolicy):
+        outer, inner = _continuous_factors(terrain, camera, origin, size, policy)
+    else:
+        t = float(terrain.tess)
+        if t * 2 > MAX_TESS and (nbr > level[:, None]).any():
+            raise ValueError(f"tess: {terrain.tess} doubled toward a finer neighbour exceeds the hardware maximum "
+                             f"{MAX_TESS}: use tess <= {MAX_TESS // 2} with a quadtree (deaconu2021)")
+        outer = np.where(nbr > level[:, None], 2.0 * t, t).astype(np.float32)
+        inner = np.full((len(level), 2), t, np.float32)
+    if state is not None:
+        sk = np.concatenate(split_keys) if split_keys else np.zeros(0, np.int64)
+        state.split_keys = np.unique(sk)
+        state.frames += 1
+    stats = {"nodes_visited": visited, "leaves": int((~outside).sum()), "culled": n_culled,
+             "patches": int(len(level)), "forced_splits": forced, "max_level": int(level.max()) if len(level) else -1,
+             "roots": nx * nz, "depth": depth, "tess": terrain.tess}
+    return PatchList(level.astype(np.int32), keys.astype(np.int64), origin, size, origin_cells.astype(np.float32),
+                     s_cells.astype(np.float32), outer.astype(np.float32), inner.astype(np.float32),
+                     nbr.astype(np.int32), dist.astype(np.float32), metric.astype(np.float32), gerr, stats)
+
+
+def _inside_many(terrain: Terrain, lv, x, y) -> np.ndarray:
+    s = terrain.root_cells / np.exp2(lv.astype(np.float64))
+    hh, ww = terrain.heightmap.shape
+    return (x * s < ww - 1) & (y * s < hh - 1) | ((x == 0) & (y == 0))
+
+
+def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
+    out = np.empty(len(level), np.float32)
+    for lv in np.unique(level):
+        m = level == lv
+        out[m] = terrain.stats[int(lv)][2][ly[m], lx[m]]
+    return out
+
+
+def _complete_tiling(terrain, level, lx, ly, dist, metric, culled):
+    """Add the outside-the-grid nodes that complete the tiling of the root grid (never drawn)."""
+    nx, nz = terrain.roots
+    covered = _Leaves(level, lx, ly, terrain.depth, nx, nz) if len(level) else None
+    add_l, add_x, add_y = [], [], []
+    # candidate outside nodes: children of split inside nodes, and roots, that are outside the grid
+    x, y = np.meshgrid(np.arange(nx, dtype=np.int64), np.arange(nz, dtype=np.int64))
+    x, y = x.reshape(-1), y.reshape(-1)
+    for lvl in range(terrain.depth + 1):
+        ins = _inside_many(terrain, np.full(len(x), lvl), x, y)
+        ox, oy = x[~ins], y[~ins]
+        add_l.append(np.full(len(ox), lvl, np.int32))
+        add_x.append(ox)
+        add_y.append(oy)
+        x, y = x[ins], y[ins]
+        if covered is None or len(x) == 0:
+            break
+        # inside nodes that are leaves stop here; others (split) continue with their children
+        shift = terrain.depth - lvl
+        idx = covered.locate(x << shift, y << shift)
+        is_leaf = (level[idx] == lvl) & (lx[idx] == x) & (ly[idx] == y)
+        x, y = x[~is_leaf], y[~is_leaf]
+        x, y = (np.concatenate([2 * x, 2 * x + 1, 2 * x, 2 * x + 1]),
+                np.concatenate([2 * y, 2 * y, 2 * y + 1, 2 * y + 1]))
+    al = np.concatenate(add_l)
+    n = len(al)
+    outside = np.concatenate([np.zeros(len(level), bool), np.ones(n, bool)])
+    return (np.concatenate([level, al]), np.concatenate([lx, np.concatenate(add_x)]),
+            np.concatenate([ly, np.concatenate(add_y)]), np.concatenate([dist, np.zeros(n, np.float32)]),
+            np.concatenate([metric, np.zeros(n, np.float32)]), np.concatenate([culled, np.ones(n, bool)]), outside)
+
+
+def _child_stats(terrain, camera, nl, nxs, nys, planes, rel_origin, policy, device):
+    """Distance, metric and culling of children created by the balance pass (one launch per level)."""
+    from ..kernels.lod import select_level
+
+    nd = np.zeros(len(nl), np.float32)
+    nm = np.zeros(len(nl), np.float32)
+    nc = np.zeros(len(nl), bool)
+    code = policy.code if not isinstance(policy, ContinuousPolicy) else 0
+    for lv in np.unique(nl):
+        m = nl == lv
+        lvl = int(lv)
+        keys = tile_key(np.full(int(m.sum()), lvl), nxs[m], nys[m])
+        _, cu, di, me = select_level(nxs[m], nys[m], keys, terrain.device_stats(lvl, device), rel_origin,
+                                     terrain.node_size_world(lvl), planes, code, policy.threshold(terrain, lvl),
+                                     camera.focal_px, 0.0, False, np.zeros(0, np.int64), device=device)
+        nd[m], nm[m], nc[m] = di, me, cu.astype(bool)
+    return nd, nm, nc
+
+
+def _continuous_factors(terrain: Terrain, camera: Camera, origin: np.ndarray, size: np.ndarray,
+                        policy: ContinuousPolicy) -> tuple[np.ndarray, np.ndarray]:
+    """Per-edge factors from each edge's own endpoints (symmetric in the endpoints, so the two patches
+    sharing an edge get the same value bit for bit), inner factors the mean of opposite edges."""
+    hm = terrain.heightmap
+    eye = np.asarray(camera.position)
+    x0, z0 = origin[:, 0], origin[:, 1]
+    x1, z1 = x0 + size[:, 0], z0 + size[:, 1]
+    corners = {"00": (x0, z0), "10": (x1, z0), "01": (x0, z1), "11": (x1, z1)}
+    hc = {k: hm.sample(*v).astype(np.float64) for k, v in corners.items()}
+
+    def edge(a: str, b: str) -> np.ndarray:
+        pa = np.stack([corners[a][0], hc[a], corners[a][1]], axis=1)
+        pb = np.stack([corners[b][0], hc[b], corners[b][1]], axis=1)
+        mid = 0.5 * (pa + pb)
+        length = np.linalg.norm(pb - pa, axis=1)
+        d = np.linalg.norm(mid - eye, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = np.where(d > 0, length * camera.focal_px / np.maximum(d, 1e-30) / policy.target_px, MAX_TESS)
+        return np.clip(f, 1.0, MAX_TESS)
+
+    # u=0 edge: corners 00-01 (west); v=0: 00-10 (north); u=1: 10-11 (east); v=1: 01-11 (south)
+    outer = np.stack([edge("00", "01"), edge("00", "10"), edge("10", "11"), edge("01", "11")], axis=1)
+    inner = np.stack([0.5 * (outer[:, 1] + outer[:, 3]), 0.5 * (outer[:, 0] + outer[:, 2])], axis=1)
+    return outer.astype(np.float32), inner.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# per-node metrics of the complete tree (for relaxed, differentiable selection in terrainwarp.fit)
+# ------------------------------------------------------------------------------------------------
+class NodeMetrics(NamedTuple):
+    """Every inside node of every level, for one camera (the complete tree, whatever a policy decides).
+
+    Attributes (lists over levels 0..D of (N_L,) arrays, in row-major (y, x) order of the level):
+        x, y: node coordinates; inside: origin inside the grid; culled: outside the frustum;
+        dist: eye-to-box distance (m); sse: projected geometric error (px, inf at distance 0 with error);
+        size: node side in metres (max of x and z).
+    """
+
+    x: list
+    y: list
+    inside: list
+    culled: list
+    dist: list
+    sse: list
+    size: list
+
+
+def node_metrics(terrain: Terrain, camera: Camera, device: str = "cpu") -> NodeMetrics:
+    """Distance, screen-space error and culling of every node of the complete tree, one launch per level."""
+    from ..kernels.lod import frustum_planes, select_level
+
+    hm = terrain.heightmap
+    nx, nz = terrain.roots
+    eye = camera.position
+    rel_origin = relative_origin(hm.origin, eye)
+    planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+    out = NodeMetrics([], [], [], [], [], [], [])
+    for lvl in range(terrain.depth + 1):
+        yy, xx = np.meshgrid(np.arange(nz << lvl, dtype=np.int64), np.arange(nx << lvl, dtype=np.int64),
+                             indexing="ij")
+        x, y = xx.reshape(-1), yy.reshape(-1)
+        keys = tile_key(np.full(len(x), lvl), x, y)
+        _, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), rel_origin,
+                                     terrain.node_size_world(lvl), planes, 1, 1.0, camera.focal_px, 0.0, False,
+                                     np.zeros(0, np.int64), device=device)
+        out.x.append(x)
+        out.y.append(y)
+        out.inside.append(_inside_many(terrain, np.full(len(x), lvl), x, y))
+        out.culled.append(cu.astype(bool))
+        out.dist.append(di.astype(np.float64))
+        out.sse.append(me.astype(np.float64))
+        out.size.append(np.full(len(x), max(terrain.node_size_world(lvl))))
+    return out

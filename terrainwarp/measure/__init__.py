@@ -1,0 +1,1 @@
+"""Measuring frames: screen-space error and image metrics."""

@@ -1,0 +1,168 @@
+"""Screen-space error of a frame against the full-resolution reference, in pixels.
+
+For each pixel the LOD frame covers, P is its world position on the LOD surface (the visible
+triangle's vertices interpolated with the perspective-correct barycentrics of the visibility pass)
+and R the reference surface point directly above or below it: same x and z, the height of the
+full-resolution mesh (two triangles per heightmap cell, split along the (i, j+1)-(i+1, j) diagonal
+as :func:`terrainwarp.kernels.displacement.grid_mesh` builds it). The error is the distance between
+the projections of P and R in pixels, exact (the full projection, not an approximation). Beside it we
+report the classic estimate ``|P.y - R.y| * focal_px / dist(eye, P)`` (the formula screen-space-error
+LOD policies use), to show how far it is from the truth.
+
+Coverage: pixels covered by one frame and not the other are *mismatched*; a *crack* is a pixel where
+the LOD frame shows background although the reference is covered there and the LOD terrain covers
+both neighbours across it (above and below, or left and right): background seen through the terrain.
+Requiring all four neighbours, the literal reading of the issue, would miss every crack longer than
+one pixel (along a line crack the neighbours along the line are crack pixels too). Other mismatches
+are *silhouette* pixels.
+
+It runs in float64 (one Warp launch over pixels, :mod:`terrainwarp.kernels.metrics`): it measures the
+float32 pipeline, it is not part of it. :func:`pixel_positions` and :func:`reference_height` are the
+same maths in numpy, for tests and for users.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Camera
+from ..heightmap import Heightmap
+
+__all__ = ["ErrorStats", "pixel_positions", "reference_height", "frame_error"]
+
+
+def pixel_positions(positions: np.ndarray, triangles: np.ndarray, triangle_id: np.ndarray,
+                    barycentrics: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float64 camera-relative positions of the visible surface (NaN on background)."""
+    hh, ww = triangle_id.shape
+    out = np.full((hh, ww, 3), np.nan)
+    m = triangle_id >= 0
+    if not m.any():
+        return out
+    t = triangles[triangle_id[m]]
+    b = barycentrics[m].astype(np.float64)
+    b2 = 1.0 - b[:, 0] - b[:, 1]
+    p = positions.astype(np.float64)
+    out[m] = b[:, :1] * p[t[:, 0]] + b[:, 1:2] * p[t[:, 1]] + b2[:, None] * p[t[:, 2]]
+    return out
+
+
+def reference_height(heightmap: Heightmap, x: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Height of the full-resolution triangulated grid at world (x, z), float64 (clamped to the grid)."""
+    h = heightmap.heights.astype(np.float64)
+    rows, cols = h.shape
+    u = np.clip((np.asarray(x, np.float64) - heightmap.origin[0]) / heightmap.dx, 0.0, cols - 1)
+    v = np.clip((np.asarray(z, np.float64) - heightmap.origin[1]) / heightmap.dz, 0.0, rows - 1)
+    j = np.minimum(np.floor(u).astype(np.int64), max(cols - 2, 0))
+    i = np.minimum(np.floor(v).astype(np.int64), max(rows - 2, 0))
+    fx = u - j
+    fz = v - i
+    j1 = np.minimum(j + 1, cols - 1)
+    i1 = np.minimum(i + 1, rows - 1)
+    h00, h01, h10, h11 = h[i, j], h[i, j1], h[i1, j], h[i1, j1]
+    lower = fx + fz <= 1.0
+    a = h00 + fx * (h01 - h00) + fz * (h10 - h00)
+    b = h11 + (1.0 - fx) * (h10 - h11) + (1.0 - fz) * (h01 - h11)
+    return np.where(lower, a, b)
+
+
+@dataclass
+class ErrorStats:
+    """Per-frame error summary (pixels unless named otherwise)."""
+
+    max_px: float
+    p99_px: float
+    mean_px: float
+    approx_max_px: float
+    approx_p99_px: float
+    covered: int
+    mismatched: int
+    silhouette: int
+    cracks: int
+    max_depth_diff: float
+    psnr_db: float | None = None
+    ssim: float | None = None
+    error_map: np.ndarray | None = field(default=None, repr=False)
+    crack_mask: np.ndarray | None = field(default=None, repr=False)
+
+    def row(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "crack_mask")}
+
+
+def _project(m: np.ndarray, p: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    q = p @ m[:3, :3].T + m[:3, 3]
+    qw = p @ m[3, :3] + m[3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (q[:, 0] / qw * 0.5 + 0.5) * w
+        y = (q[:, 1] / qw * 0.5 + 0.5) * h
+    return np.stack([x, y], 1), qw
+
+
+def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye: tuple[float, float, float],
+                triangles: np.ndarray, triangle_id: np.ndarray, barycentrics: np.ndarray,
+                depth: np.ndarray | None = None, ref_triangle_id: np.ndarray | None = None,
+                ref_depth: np.ndarray | None = None, image: np.ndarray | None = None,
+                ref_image: np.ndarray | None = None, keep_maps: bool = False) -> ErrorStats:
+    """Measure one LOD frame.
+
+    Args:
+        heightmap: the full-resolution terrain (the reference surface).
+        camera: the frame's camera.
+        positions: (n, 3) float32 camera-relative vertex positions of the drawn mesh, relative to ``eye``.
+        triangles: (m, 3) int32; triangle_id: (H, W) int32; barycentrics: (H, W, 2) float32 (the
+            visibility pass of the LOD frame).
+        depth, ref_triangle_id, ref_depth: the LOD frame's depth and the reference frame's coverage and
+            depth (for the coverage and depth comparisons; optional).
+        image, ref_image: hillshaded images for PSNR and SSIM (optional).
+    """
+    from ..kernels.metrics import pixel_error
+
+    hh, ww = triangle_id.shape
+    cov = triangle_id >= 0
+    m = camera.proj_matrix() @ camera.view_matrix(relative=True)
+    emap, amap = pixel_error(triangle_id, barycentrics, positions, triangles, heightmap.heights, eye,
+                             heightmap.origin, (heightmap.dx, heightmap.dz), m, camera.focal_px)
+    err = emap[cov]
+    err = np.where(err >= 1e300, np.inf, err)
+    approx = amap[cov]
+    approx = np.where(approx >= 1e300, np.inf, approx)
+    n = int(cov.sum())
+
+    def q(a: np.ndarray, f) -> float:
+        return float(f(a)) if len(a) else 0.0
+
+    stats = ErrorStats(
+        max_px=q(err, np.max), p99_px=q(err, lambda a: np.percentile(a, 99)), mean_px=q(err, np.mean),
+        approx_max_px=q(approx, np.max), approx_p99_px=q(approx, lambda a: np.percentile(a, 99)),
+        covered=n, mismatched=0, silhouette=0, cracks=0, max_depth_diff=0.0)
+    if ref_triangle_id is not None:
+        rc = ref_triangle_id >= 0
+        mism = rc ^ cov
+        pad = np.pad(cov, 1, constant_values=False)
+        enclosed = (pad[:-2, 1:-1] & pad[2:, 1:-1]) | (pad[1:-1, :-2] & pad[1:-1, 2:])
+        crack = ~cov & rc & enclosed
+        stats.mismatched = int(mism.sum())
+        stats.cracks = int(crack.sum())
+        stats.silhouette = stats.mismatched - stats.cracks
+        if keep_maps:
+            stats.crack_mask = crack
+        if depth is not None and ref_depth is not None:
+            both = rc & cov
+            stats.max_depth_diff = float(np.abs(depth[both].astype(np.float64) - ref_depth[both]).max()) \
+                if both.any() else 0.0
+    if image is not None and ref_image is not None:
+        from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+        a = image.astype(np.float64) / 255.0
+        b = ref_image.astype(np.float64) / 255.0
+        same = np.array_equal(a, b)
+        stats.psnr_db = float("inf") if same else float(peak_signal_noise_ratio(b, a, data_range=1.0))
+        if min(a.shape[0], a.shape[1]) >= 7:  # SSIM's 7x7 window needs at least that many pixels
+            stats.ssim = float(structural_similarity(b, a, channel_axis=-1, data_range=1.0))
+    if keep_maps:
+        emap = np.full((hh, ww), np.nan, np.float32)
+        emap[cov] = err
+        stats.error_map = emap
+    return stats

@@ -1,0 +1,1 @@
+"""The heightmap's surface: normals and curvature (:mod:`.differential`), curvature-line strokes."""

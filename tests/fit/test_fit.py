@@ -1,0 +1,78 @@
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from terrainwarp import Camera, Heightmap, LodConfig, Scene
+from terrainwarp.fit import fit_lod, relaxed_model
+from terrainwarp.lod import Terrain
+
+
+@pytest.fixture(scope="module")
+def scene():
+    hm = Heightmap.fbm(129, seed=4, dx=20.0, max_height=600.0, feature_size=48.0)
+    sc = Scene(hm, camera=Camera.default_for(hm, 128, 96), lod=LodConfig(roots=4, tess=8))
+    return sc, sc.camera_path(2)
+
+
+def test_relaxed_gradient_matches_finite_differences(scene):
+    sc, cams = scene
+    terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
+    model = relaxed_model(terrain, cams, "sse")
+    for temp in (1.0, 0.3):
+        for lv in (math.log(0.7), math.log(3.0)):
+            g_cost, g_err = (jax.grad(lambda x, k=k, t=temp: model(x, t)[k])(jnp.asarray(lv)) for k in (0, 1))
+            h = 1e-3
+            fd = [(float(model(jnp.asarray(lv + h), temp)[k]) - float(model(jnp.asarray(lv - h), temp)[k])) / (2 * h)
+                  for k in (0, 1)]
+            assert np.isfinite(float(g_cost)) and np.isfinite(float(g_err))
+            scale = abs(float(model(jnp.asarray(lv), temp)[0]))
+            assert float(g_cost) == pytest.approx(fd[0], rel=1e-2, abs=1e-3 * scale)
+            assert float(g_err) == pytest.approx(fd[1], rel=1e-2, abs=1e-4)
+            assert float(g_cost) <= 0  # a larger tolerance never costs more
+
+
+def test_fit_meets_budget_and_matches_grid_search(scene):
+    sc, cams = scene
+    res = fit_lod(sc, 1.5, policy="sse", cameras=cams, grid_points=16, steps=30)
+    assert res.met, res.message
+    assert res.validated.worst_p99 <= 1.5
+    g = res.grid
+    assert g["cost"] is not None
+    assert res.validated.cost <= 1.05 * g["cost"]
+    assert res.evaluations < g["evaluations"]
+    again = fit_lod(sc, 1.5, policy="sse", cameras=cams, steps=30)
+    assert again.value == res.value and again.validated.triangles == res.validated.triangles  # deterministic
+
+
+@pytest.mark.parametrize("policy", ["distance", "continuous"])
+def test_other_policies_meet_budget(scene, policy):
+    sc, cams = scene
+    res = fit_lod(sc, 2.0, policy=policy, cameras=cams, steps=20)
+    assert res.met and res.validated.worst_p99 <= 2.0, res.message
+
+
+def test_impossible_and_bad_budgets(scene):
+    sc, cams = scene
+    res = fit_lod(sc, 1e-4, policy="sse", cameras=cams, steps=5, max_validations=2)
+    assert not res.met
+    assert "cannot be met" in res.message
+    for bad in (0.0, -1.0, float("nan"), float("inf"), "1"):
+        with pytest.raises(ValueError, match="budget_px"):
+            fit_lod(sc, bad, cameras=cams)
+    with pytest.raises(ValueError, match="policy"):
+        fit_lod(sc, 1.0, policy="magic", cameras=cams)
+
+
+def test_grid_search_on_the_sweep_runner_matches_in_process(scene):
+    from terrainwarp.fit import grid_search
+    from terrainwarp.rendering.pipeline import render
+
+    sc, cams = scene
+    terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
+    refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
+    here = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5)
+    dask = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5, workers=1)
+    assert here["table"] == dask["table"] and here["value"] == dask["value"]

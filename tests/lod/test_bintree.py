@@ -1,0 +1,361 @@
+"""MRBSP bisection tree and LOD (mrbsp-lod-visibility.txt sections 2-3): structure, heights, the LOD
+formula, the paper's hole fixing (and its counter-example), forced split propagation, mesh contract."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+
+import terrainwarp as tw
+from terrainwarp.lod.bintree import Bintree, lod_threshold, select_bintree
+
+
+# -- helpers --------------------------------------------------------------------------------------
+def _crack_report(tree: Bintree, frame) -> dict:
+    """Minimal watertightness check on exact positions (grid ids): every edge not on the root square's
+    border is used by exactly two triangles, once in each direction, and no mesh vertex lies in the
+    interior of a triangle edge."""
+    tri = frame.grid_id[frame.mesh.triangles].astype(np.int64)
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    key = np.sort(e, axis=1)
+    code = key[:, 0] * (1 << 32) + key[:, 1]
+    u, cnt = np.unique(code, return_counts=True)
+    ga, gb = tree.vertex_grid_xz(u >> 32), tree.vertex_grid_xz(u & ((1 << 32) - 1))
+    g = tree.grid
+    border = (((ga[:, 0] == gb[:, 0]) & np.isin(ga[:, 0], [0, g]))
+              | ((ga[:, 1] == gb[:, 1]) & np.isin(ga[:, 1], [0, g])))
+    bad_edges = int(np.count_nonzero((cnt != 2) & ~border))
+    # directed: an interior edge used twice must be used once each way (consistent orientation)
+    dcode = e[:, 0] * (1 << 32) + e[:, 1]
+    same_dir = len(dcode) - len(np.unique(dcode))
+    # T-junctions: lattice points strictly inside each edge that are mesh vertices
+    verts = set(np.unique(tri).tolist())
+    t_junctions = 0
+    for a, b in zip(ga, gb):
+        d = b - a
+        n = math.gcd(int(abs(d[0])), int(abs(d[1])))
+        for k in range(1, n):
+            p = a + d * k // n
+            if int(p[1]) * (g + 1) + int(p[0]) in verts:
+                t_junctions += 1
+    return {"bad_edges": bad_edges, "same_direction": same_dir, "t_junctions": t_junctions}
+
+
+def _ground_path(tree: Bintree, n: int = 8, radius: float = 0.3):
+    (x0, z0), (x1, z1) = tree.heightmap.bounds_xz
+    cams = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        x = x0 + (x1 - x0) * (0.5 + radius * np.cos(a))
+        z = z0 + (z1 - z0) * (0.5 + radius * np.sin(a))
+        y = float(tree.surface_height(x, z)) + 1.8
+        cams.append(tw.Camera(position=(x, y, z), target=(x + np.cos(a + 1), y, z + np.sin(a + 1)), width=160,
+                              height=120, near=0.5, far=1e6))
+    return cams
+
+
+@pytest.fixture(scope="module")
+def fbm_tree() -> Bintree:
+    return Bintree.build(tw.Heightmap.fbm(129, seed=3, dx=10.0, max_height=400.0), 14)
+
+
+@pytest.fixture(scope="module")
+def dem_tree() -> Bintree:
+    return Bintree.build(tw.Heightmap.example(), 16)
+
+
+# -- structure ------------------------------------------------------------------------------------
+def test_levels_double_and_tile_the_square(fbm_tree):
+    t = fbm_tree
+    verts = t.node_vertices()
+    assert verts[0].tolist() == [-1, -1, -1]  # the root square
+    for level in range(1, t.depth + 1):
+        v = verts[t.level_slice(level)]
+        assert len(v) == 2 ** level
+        g = t.vertex_grid_xz(v).astype(np.int64)
+        u, w = g[:, 1] - g[:, 0], g[:, 2] - g[:, 0]
+        cross = u[:, 1] * w[:, 0] - u[:, 0] * w[:, 1]  # y of (u x w) in (x, z): > 0 is ccw from above
+        assert np.all(cross > 0)
+        assert cross.sum() == 2 * t.grid ** 2  # the level covers the root square exactly once
+        assert np.all((u * w).sum(axis=1) == 0)  # right angle at the apex
+        assert np.all((u * u).sum(axis=1) == (w * w).sum(axis=1))  # isosceles
+        leg = math.sqrt((u[0] * u[0]).sum()) * t.step
+        assert leg == pytest.approx(t.side * 2 ** (-(level - 1) / 2))
+    assert t.short_side == pytest.approx(t.side * 2 ** (-(t.depth - 1) / 2))
+
+
+def test_children_split_the_parent_at_the_hypotenuse_midpoint(fbm_tree):
+    t = fbm_tree
+    v = t.node_vertices()
+    par = np.arange(1, 2 ** t.depth - 1)
+    c0, c1 = v[2 * par + 1], v[2 * par + 2]
+    g = t.vertex_grid_xz(v[par])
+    mid = (g[:, 1] + g[:, 2]) // 2
+    assert np.array_equal(t.vertex_grid_xz(c0[:, 0]), mid)
+    assert np.array_equal(c0[:, 1:], v[par][:, [0, 1]])
+    assert np.array_equal(c1[:, 1:], v[par][:, [2, 0]])
+
+
+def test_base_neighbours_share_the_hypotenuse(fbm_tree):
+    t = fbm_tree
+    v = t.node_vertices()
+    bn = t.arrays["base_neighbour"].numpy()
+    nodes = np.arange(1, t.n_nodes)
+    has = bn[nodes] >= 0
+    n, m = nodes[has], bn[nodes[has]]
+    assert np.array_equal(v[n][:, [1, 2]], v[m][:, [2, 1]])
+    assert np.array_equal(bn[m], n)  # symmetric
+    g = t.vertex_grid_xz(v[nodes[~has]][:, [1, 2]])  # the rest: hypotenuse on the border
+    on_border = ((g[:, 0, 0] == g[:, 1, 0]) & np.isin(g[:, 0, 0], [0, t.grid])) | (
+        (g[:, 0, 1] == g[:, 1, 1]) & np.isin(g[:, 0, 1], [0, t.grid]))
+    assert np.all(on_border)
+
+
+def test_vertex_heights_nearest3_and_bilinear():
+    a = np.random.default_rng(1).normal(size=(17, 17)).astype(np.float32) * 50
+    hm = tw.Heightmap.from_array(a, 2.0)
+    t3 = Bintree.build(hm, 9)  # G = 16: vertices on every sample
+    tb = Bintree.build(hm, 9, method="bilinear")
+    vh = t3.arrays["vertex_height"].numpy().reshape(17, 17)
+    np.testing.assert_allclose(vh, a, rtol=0, atol=1e-4)  # a vertex on a sample takes it (float32 rounding)
+    np.testing.assert_allclose(tb.arrays["vertex_height"].numpy().reshape(17, 17), a, rtol=0, atol=1e-4)
+    # finer than the samples: the plane through the three closest samples (float64 reference)
+    t3f = Bintree.build(hm, 11)  # G = 32: half-sample vertices
+    vf = t3f.arrays["vertex_height"].numpy().reshape(33, 33)
+    u, v = 5.5, 3.0  # on a row: two equidistant samples at distance .5 and the plane through 3 closest
+    gx, gz = int(u * 2), int(v * 2)
+    assert vf[gz, gx] == pytest.approx(0.5 * (a[3, 5] + a[3, 6]), abs=1e-3)
+    u, v = 5.5, 3.5  # cell centre: a tie, broken by dropping (1,1): the plane through (0,0),(1,0),(0,1)
+    ref = a[3, 5] + 0.5 * (a[3, 6] - a[3, 5]) + 0.5 * (a[4, 5] - a[3, 5])
+    assert vf[7, 11] == pytest.approx(ref, abs=1e-3)
+    bil = Bintree.build(hm, 11, method="bilinear").arrays["vertex_height"].numpy().reshape(33, 33)
+    assert bil[7, 11] == pytest.approx(a[3:5, 5:7].mean(), abs=1e-3)
+    # a plane is reproduced by both
+    x, z = np.meshgrid(np.arange(17.0), np.arange(17.0))
+    pl = tw.Heightmap.from_array((3 * x - 2 * z + 7).astype(np.float32), 1.0)
+    for meth in ("nearest3", "bilinear"):
+        tp = Bintree.build(pl, 11, method=meth)
+        g = tp.vertex_grid_xz(np.arange(33 * 33)) * tp.step
+        np.testing.assert_allclose(tp.arrays["vertex_height"].numpy(), 3 * g[:, 0] - 2 * g[:, 1] + 7, atol=1e-4)
+
+
+def test_bounds_contain_the_subtree(fbm_tree):
+    t = fbm_tree
+    lo, hi = t.arrays["lo"].numpy(), t.arrays["hi"].numpy()
+    vh = t.arrays["vertex_height"].numpy()
+    v = t.node_vertices()[1:]
+    h = vh[v]
+    assert np.all(lo[1:] <= h.min(axis=1)) and np.all(hi[1:] >= h.max(axis=1))
+    par = np.arange(0, 2 ** t.depth - 1)
+    assert np.all(lo[par] == np.minimum(lo[2 * par + 1], lo[2 * par + 2]))
+    deep = vh[t.node_vertices()[t.level_slice(t.depth)]]
+    assert lo[0] == deep.min() and hi[0] == deep.max()
+
+
+# -- LOD ------------------------------------------------------------------------------------------
+def test_lod_threshold_hand_cases():
+    # M - log2(D / S), rounded up (never coarser than asked), clamped to [1, M]
+    assert lod_threshold(8.0, 10, 1.0) == 7
+    assert lod_threshold(3.0, 10, 1.0) == 9  # 10 - 1.585 = 8.415 -> 9
+    assert lod_threshold(1.0, 10, 1.0) == 10
+    assert lod_threshold(0.0, 10, 1.0) == 10
+    assert lod_threshold(2.0 ** 20, 10, 1.0) == 1
+    assert lod_threshold(64.0, 16, 2.0) == 11
+    assert lod_threshold([4.0, 4.5], 8, 0.5).tolist() == [5, 5]
+
+
+def test_selection_matches_the_formula_hand_case():
+    """Flat 2x2 km terrain, M = 7: S = 2000 * 2**-3 = 250 m; eye 1 m above the corner (0, 0)."""
+    hm = tw.Heightmap.from_array(np.zeros((3, 3), np.float32), 1000.0)
+    t = Bintree.build(hm, 7)
+    assert t.short_side == pytest.approx(250.0)
+    cam = tw.Camera(position=(0.0, 1.0, 0.0), target=(1.0, 1.0, 1.0))
+    f = select_bintree(t, cam, hole_fix=False, propagate=False, frustum=False)
+    # the far corner (2000, 0, 2000) is 2828.4 m away: ceil(7 - log2(11.31)) = ceil(3.5) = 4, so the
+    # far level-1 triangle is drawn no coarser than level 4
+    far = f.level[t.vertex_world(t.node_vertices(f.node))[:, :, 0].max(axis=1) == 2000.0]
+    assert far.min() == 4
+    # at the eye's corner: level 6 (a level-6 triangle there has its furthest vertex 500 m away:
+    # 7 - log2(500 / 250) = 6; its parent's furthest vertex is 707 m away: 7 - 1.5 -> 6 > 5)
+    assert f.level.max() == 6
+    # every drawn node: its level is the formula on its furthest vertex
+    w = t.vertex_world(t.node_vertices(f.node))
+    d = np.linalg.norm(w - np.asarray(cam.position), axis=2).max(axis=1)
+    assert np.array_equal(f.level, lod_threshold(d, 7, t.short_side))
+
+
+@pytest.mark.parametrize("name", ["fbm", "dem"])
+def test_selection_levels_follow_the_rule(name, fbm_tree, dem_tree):
+    t = fbm_tree if name == "fbm" else dem_tree
+    for cam in _ground_path(t, 3):
+        f = select_bintree(t, cam, hole_fix=False, propagate=False, frustum=False)
+        eye = np.asarray(cam.position)
+        tv = lod_threshold(np.linalg.norm(t.vertex_world(np.arange((t.grid + 1) ** 2)) - eye, axis=1), t.depth,
+                           t.short_side)
+        v = t.node_vertices(f.node)
+        assert np.array_equal(f.level, np.maximum(tv[v].min(axis=1), 1))
+        par = (f.node - 1) // 2
+        pv = t.node_vertices(par[par > 0])
+        assert np.all(f.level[par > 0] - 1 < tv[pv].min(axis=1))
+
+
+def test_brute_force_is_the_full_level(fbm_tree):
+    cam = _ground_path(fbm_tree, 1)[0]
+    f = select_bintree(fbm_tree, cam, lod=False, frustum=False)
+    assert f.stats["triangles"] == 2 ** fbm_tree.depth
+    assert np.all(f.level == fbm_tree.depth)
+    assert f.mesh.n_vertices == len(np.unique(fbm_tree.node_vertices()[fbm_tree.level_slice(fbm_tree.depth)]))
+    assert _crack_report(fbm_tree, f) == {"bad_edges": 0, "same_direction": 0, "t_junctions": 0}
+
+
+# -- hole fixing and watertightness --------------------------------------------------------------
+@pytest.mark.parametrize("name", ["fbm", "dem"])
+def test_watertight_along_a_path_with_propagation(name, fbm_tree, dem_tree):
+    t = fbm_tree if name == "fbm" else dem_tree
+    no_fix_cracks = 0
+    for cam in _ground_path(t, 8):
+        f = select_bintree(t, cam, frustum=False)
+        assert _crack_report(t, f) == {"bad_edges": 0, "same_direction": 0, "t_junctions": 0}
+        w = tw.check_watertight(f.mesh)  # the project's checker, on the float32 positions
+        assert (w.n_open_edges, w.n_t_junctions, w.n_nonmanifold_edges, w.n_degenerate) == (0, 0, 0, 0)
+        no_fix_cracks += _crack_report(t, select_bintree(t, cam, hole_fix=False, propagate=False,
+                                                         frustum=False))["bad_edges"]
+    assert no_fix_cracks > 0  # without any fix the LOD rule does crack: the check can fail
+
+
+def test_paper_hole_fix_counter_example():
+    """The paper's fix (split a triangle whose right-angle vertex alone has the lowest threshold) does
+    not close every hole: on rough terrain (white noise, 300 m over 10 m spacing, where 3D distances
+    jump between neighbouring vertices) this ground viewpoint leaves cracks and T-junctions, which
+    forced split propagation closes."""
+    a = np.random.default_rng(0).random((65, 65)).astype(np.float32) * 300
+    t = Bintree.build(tw.Heightmap.from_array(a, 10.0), 12)
+    x, z = 407.65547988573076, 172.663496808877
+    y = float(t.surface_height(x, z)) + 1.8
+    cam = tw.Camera(position=(x, y, z), target=(x + 1, y, z))
+    none = _crack_report(t, select_bintree(t, cam, hole_fix=False, propagate=False, frustum=False))
+    paper = select_bintree(t, cam, hole_fix=True, propagate=False, frustum=False)
+    rp = _crack_report(t, paper)
+    assert 0 < rp["bad_edges"] <= none["bad_edges"]
+    assert rp["t_junctions"] > 0
+    w = tw.check_watertight(paper.mesh)
+    assert w.n_open_edges == rp["bad_edges"] and w.n_t_junctions > 0
+    fixed = select_bintree(t, cam, hole_fix=True, propagate=True, frustum=False)
+    assert fixed.stats["forced_splits"] > 0
+    assert _crack_report(t, fixed) == {"bad_edges": 0, "same_direction": 0, "t_junctions": 0}
+    assert tw.check_watertight(fixed.mesh).n_open_edges == 0
+    # propagation only adds splits: it refines the paper's selection, never coarsens it
+    assert fixed.stats["triangles"] > paper.stats["triangles"]
+    # every triangle of the paper's selection that propagation replaced is an ancestor of new ones
+    gone = paper.node[~np.isin(paper.node, fixed.node)]
+    anc = fixed.node.astype(np.int64)
+    for _ in range(t.depth):
+        anc = np.where(np.isin(anc, gone) | (anc == 0), anc, (anc - 1) // 2)
+    assert np.all(np.isin(gone, anc))
+
+
+@pytest.mark.parametrize("name", ["fbm", "dem"])
+def test_paper_fix_is_enough_on_smooth_terrain_paths(name, fbm_tree, dem_tree):
+    """Measured, not proven: on the fBm and the real DEM the paper's fix alone leaves no crack along the
+    ground path (and propagation then forces no split)."""
+    t = fbm_tree if name == "fbm" else dem_tree
+    for cam in _ground_path(t, 8):
+        f = select_bintree(t, cam, hole_fix=True, propagate=False, frustum=False)
+        assert _crack_report(t, f)["bad_edges"] == 0
+        assert select_bintree(t, cam, frustum=False).stats["forced_splits"] == 0
+
+
+# -- mesh contract, culling, determinism ----------------------------------------------------------
+def test_mesh_is_camera_relative_and_rasterizable(dem_tree):
+    cam = _ground_path(dem_tree, 4)[2]
+    f = select_bintree(dem_tree, cam)
+    m = f.mesh
+    assert m.positions.dtype == np.float32 and m.triangles.dtype == np.int32
+    assert m.positions.shape == (m.n_vertices, 3) and m.triangles.shape == (f.stats["triangles"], 3)
+    np.testing.assert_allclose(m.world_positions(), dem_tree.vertex_world(f.grid_id), rtol=0, atol=0.05)
+    p = m.positions.astype(np.float64)[m.triangles]
+    u, w = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    assert np.all(u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2] > 0)  # ccw seen from above
+    fr = tw.rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width,
+                      cam.height)
+    assert np.count_nonzero(fr.triangle_id >= 0) > 0.3 * cam.width * cam.height
+
+
+def test_frustum_culling_keeps_every_triangle_the_rasterizer_shows(fbm_tree):
+    t = fbm_tree
+    for cam in _ground_path(t, 3):
+        full = select_bintree(t, cam, lod=False, frustum=False)
+        culled = select_bintree(t, cam, lod=False, frustum=True)
+        assert culled.stats["triangles"] < 0.6 * full.stats["triangles"]
+        fr = tw.rasterize(full.mesh.positions, full.mesh.triangles, cam.view_matrix(relative=True),
+                          cam.proj_matrix(), cam.width, cam.height)
+        seen = full.node[np.unique(fr.triangle_id[fr.triangle_id >= 0])]
+        assert np.all(np.isin(seen, culled.node))
+
+
+def test_deterministic(dem_tree):
+    cam = _ground_path(dem_tree, 5)[3]
+
+    def digest() -> str:
+        f = select_bintree(dem_tree, cam)
+        h = hashlib.sha256()
+        for a in (f.mesh.positions, f.mesh.triangles, f.node):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+    assert digest() == digest()
+    t2 = Bintree.build(tw.Heightmap.example(), 16)
+    assert np.array_equal(t2.arrays["vertex_height"].numpy(), dem_tree.arrays["vertex_height"].numpy())
+
+
+def test_bad_input(fbm_tree):
+    hm = tw.Heightmap.fbm(9)
+    with pytest.raises(TypeError, match="heightmap"):
+        Bintree.build(np.zeros((4, 4)))
+    with pytest.raises(ValueError, match="depth"):
+        Bintree.build(hm, 0)
+    with pytest.raises(TypeError, match="depth"):
+        Bintree.build(hm, 2.5)
+    with pytest.raises(ValueError, match="method"):
+        Bintree.build(hm, 4, method="cubic")
+    with pytest.raises(TypeError, match="camera"):
+        select_bintree(fbm_tree, None)
+    with pytest.raises(ValueError, match="visibility"):
+        select_bintree(fbm_tree, _ground_path(fbm_tree, 1)[0], visibility=np.ones(3, np.uint8))
+    bad = hm.heights.copy()
+    bad[1, 1] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        Bintree.build(tw.Heightmap.from_array(bad, 1.0, allow_nan=True), 4)
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (1, 5), (5, 1), (3, 7)])
+def test_tiny_grids(shape):
+    hm = tw.Heightmap.from_array(np.arange(np.prod(shape), dtype=np.float32).reshape(shape), 1.0)
+    for depth in (1, 2, 3):
+        t = Bintree.build(hm, depth)
+        f = select_bintree(t, tw.Camera(position=(0.5, 5.0, 0.5), target=(0.6, 0.0, 0.6)), frustum=False)
+        assert 2 <= f.stats["triangles"] <= 2 ** depth
+        assert np.all(np.isfinite(f.mesh.uv)) and np.all(np.isfinite(f.mesh.positions))
+        assert _crack_report(t, f)["bad_edges"] == 0
+
+
+def test_uv_spans_the_heightmap(fbm_tree):
+    f = select_bintree(fbm_tree, _ground_path(fbm_tree, 1)[0], lod=False, frustum=False)
+    assert f.mesh.uv.min() == 0.0 and f.mesh.uv.max() == 1.0  # a square heightmap fills the root square
+
+
+_DEVICES = ["cpu"] + (["cuda:0"] if __import__("warp").is_cuda_available() else [])
+
+
+@pytest.mark.parametrize("device", _DEVICES)
+def test_devices_agree(device):
+    hm = tw.Heightmap.fbm(65, seed=2, dx=10.0, max_height=300.0)
+    cpu = Bintree.build(hm, 12)
+    other = Bintree.build(hm, 12, device=device)
+    cam = _ground_path(cpu, 2)[1]
+    a, b = select_bintree(cpu, cam), select_bintree(other, cam)
+    assert np.array_equal(a.node, b.node) and np.array_equal(a.mesh.triangles, b.mesh.triangles)
+    np.testing.assert_allclose(a.mesh.positions, b.mesh.positions, rtol=0, atol=1e-3)

@@ -1,0 +1,192 @@
+import numpy as np
+import pytest
+from conftest import digest
+from scipy import ndimage
+
+from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp.rendering.pipeline import stages_for
+
+
+@pytest.fixture(scope="module")
+def demo_frame():
+    return render(Scene(Heightmap.example(), outputs=("image", "depth", "normals", "report")))
+
+
+def test_demo_frame_is_terrain_without_holes(demo_frame):
+    f = demo_frame
+    assert f.image.shape == (480, 640, 3) and f.image.dtype == np.uint8
+    covered = f.triangle_id >= 0
+    assert 0.15 < covered.mean() < 0.9
+    # no holes inside the terrain: filling the covered mask's holes adds nothing
+    assert np.array_equal(ndimage.binary_fill_holes(covered), covered)
+    assert np.all((f.depth[covered] > 0) & (f.depth[covered] < 1))
+    assert np.all(f.depth[~covered] == 1.0)
+    n = f.normals[covered]
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    assert np.all(n[:, 1] > 0)  # terrain normals point up
+    # hillshade varies: it is not a flat colour
+    assert f.image[covered].std() > 10
+
+
+def test_render_is_deterministic(demo_frame):
+    again = render(demo_frame.scene)
+    assert digest(demo_frame.image, demo_frame.depth, demo_frame.normals) == \
+        digest(again.image, again.depth, again.normals)
+
+
+def test_report_lists_stages_with_counters(demo_frame):
+    r = demo_frame.report
+    assert [s.name for s in r.stages] == ["normal_map", "mesh", "raster", "shade"]
+    mesh = r.stage("mesh").counters
+    assert mesh["vertices"] == 344 * 403
+    assert mesh["triangles"] == 2 * 343 * 402
+    ras = r.stage("raster").counters
+    assert ras["pixels_covered"] == int((demo_frame.triangle_id >= 0).sum())
+    assert all(s.time_ms >= 0 for s in r.stages)
+    d = r.to_dict()
+    assert d["info"]["stages_run"] == ["normal_map", "mesh", "raster", "shade"]
+
+
+def test_only_needed_stages_run():
+    hm = Heightmap.fbm(33, seed=2)
+    assert stages_for(("depth",)) == ["mesh", "raster"]
+    assert stages_for(("mesh",)) == ["mesh"]
+    assert stages_for(("report",)) == []
+    f = render(Scene(hm, outputs=("depth",)))
+    assert [s.name for s in f.report.stages] == ["mesh", "raster"]
+    assert f.image is None and f.normals is None and f.depth is not None
+    m = render(Scene(hm, outputs=("mesh",)))
+    assert m.mesh.n_triangles == 2 * 32 * 32 and m.depth is None
+
+
+def _wall_scene(wall: bool) -> Scene:
+    h = np.zeros((64, 64), np.float32)
+    if wall:
+        h[32, :] = 1000.0
+    hm = Heightmap.from_array(h, 1.0)
+    cam = Camera(position=(31.5, 5.0, 90.0), target=(31.5, 0.0, 0.0), fov_y_deg=60, width=160, height=120,
+                 near=0.1, far=1000.0)
+    return Scene(hm, camera=cam, outputs=("depth",))
+
+
+def test_occlusion_tall_wall_hides_what_is_behind():
+    for wall in (False, True):
+        f = render(_wall_scene(wall))
+        tri = f.triangle_id
+        cells_w = 63
+        cell_row = (tri[tri >= 0] // 2) // cells_w  # triangle -> cell row i
+        behind = int((cell_row < 31).sum())
+        if wall:
+            assert behind == 0
+            assert int((cell_row >= 31).sum()) > 0
+        else:
+            assert behind > 0  # the check above is able to fail
+
+
+def test_far_from_origin_terrain_renders_like_at_origin():
+    # Camera-relative float32 positions: the same terrain 10,000 km away gives the same picture.
+    h = Heightmap.fbm(65, seed=4, dx=10.0, max_height=200.0)
+    far = Heightmap.from_array(h.heights, 10.0, origin=(1.0e7, -1.0e7))
+    cam = Camera.default_for(h, 128, 96)
+    off = np.array([1.0e7, 0.0, -1.0e7])
+    cam_far = cam.with_(position=tuple(np.add(cam.position, off)), target=tuple(np.add(cam.target, off)))
+    a = render(Scene(h, camera=cam, outputs=("depth",)))
+    b = render(Scene(far, camera=cam_far, outputs=("depth",)))
+    assert (a.triangle_id != b.triangle_id).mean() < 1e-3
+
+
+def test_scene_validation():
+    hm = Heightmap.fbm(9, seed=0)
+    with pytest.raises(ValueError, match="outputs"):
+        Scene(hm, outputs=("image", "sparkles"))
+    with pytest.raises(ValueError, match="mesh"):
+        Scene(hm, mesh="octree")
+    with pytest.raises(TypeError, match="heightmap"):
+        Scene(np.zeros((3, 3)))
+    with pytest.raises(TypeError, match="scene"):
+        render("scene.toml")
+
+
+def test_scene_toml(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text('[heightmap]\nfbm = { rows = 33, seed = 3 }\n[camera]\nwidth = 64\nheight = 48\n'
+                 '[render]\noutputs = ["depth"]\n')
+    sc = Scene.load(p)
+    assert sc.camera.width == 64 and sc.outputs == ("depth",)
+    (tmp_path / "bad.toml").write_text("[heightmap\nexample=")
+    with pytest.raises(ValueError, match="TOML"):
+        Scene.load(tmp_path / "bad.toml")
+    (tmp_path / "unk.toml").write_text('[heightmap]\nexample = "jacksboro"\ncolour = 3\n')
+    with pytest.raises(ValueError, match="unknown key"):
+        Scene.load(tmp_path / "unk.toml")
+    with pytest.raises(FileNotFoundError, match="scene"):
+        Scene.load(tmp_path / "nope.toml")
+
+
+def test_frame_save_writes_files(tmp_path):
+    hm = Heightmap.fbm(33, seed=5)
+    f = render(Scene(hm, camera=Camera.default_for(hm, 64, 48), outputs=("image", "depth", "report", "mesh")))
+    written = {p.name for p in f.save(tmp_path)}
+    assert written == {"frame.png", "depth.exr", "report.json", "mesh.vtp"}
+    back = Heightmap.load(tmp_path / "depth.exr")  # the depth image reads back bit-exact
+    assert back.heights.tobytes() == f.depth.tobytes()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+
+
+def test_stage_plan_for_lod_scenes():
+    assert stages_for(("image",), "lod") == ["prepare", "normal_map", "select", "mesh", "raster", "shade"]
+    assert stages_for(("image",), "lod", have_terrain=True) == ["normal_map", "select", "mesh", "raster", "shade"]
+    assert stages_for(("patches",), "lod", have_terrain=True) == ["select"]
+    assert stages_for(("error",), "grid") == ["mesh", "raster", "reference", "error"]
+    assert stages_for(("patches",), "grid") == []
+
+
+def test_error_output_of_the_grid_is_zero(tmp_path):
+    hm = Heightmap.fbm(65, seed=6, dx=5.0, max_height=150.0)
+    f = render(Scene(hm, camera=Camera.default_for(hm, 96, 72), outputs=("error", "report")))
+    assert f.error.max_px < 2e-3 and f.error.cracks == 0 and f.error.mismatched == 0
+    assert f.report.stage("reference").counters["reused"] is True
+    names = {p.name for p in f.save(tmp_path)}
+    assert "error_px.exr" in names and "report.json" in names
+
+
+def test_lod_config_refuses_settings_that_crack():
+    from terrainwarp import LodConfig
+
+    with pytest.raises(ValueError, match="fractional_odd"):
+        LodConfig(policy="sse", spacing="fractional_odd")
+    with pytest.raises(ValueError, match="power of two"):
+        LodConfig(policy="sse", tess=12)
+    LodConfig(policy="continuous", spacing="fractional_odd", tess=12)  # a uniform grid: no doubled edges
+
+
+def test_lod_frame_is_watertight_and_close_to_the_reference():
+    from terrainwarp import LodConfig, Terrain, check_watertight
+
+    hm = Heightmap.example()
+    cam = Camera.default_for(hm, 320, 240)
+    terrain = Terrain.prepare(hm, roots=16, tess=16)
+    for spacing in ("equal", "fractional_even"):
+        sc = Scene(hm, camera=cam, mesh="lod", lod=LodConfig(tolerance_px=1.0, roots=16, tess=16, spacing=spacing),
+                   outputs=("error", "mesh", "patches"))
+        f = render(sc, terrain=terrain)
+        wt = check_watertight(f.mesh)
+        assert wt.n_open_edges == 0 and wt.n_t_junctions == 0
+        assert f.error.cracks == 0
+        assert f.error.p99_px < 1.0
+        assert f.mesh.n_triangles < 2 * 343 * 402 / 2  # far fewer triangles than the grid
+        assert "prepare" not in [s.name for s in f.report.stages]  # the caller's terrain was used
+
+
+def test_lod_config_with_policy():
+    from terrainwarp import LodConfig
+
+    base = LodConfig(roots=4, tess=8, spacing="fractional_even")
+    s = base.with_policy("sse", 2.5)
+    assert s.tolerance_px == 2.5 and s.spacing == "fractional_even"
+    assert base.with_policy("distance", 3).k == 3.0
+    c = base.with_policy("continuous", 6.0)
+    assert (c.policy, c.target_px, c.spacing) == ("continuous", 6.0, "fractional_odd")
+    assert c.with_policy("sse", 1.0).spacing == "equal"  # fractional_odd cannot stitch a quadtree
+    with pytest.raises(ValueError, match="policy"):
+        base.with_policy("bogus", 1.0)
