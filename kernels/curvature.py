@@ -47,7 +47,7 @@ import numpy as np
 import warp as wp
 
 from .normals import METHODS as NORMAL_METHODS
-from .normals import _check_spacing, _device_heights, fetch, vertex_normals_device
+from .normals import check_spacing, device_heights, fetch, vertex_normals_device
 
 DIRECTIONS = ("x", "z", "diag_xz", "diag_x_negz")
 CURVATURE_METHODS = {"two_normal": 0, "three_normal": 1, "three_vertex": 2, "edge_angle": 3}
@@ -352,8 +352,8 @@ def directional_curvature(heights: np.ndarray, dx: float, dz: float, method: str
     sc = float(scale)
     if not (np.isfinite(sc) and sc > 0.0):
         raise ValueError(f"scale: expected a positive finite number, got {scale!r}")
-    dx, dz = _check_spacing(dx, dz)
-    h = _device_heights(heights, device)
+    dx, dz = check_spacing(dx, dz)
+    h = device_heights(heights, device)
     m = CURVATURE_METHODS[method]
     if m <= 1:
         nrm = vertex_normals_device(h, dx, dz, normals, "skip")
@@ -370,8 +370,8 @@ def surface_curvature(heights: np.ndarray, dx: float, dz: float, scheme: str = "
     """(H, W, 4) float32 (mean, Gaussian, profile, plan) curvature; 1/m, 1/m^2, 1/m, 1/m."""
     if scheme not in SURFACE_SCHEMES:
         raise ValueError(f"scheme: expected one of {list(SURFACE_SCHEMES)}, got {scheme!r}")
-    dx, dz = _check_spacing(dx, dz)
-    h = _device_heights(heights, device)
+    dx, dz = check_spacing(dx, dz)
+    h = device_heights(heights, device)
     out = wp.empty(h.shape, dtype=wp.vec4, device=device)
     wp.launch(_surface_kernel, dim=h.shape, inputs=[h, dx, dz, SURFACE_SCHEMES[scheme]], outputs=[out],
               device=device)

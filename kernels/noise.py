@@ -17,7 +17,7 @@ import warp as wp
 
 
 @wp.func
-def _hash(x: wp.uint32, y: wp.uint32, s: wp.uint32) -> wp.uint32:
+def hash_u32(x: wp.uint32, y: wp.uint32, s: wp.uint32) -> wp.uint32:
     # A few rounds of a multiply-xorshift mixer (murmur3 finaliser) over the three words.
     h = s * wp.uint32(0x9E3779B9) + x * wp.uint32(0x85EBCA6B) + y * wp.uint32(0xC2B2AE35)
     h = h ^ (h >> wp.uint32(16))
@@ -30,7 +30,7 @@ def _hash(x: wp.uint32, y: wp.uint32, s: wp.uint32) -> wp.uint32:
 
 @wp.func
 def _grad(ix: int, iz: int, seed: wp.uint32, dx: float, dz: float) -> float:
-    h = _hash(wp.uint32(ix), wp.uint32(iz), seed)
+    h = hash_u32(wp.uint32(ix), wp.uint32(iz), seed)
     # 8 unit-ish gradient directions (the classic 2D Perlin set), chosen by the low bits.
     k = int(h & wp.uint32(7))
     gx = float(0.0)

@@ -254,7 +254,7 @@ def _encode_kernel(
 # ---------------------------------------------------------------------------------------------------
 
 
-def _device_heights(heights: np.ndarray, device: str) -> wp.array:
+def device_heights(heights: np.ndarray, device: str) -> wp.array:
     a = np.asarray(heights)
     if a.ndim != 2 or a.size == 0:
         raise ValueError(f"heights: expected a non-empty (H, W) array, got shape {a.shape}")
@@ -266,7 +266,7 @@ def _device_heights(heights: np.ndarray, device: str) -> wp.array:
     return wp.array(f, dtype=wp.float32, device=device)
 
 
-def _check_spacing(dx: float, dz: float) -> tuple[float, float]:
+def check_spacing(dx: float, dz: float) -> tuple[float, float]:
     out = []
     for name, v in (("dx", dx), ("dz", dz)):
         f = float(v)
@@ -288,8 +288,8 @@ def sobel_normals(heights: np.ndarray, dx: float, dz: float, border: str = "clam
     """
     if border not in BORDERS:
         raise ValueError(f"border: expected one of {sorted(BORDERS)}, got {border!r}")
-    dx, dz = _check_spacing(dx, dz)
-    h = _device_heights(heights, device)
+    dx, dz = check_spacing(dx, dz)
+    h = device_heights(heights, device)
     out = wp.empty(h.shape, dtype=wp.vec3, device=device)
     wp.launch(_sobel_kernel, dim=h.shape, inputs=[h, dx, dz, BORDERS[border], float(constant)],
               outputs=[out], device=device)
@@ -320,8 +320,8 @@ def vertex_normals(heights: np.ndarray, dx: float, dz: float, method: str = "qua
         raise ValueError(f"method: expected one of {list(METHODS)}, got {method!r}")
     if border not in BORDERS:
         raise ValueError(f"border: expected one of {sorted(BORDERS)}, got {border!r}")
-    dx, dz = _check_spacing(dx, dz)
-    h = _device_heights(heights, device)
+    dx, dz = check_spacing(dx, dz)
+    h = device_heights(heights, device)
     out = vertex_normals_device(h, dx, dz, method, border, constant)
     return out.numpy().reshape(h.shape[0], h.shape[1], 3)
 

@@ -655,7 +655,7 @@ def _barycentrics_kernel(
 
 
 @wp.kernel
-def _interpolate_kernel(
+def interpolate_kernel(
     pix_id: wp.array3d(dtype=wp.int32),
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
@@ -906,7 +906,7 @@ def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr
     """
     out = wp.zeros(pix_id.shape, dtype=wp.float32, device=attr.device,
                    requires_grad=bool(clip.requires_grad or attr.requires_grad))
-    wp.launch(_interpolate_kernel, dim=pix_id.shape, inputs=[pix_id, clip, triangles, attr], outputs=[out],
+    wp.launch(interpolate_kernel, dim=pix_id.shape, inputs=[pix_id, clip, triangles, attr], outputs=[out],
               device=attr.device)
     return out
 

@@ -12,7 +12,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from .noise import _hash
+from .noise import hash_u32
 
 
 @wp.func
@@ -172,7 +172,7 @@ def _smooth_band(x: float, lo: float, hi: float, band: float) -> float:
 @wp.func
 def _hash2(ix: int, iz: int, seed: int) -> float:
     """A lattice value in [0, 1]: the terrain noise's integer hash (kernels/noise.py), 24 bits of it."""
-    h = _hash(wp.uint32(ix), wp.uint32(iz), wp.uint32(seed))
+    h = hash_u32(wp.uint32(ix), wp.uint32(iz), wp.uint32(seed))
     return float(h & wp.uint32(0xFFFFFF)) / 16777215.0
 
 

@@ -13,7 +13,6 @@ deliberate one, regenerate them with ONE command (it rewrites the GOLDEN block o
 
 from __future__ import annotations
 
-import hashlib
 import re
 import sys
 from pathlib import Path
@@ -22,15 +21,7 @@ import numpy as np
 import pytest
 
 import terrainwarp as tw
-
-
-def _digest(*arrays) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(str(a.dtype).encode() + str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()
+from terrainwarp.io.files import digest as _digest
 
 
 def compute() -> dict[str, str]:

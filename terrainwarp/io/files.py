@@ -1,9 +1,11 @@
 """File output helpers: every file is written to a temporary name in its folder and renamed into
-place, so an interrupted or failed write never leaves a partial file behind."""
+place, so an interrupted or failed write never leaves a partial file behind. Also the one digest of
+arrays that determinism checks compare, and the one way figures are saved."""
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 from collections.abc import Iterator
@@ -82,3 +84,30 @@ def _json_default(o: object) -> object:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def digest(*arrays: object) -> str:
+    """The SHA-256 (hex) of arrays' dtypes, shapes and bytes: what determinism checks and golden tests
+    compare across runs and thread counts. None is hashed as a marker."""
+    h = hashlib.sha256()
+    for a in arrays:
+        if a is None:
+            h.update(b"None")
+            continue
+        a = np.ascontiguousarray(a)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def save_figure(fig: object, path: str | os.PathLike, *, dpi: float = 100, **savefig_kw: object) -> Path:
+    """Save a matplotlib figure atomically (format from the suffix, PNG by default) and release it from
+    pyplot if pyplot made it. Returns the path."""
+    import matplotlib.pyplot as plt  # lazy: matplotlib is heavy
+
+    p = Path(path)
+    fmt = p.suffix.lstrip(".").lower() or "png"
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, format=fmt, dpi=dpi, **savefig_kw)
+    plt.close(fig)
+    return p

@@ -168,6 +168,17 @@ class Terrain:
         s = self.root_cells / 2.0 ** level
         return (s * self.heightmap.dx, s * self.heightmap.dz)
 
+    def cached(self, key: object, make):
+        """The value kept under ``key`` (a normal map, device arrays), made by ``make()`` on first use.
+
+        What persists between frames lives here, in the object the caller holds, never in module state."""
+        if key not in self._dev:
+            self._dev[key] = make()
+        return self._dev[key]
+
+    def is_cached(self, key: object) -> bool:
+        return key in self._dev
+
     def device_stats(self, level: int, device: str = "cpu"):
         import warp as wp
 

@@ -1,6 +1,6 @@
 """Differentiable resolve for JAX: perspective-correct attribute interpolation from the visibility pass.
 
-The Warp kernel ``terrainwarp.kernels.raster._interpolate_kernel`` is called through
+The Warp kernel ``terrainwarp.kernels.raster.interpolate_kernel`` is called through
 ``warp.jax_kernel(..., enable_backward=True)`` (works on the CPU backend with jax 0.10.2 and
 warp-lang 1.19). Gradients reach the vertex attributes and, through the barycentrics recomputed from
 clip coordinates at each pixel centre (as nvdiffrast's ``interpolate``), the clip-space positions and
@@ -33,9 +33,9 @@ def _kernel():
     if _KERNEL is None:
         import warp as wp
 
-        from ..kernels.raster import _interpolate_kernel
+        from ..kernels.raster import interpolate_kernel
 
-        _KERNEL = wp.jax_kernel(_interpolate_kernel, num_outputs=1, enable_backward=True)
+        _KERNEL = wp.jax_kernel(interpolate_kernel, num_outputs=1, enable_backward=True)
     return _KERNEL
 
 

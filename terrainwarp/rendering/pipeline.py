@@ -249,15 +249,13 @@ def render(scene: Scene, terrain=None, state=None, reference: Frame | None = Non
     nmap = None
     if "normal_map" in stages:
         with _timed(report, "normal_map") as r:
-            cached = terrain._dev.get(("normal_map", device)) if terrain is not None else None
-            if cached is None:
-                cached = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
-                if terrain is not None:
-                    terrain._dev[("normal_map", device)] = cached
-                r.counters["samples"] = int(hm.heights.size)
-            else:
+            key = ("normal_map", device)
+            if terrain is not None and terrain.is_cached(key):
                 r.counters["cached"] = True
-            nmap = cached
+            else:
+                r.counters["samples"] = int(hm.heights.size)
+            make = lambda: sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)  # noqa: E731
+            nmap = make() if terrain is None else terrain.cached(key, make)
     if "curvature" in stages:
         from ..surface.differential import compute_curvature
 

@@ -377,7 +377,7 @@ def _connectivity(lay: _Layout) -> list[tuple[int, int, int]]:
     return tris
 
 
-def _check_spacing(spacing: str) -> None:
+def check_spacing(spacing: str) -> None:
     if spacing not in SPACINGS:
         raise ValueError(f"spacing: expected one of {list(SPACINGS)}, got {spacing!r}")
 
@@ -398,7 +398,7 @@ def _check_levels(outer, inner) -> tuple[np.ndarray, np.ndarray]:
 def patch_counts(outer, inner, spacing: str) -> tuple[int, int]:
     """(number of domain points, number of triangles) of one patch, from the layout alone (what the
     count kernel computes)."""
-    _check_spacing(spacing)
+    check_spacing(spacing)
     proc = process_levels(*_check_levels(outer, inner), spacing)
     if proc is None:
         return 0, 0
@@ -431,7 +431,7 @@ def tessellate_patch(outer, inner, spacing: str) -> tuple[np.ndarray, np.ndarray
         triangles: (m, 3) int32 indices into ``uv``, counter-clockwise in the (u right, v up) domain
         (GL's ``ccw``). A culled patch (an outer level <= 0 or NaN) gives n = m = 0.
     """
-    _check_spacing(spacing)
+    check_spacing(spacing)
     o, i = _check_levels(outer, inner)
     proc = process_levels(o, i, spacing)
     if proc is None:

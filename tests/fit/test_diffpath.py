@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
-from terrainwarp import diffpath as dp
+from terrainwarp.fit import diffpath as dp
 from terrainwarp.kernels.tessellator import tessellate_domains
 from terrainwarp.lod import Terrain
 from terrainwarp.rendering.reference_tessellator import num_points, place, tessellate_patch
