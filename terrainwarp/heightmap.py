@@ -17,31 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from .io import geotiff
 from .io.files import atomic_path, write_image
+from .io.geodesy import metres_per_degree
+from .kernels import noise, sampling
 
-__all__ = ["Heightmap", "metres_per_degree"]
-
-# WGS84 ellipsoid
-_WGS84_A = 6378137.0
-_WGS84_F = 1.0 / 298.257223563
-_WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
+__all__ = ["Heightmap", "metres_per_degree"]  # metres_per_degree lives in io.geodesy; re-exported as before
 
 EXAMPLES = ("jacksboro", "topobathy")
-
-
-def metres_per_degree(lat_deg: float, *, a: float = _WGS84_A, f: float = _WGS84_F) -> tuple[float, float]:
-    """Metres per degree of (longitude, latitude) at geodetic latitude ``lat_deg`` on the ellipsoid with
-    semi-major axis ``a`` metres and flattening ``f`` (default WGS84; f=0 is a sphere).
-
-    Longitude: N(phi) cos(phi) * pi/180 with N the prime-vertical radius of curvature; latitude:
-    M(phi) * pi/180 with M the meridional radius of curvature.
-    """
-    e2 = f * (2.0 - f)
-    phi = math.radians(lat_deg)
-    s2 = math.sin(phi) ** 2
-    n = a / math.sqrt(1.0 - e2 * s2)
-    m = a * (1.0 - e2) / (1.0 - e2 * s2) ** 1.5
-    return (math.pi / 180.0 * n * math.cos(phi), math.pi / 180.0 * m)
 
 
 def _positive(name: str, v: object) -> float:
@@ -168,13 +151,12 @@ class Heightmap:
         if p.stat().st_size == 0:
             raise ValueError(f"path: file is empty: {p}")
         ext = p.suffix.lower()
-        from .io import geotiff
-
         if geotiff.is_gdal_raster(p):
             if max_height is not None:
                 raise ValueError(f"max_height: not used for georeferenced rasters ({p.name}); heights come "
                                  "from the file's values, scale and offset")
-            return geotiff.read_geotiff(p, band=int(channel) + 1, dx=dx, dz=dz, **raster_options)
+            r = geotiff.read_geotiff(p, band=int(channel) + 1, dx=dx, dz=dz, **raster_options)
+            return cls.from_array(r.heights, r.dx, r.dz, allow_nan=True, name=r.name, meta=r.meta)
         if raster_options:
             raise TypeError(f"{sorted(raster_options)[0]}: only GeoTIFF / GDAL rasters take "
                             f"{', '.join(sorted(raster_options))}; {p.name} is read by OpenImageIO or numpy")
@@ -199,7 +181,7 @@ class Heightmap:
         * ``"topobathy"``: 91 x 120 float32 topography and bathymetry off the Pacific Northwest
           (negative heights below sea level); its rows run north to south after a flip.
         """
-        from matplotlib import cbook
+        from matplotlib import cbook  # lazy: heavy optional dependency
 
         if name not in EXAMPLES:
             raise ValueError(f"name: expected one of {list(EXAMPLES)}, got {name!r}")
@@ -237,16 +219,14 @@ class Heightmap:
         Heights lie in [0, max_height]. ``feature_size`` is the wavelength of the first octave in
         samples. Any window of a larger terrain with the same parameters equals that part of it.
         """
-        from .kernels.noise import fbm as _fbm
-
         cols = rows if cols is None else cols
         for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
             if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
                 raise ValueError(f"{nm}: expected a positive integer, got {v!r}")
         n = _positive("max_height", max_height)
         fs = _positive("feature_size", feature_size)
-        a = _fbm(int(rows), int(cols), seed=int(seed), base_frequency=1.0 / fs, octaves=int(octaves),
-                 lacunarity=float(lacunarity), gain=float(gain), ridged=ridged)
+        a = noise.fbm(int(rows), int(cols), seed=int(seed), base_frequency=1.0 / fs, octaves=int(octaves),
+                       lacunarity=float(lacunarity), gain=float(gain), ridged=ridged)
         h = ((a + np.float32(1.0)) * np.float32(0.5 * n)).astype(np.float32)
         return cls.from_array(h, dx, dz, name=f"fbm{rows}x{cols}s{seed}", meta={
             "source": "fbm", "seed": int(seed), "feature_size": fs, "octaves": int(octaves),
@@ -276,13 +256,11 @@ class Heightmap:
     # -- sampling ----------------------------------------------------------------------------------
     def sample(self, x: object, z: object, method: str = "bilinear") -> np.ndarray:
         """Heights at world (x, z), float32, by the device's bilinear or bicubic filter."""
-        from .kernels.sampling import sample_grid
-
         xa = np.asarray(x, dtype=np.float64)
         za = np.asarray(z, dtype=np.float64)
         u = (xa - self.origin[0]) / self.dx
         v = (za - self.origin[1]) / self.dz
-        return sample_grid(self.heights, u, v, method)
+        return sampling.sample_grid(self.heights, u, v, method)
 
     # -- designer controls (mrbsp-lod-visibility.txt, section 1) -----------------------------------
     def designed(self, *, sea_level: float = 0.0, height_scale: float = 1.0, seabed: float = 1.0,
@@ -333,8 +311,6 @@ class Heightmap:
         ext = p.suffix.lower()
         h = self.heights
         if ext in (".tif", ".tiff"):
-            from .io import geotiff
-
             if geotiff.is_georeferenced(self.meta):
                 return geotiff.write_geotiff(self, p)
         if ext == ".npy":
@@ -355,7 +331,7 @@ class Heightmap:
 
 # -- OpenImageIO ------------------------------------------------------------------------------------
 def _read_image(p: Path, channel: int) -> np.ndarray:
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: heavy optional dependency
 
     inp = oiio.ImageInput.open(str(p))
     if inp is None:

@@ -226,7 +226,7 @@ def upward_imports(mods: dict[str, Module], root: Path) -> list[str]:
             lt = layer_of(t) if t is not None else None
             if t is not None and t != m.name and lt is not None and lt > lm:
                 out.append(f"{_where(m, imp.line, root)}: {m.name} (layer {lm}) imports {t} (layer {lt})")
-    return out
+    return list(dict.fromkeys(out))  # one line per import statement, not per name it imports
 
 
 def _is_private(name: str) -> bool:

@@ -33,16 +33,21 @@ import os
 import re
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
 from .files import atomic_path
+from .geodesy import WGS84_A, WGS84_INV_F, metres_per_degree
 
-if TYPE_CHECKING:
-    from ..heightmap import Heightmap
+if TYPE_CHECKING:  # rasterio and affine are imported where used (heavy optional dependencies)
+    from affine import Affine
+    from rasterio.crs import CRS
+    from rasterio.io import DatasetReader
+    from rasterio.windows import Window
 
-__all__ = ["GDAL_EXTS", "describe", "is_gdal_raster", "is_georeferenced", "read_geotiff", "write_geotiff"]
+__all__ = ["GDAL_EXTS", "GeoRaster", "HeightGrid", "describe", "is_gdal_raster", "is_georeferenced",
+           "read_geotiff", "write_geotiff"]
 
 # Extensions always read through GDAL; .tif/.tiff only when the file carries georeferencing (plain TIFFs
 # stay with OpenImageIO, see Heightmap.load).
@@ -63,16 +68,32 @@ _SAVE_DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32"
 _SHEAR_RTOL = 1e-12
 
 
+class HeightGrid(Protocol):
+    """What :func:`describe` and :func:`write_geotiff` need of a heightmap: a :class:`GeoRaster` or a
+    :class:`terrainwarp.Heightmap` (io sits below the core types and does not import them)."""
+
+    @property
+    def heights(self) -> np.ndarray: ...  # (H, W) float32 metres, NaN at no-data
+    @property
+    def dx(self) -> float: ...
+    @property
+    def dz(self) -> float: ...
+    @property
+    def name(self) -> str: ...
+    @property
+    def meta(self) -> dict[str, Any]: ...
+
+
 # -- helpers ---------------------------------------------------------------------------------------
 def _rasterio():
     try:
-        import rasterio
+        import rasterio  # lazy: heavy optional dependency
     except ImportError as e:  # pragma: no cover - rasterio is a dependency
         raise ImportError("reading GeoTIFF/GDAL rasters needs rasterio: pip install rasterio") from e
     return rasterio
 
 
-def _open(p: Path):
+def _open(p: Path) -> DatasetReader:
     rasterio = _rasterio()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
@@ -99,18 +120,17 @@ def is_gdal_raster(path: str | os.PathLike) -> bool:
         return False
 
 
-def _ellipsoid(crs) -> dict[str, Any]:
+def _ellipsoid(crs: CRS) -> dict[str, Any]:
     """(name, semi-major axis a in metres, inverse flattening) of a CRS's ellipsoid, parsed from its WKT;
     WGS84 when the WKT does not name one."""
     wkt = crs.to_wkt()
     m = re.search(r'(?:SPHEROID|ELLIPSOID)\["([^"]*)",\s*([0-9.eE+-]+),\s*([0-9.eE+-]+)', wkt)
     if m is None:
-        return {"name": "WGS 84 (assumed: the CRS names no ellipsoid)", "a": 6378137.0,
-                "inv_f": 298.257223563}
+        return {"name": "WGS 84 (assumed: the CRS names no ellipsoid)", "a": WGS84_A, "inv_f": WGS84_INV_F}
     return {"name": m.group(1), "a": float(m.group(2)), "inv_f": float(m.group(3))}
 
 
-def _crs_name(crs) -> str:
+def _crs_name(crs: CRS) -> str:
     try:
         auth = crs.to_authority()
     except Exception:  # noqa: BLE001 - some CRSs have no authority code
@@ -126,7 +146,7 @@ def _int_arg(name: str, v: object, lo: int) -> int:
     return int(v)
 
 
-def _pixel_window(src, window, bounds) -> tuple[int, int, int, int]:
+def _pixel_window(src: DatasetReader, window: object, bounds: object) -> tuple[int, int, int, int]:
     """(row_off, col_off, height, width) in file pixels, inside the raster."""
     H, W = src.height, src.width
     if window is not None and bounds is not None:
@@ -168,10 +188,46 @@ def _pixel_window(src, window, bounds) -> tuple[int, int, int, int]:
 
 
 # -- reading ---------------------------------------------------------------------------------------
+class GeoRaster(NamedTuple):
+    """What :func:`read_geotiff` read: plain arrays and metadata (:meth:`terrainwarp.Heightmap.load` builds
+    the Heightmap from it).
+
+    Attributes:
+        heights: (H, W) float32 metres, NaN at no-data, row 0 the northern row, column 0 the western one.
+        dx, dz: spacing in metres, east-west (columns) and north-south (rows).
+        name: a label (the file's stem).
+        meta: the CRS (WKT), the transform of the part read (file orientation), nodata, scale/offset,
+            dtype, the flips, the latitude used for a geographic CRS, and ``meta["summary"]``
+            (:func:`describe`).
+    """
+
+    heights: np.ndarray
+    dx: float
+    dz: float
+    name: str
+    meta: dict[str, Any]
+
+
+class _Part(NamedTuple):
+    """The part of one band read from an open raster, and the band's tags."""
+
+    raw: np.ndarray  # (n, m) file values, file orientation
+    holes: np.ndarray  # (n, m) bool, no-data
+    transform: Affine  # of the samples read
+    window: tuple[int, int, int, int]  # (row_off, col_off, height, width) in file pixels, whole blocks
+    dtype: np.dtype
+    nodata: float | None
+    scale: float
+    offset: float
+    unit: str
+    crs: CRS | None
+    georef: bool
+
+
 def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = None, bounds: object = None,
                  decimate: int = 1, resampling: str = "average", dx: float | None = None,
-                 dz: float | None = None) -> Heightmap:
-    """Read a GeoTIFF (or any GDAL raster) as a :class:`Heightmap` in metres, north-up.
+                 dz: float | None = None) -> GeoRaster:
+    """Read a GeoTIFF (or any GDAL raster) as heights in metres, north-up.
 
     Args:
         path: the raster file.
@@ -186,21 +242,15 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
         dx, dz: spacing in metres overriding the one derived from the georeferencing.
 
     Returns:
-        Heightmap with ``heights`` (H, W) float32 metres (NaN at no-data), row 0 the northern row, spacing
-        ``dx`` (east-west) and ``dz`` (north-south) in metres, origin (0, 0), and ``meta`` holding the CRS
-        (WKT), the transform of the part read (file orientation), nodata, scale/offset, dtype, the flips,
-        the latitude used for a geographic CRS, and ``meta["summary"]`` (:func:`describe`).
+        GeoRaster with ``heights`` (H, W) float32 metres (NaN at no-data), row 0 the northern row, spacing
+        ``dx`` (east-west) and ``dz`` (north-south) in metres, and ``meta`` holding the CRS (WKT), the
+        transform of the part read (file orientation), nodata, scale/offset, dtype, the flips, the
+        latitude used for a geographic CRS, and ``meta["summary"]`` (:func:`describe`).
 
     Raises:
         ValueError: unreadable file, bad band/window/bounds/decimate, a rotated or sheared transform, a
             window that holds only no-data.
     """
-    from affine import Affine
-    from rasterio.enums import MaskFlags, Resampling
-    from rasterio.windows import Window
-
-    from ..heightmap import Heightmap, metres_per_degree
-
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"path: no such file: {p}")
@@ -211,86 +261,126 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
         b = _int_arg("band", band, 1)
         if b > src.count:
             raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
-        t = src.transform
-        if t.is_identity and src.gcps[0]:
-            raise ValueError(f"path: {p} is georeferenced by {len(src.gcps[0])} ground control points, not "
-                             "a geotransform; resample it onto a grid first, e.g. `gdalwarp -t_srs <CRS> "
-                             "in.tif out.tif`")
-        scale_ref = max(abs(t.a), abs(t.e))
-        if abs(t.b) > _SHEAR_RTOL * scale_ref or abs(t.d) > _SHEAR_RTOL * scale_ref:  # b, d below: 0
-            raise ValueError(
-                f"path: {p} has a rotated or sheared geotransform (row/column terms b={t.b!r}, d={t.d!r}); "
-                "terrainwarp needs a grid aligned with east and north: resample it first, e.g. "
-                "`gdalwarp -t_srs <its CRS> in.tif north_up.tif`")
-        if t.a == 0.0 or t.e == 0.0:
-            raise ValueError(f"path: {p} has a degenerate geotransform (pixel size {t.a}, {t.e})")
-        georef = src.crs is not None or not t.is_identity
-        r0, c0, h, w = _pixel_window(src, window, bounds)
-        n, m = h // k, w // k
-        if n < 1 or m < 1:
-            raise ValueError(f"decimate: {k} leaves no sample of the {h}x{w} window")
-        win = Window(c0, r0, m * k, n * k)
-        rs = getattr(Resampling, resampling)
-        raw = src.read(b, window=win, out_shape=(n, m), resampling=rs) if k > 1 else src.read(b, window=win)
-        dtype = np.dtype(src.dtypes[b - 1])
-        nodata = src.nodatavals[b - 1]
-        if nodata is not None and not np.issubdtype(dtype, np.floating) and not math.isfinite(nodata):
-            nodata = None  # a NaN/inf nodata tag on an integer band matches no cell
-        flags = src.mask_flag_enums[b - 1]
-        if nodata is not None:
-            nd = np.asarray(nodata).astype(dtype)
-            holes = np.isnan(raw) if np.isnan(nd) else (raw == nd)
-        elif MaskFlags.all_valid not in flags:  # a mask band or alpha
-            mk = src.read_masks(b, window=win, out_shape=(n, m), resampling=Resampling.nearest) if k > 1 \
-                else src.read_masks(b, window=win)
-            holes = mk == 0
-        else:
-            holes = np.zeros(raw.shape, dtype=bool)
-        if np.issubdtype(dtype, np.floating):
-            holes |= np.isnan(raw)
-        scale = float(src.scales[b - 1] if src.scales[b - 1] is not None else 1.0)
-        offset = float(src.offsets[b - 1] if src.offsets[b - 1] is not None else 0.0)
-        unit = (src.units[b - 1] or "").strip()
-        crs = src.crs
-        area_or_point = src.tags().get("AREA_OR_POINT", "Area")
-        driver = src.driver
-        full_shape = (src.height, src.width)
-        count = src.count
-        tw = Affine(t.a * k, 0.0, t.c + t.a * c0, 0.0, t.e * k, t.f + t.e * r0)  # of the samples read
-    n_holes = int(holes.sum())
-    if n_holes == raw.size:
-        raise ValueError(f"path: every cell of band {b} in the part read of {p} is no-data ({nodata})")
+        _check_transform(src, p)
+        part = _read_part(src, b, _pixel_window(src, window, bounds), k, resampling)
+        file_meta = dict(source=str(p), driver=src.driver, band=b, band_count=src.count,
+                         raster_shape=[int(src.height), int(src.width)],
+                         area_or_point=src.tags().get("AREA_OR_POINT", "Area"))
+    n_holes = int(part.holes.sum())
+    if n_holes == part.raw.size:
+        raise ValueError(f"path: every cell of band {b} in the part read of {p} is no-data ({part.nodata})")
+    h64, vf, notes = _decode(part)
+    sdx, sdz, meta = _spacing(part, p, dx, dz)
+    h64, flip_rows, flip_cols, s00 = _orient(h64, part)
+    tw, (r0, c0, nk, mk) = part.transform, part.window
+    n, m = part.raw.shape
+    meta.update(
+        source=file_meta["source"], driver=file_meta["driver"], band=b, band_count=file_meta["band_count"],
+        crs=part.crs.to_wkt() if part.crs is not None else None,
+        crs_name=_crs_name(part.crs) if part.crs is not None else None,
+        transform=[tw.a, tw.b, tw.c, tw.d, tw.e, tw.f],
+        raster_shape=file_meta["raster_shape"],
+        window=[r0, c0, nk, mk], decimate=k, resampling=resampling if k > 1 else None,
+        source_dtype=str(part.dtype), nodata=None if part.nodata is None else float(part.nodata),
+        nodata_count=n_holes, scale=part.scale, offset=part.offset, vertical_unit=part.unit or None,
+        vertical_unit_m=vf, area_or_point=file_meta["area_or_point"], flipped_rows=bool(flip_rows),
+        flipped_cols=bool(flip_cols), sample00_crs=[float(s00[0]), float(s00[1])],
+        centre_crs=[float(tw.c + tw.a * m / 2.0), float(tw.f + tw.e * n / 2.0)],
+        spacing_note=meta.pop("spacing_note"), notes=notes,
+    )
+    r = GeoRaster(np.ascontiguousarray(h64.astype(np.float32)), sdx, sdz, p.stem, meta)
+    meta["summary"] = describe(r)
+    return r
 
+
+# -- window ------------------------------------------------------------------------------------------
+def _check_transform(src: DatasetReader, p: Path) -> None:
+    """Refuse what is not a grid aligned with east and north: ground control points, rotation/shear, a
+    zero pixel size."""
+    t = src.transform
+    if t.is_identity and src.gcps[0]:
+        raise ValueError(f"path: {p} is georeferenced by {len(src.gcps[0])} ground control points, not "
+                         "a geotransform; resample it onto a grid first, e.g. `gdalwarp -t_srs <CRS> "
+                         "in.tif out.tif`")
+    scale_ref = max(abs(t.a), abs(t.e))
+    if abs(t.b) > _SHEAR_RTOL * scale_ref or abs(t.d) > _SHEAR_RTOL * scale_ref:  # b, d below: 0
+        raise ValueError(
+            f"path: {p} has a rotated or sheared geotransform (row/column terms b={t.b!r}, d={t.d!r}); "
+            "terrainwarp needs a grid aligned with east and north: resample it first, e.g. "
+            "`gdalwarp -t_srs <its CRS> in.tif north_up.tif`")
+    if t.a == 0.0 or t.e == 0.0:
+        raise ValueError(f"path: {p} has a degenerate geotransform (pixel size {t.a}, {t.e})")
+
+
+def _read_part(src: DatasetReader, b: int, pixel_window: tuple[int, int, int, int], k: int,
+               resampling: str) -> _Part:
+    """Band ``b`` over ``pixel_window`` (whole ``k`` x ``k`` blocks), its no-data cells and its tags."""
+    from affine import Affine  # lazy: heavy optional dependency (with rasterio)
+    from rasterio.enums import Resampling  # lazy: heavy optional dependency
+    from rasterio.windows import Window
+
+    r0, c0, h, w = pixel_window
+    n, m = h // k, w // k
+    if n < 1 or m < 1:
+        raise ValueError(f"decimate: {k} leaves no sample of the {h}x{w} window")
+    win = Window(c0, r0, m * k, n * k)
+    rs = getattr(Resampling, resampling)
+    raw = src.read(b, window=win, out_shape=(n, m), resampling=rs) if k > 1 else src.read(b, window=win)
+    dtype = np.dtype(src.dtypes[b - 1])
+    holes, nodata = _no_data(src, b, raw, win, k, dtype)
+    t = src.transform
+    return _Part(
+        raw=raw, holes=holes, transform=Affine(t.a * k, 0.0, t.c + t.a * c0, 0.0, t.e * k, t.f + t.e * r0),
+        window=(r0, c0, n * k, m * k), dtype=dtype, nodata=nodata,
+        scale=float(src.scales[b - 1] if src.scales[b - 1] is not None else 1.0),
+        offset=float(src.offsets[b - 1] if src.offsets[b - 1] is not None else 0.0),
+        unit=(src.units[b - 1] or "").strip(), crs=src.crs, georef=src.crs is not None or not t.is_identity)
+
+
+# -- no-data -----------------------------------------------------------------------------------------
+def _no_data(src: DatasetReader, b: int, raw: np.ndarray, win: Window, k: int,
+             dtype: np.dtype) -> tuple[np.ndarray, float | None]:
+    """(holes (n, m) bool, the nodata value in effect): the band's nodata value, else its mask band, and
+    NaN in a float band."""
+    from rasterio.enums import MaskFlags, Resampling  # lazy: heavy optional dependency
+
+    nodata = src.nodatavals[b - 1]
+    if nodata is not None and not np.issubdtype(dtype, np.floating) and not math.isfinite(nodata):
+        nodata = None  # a NaN/inf nodata tag on an integer band matches no cell
+    if nodata is not None:
+        nd = np.asarray(nodata).astype(dtype)
+        holes = np.isnan(raw) if np.isnan(nd) else (raw == nd)
+    elif MaskFlags.all_valid not in src.mask_flag_enums[b - 1]:  # a mask band or alpha
+        mk = src.read_masks(b, window=win, out_shape=raw.shape, resampling=Resampling.nearest) if k > 1 \
+            else src.read_masks(b, window=win)
+        holes = mk == 0
+    else:
+        holes = np.zeros(raw.shape, dtype=bool)
+    if np.issubdtype(dtype, np.floating):
+        holes |= np.isnan(raw)
+    return holes, nodata
+
+
+def _decode(part: _Part) -> tuple[np.ndarray, float, list[str]]:
+    """(heights float64 metres with NaN holes, the vertical unit's length in metres, notes)."""
+    unit = part.unit
     vf = _VERTICAL_UNITS.get(unit.lower(), 1.0)
     notes: list[str] = []
     if unit and unit.lower() not in _VERTICAL_UNITS:
         notes.append(f"unknown vertical unit {unit!r}: values taken as metres")
-    h64 = (raw.astype(np.float64) * scale + offset) * vf
-    h64[holes] = np.nan
+    h64 = (part.raw.astype(np.float64) * part.scale + part.offset) * vf
+    h64[part.holes] = np.nan
+    return h64, vf, notes
 
-    # spacing
+
+# -- spacing -----------------------------------------------------------------------------------------
+def _spacing(part: _Part, p: Path, dx: float | None, dz: float | None) -> tuple[float, float, dict[str, Any]]:
+    """(dx, dz) in metres and the meta that says how they were found (``meta["spacing_note"]``)."""
+    tw, crs = part.transform, part.crs
     px, py = abs(tw.a), abs(tw.e)  # CRS units per sample
-    cx, cy = tw.c + tw.a * m / 2.0, tw.f + tw.e * n / 2.0  # centre of the part read, CRS coordinates
     meta: dict[str, Any] = {}
     if crs is not None and crs.is_geographic:
-        ell = _ellipsoid(crs)
-        to_deg = crs.units_factor[1] * 180.0 / math.pi  # CRS angular unit -> degrees
-        f = 1.0 / ell["inv_f"] if ell["inv_f"] else 0.0
-        lat = cy * to_deg
-        if not -90.0 < lat < 90.0:
-            raise ValueError(f"path: {p}: the centre latitude {lat} deg is outside (-90, 90)")
-        mlon, mlat = metres_per_degree(lat, a=ell["a"], f=f)
-        sdx, sdz = px * to_deg * mlon, py * to_deg * mlat
-        lat_n = max(min(tw.f * to_deg, 89.999999), -89.999999)
-        lat_s = max(min((tw.f + tw.e * n) * to_deg, 89.999999), -89.999999)
-        var = [metres_per_degree(v, a=ell["a"], f=f)[0] / mlon for v in (lat_n, lat_s)]
-        meta.update(crs_kind="geographic", latitude_deg=lat, ellipsoid=ell,
-                    spacing_deg=[px * to_deg, py * to_deg],
-                    dx_variation=[min(var), max(var)])
-        spacing_how = (f"geographic CRS: {px * to_deg:.6g} x {py * to_deg:.6g} deg converted at the centre "
-                       f"latitude {lat:.5f} deg on the {ell['name']} ellipsoid (a={ell['a']:.3f} m, "
-                       f"1/f={ell['inv_f']:.12g}); the true east-west spacing varies from "
-                       f"{min(var) * sdx:.4g} to {max(var) * sdx:.4g} m across the rows")
+        sdx, sdz, how = _geographic_spacing(part, p, meta)
     elif crs is not None:
         try:
             lu, lf = crs.linear_units_factor
@@ -299,53 +389,70 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
                              "pass dx and dz in metres") from e
         sdx, sdz = px * lf, py * lf
         meta.update(crs_kind="projected", linear_unit=lu, linear_unit_m=lf)
-        spacing_how = (f"projected CRS: {px:.6g} x {py:.6g} {lu} (x {lf:.12g} m) grid metres; the "
-                       "projection's scale factor is not applied")
-    elif georef:
+        how = (f"projected CRS: {px:.6g} x {py:.6g} {lu} (x {lf:.12g} m) grid metres; the "
+               "projection's scale factor is not applied")
+    elif part.georef:
         sdx, sdz = px, py
         meta.update(crs_kind="none")
-        spacing_how = f"no CRS: the pixel size {px:.6g} x {py:.6g} taken as metres"
+        how = f"no CRS: the pixel size {px:.6g} x {py:.6g} taken as metres"
     else:
         sdx, sdz = 1.0, 1.0
         meta.update(crs_kind="none")
-        spacing_how = "no georeferencing: spacing 1 m"
+        how = "no georeferencing: spacing 1 m"
     if dx is not None or dz is not None:  # as in Heightmap.load: dz defaults to dx
         sdx, sdz = (float(dx), float(dz if dz is not None else dx)) if dx is not None else (sdx, float(dz))
-        spacing_how += f"; overridden by the caller to dx={sdx:.6g}, dz={sdz:.6g} m"
+        how += f"; overridden by the caller to dx={sdx:.6g}, dz={sdz:.6g} m"
+    meta["spacing_note"] = how
+    return sdx, sdz, meta
 
-    # orientation: row 0 north, column 0 west
-    flip_rows = georef and tw.e > 0
-    flip_cols = georef and tw.a < 0
+
+def _geographic_spacing(part: _Part, p: Path, meta: dict[str, Any]) -> tuple[float, float, str]:
+    """A geographic CRS's pixel size in degrees converted to metres at the latitude of the centre of the
+    part read, on the CRS's own ellipsoid; adds what it used to ``meta``."""
+    tw, crs = part.transform, part.crs
+    n = part.raw.shape[0]
+    px, py = abs(tw.a), abs(tw.e)
+    ell = _ellipsoid(crs)
+    to_deg = crs.units_factor[1] * 180.0 / math.pi  # CRS angular unit -> degrees
+    f = 1.0 / ell["inv_f"] if ell["inv_f"] else 0.0
+    lat = (tw.f + tw.e * n / 2.0) * to_deg
+    if not -90.0 < lat < 90.0:
+        raise ValueError(f"path: {p}: the centre latitude {lat} deg is outside (-90, 90)")
+    mlon, mlat = metres_per_degree(lat, a=ell["a"], f=f)
+    sdx, sdz = px * to_deg * mlon, py * to_deg * mlat
+    lat_n = max(min(tw.f * to_deg, 89.999999), -89.999999)
+    lat_s = max(min((tw.f + tw.e * n) * to_deg, 89.999999), -89.999999)
+    var = [metres_per_degree(v, a=ell["a"], f=f)[0] / mlon for v in (lat_n, lat_s)]
+    meta.update(crs_kind="geographic", latitude_deg=lat, ellipsoid=ell, spacing_deg=[px * to_deg, py * to_deg],
+                dx_variation=[min(var), max(var)])
+    how = (f"geographic CRS: {px * to_deg:.6g} x {py * to_deg:.6g} deg converted at the centre "
+           f"latitude {lat:.5f} deg on the {ell['name']} ellipsoid (a={ell['a']:.3f} m, "
+           f"1/f={ell['inv_f']:.12g}); the true east-west spacing varies from "
+           f"{min(var) * sdx:.4g} to {max(var) * sdx:.4g} m across the rows")
+    return sdx, sdz, how
+
+
+# -- orientation -------------------------------------------------------------------------------------
+def _orient(h64: np.ndarray, part: _Part) -> tuple[np.ndarray, bool, bool, tuple[float, float]]:
+    """Row 0 north, column 0 west: (heights, rows flipped, columns mirrored, CRS coordinates of the centre
+    of the sample that becomes (0, 0))."""
+    tw = part.transform
+    n, m = h64.shape
+    flip_rows = part.georef and tw.e > 0
+    flip_cols = part.georef and tw.a < 0
     if flip_rows:
         h64 = h64[::-1]
     if flip_cols:
         h64 = h64[:, ::-1]
     i00 = n - 1 if flip_rows else 0
     j00 = m - 1 if flip_cols else 0
-    s00 = (tw.c + tw.a * (j00 + 0.5), tw.f + tw.e * (i00 + 0.5))
-
-    meta.update(
-        source=str(p), driver=driver, band=b, band_count=count,
-        crs=crs.to_wkt() if crs is not None else None,
-        crs_name=_crs_name(crs) if crs is not None else None,
-        transform=[tw.a, tw.b, tw.c, tw.d, tw.e, tw.f],
-        raster_shape=[int(full_shape[0]), int(full_shape[1])],
-        window=[r0, c0, n * k, m * k], decimate=k, resampling=resampling if k > 1 else None,
-        source_dtype=str(dtype), nodata=None if nodata is None else float(nodata), nodata_count=n_holes,
-        scale=scale, offset=offset, vertical_unit=unit or None, vertical_unit_m=vf,
-        area_or_point=area_or_point, flipped_rows=bool(flip_rows), flipped_cols=bool(flip_cols),
-        sample00_crs=[float(s00[0]), float(s00[1])], centre_crs=[float(cx), float(cy)],
-        spacing_note=spacing_how, notes=notes,
-    )
-    hm = Heightmap.from_array(h64, sdx, sdz, allow_nan=True, name=p.stem, meta=meta)
-    hm.meta["summary"] = describe(hm)
-    return hm
+    return h64, flip_rows, flip_cols, (tw.c + tw.a * (j00 + 0.5), tw.f + tw.e * (i00 + 0.5))
 
 
-def describe(hm: Heightmap) -> str:
+def describe(hm: HeightGrid) -> str:
     """One paragraph saying what was read and every assumption made (for the CLI and reports)."""
     mt = hm.meta
-    H, W = hm.shape
+    H, W = hm.heights.shape
     parts = [f"{mt.get('source', hm.name)}: {H} x {W} samples"]
     if mt.get("band_count") is not None:
         parts[0] += (f" from band {mt['band']} of {mt['band_count']} ({mt.get('driver')}, "
@@ -374,8 +481,8 @@ def describe(hm: Heightmap) -> str:
     if "sample00_crs" in mt:
         parts.append(f"world (0, 0) is the sample centred at CRS ({mt['sample00_crs'][0]:.10g}, "
                      f"{mt['sample00_crs'][1]:.10g})")
-    lo, hi = hm.height_range
-    parts.append(f"heights {lo:.6g}..{hi:.6g} m")
+    finite = hm.heights[np.isfinite(hm.heights)]
+    parts.append(f"heights {float(finite.min()):.6g}..{float(finite.max()):.6g} m")
     parts.extend(mt.get("notes", []))
     return "; ".join(parts) + "."
 
@@ -414,7 +521,7 @@ def _encode(h: np.ndarray, dtype: np.dtype, scale: float, offset: float, vf: flo
     return raw if ok else None
 
 
-def write_geotiff(hm: Heightmap, path: str | os.PathLike) -> Path:
+def write_geotiff(hm: HeightGrid, path: str | os.PathLike) -> Path:
     """Write ``hm`` as a single-band GeoTIFF with the CRS, transform, nodata, scale/offset, unit and dtype
     it was read with (``hm.meta`` from :func:`read_geotiff`), in the file's original row/column order.
 
@@ -422,16 +529,17 @@ def write_geotiff(hm: Heightmap, path: str | os.PathLike) -> Path:
     (scale 1, offset 0), nodata NaN where there are holes. Written to a temporary name, then renamed.
     """
     rasterio = _rasterio()
-    from affine import Affine
+    from affine import Affine  # lazy: heavy optional dependency (with rasterio)
 
     mt = hm.meta
     if not is_georeferenced(mt):
         raise ValueError("hm: its meta holds no georeferencing (not read by read_geotiff)")
     p = Path(path)
-    H, W = hm.shape
+    shape = tuple(int(s) for s in hm.heights.shape)
+    H, W = shape
     win = mt.get("window")
     if win is not None and (H, W) != (win[2] // mt.get("decimate", 1), win[3] // mt.get("decimate", 1)):
-        raise ValueError(f"hm: shape {hm.shape} differs from the {win[2] // mt.get('decimate', 1)} x "
+        raise ValueError(f"hm: shape {shape} differs from the {win[2] // mt.get('decimate', 1)} x "
                          f"{win[3] // mt.get('decimate', 1)} raster its georeferencing describes; build a "
                          "Heightmap without that meta to save it as a plain TIFF")
     h = hm.heights

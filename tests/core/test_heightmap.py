@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from terrainwarp import Heightmap
-from terrainwarp.heightmap import metres_per_degree
+from terrainwarp.io.geodesy import metres_per_degree
 
 
 def test_example_dem_shape_and_metre_spacing():
