@@ -19,22 +19,80 @@ A scene file is TOML::
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from .camera import Camera
+from .camera import Camera, flyover, orbit
 from .heightmap import EXAMPLES, Heightmap
+from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 
-__all__ = ["Scene", "LodConfig", "OUTPUTS", "MESH_POLICIES"]
+__all__ = ["Scene", "LodConfig", "PolicySpec", "POLICY_TABLE", "OUTPUTS", "MESH_POLICIES", "LOD_POLICIES",
+           "SPACINGS", "FILTERS", "check_policy_numbers"]
 
 OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error")
 MESH_POLICIES = ("grid", "lod")
 SHADINGS = ("hillshade", "level", "patch", "wireframe", "splat", "cracks")
-LOD_POLICIES = ("sse", "distance", "continuous")
-SPACINGS = ("equal", "fractional_even", "fractional_odd")
-FILTERS = ("bilinear", "bicubic")
+SPACINGS = tuple(SPACING_CODES)  # the tessellator's spacing names, in its code order
+FILTERS = tuple(FILTER_CODES)
+
+
+# ------------------------------------------------------------------------------------------------
+# the LOD policy table
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PolicySpec:
+    """One LOD policy: its one parameter and what a sweep or a fit needs to know about it.
+
+    Attributes:
+        name: the ``LodConfig.policy`` name.
+        field: the :class:`LodConfig` field that holds the parameter (also the policy class's field of
+            that name in :mod:`terrainwarp.lod.policies`, and ``"log_" + field`` in the fit's parameters).
+        fit_range: (lowest, highest) value the fit and its grid search explore.
+        coarser_up: True when a larger value gives a coarser mesh (cheaper, more error).
+        allow_zero: whether 0 is a valid value (the parameter must be finite and > 0, or >= 0).
+        expects: what a valid value is, for the error message.
+        help: one line for the command line.
+        spacing: the spacing the policy imposes (``with_policy``), or None: keep the configuration's,
+            unless that is ``fractional_odd``, which cannot stitch a quadtree's doubled edges (then ``equal``).
+        reads: the other ``LodConfig`` fields the policy object takes besides ``field`` and ``hysteresis``.
+    """
+
+    name: str
+    field: str
+    fit_range: tuple[float, float]
+    coarser_up: bool
+    allow_zero: bool
+    expects: str
+    help: str
+    spacing: str | None = None
+    reads: tuple[str, ...] = ()
+
+
+POLICY_TABLE: dict[str, PolicySpec] = {s.name: s for s in (
+    PolicySpec("sse", "tolerance_px", (0.05, 64.0), True, False, "a positive finite number of pixels",
+               "screen-space error tolerance"),
+    PolicySpec("distance", "k", (0.25, 32.0), False, True, "a finite number >= 0",
+               "distance policy: split below k * node size"),
+    PolicySpec("continuous", "target_px", (0.5, 64.0), True, False, "a positive number of pixels per edge",
+               "continuous: pixels per edge segment", spacing="fractional_odd", reads=("level",)),
+)}
+LOD_POLICIES = tuple(POLICY_TABLE)
+
+
+def check_policy_numbers(policy: str, value: float, hysteresis: float, level: int = 0) -> None:
+    """Validate a LOD policy's numbers: its parameter ``value`` (the table's ``field``), the hysteresis
+    band in [0, 1) and, for a policy that reads it, the level (>= 0). Used by :class:`LodConfig` and by
+    the policy objects of :mod:`terrainwarp.lod.policies`."""
+    spec = POLICY_TABLE[policy]
+    if not (math.isfinite(hysteresis) and 0.0 <= hysteresis < 1.0):
+        raise ValueError(f"hysteresis: expected a band in [0, 1), got {hysteresis}")
+    if not (math.isfinite(value) and (value >= 0 if spec.allow_zero else value > 0)):
+        raise ValueError(f"{spec.field}: expected {spec.expects}, got {value}")
+    if "level" in spec.reads and level < 0:
+        raise ValueError(f"level: expected >= 0, got {level}")
 
 
 @dataclass(frozen=True)
@@ -43,7 +101,7 @@ class LodConfig:
 
     Attributes:
         policy: ``"sse"`` (screen-space error, malafeev2014), ``"distance"`` (deaconu2021) or
-            ``"continuous"`` (a uniform patch grid with per-edge fractional factors).
+            ``"continuous"`` (a uniform patch grid with per-edge fractional factors); see ``POLICY_TABLE``.
         tolerance_px: sse policy: split while the projected geometric error exceeds this.
         k: distance policy: split while the eye is within ``k`` node sizes of the node's box.
         target_px: continuous policy: target pixels per triangle edge.
@@ -53,6 +111,8 @@ class LodConfig:
         tess: tessellation level T of every patch (<= 32 when edges double toward finer neighbours).
         spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
         filter: ``"bilinear"`` or ``"bicubic"`` height sampling in the domain shader.
+
+    The policy object a configuration selects with is ``terrainwarp.lod.make_policy(config)``.
     """
 
     policy: str = "sse"
@@ -83,36 +143,29 @@ class LodConfig:
             if int(self.tess) not in (1, 2, 4, 8, 16, 32):
                 raise ValueError(f"lod.tess: expected a power of two in 1..32 for a quadtree (doubled edges are "
                                  f"crack-free only then), got {self.tess}")
-        self.make_policy()  # validates the numbers
+        check_policy_numbers(self.policy, float(self.value), float(self.hysteresis), int(self.level))
+
+    @property
+    def spec(self) -> PolicySpec:
+        """The policy's row of ``POLICY_TABLE``."""
+        return POLICY_TABLE[self.policy]
+
+    @property
+    def value(self) -> float:
+        """The policy's parameter (``tolerance_px``, ``k`` or ``target_px``)."""
+        return getattr(self, POLICY_TABLE[self.policy].field)
 
     def with_policy(self, policy: str, value: float) -> LodConfig:
-        """This configuration with one policy at one parameter value (the sweeps' and the fit's unit):
-        ``"sse"`` sets ``tolerance_px``, ``"distance"`` sets ``k``, ``"continuous"`` sets ``target_px``.
-        Quadtree policies keep the spacing unless it is ``fractional_odd`` (which cannot stitch doubled
-        edges: then ``equal``); the continuous policy uses ``fractional_odd``."""
-        d = dict(self.__dict__)
-        quad_spacing = "equal" if d["spacing"] == "fractional_odd" else d["spacing"]
-        if policy == "sse":
-            d.update(policy="sse", tolerance_px=float(value), spacing=quad_spacing)
-        elif policy == "distance":
-            d.update(policy="distance", k=float(value), spacing=quad_spacing)
-        elif policy == "continuous":
-            d.update(policy="continuous", target_px=float(value), spacing="fractional_odd")
-        else:
+        """This configuration with one policy at one parameter value (the sweeps' and the fit's unit): the
+        value goes to the policy's ``POLICY_TABLE`` field (``"sse"``: ``tolerance_px``, ``"distance"``:
+        ``k``, ``"continuous"``: ``target_px``). Quadtree policies keep the spacing unless it is
+        ``fractional_odd`` (which cannot stitch doubled edges: then ``equal``); the continuous policy uses
+        ``fractional_odd``."""
+        if policy not in POLICY_TABLE:
             raise ValueError(f"policy: expected one of {list(LOD_POLICIES)}, got {policy!r}")
-        return LodConfig(**d)
-
-    def make_policy(self):
-        from .lod.quadtree import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, _check_policy
-
-        if self.policy == "sse":
-            p = ScreenErrorPolicy(float(self.tolerance_px), hysteresis=float(self.hysteresis))
-        elif self.policy == "distance":
-            p = DistancePolicy(float(self.k), hysteresis=float(self.hysteresis))
-        else:
-            p = ContinuousPolicy(float(self.target_px), level=int(self.level), hysteresis=float(self.hysteresis))
-        _check_policy(p)
-        return p
+        spec = POLICY_TABLE[policy]
+        spacing = spec.spacing or ("equal" if self.spacing == "fractional_odd" else self.spacing)
+        return replace(self, policy=policy, spacing=spacing, **{spec.field: float(value)})
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,8 +237,6 @@ class Scene:
         metres with ``units = "m"``), ``clearance`` (m), ``n``; or ``kind = "orbit"`` with ``radius``
         and ``elevation`` (fractions of the extent, or metres with units = "m") and ``n``.
         """
-        from .camera import flyover, orbit
-
         d = dict(self.source.get("path", {}))
         _check_keys("path", d, {"kind", "waypoints", "clearance", "n", "radius", "elevation", "units", "fov_y_deg"})
         hm = self.heightmap

@@ -1,14 +1,23 @@
-"""Level of detail: what to draw. The quadtree (:mod:`.quadtree`, re-exported here), the bintree, the
-polytree, visibility tables and the peer meshers (Martini, Delatin)."""
+"""Level of detail: what to draw. The quadtree (:mod:`.quadtree`, re-exported here), its policies and the
+map from a ``LodConfig`` to a policy (:mod:`.policies`, re-exported here), the bintree, the polytree,
+visibility tables and the peer meshers (Martini, Delatin)."""
 
-from .quadtree import (
+from .policies import (
     MAX_TESS,
+    POLICY_CLASSES,
     ContinuousPolicy,
     DistancePolicy,
+    Policy,
+    ScreenErrorPolicy,
+    check_policy,
+    continuous_factors,
+    edge_pixels,
+    make_policy,
+)
+from .quadtree import (
     LodState,
     NodeMetrics,
     PatchList,
-    ScreenErrorPolicy,
     Terrain,
     node_metrics,
     select,
@@ -17,5 +26,6 @@ from .quadtree import (
     tile_name,
 )
 
-__all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "PatchList", "LodState",
+__all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "Policy", "POLICY_CLASSES",
+           "make_policy", "check_policy", "edge_pixels", "continuous_factors", "PatchList", "LodState",
            "NodeMetrics", "node_metrics", "select", "tile_key", "tile_from_key", "tile_name", "MAX_TESS"]

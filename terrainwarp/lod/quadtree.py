@@ -26,25 +26,42 @@ finer gets 2T (deaconu2021, "Finding edges at the border", figure 7), so both si
 vertices; hence T <= 32. Continuous factors (for fractional spacing) are computed per edge from the
 edge's own endpoints only (length / distance of the edge midpoint), so the two patches that share an
 edge compute the same value bit for bit; they are offered on a single-level patch grid
-(:class:`ContinuousPolicy`), where no level change breaks the vertex match.
+(:class:`ContinuousPolicy`), where no level change breaks the vertex match. The policies and the
+continuous factor rule live in :mod:`.policies`.
 """
 
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+import warp as wp
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
+from ..io.files import write_text
+from ..kernels.lod import frustum_planes, select_level
+from ..kernels.pyramid import node_stats
+from .policies import (
+    MAX_TESS,
+    ContinuousPolicy,
+    DistancePolicy,
+    Policy,
+    ScreenErrorPolicy,
+    check_policy,
+    continuous_factors,
+    edge_pixels,
+)
 
 __all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "PatchList", "LodState",
            "NodeMetrics", "node_metrics",
            "select", "tile_key", "tile_from_key", "tile_name", "MAX_TESS"]
 
-MAX_TESS = 64  # the hardware's maximum tessellation level
 _ZOOM_SHIFT = 58
 _Y_SHIFT = 29
 _MASK29 = (1 << 29) - 1
@@ -136,10 +153,6 @@ class Terrain:
             depth: deepest level; default: the smallest D with roots * T * 2**D cells covering the grid
                 (one vertex per sample at level D).
         """
-        import time
-
-        from ..kernels.pyramid import node_stats
-
         if not isinstance(heightmap, Heightmap):
             raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
         if isinstance(tess, bool) or not isinstance(tess, int | np.integer) or not 1 <= int(tess) <= MAX_TESS:
@@ -168,7 +181,7 @@ class Terrain:
         s = self.root_cells / 2.0 ** level
         return (s * self.heightmap.dx, s * self.heightmap.dz)
 
-    def cached(self, key: object, make):
+    def cached(self, key: object, make: Callable[[], object]) -> object:
         """The value kept under ``key`` (a normal map, device arrays), made by ``make()`` on first use.
 
         What persists between frames lives here, in the object the caller holds, never in module state."""
@@ -179,9 +192,8 @@ class Terrain:
     def is_cached(self, key: object) -> bool:
         return key in self._dev
 
-    def device_stats(self, level: int, device: str = "cpu"):
-        import warp as wp
-
+    def device_stats(self, level: int, device: str = "cpu") -> tuple[wp.array, wp.array, wp.array]:
+        """The level's (min, max, geometric error) pyramids as Warp arrays on ``device`` (kept)."""
         k = (level, device)
         if k not in self._dev:
             self._dev[k] = tuple(wp.array(a, dtype=wp.float32, device=device) for a in self.stats[level])
@@ -190,76 +202,6 @@ class Terrain:
     def inside(self, level: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """True for nodes whose origin lies inside the sample grid (others are never drawn)."""
         return _inside_many(self, np.full(len(x), level), x, y)
-
-
-# ------------------------------------------------------------------------------------------------
-# policies
-# ------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class DistancePolicy:
-    """Split while the distance from the eye to the node's box is below the level's threshold
-    (deaconu2021 "Rendering"). ``thresholds[L]`` in metres; default ``k * node_size(L)``."""
-
-    k: float = 2.0
-    thresholds: tuple[float, ...] | None = None
-    hysteresis: float = 0.0
-    code: int = 0
-
-    def threshold(self, terrain: Terrain, level: int) -> float:
-        if self.thresholds is not None:
-            if level >= len(self.thresholds):
-                return 0.0
-            return float(self.thresholds[level])
-        return self.k * max(terrain.node_size_world(level))
-
-
-@dataclass(frozen=True)
-class ScreenErrorPolicy:
-    """Split while the projected geometric error exceeds ``tolerance_px`` pixels (malafeev2014; Cesium's
-    maximumScreenSpaceError): ``sse = geometric_error * focal_px / dist``."""
-
-    tolerance_px: float = 1.0
-    hysteresis: float = 0.0
-    code: int = 1
-
-    def threshold(self, terrain: Terrain, level: int) -> float:
-        return float(self.tolerance_px)
-
-
-@dataclass(frozen=True)
-class ContinuousPolicy:
-    """Every node of one ``level`` (a uniform patch grid), frustum-culled, with continuous per-edge
-    factors ``clamp(edge_length * focal_px / dist(eye, edge midpoint) / target_px, 1, 64)`` for
-    fractional spacing (one factor per edge, computed from the edge's own endpoints)."""
-
-    target_px: float = 8.0
-    level: int = 0
-    hysteresis: float = 0.0
-    code: int = 2
-
-    def threshold(self, terrain: Terrain, level: int) -> float:
-        return 0.0
-
-
-def _check_policy(policy: object) -> None:
-    if not isinstance(policy, DistancePolicy | ScreenErrorPolicy | ContinuousPolicy):
-        raise TypeError(f"policy: expected DistancePolicy, ScreenErrorPolicy or ContinuousPolicy, got "
-                        f"{type(policy).__name__}")
-    h = policy.hysteresis
-    if not (math.isfinite(h) and 0.0 <= h < 1.0):
-        raise ValueError(f"hysteresis: expected a band in [0, 1), got {h}")
-    if isinstance(policy, ScreenErrorPolicy) and not (math.isfinite(policy.tolerance_px) and policy.tolerance_px > 0):
-        raise ValueError(f"tolerance_px: expected a positive finite number of pixels, got {policy.tolerance_px}")
-    if isinstance(policy, DistancePolicy):
-        if not (math.isfinite(policy.k) and policy.k >= 0):
-            raise ValueError(f"k: expected a finite number >= 0, got {policy.k}")
-        if policy.thresholds is not None and not all(math.isfinite(t) and t >= 0 for t in policy.thresholds):
-            raise ValueError("thresholds: expected finite distances >= 0 in metres")
-    if isinstance(policy, ContinuousPolicy):
-        if not (math.isfinite(policy.target_px) and policy.target_px > 0):
-            raise ValueError(f"target_px: expected a positive number of pixels per edge, got {policy.target_px}")
-        if policy.level < 0:
-            raise ValueError(f"level: expected >= 0, got {policy.level}")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -302,9 +244,7 @@ class PatchList(NamedTuple):
     def __len__(self) -> int:  # type: ignore[override]
         return int(self.level.shape[0])
 
-    def to_csv(self, path) -> None:
-        from ..io.files import write_text
-
+    def to_csv(self, path: str | Path) -> None:
         head = ("key,zoom_x_y,level,origin_x,origin_z,size_x,size_z,outer0,outer1,outer2,outer3,inner0,inner1,"
                 "nbr0,nbr1,nbr2,nbr3,distance,metric,geometric_error")
         lines = [head]
@@ -400,7 +340,50 @@ class _Leaves:
 # ------------------------------------------------------------------------------------------------
 # selection
 # ------------------------------------------------------------------------------------------------
-def select(terrain: Terrain, camera: Camera, policy=None, state: LodState | None = None,
+class _View(NamedTuple):
+    """A camera as the selection kernel takes it: the heightmap origin relative to the eye, the frustum."""
+
+    rel_origin: tuple[float, float, float]
+    planes: np.ndarray
+    focal_px: float
+
+
+def _view(terrain: Terrain, camera: Camera) -> _View:
+    rel = relative_origin(terrain.heightmap.origin, camera.position)
+    return _View(rel, frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True)), camera.focal_px)
+
+
+class _Nodes(NamedTuple):
+    """Leaves of the tiling being built (structure of arrays): level, x, y, eye distance, policy metric,
+    frustum-culled, and outside the sample grid (never drawn; they only complete the tiling)."""
+
+    level: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    dist: np.ndarray
+    metric: np.ndarray
+    culled: np.ndarray
+    outside: np.ndarray
+
+    def replace_split(self, split: np.ndarray, children: _Nodes) -> _Nodes:
+        """These nodes without the ``split`` ones, followed by ``children``."""
+        keep = ~split
+        return _Nodes(*(np.concatenate([a[keep], b]) for a, b in zip(self, children)))
+
+
+def _children(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The four children of each node (x, y), quadrant by quadrant."""
+    return (np.concatenate([2 * x, 2 * x + 1, 2 * x, 2 * x + 1]),
+            np.concatenate([2 * y, 2 * y, 2 * y + 1, 2 * y + 1]))
+
+
+def _root_grid(terrain: Terrain) -> tuple[np.ndarray, np.ndarray]:
+    nx, nz = terrain.roots
+    x, y = np.meshgrid(np.arange(nx, dtype=np.int64), np.arange(nz, dtype=np.int64))
+    return x.reshape(-1), y.reshape(-1)
+
+
+def select(terrain: Terrain, camera: Camera, policy: Policy | None = None, state: LodState | None = None,
            device: str = "cpu") -> PatchList:
     """Select the visible patches of a frame.
 
@@ -408,34 +391,43 @@ def select(terrain: Terrain, camera: Camera, policy=None, state: LodState | None
         terrain: the prepared terrain (:meth:`Terrain.prepare`).
         camera: the frame's camera.
         policy: :class:`DistancePolicy`, :class:`ScreenErrorPolicy` (default, 1 px) or
-            :class:`ContinuousPolicy`.
+            :class:`ContinuousPolicy` (``make_policy(scene.lod)`` for a scene's).
         state: hysteresis state from the previous frame (updated in place), or None.
 
     Returns:
         A :class:`PatchList` of the visible leaves, with edge factors that never crack.
     """
-    from ..kernels.lod import frustum_planes, select_level
-
     if not isinstance(terrain, Terrain):
         raise TypeError(f"terrain: expected a Terrain (Terrain.prepare(heightmap)), got {type(terrain).__name__}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
     policy = ScreenErrorPolicy() if policy is None else policy
-    _check_policy(policy)
-    hm = terrain.heightmap
-    nx, nz = terrain.roots
-    depth = terrain.depth
-    eye = camera.position
-    rel_origin = relative_origin(hm.origin, eye)
-    planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+    check_policy(policy)
+    view = _view(terrain, camera)
     prev = state.split_keys if (state is not None and policy.hysteresis > 0) else np.zeros(0, np.int64)
-    fixed_level = min(policy.level, depth) if isinstance(policy, ContinuousPolicy) else None
+    nodes, split_keys, visited = _descend(terrain, view, policy, prev, device)
+    # Every node that was not split and lies outside the grid is also a (never drawn) leaf of the tiling:
+    # add them so point location works everywhere; they take part in no decision.
+    nodes = _complete_tiling(terrain, nodes)
+    nodes, forced = _balance(terrain, view, policy, nodes, split_keys, device)
+    if state is not None:
+        sk = np.concatenate(split_keys) if split_keys else np.zeros(0, np.int64)
+        state.split_keys = np.unique(sk)
+        state.frames += 1
+    return _patch_list(terrain, camera, policy, nodes, {"nodes_visited": visited, "forced_splits": forced})
 
-    lv_l, lv_x, lv_y, lv_dist, lv_metric, lv_cull = [], [], [], [], [], []
-    split_keys = []
-    visited = 0
-    x, y = np.meshgrid(np.arange(nx, dtype=np.int64), np.arange(nz, dtype=np.int64))
-    x, y = x.reshape(-1), y.reshape(-1)
+
+def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
+             device: str) -> tuple[_Nodes, list[np.ndarray], int]:
+    """Level by level from the roots: one launch evaluates every candidate node of a level (distance,
+    frustum, policy); children of split nodes are the next level's candidates.
+
+    Returns the leaves (all inside the grid), the keys of the split nodes (one array per level) and the
+    number of nodes visited."""
+    depth = terrain.depth
+    fixed_level = min(policy.level, depth) if isinstance(policy, ContinuousPolicy) else None
+    parts, split_keys, visited = [], [], 0
+    x, y = _root_grid(terrain)
     for lvl in range(depth + 1):
         keep = terrain.inside(lvl, x, y)
         x, y = x[keep], y[keep]
@@ -443,73 +435,59 @@ def select(terrain: Terrain, camera: Camera, policy=None, state: LodState | None
             break
         visited += len(x)
         keys = tile_key(np.full(len(x), lvl), x, y)
+        size = terrain.node_size_world(lvl)
         if fixed_level is not None:
-            can = lvl < fixed_level
-            thr = 0.0
-            code = 0
+            can, thr, code = lvl < fixed_level, 0.0, 0
         else:
-            can = lvl < depth
-            thr = policy.threshold(terrain, lvl)
-            code = policy.code
-        sp, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), rel_origin,
-                                      terrain.node_size_world(lvl), planes, code, thr, camera.focal_px,
-                                      policy.hysteresis, can, prev, device=device)
+            can, thr, code = lvl < depth, policy.threshold(lvl, max(size)), policy.code
+        sp, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), view.rel_origin, size,
+                                      view.planes, code, thr, view.focal_px, policy.hysteresis, can, prev,
+                                      device=device)
         if fixed_level is not None and lvl < fixed_level:
             sp = np.ones_like(sp)  # a uniform grid: everything splits down to the level
         split = sp.astype(bool)
         split_keys.append(keys[split])
         leaf = ~split
-        lv_l.append(np.full(int(leaf.sum()), lvl, np.int32))
-        lv_x.append(x[leaf])
-        lv_y.append(y[leaf])
-        lv_dist.append(di[leaf])
-        lv_metric.append(me[leaf])
-        lv_cull.append(cu[leaf])
-        cx, cy = x[split], y[split]
-        x = np.concatenate([2 * cx, 2 * cx + 1, 2 * cx, 2 * cx + 1])
-        y = np.concatenate([2 * cy, 2 * cy, 2 * cy + 1, 2 * cy + 1])
-    level = np.concatenate(lv_l)
-    lx = np.concatenate(lv_x)
-    ly = np.concatenate(lv_y)
-    dist = np.concatenate(lv_dist)
-    metric = np.concatenate(lv_metric)
-    culled = np.concatenate(lv_cull).astype(bool)
+        parts.append((np.full(int(leaf.sum()), lvl, np.int32), x[leaf], y[leaf], di[leaf], me[leaf],
+                      cu[leaf].astype(bool), np.zeros(int(leaf.sum()), bool)))
+        x, y = _children(x[split], y[split])
+    return _Nodes(*(np.concatenate(a) for a in zip(*parts))), split_keys, visited
 
-    # Every node that was not split and lies outside the grid is also a (never drawn) leaf of the tiling:
-    # add them so point location works everywhere; they take part in no decision.
-    level, lx, ly, dist, metric, culled, outside = _complete_tiling(terrain, level, lx, ly, dist, metric, culled)
 
-    # 2:1 balance: split leaves that have a neighbour more than one level finer, until stable.
+def _balance(terrain: Terrain, view: _View, policy: Policy, nodes: _Nodes, split_keys: list[np.ndarray],
+             device: str) -> tuple[_Nodes, int]:
+    """2:1 balance: split leaves that have a neighbour more than one level finer, until stable (appends
+    the keys of the nodes it splits to ``split_keys``). Returns the balanced leaves and the number of
+    forced splits."""
+    depth = terrain.depth
+    nx, nz = terrain.roots
     forced = 0
     for _ in range(4 * (depth + 1) + 8):  # terminates: each pass only splits, and depth is bounded
-        leaves = _Leaves(level, lx, ly, depth, nx, nz)
-        nbr = leaves.neighbour_levels(level, level)
-        bad = (nbr.max(axis=1) > level + 1) & ~outside
+        nbr = _Leaves(nodes.level, nodes.x, nodes.y, depth, nx, nz).neighbour_levels(nodes.level, nodes.level)
+        bad = (nbr.max(axis=1) > nodes.level + 1) & ~nodes.outside
         if not bad.any():
             break
         forced += int(bad.sum())
-        bl, bx, by = level[bad], lx[bad], ly[bad]
+        bl, bx, by = nodes.level[bad], nodes.x[bad], nodes.y[bad]
         nl = np.concatenate([bl + 1] * 4)
-        nxs = np.concatenate([2 * bx, 2 * bx + 1, 2 * bx, 2 * bx + 1])
-        nys = np.concatenate([2 * by, 2 * by, 2 * by + 1, 2 * by + 1])
+        nxs, nys = _children(bx, by)
         split_keys.append(tile_key(bl, bx, by))
-        child_in = _inside_many(terrain, nl, nxs, nys)
-        nd, nm, nc = _child_stats(terrain, camera, nl, nxs, nys, planes, rel_origin, policy, device)
-        keep = ~bad
-        level = np.concatenate([level[keep], nl])
-        lx = np.concatenate([lx[keep], nxs])
-        ly = np.concatenate([ly[keep], nys])
-        dist = np.concatenate([dist[keep], nd])
-        metric = np.concatenate([metric[keep], nm])
-        culled = np.concatenate([culled[keep], nc])
-        outside = np.concatenate([outside[keep], ~child_in])
-    leaves = _Leaves(level, lx, ly, depth, nx, nz)
-    nbr = leaves.neighbour_levels(level, np.where(outside, -1, level))
+        nd, nm, nc = _child_stats(terrain, view, nl, nxs, nys, policy, device)
+        nodes = nodes.replace_split(bad, _Nodes(nl, nxs, nys, nd, nm, nc, ~_inside_many(terrain, nl, nxs, nys)))
+    return nodes, forced
 
-    draw = ~outside & ~culled
-    n_culled = int((~outside & culled).sum())
-    level, lx, ly, nbr = level[draw], lx[draw], ly[draw], nbr[draw]
-    dist, metric = dist[draw], metric[draw]
+
+def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, nodes: _Nodes, counts: dict) -> PatchList:
+    """The drawn leaves (inside the grid, not culled) in key order, with their neighbours' levels, world
+    extents and edge factors; ``counts``: the descent's ``nodes_visited`` and the balance's ``forced_splits``."""
+    hm = terrain.heightmap
+    nx, nz = terrain.roots
+    leaves = _Leaves(nodes.level, nodes.x, nodes.y, terrain.depth, nx, nz)
+    nbr = leaves.neighbour_levels(nodes.level, np.where(nodes.outside, -1, nodes.level))
+    draw = ~nodes.outside & ~nodes.culled
+    n_culled = int((~nodes.outside & nodes.culled).sum())
+    level, lx, ly, nbr, dist, metric = (a[draw] for a in (nodes.level, nodes.x, nodes.y, nbr, nodes.dist,
+                                                          nodes.metric))
     # deterministic order: by key
     keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
     order = np.argsort(keys, kind="stable")
@@ -518,26 +496,30 @@ def select(terrain: Terrain, camera: Camera, policy=None, state: LodState | None
     origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
     origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
     size = np.stack([s_cells * hm.dx, s_cells * hm.dz], axis=1)
-    gerr = _gather_err(terrain, level, lx, ly)
-    if isinstance(policy, ContinuousPolicy):
-        outer, inner = _continuous_factors(terrain, camera, origin, size, policy)
-    else:
-        t = float(terrain.tess)
-        if t * 2 > MAX_TESS and (nbr > level[:, None]).any():
-            raise ValueError(f"tess: {terrain.tess} doubled toward a finer neighbour exceeds the hardware maximum "
-                             f"{MAX_TESS}: use tess <= {MAX_TESS // 2} with a quadtree (deaconu2021)")
-        outer = np.where(nbr > level[:, None], 2.0 * t, t).astype(np.float32)
-        inner = np.full((len(level), 2), t, np.float32)
-    if state is not None:
-        sk = np.concatenate(split_keys) if split_keys else np.zeros(0, np.int64)
-        state.split_keys = np.unique(sk)
-        state.frames += 1
-    stats = {"nodes_visited": visited, "leaves": int((~outside).sum()), "culled": n_culled,
-             "patches": int(len(level)), "forced_splits": forced, "max_level": int(level.max()) if len(level) else -1,
-             "roots": nx * nz, "depth": depth, "tess": terrain.tess}
+    outer, inner = _edge_factors(terrain, camera, policy, level, nbr, origin, size)
+    stats = {"nodes_visited": counts["nodes_visited"], "leaves": int((~nodes.outside).sum()), "culled": n_culled,
+             "patches": int(len(level)), "forced_splits": counts["forced_splits"],
+             "max_level": int(level.max()) if len(level) else -1, "roots": nx * nz, "depth": terrain.depth,
+             "tess": terrain.tess}
     return PatchList(level.astype(np.int32), keys.astype(np.int64), origin, size, origin_cells.astype(np.float32),
                      s_cells.astype(np.float32), outer.astype(np.float32), inner.astype(np.float32),
-                     nbr.astype(np.int32), dist.astype(np.float32), metric.astype(np.float32), gerr, stats)
+                     nbr.astype(np.int32), dist.astype(np.float32), metric.astype(np.float32),
+                     _gather_err(terrain, level, lx, ly), stats)
+
+
+def _edge_factors(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarray, nbr: np.ndarray,
+                  origin: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(outer (P, 4), inner (P, 2)) float32: the continuous rule of :mod:`.policies`, or the quadtree's
+    constant level T with 2T on edges toward a finer neighbour (deaconu2021)."""
+    if isinstance(policy, ContinuousPolicy):
+        px = edge_pixels(terrain.heightmap, camera.position, camera.focal_px, origin, size)
+        outer, inner = continuous_factors(px, policy.target_px)
+        return outer.astype(np.float32), inner.astype(np.float32)
+    t = float(terrain.tess)
+    if t * 2 > MAX_TESS and (nbr > level[:, None]).any():
+        raise ValueError(f"tess: {terrain.tess} doubled toward a finer neighbour exceeds the hardware maximum "
+                         f"{MAX_TESS}: use tess <= {MAX_TESS // 2} with a quadtree (deaconu2021)")
+    return np.where(nbr > level[:, None], 2.0 * t, t).astype(np.float32), np.full((len(level), 2), t, np.float32)
 
 
 def _inside_many(terrain: Terrain, lv, x, y) -> np.ndarray:
@@ -554,14 +536,14 @@ def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
     return out
 
 
-def _complete_tiling(terrain, level, lx, ly, dist, metric, culled):
+def _complete_tiling(terrain: Terrain, nodes: _Nodes) -> _Nodes:
     """Add the outside-the-grid nodes that complete the tiling of the root grid (never drawn)."""
     nx, nz = terrain.roots
+    level, lx, ly = nodes.level, nodes.x, nodes.y
     covered = _Leaves(level, lx, ly, terrain.depth, nx, nz) if len(level) else None
     add_l, add_x, add_y = [], [], []
     # candidate outside nodes: children of split inside nodes, and roots, that are outside the grid
-    x, y = np.meshgrid(np.arange(nx, dtype=np.int64), np.arange(nz, dtype=np.int64))
-    x, y = x.reshape(-1), y.reshape(-1)
+    x, y = _root_grid(terrain)
     for lvl in range(terrain.depth + 1):
         ins = _inside_many(terrain, np.full(len(x), lvl), x, y)
         ox, oy = x[~ins], y[~ins]
@@ -575,21 +557,17 @@ def _complete_tiling(terrain, level, lx, ly, dist, metric, culled):
         shift = terrain.depth - lvl
         idx = covered.locate(x << shift, y << shift)
         is_leaf = (level[idx] == lvl) & (lx[idx] == x) & (ly[idx] == y)
-        x, y = x[~is_leaf], y[~is_leaf]
-        x, y = (np.concatenate([2 * x, 2 * x + 1, 2 * x, 2 * x + 1]),
-                np.concatenate([2 * y, 2 * y, 2 * y + 1, 2 * y + 1]))
+        x, y = _children(x[~is_leaf], y[~is_leaf])
     al = np.concatenate(add_l)
     n = len(al)
-    outside = np.concatenate([np.zeros(len(level), bool), np.ones(n, bool)])
-    return (np.concatenate([level, al]), np.concatenate([lx, np.concatenate(add_x)]),
-            np.concatenate([ly, np.concatenate(add_y)]), np.concatenate([dist, np.zeros(n, np.float32)]),
-            np.concatenate([metric, np.zeros(n, np.float32)]), np.concatenate([culled, np.ones(n, bool)]), outside)
+    added = _Nodes(al, np.concatenate(add_x), np.concatenate(add_y), np.zeros(n, np.float32),
+                   np.zeros(n, np.float32), np.ones(n, bool), np.ones(n, bool))
+    return nodes.replace_split(np.zeros(len(level), bool), added)
 
 
-def _child_stats(terrain, camera, nl, nxs, nys, planes, rel_origin, policy, device):
+def _child_stats(terrain: Terrain, view: _View, nl: np.ndarray, nxs: np.ndarray, nys: np.ndarray, policy: Policy,
+                 device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Distance, metric and culling of children created by the balance pass (one launch per level)."""
-    from ..kernels.lod import select_level
-
     nd = np.zeros(len(nl), np.float32)
     nm = np.zeros(len(nl), np.float32)
     nc = np.zeros(len(nl), bool)
@@ -598,38 +576,12 @@ def _child_stats(terrain, camera, nl, nxs, nys, planes, rel_origin, policy, devi
         m = nl == lv
         lvl = int(lv)
         keys = tile_key(np.full(int(m.sum()), lvl), nxs[m], nys[m])
-        _, cu, di, me = select_level(nxs[m], nys[m], keys, terrain.device_stats(lvl, device), rel_origin,
-                                     terrain.node_size_world(lvl), planes, code, policy.threshold(terrain, lvl),
-                                     camera.focal_px, 0.0, False, np.zeros(0, np.int64), device=device)
+        size = terrain.node_size_world(lvl)
+        _, cu, di, me = select_level(nxs[m], nys[m], keys, terrain.device_stats(lvl, device), view.rel_origin, size,
+                                     view.planes, code, policy.threshold(lvl, max(size)), view.focal_px, 0.0,
+                                     False, np.zeros(0, np.int64), device=device)
         nd[m], nm[m], nc[m] = di, me, cu.astype(bool)
     return nd, nm, nc
-
-
-def _continuous_factors(terrain: Terrain, camera: Camera, origin: np.ndarray, size: np.ndarray,
-                        policy: ContinuousPolicy) -> tuple[np.ndarray, np.ndarray]:
-    """Per-edge factors from each edge's own endpoints (symmetric in the endpoints, so the two patches
-    sharing an edge get the same value bit for bit), inner factors the mean of opposite edges."""
-    hm = terrain.heightmap
-    eye = np.asarray(camera.position)
-    x0, z0 = origin[:, 0], origin[:, 1]
-    x1, z1 = x0 + size[:, 0], z0 + size[:, 1]
-    corners = {"00": (x0, z0), "10": (x1, z0), "01": (x0, z1), "11": (x1, z1)}
-    hc = {k: hm.sample(*v).astype(np.float64) for k, v in corners.items()}
-
-    def edge(a: str, b: str) -> np.ndarray:
-        pa = np.stack([corners[a][0], hc[a], corners[a][1]], axis=1)
-        pb = np.stack([corners[b][0], hc[b], corners[b][1]], axis=1)
-        mid = 0.5 * (pa + pb)
-        length = np.linalg.norm(pb - pa, axis=1)
-        d = np.linalg.norm(mid - eye, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f = np.where(d > 0, length * camera.focal_px / np.maximum(d, 1e-30) / policy.target_px, MAX_TESS)
-        return np.clip(f, 1.0, MAX_TESS)
-
-    # u=0 edge: corners 00-01 (west); v=0: 00-10 (north); u=1: 10-11 (east); v=1: 01-11 (south)
-    outer = np.stack([edge("00", "01"), edge("00", "10"), edge("10", "11"), edge("01", "11")], axis=1)
-    inner = np.stack([0.5 * (outer[:, 1] + outer[:, 3]), 0.5 * (outer[:, 0] + outer[:, 2])], axis=1)
-    return outer.astype(np.float32), inner.astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -655,21 +607,16 @@ class NodeMetrics(NamedTuple):
 
 def node_metrics(terrain: Terrain, camera: Camera, device: str = "cpu") -> NodeMetrics:
     """Distance, screen-space error and culling of every node of the complete tree, one launch per level."""
-    from ..kernels.lod import frustum_planes, select_level
-
-    hm = terrain.heightmap
     nx, nz = terrain.roots
-    eye = camera.position
-    rel_origin = relative_origin(hm.origin, eye)
-    planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+    view = _view(terrain, camera)
     out = NodeMetrics([], [], [], [], [], [], [])
     for lvl in range(terrain.depth + 1):
         yy, xx = np.meshgrid(np.arange(nz << lvl, dtype=np.int64), np.arange(nx << lvl, dtype=np.int64),
                              indexing="ij")
         x, y = xx.reshape(-1), yy.reshape(-1)
         keys = tile_key(np.full(len(x), lvl), x, y)
-        _, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), rel_origin,
-                                     terrain.node_size_world(lvl), planes, 1, 1.0, camera.focal_px, 0.0, False,
+        _, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), view.rel_origin,
+                                     terrain.node_size_world(lvl), view.planes, 1, 1.0, view.focal_px, 0.0, False,
                                      np.zeros(0, np.int64), device=device)
         out.x.append(x)
         out.y.append(y)

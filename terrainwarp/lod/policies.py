@@ -1,0 +1,164 @@
+"""LOD policies: the policy objects the quadtree selects with, the one map from a :class:`LodConfig` to
+its policy object, and the continuous policy's per-edge factor rule.
+
+What a policy *is* (its name, the ``LodConfig`` field that holds its parameter, the fit's range, which
+way is coarser, how its numbers are validated) is the table ``terrainwarp.scene.POLICY_TABLE``; this module
+maps each row to a class. The continuous factor rule (:func:`edge_pixels`, :func:`continuous_factors`)
+is the one used by :func:`terrainwarp.lod.select`, the fit's relaxed model and the differentiable path
+(which evaluate the same function with ``jax.numpy``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import ModuleType
+
+import numpy as np
+
+from ..heightmap import Heightmap
+from ..scene import POLICY_TABLE, LodConfig, check_policy_numbers
+
+__all__ = ["DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "Policy", "POLICY_CLASSES", "make_policy",
+           "check_policy", "edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES"]
+
+MAX_TESS = 64  # the hardware's maximum tessellation level
+# the projected length given to an edge whose midpoint is the eye (distance 0): any target gives MAX_TESS,
+# and it stays finite so that float32 derivatives through the rule stay finite (zero where clamped)
+EDGE_PX_MAX = 1e20
+# a patch's edges in OpenGL order as pairs of corners (du, dv): u=0 (west), v=0 (north), u=1 (east), v=1 (south)
+EDGES = (((0, 0), (0, 1)), ((0, 0), (1, 0)), ((1, 0), (1, 1)), ((0, 1), (1, 1)))
+
+
+# ------------------------------------------------------------------------------------------------
+# policy objects
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DistancePolicy:
+    """Split while the distance from the eye to the node's box is below the level's threshold
+    (deaconu2021 "Rendering"). ``thresholds[L]`` in metres; default ``k * node_size(L)``."""
+
+    k: float = 2.0
+    thresholds: tuple[float, ...] | None = None
+    hysteresis: float = 0.0
+    code: int = 0
+
+    def __post_init__(self) -> None:
+        check_policy_numbers("distance", self.k, self.hysteresis)
+        if self.thresholds is not None and not all(np.isfinite(t) and t >= 0 for t in self.thresholds):
+            raise ValueError("thresholds: expected finite distances >= 0 in metres")
+
+    def threshold(self, level: int, node_size_m: float) -> float:
+        """The split threshold (m) at ``level``, whose nodes are ``node_size_m`` metres wide."""
+        if self.thresholds is not None:
+            if level >= len(self.thresholds):
+                return 0.0
+            return float(self.thresholds[level])
+        return self.k * node_size_m
+
+
+@dataclass(frozen=True)
+class ScreenErrorPolicy:
+    """Split while the projected geometric error exceeds ``tolerance_px`` pixels (malafeev2014; Cesium's
+    maximumScreenSpaceError): ``sse = geometric_error * focal_px / dist``."""
+
+    tolerance_px: float = 1.0
+    hysteresis: float = 0.0
+    code: int = 1
+
+    def __post_init__(self) -> None:
+        check_policy_numbers("sse", self.tolerance_px, self.hysteresis)
+
+    def threshold(self, level: int, node_size_m: float) -> float:
+        return float(self.tolerance_px)
+
+
+@dataclass(frozen=True)
+class ContinuousPolicy:
+    """Every node of one ``level`` (a uniform patch grid), frustum-culled, with continuous per-edge
+    factors for fractional spacing (:func:`continuous_factors` of :func:`edge_pixels`: one factor per
+    edge, computed from the edge's own endpoints)."""
+
+    target_px: float = 8.0
+    level: int = 0
+    hysteresis: float = 0.0
+    code: int = 2
+
+    def __post_init__(self) -> None:
+        check_policy_numbers("continuous", self.target_px, self.hysteresis, self.level)
+
+    def threshold(self, level: int, node_size_m: float) -> float:
+        return 0.0
+
+
+Policy = DistancePolicy | ScreenErrorPolicy | ContinuousPolicy
+POLICY_CLASSES: dict[str, type] = {"sse": ScreenErrorPolicy, "distance": DistancePolicy,
+                                   "continuous": ContinuousPolicy}
+
+
+def make_policy(config: LodConfig) -> Policy:
+    """The policy object of a :class:`terrainwarp.LodConfig`: the class of its ``POLICY_TABLE`` row,
+    given the row's parameter field, the hysteresis and the fields the row ``reads``."""
+    if not isinstance(config, LodConfig):
+        raise TypeError(f"config: expected a LodConfig, got {type(config).__name__}")
+    spec = POLICY_TABLE[config.policy]
+    kw = {spec.field: float(config.value), "hysteresis": float(config.hysteresis)}
+    kw.update({f: int(getattr(config, f)) for f in spec.reads})
+    return POLICY_CLASSES[config.policy](**kw)
+
+
+def check_policy(policy: object) -> None:
+    """TypeError unless ``policy`` is one of the policy objects (their numbers are checked when made)."""
+    if not isinstance(policy, DistancePolicy | ScreenErrorPolicy | ContinuousPolicy):
+        raise TypeError(f"policy: expected DistancePolicy, ScreenErrorPolicy or ContinuousPolicy, got "
+                        f"{type(policy).__name__}")
+
+
+# ------------------------------------------------------------------------------------------------
+# the continuous per-edge factor rule
+# ------------------------------------------------------------------------------------------------
+def edge_pixels(heightmap: Heightmap, eye: tuple[float, float, float], focal_px: float, origin: np.ndarray,
+                size: np.ndarray) -> np.ndarray:
+    """(P, 4) float64 projected length in pixels of each patch edge (``EDGES`` order): ``L * focal_px / d``,
+    L the edge's 3-D length between its endpoints (heights sampled from the heightmap), d the distance from
+    the eye to the edge's midpoint; ``EDGE_PX_MAX`` where d = 0. Symmetric in the endpoints, so the two
+    patches sharing an edge get the same value bit for bit.
+
+    Args:
+        origin: (P, 2) float64 world (x, z) of each patch's (u, v) = (0, 0) corner; size: (P, 2) its extent.
+    """
+    e = np.asarray(eye, dtype=np.float64)
+    x0, z0 = origin[:, 0], origin[:, 1]
+    xz = {(du, dv): (x0 + du * size[:, 0] if du else x0, z0 + dv * size[:, 1] if dv else z0)
+          for du in (0, 1) for dv in (0, 1)}
+    pts = {c: np.stack([x, heightmap.sample(x, z).astype(np.float64), z], axis=1) for c, (x, z) in xz.items()}
+    out = []
+    for a, b in EDGES:
+        pa, pb = pts[a], pts[b]
+        length = np.linalg.norm(pb - pa, axis=1)
+        d = np.linalg.norm(0.5 * (pa + pb) - e, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            px = np.where(d > 0, length * focal_px / np.where(d > 0, d, 1.0), EDGE_PX_MAX)
+        out.append(np.minimum(px, EDGE_PX_MAX))
+    return np.stack(out, axis=1)
+
+
+def continuous_factors(edge_px, target_px, xp: ModuleType = np, clamp: Callable | None = None):
+    """The continuous policy's tessellation factors: ``outer = clamp(edge_px / target_px, 1, MAX_TESS)`` per
+    edge, ``inner`` = (mean of the v=0 and v=1 edges, mean of the u=0 and u=1 edges).
+
+    One rule for every caller: :func:`terrainwarp.lod.select` evaluates it in numpy float64 (then rounds
+    to float32), the fit's relaxed model and :mod:`terrainwarp.fit.diffpath` in ``jax.numpy`` float32
+    (``xp=jax.numpy``; the fit passes a soft ``clamp(x, lo, hi)``).
+
+    Args:
+        edge_px: (P, 4) projected edge lengths (:func:`edge_pixels`).
+        target_px: pixels per triangle edge (> 0), a number or a scalar array of ``xp``.
+
+    Returns:
+        (outer (P, 4), inner (P, 2)) arrays of ``xp`` in the inputs' precision.
+    """
+    f = edge_px / target_px
+    outer = xp.clip(f, 1.0, float(MAX_TESS)) if clamp is None else clamp(f, 1.0, float(MAX_TESS))
+    inner = xp.stack([0.5 * (outer[:, 1] + outer[:, 3]), 0.5 * (outer[:, 0] + outer[:, 2])], axis=1)
+    return outer, inner
