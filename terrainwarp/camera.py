@@ -19,17 +19,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from .heightmap import Heightmap
+from .heightmap import Heightmap
 
 __all__ = ["Camera", "orbit", "flyover", "relative_origin"]
 
 
-def relative_origin(origin_xz, eye) -> tuple[float, float, float]:
+def relative_origin(origin_xz: tuple[float, float] | np.ndarray,
+                    eye: tuple[float, float, float] | np.ndarray) -> tuple[float, float, float]:
     """Where a grid whose sample (0, 0) sits at world ``origin_xz`` = (x, z) lies seen from ``eye``:
     ``(x - eye_x, eye_y, z - eye_z)``, subtracted in float64 on the host.
 

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import pyvista as pv
 
 __all__ = ["Mesh"]
 
@@ -43,9 +47,9 @@ class Mesh:
         """(n, 3) float64 world positions (positions + eye)."""
         return self.positions.astype(np.float64) + np.asarray(self.eye)
 
-    def to_pyvista(self):  # -> pyvista.PolyData
+    def to_pyvista(self) -> pv.PolyData:
         """A ``pyvista.PolyData`` in world coordinates with level, patch_id (and normals) as point data."""
-        import pyvista as pv
+        import pyvista as pv  # lazy: heavy optional dependency
 
         faces = np.hstack([np.full((self.n_triangles, 1), 3, np.int64), self.triangles.astype(np.int64)])
         pd = pv.PolyData(self.world_positions(), faces.reshape(-1))

@@ -10,8 +10,12 @@ import json
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 _IMAGE_EXTS = {".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg", ".bmp"}
 
@@ -34,7 +38,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
     """Write an (H, W) or (H, W, C) uint8, uint16 or float32 array through OpenImageIO; row 0 is the
     top of the image. EXR files are zip-compressed (lossless) float32."""
-    import OpenImageIO as oiio
+    import OpenImageIO as oiio  # lazy: heavy optional dependency
 
     p = Path(path)
     ext = p.suffix.lower()
@@ -100,10 +104,10 @@ def digest(*arrays: object) -> str:
     return h.hexdigest()
 
 
-def save_figure(fig: object, path: str | os.PathLike, *, dpi: float = 100, **savefig_kw: object) -> Path:
+def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: float = 100, **savefig_kw: object) -> Path:
     """Save a matplotlib figure atomically (format from the suffix, PNG by default) and release it from
     pyplot if pyplot made it. Returns the path."""
-    import matplotlib.pyplot as plt  # lazy: matplotlib is heavy
+    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
 
     p = Path(path)
     fmt = p.suffix.lstrip(".").lower() or "png"

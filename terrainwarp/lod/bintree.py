@@ -28,13 +28,14 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels import bintree as _k
+from ..kernels.lod import frustum_planes
 from ..mesh import Mesh
 
 __all__ = ["Bintree", "BintreeFrame", "select_bintree", "lod_threshold", "HEIGHT_METHODS"]
@@ -210,8 +211,16 @@ class BintreeFrame(NamedTuple):
     stats: dict
 
 
+class NodeFlags(Protocol):
+    """Per-node visibility, as :class:`terrainwarp.lod.visibility.VisibilityState` gives it (that module
+    builds on this one, so the type is named by what it does)."""
+
+    def node_flags(self) -> np.ndarray: ...  # (n_nodes,) uint8, 0 = hidden subtree
+
+
 def select_bintree(tree: Bintree, camera: Camera, *, lod: bool = True, hole_fix: bool = True,
-                   propagate: bool = True, frustum: bool = True, visibility: object | None = None) -> BintreeFrame:
+                   propagate: bool = True, frustum: bool = True,
+                   visibility: NodeFlags | np.ndarray | None = None) -> BintreeFrame:
     """Select the triangles to draw for ``camera``.
 
     Args:
@@ -242,8 +251,6 @@ def select_bintree(tree: Bintree, camera: Camera, *, lod: bool = True, hole_fix:
     eye = np.asarray(camera.position, dtype=np.float64)
     planes = None
     if frustum:
-        from ..kernels.lod import frustum_planes
-
         planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
     r = _k.select_nodes(tree.arrays, tree.depth, relative_origin(tree.origin, eye)[::2], tree.step,
                         float(eye[1]), tree.short_side, mode=int(bool(lod)), hole_fix=bool(hole_fix and lod),

@@ -66,7 +66,7 @@ def _ccw(grid_xy: np.ndarray, tri: np.ndarray) -> np.ndarray:
 
 def martini_mesh(heightmap: Heightmap, max_error: float) -> PeerMesh:
     """Martini's RTIN mesh at ``max_error`` metres (a refinement threshold, see the module docstring)."""
-    from pymartini import Martini
+    from pymartini import Martini  # lazy: heavy optional dependency
 
     h = heightmap.heights
     rows, cols = h.shape
@@ -87,7 +87,7 @@ def martini_mesh(heightmap: Heightmap, max_error: float) -> PeerMesh:
 
 def delatin_mesh(heightmap: Heightmap, max_error: float) -> PeerMesh:
     """Delatin's greedy Delaunay mesh with vertical error at most ``max_error`` metres."""
-    from pydelatin import Delatin
+    from pydelatin import Delatin  # lazy: heavy optional dependency
 
     h = heightmap.heights
     rows = h.shape[0]
@@ -102,7 +102,7 @@ def delatin_mesh(heightmap: Heightmap, max_error: float) -> PeerMesh:
 
 def mesh_vertical_error(heightmap: Heightmap, peer: PeerMesh) -> float:
     """The real maximum vertical distance (metres) between a peer mesh and every heightmap sample."""
-    import matplotlib.tri as mtri
+    import matplotlib.tri as mtri  # lazy: heavy optional dependency
 
     h = heightmap.heights.astype(np.float64)
     rows, cols = h.shape

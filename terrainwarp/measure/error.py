@@ -29,6 +29,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
+from ..kernels.metrics import pixel_error
 
 __all__ = ["ErrorStats", "pixel_positions", "reference_height", "frame_error"]
 
@@ -87,17 +88,8 @@ class ErrorStats:
     error_map: np.ndarray | None = field(default=None, repr=False)
     crack_mask: np.ndarray | None = field(default=None, repr=False)
 
-    def row(self) -> dict:
+    def row(self) -> dict[str, float | int | None]:
         return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "crack_mask")}
-
-
-def _project(m: np.ndarray, p: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
-    q = p @ m[:3, :3].T + m[:3, 3]
-    qw = p @ m[3, :3] + m[3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = (q[:, 0] / qw * 0.5 + 0.5) * w
-        y = (q[:, 1] / qw * 0.5 + 0.5) * h
-    return np.stack([x, y], 1), qw
 
 
 def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye: tuple[float, float, float],
@@ -117,8 +109,6 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
             depth (for the coverage and depth comparisons; optional).
         image, ref_image: hillshaded images for PSNR and SSIM (optional).
     """
-    from ..kernels.metrics import pixel_error
-
     hh, ww = triangle_id.shape
     cov = triangle_id >= 0
     m = camera.proj_matrix() @ camera.view_matrix(relative=True)
@@ -153,7 +143,7 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
             stats.max_depth_diff = float(np.abs(depth[both].astype(np.float64) - ref_depth[both]).max()) \
                 if both.any() else 0.0
     if image is not None and ref_image is not None:
-        from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+        from skimage.metrics import peak_signal_noise_ratio, structural_similarity  # lazy: heavy optional
 
         a = image.astype(np.float64) / 255.0
         b = ref_image.astype(np.float64) / 255.0

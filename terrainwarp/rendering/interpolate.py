@@ -20,26 +20,28 @@ Precision: float32 throughout, like a GPU. Near silhouettes and at grazing angle
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import warp as wp
+from jax.typing import ArrayLike
+
+from ..kernels.raster import interpolate_kernel
 
 __all__ = ["interpolate", "clip_positions"]
 
 _KERNEL = None
 
 
-def _kernel():
+def _kernel():  # -> the callable warp.jax_kernel returns
+    """The JAX wrapper of the interpolation kernel, built on first use (building it is not free)."""
     global _KERNEL
     if _KERNEL is None:
-        import warp as wp
-
-        from ..kernels.raster import interpolate_kernel
-
         _KERNEL = wp.jax_kernel(interpolate_kernel, num_outputs=1, enable_backward=True)
     return _KERNEL
 
 
-def clip_positions(positions, view, proj):
+def clip_positions(positions: ArrayLike, view: ArrayLike, proj: ArrayLike) -> jax.Array:
     """(n, 3) positions -> (n, 4) clip coordinates ``(proj @ view) @ (p, 1)`` in float32, differentiable
     with respect to all three arguments."""
     p = jnp.asarray(positions, jnp.float32)
@@ -49,7 +51,7 @@ def clip_positions(positions, view, proj):
     return jnp.concatenate([p, jnp.ones((p.shape[0], 1), jnp.float32)], axis=1) @ mvp.T
 
 
-def interpolate(attr, triangle_id, clip, triangles):
+def interpolate(attr: ArrayLike, triangle_id: ArrayLike, clip: ArrayLike, triangles: ArrayLike) -> jax.Array:
     """Interpolate per-vertex attributes at every pixel centre, perspective-correctly.
 
     Args:

@@ -45,7 +45,8 @@ __all__ = ["compute_normals", "compute_curvature", "surface_curvature", "max_cur
            "SURFACE_FIELDS"]
 
 
-def _unpack(heightmap: Heightmap | np.ndarray, dx: float | None, dz: float | None):
+def _unpack(heightmap: Heightmap | np.ndarray, dx: float | None,
+            dz: float | None) -> tuple[np.ndarray, float, float]:
     if isinstance(heightmap, Heightmap):
         if dx is not None or dz is not None:
             raise ValueError("dx, dz: give them only with a plain array (a Heightmap has its own spacing)")

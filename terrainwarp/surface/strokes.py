@@ -29,11 +29,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..heightmap import Heightmap
-from ..io.files import atomic_path
+from ..io.files import save_figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 from .differential import compute_curvature, compute_normals, max_curvature
 
 __all__ = ["Strokes", "line_strokes", "hatch_strokes"]
@@ -75,7 +79,8 @@ class Strokes:
         return int(np.unique(self.path_id).size)
 
     def picture(self, path: str | Path | None = None, *, heightmap: Heightmap | None = None,
-                contours: bool = False, line_width: float = 1.0, size_px: int = 800, title: str | None = None):
+                contours: bool = False, line_width: float = 1.0, size_px: int = 800,
+                title: str | None = None) -> Figure:
         """Draw the strokes top-down (x to the right, z down: row 0 at the top) on white.
 
         Args:
@@ -88,6 +93,7 @@ class Strokes:
         Returns:
             the matplotlib ``Figure``.
         """
+        # lazy: heavy optional dependency
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.collections import LineCollection
         from matplotlib.figure import Figure
@@ -121,9 +127,7 @@ class Strokes:
             ax.text(0.01, 0.99, title, transform=ax.transAxes, va="top", ha="left", fontsize=9,
                     bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
         if path is not None:
-            p = Path(path)
-            with atomic_path(p) as tmp:
-                fig.savefig(tmp, format=p.suffix.lstrip(".").lower() or "png", facecolor="white")
+            save_figure(fig, path, dpi=100, facecolor="white")
         return fig
 
 
@@ -165,7 +169,7 @@ def line_strokes(heightmap: Heightmap, *, method: str = "three_normal", scale: f
     Returns:
         :class:`Strokes` of kind ``"line"``; ``path_id`` numbers the kept paths 0..n_paths-1.
     """
-    from scipy.sparse import coo_matrix
+    from scipy.sparse import coo_matrix  # lazy: heavy optional dependency
     from scipy.sparse.csgraph import connected_components
 
     hm = _check_heightmap(heightmap)
