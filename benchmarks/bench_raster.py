@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -91,9 +93,6 @@ print(min(g.draw(up)[2] for _ in range({reps})))
 def gl_one_thread(clip, tri, w, h, reps) -> float:
     """llvmpipe's draw time with LP_NUM_THREADS=1 (one core, like ours), in a child process: llvmpipe
     reads the variable when its first context is made."""
-    import subprocess
-    import tempfile
-
     with tempfile.TemporaryDirectory() as d:
         np.save(f"{d}/clip.npy", clip)
         np.save(f"{d}/tri.npy", tri)
@@ -106,7 +105,7 @@ def gl_one_thread(clip, tri, w, h, reps) -> float:
 
 class VTKFrame:
     def __init__(self, width, height):
-        import pyvista as pv
+        import pyvista as pv  # lazy: heavy optional dependency
 
         self.pv = pv
         self.p = pv.Plotter(off_screen=True, window_size=(width, height), lighting=None)
@@ -136,11 +135,11 @@ class VTKFrame:
         rw.WaitForCompletion()
 
     def depth(self):
-        import vtk
+        import vtk  # lazy: heavy optional dependency (with pyvista)
+        from vtk.util.numpy_support import vtk_to_numpy
 
         arr = vtk.vtkFloatArray()
         self.p.ren_win.GetZbufferData(0, 0, self.w - 1, self.h - 1, arr)
-        from vtk.util.numpy_support import vtk_to_numpy
 
         return vtk_to_numpy(arr).reshape(self.h, self.w)[::-1].copy()
 
@@ -149,7 +148,7 @@ class VTKFrame:
 
 
 def run(sizes, reps_small=3, reps_big=2, out_md=None):
-    import gl_raster_oracle as gl
+    import gl_raster_oracle as gl  # lazy: needs moderngl and an OpenGL context
 
     rows = []
     glinfo = gl.renderer()
