@@ -64,6 +64,7 @@ class Import:
     line: int
     level: int  # 0 for an absolute import
     in_function: bool
+    type_only: bool = False  # under `if TYPE_CHECKING:`
 
 
 @dataclass
@@ -104,22 +105,35 @@ def _resolve(mod: Module, node: ast.ImportFrom) -> str:
     return ".".join([*base, node.module] if node.module else base)
 
 
+def _type_checking_ranges(tree: ast.Module) -> list[tuple[int, int]]:
+    def is_tc(test: ast.expr) -> bool:
+        return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+            isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+    return [(n.lineno, n.end_lineno or n.lineno) for n in ast.walk(tree) if isinstance(n, ast.If) and is_tc(n.test)]
+
+
 def _collect_imports(mod: Module, known: set[str]) -> None:
     ranges = _function_ranges(mod.tree)
+    tc_ranges = _type_checking_ranges(mod.tree)
 
     def inside(line: int) -> bool:
         return any(a < line <= b for a, b in ranges)
 
+    def type_only(line: int) -> bool:
+        return any(a < line <= b for a, b in tc_ranges)
+
     for node in ast.walk(mod.tree):
         if isinstance(node, ast.Import):
             for a in node.names:
-                mod.imports.append(Import(a.name, None, node.lineno, 0, inside(node.lineno)))
+                mod.imports.append(Import(a.name, None, node.lineno, 0, inside(node.lineno), type_only(node.lineno)))
         elif isinstance(node, ast.ImportFrom):
             src = _resolve(mod, node)
             for a in node.names:
                 sub = f"{src}.{a.name}"
                 target = sub if sub in known else src
-                mod.imports.append(Import(target, a.name, node.lineno, node.level, inside(node.lineno)))
+                mod.imports.append(Import(target, a.name, node.lineno, node.level, inside(node.lineno),
+                                          type_only(node.lineno)))
     mod.imports.sort(key=lambda i: i.line)
 
 
@@ -296,13 +310,38 @@ def long_functions(mods: dict[str, Module], root: Path, limit: int = MAX_FUNCTIO
     return out
 
 
+def heavy_modules(mods: dict[str, Module]) -> set[str]:
+    """Modules of the tree that import a heavy optional library when they are imported: at module level
+    (not inside a function, not under ``if TYPE_CHECKING:``), directly or through another such module.
+    Importing one of them lazily is importing the heavy library lazily (e.g. the JAX-only fit.diffpath)."""
+    heavy: set[str] = set()
+    changed = True
+    while changed:
+        changed = False
+        for m in mods.values():
+            if m.name in heavy:
+                continue
+            for imp in m.imports:
+                if imp.in_function or imp.type_only:
+                    continue
+                t = internal(imp.target, mods)
+                if (t is None and imp.target.split(".")[0] in LAZY_OK) or (t is not None and t in heavy):
+                    heavy.add(m.name)
+                    changed = True
+                    break
+    return heavy
+
+
 def function_imports(mods: dict[str, Module], root: Path) -> list[str]:
     """Imports inside a function body, in terrainwarp/ and kernels/, other than the heavy optional
-    libraries (which stay lazy)."""
+    libraries and the modules of the tree that import them at load time (see :func:`heavy_modules`)."""
     out = []
+    heavy = heavy_modules(mods)
     for m in sorted(mods.values(), key=lambda m: m.name):
         for imp in m.imports:
-            if imp.in_function and (imp.level > 0 or imp.target.split(".")[0] not in LAZY_OK):
+            t = internal(imp.target, mods)
+            ok = imp.target.split(".")[0] in LAZY_OK if t is None else t in heavy
+            if imp.in_function and not ok:
                 out.append(f"{_where(m, imp.line, root)}: {imp.target}" + (f" ({imp.name})" if imp.name else ""))
     return out
 
@@ -449,3 +488,17 @@ def test_checker_finds_long_functions_and_imports_inside_functions(tmp_path):
     assert long_functions(mods, tmp_path) == ["terrainwarp/lod/quadtree.py:1: select is 81 lines"]
     assert function_imports(mods, tmp_path) == ["terrainwarp/lod/quadtree.py:85: json",
                                                 "terrainwarp/lod/quadtree.py:86: terrainwarp.io (files)"]
+
+
+def test_lazy_import_of_a_module_that_imports_a_heavy_library_is_allowed(tmp_path):
+    mods = _package(tmp_path, {
+        "terrainwarp/fit/__init__.py": "",
+        "terrainwarp/fit/diffpath.py": "import jax.numpy as jnp\n",
+        "terrainwarp/fit/relaxed.py": "from .diffpath import jnp\n",  # heavy through diffpath
+        "terrainwarp/fit/typed.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import jax\n",
+        "terrainwarp/fit/lod_fit.py": "def fit():\n    from .diffpath import x\n    from .relaxed import y\n"
+                                      "    from .typed import z\n    from . import typed\n",
+    })
+    assert heavy_modules(mods) == {"terrainwarp.fit.diffpath", "terrainwarp.fit.relaxed"}
+    assert function_imports(mods, tmp_path) == ["terrainwarp/fit/lod_fit.py:4: terrainwarp.fit.typed (z)",
+                                                "terrainwarp/fit/lod_fit.py:5: terrainwarp.fit.typed (typed)"]
