@@ -1,8 +1,10 @@
-"""Resolve and shading: per-pixel interpolation of vertex attributes and a hillshade.
+"""Resolve and shading: per-pixel interpolation of vertex attributes, one shading kernel for every mode.
 
-Hillshade: Lambert's law with a directional light (azimuth/elevation as in GIS hillshading) plus an
-ambient term, on a hypsometric tint (colour by height, a fixed 5-stop ramp from low to high over
-the heightmap's height range). Background pixels take a sky colour.
+Hillshade (the default mode; :func:`hillshade` is :func:`shade` in that mode): Lambert's law with a
+directional light (:func:`light_direction`: azimuth/elevation as in GIS hillshading) plus an ambient term,
+on a hypsometric tint (colour by height, a fixed 5-stop ramp from low to high over the heightmap's height
+range). Background pixels take a sky colour. :func:`srgb8` encodes the linear colour as the 8-bit sRGB
+image a frame saves.
 """
 
 from __future__ import annotations
@@ -40,46 +42,33 @@ def _ramp(t: float) -> wp.vec3:
     return a + (b - a) * f
 
 
-@wp.kernel(enable_backward=False)
-def _hillshade_kernel(
-    tri_id: wp.array(dtype=wp.int32),
-    bary: wp.array(dtype=wp.vec2),
-    tris: wp.array2d(dtype=wp.int32),
-    normals: wp.array(dtype=wp.vec3),
-    heights: wp.array(dtype=wp.float32),
-    h_lo: float,
-    h_span: float,
-    light: wp.vec3,
-    ambient: float,
-    sky: wp.vec3,
-    # outputs
-    out_rgb: wp.array(dtype=wp.vec3),
-    out_n: wp.array(dtype=wp.vec3),
-):
-    p = wp.tid()
-    t = tri_id[p]
-    if t < 0:
-        out_rgb[p] = sky
-        out_n[p] = wp.vec3(0.0, 0.0, 0.0)
-        return
-    b = bary[p]
-    b2 = 1.0 - b[0] - b[1]
-    i0 = tris[t, 0]
-    i1 = tris[t, 1]
-    i2 = tris[t, 2]
-    n = wp.normalize(b[0] * normals[i0] + b[1] * normals[i1] + b2 * normals[i2])
-    hgt = b[0] * heights[i0] + b[1] * heights[i1] + b2 * heights[i2]
-    lam = wp.max(wp.dot(n, light), 0.0)
-    shade = ambient + (1.0 - ambient) * lam
-    out_rgb[p] = _ramp((hgt - h_lo) / h_span) * shade
-    out_n[p] = n
+def light_direction(azimuth_deg: float, elevation_deg: float) -> tuple[float, float, float]:
+    """The unit vector towards the sun: azimuth clockwise from north (-z), east is +x; elevation above
+    the horizon (as in GIS hillshading)."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return (float(np.cos(el) * np.sin(az)), float(np.sin(el)), float(-np.cos(el) * np.cos(az)))
+
+
+def _height_span(heights: np.ndarray) -> tuple[float, float]:
+    """(lowest finite height, span > 0) of the hypsometric tint's ramp."""
+    fin = heights[np.isfinite(heights)]
+    lo = float(fin.min()) if fin.size else 0.0
+    span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
+    return lo, span
+
+
+def srgb8(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) float linear colour in [0, 1] -> uint8 sRGB (the image a frame saves)."""
+    c = np.clip(rgb, 0.0, 1.0)
+    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+    return np.round(s * 255.0).astype(np.uint8)
 
 
 def hillshade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarray, normals: np.ndarray,
               heights: np.ndarray, *, azimuth_deg: float = 315.0, elevation_deg: float = 45.0,
               ambient: float = 0.25, sky: tuple[float, float, float] = (0.62, 0.75, 0.90),
               device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
-    """Shade a frame.
+    """Shade a frame: :func:`shade` in its ``"hillshade"`` mode (one kernel for every mode).
 
     Args:
         triangle_id: (H, W) int32 from the visibility pass; barycentrics: (H, W, 2) float32.
@@ -90,31 +79,10 @@ def hillshade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.n
     Returns:
         rgb (H, W, 3) float32 linear in [0, 1], and per-pixel normals (H, W, 3) float32 (0 on background).
     """
-    hh, ww = triangle_id.shape
-    az = np.radians(azimuth_deg)
-    el = np.radians(elevation_deg)
-    # north is -z, east is +x
-    light = (float(np.cos(el) * np.sin(az)), float(np.sin(el)), float(-np.cos(el) * np.cos(az)))
-    fin = heights[np.isfinite(heights)]
-    lo = float(fin.min()) if fin.size else 0.0
-    span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
-    npx = hh * ww
-    rgb = wp.empty(npx, dtype=wp.vec3, device=device)
-    nrm = wp.empty(npx, dtype=wp.vec3, device=device)
-    m = max(len(triangles), 1)
-    tri = np.zeros((m, 3), np.int32)
-    tri[: len(triangles)] = triangles
-    nv = max(len(normals), 1)
-    wp.launch(_hillshade_kernel, dim=npx, inputs=[
-        wp.array(triangle_id.reshape(-1), dtype=wp.int32, device=device),
-        wp.array(barycentrics.reshape(-1, 2), dtype=wp.vec2, device=device),
-        wp.array(tri, dtype=wp.int32, device=device),
-        wp.array(np.ascontiguousarray(normals, dtype=np.float32).reshape(nv, 3) if len(normals) else
-                 np.zeros((1, 3), np.float32), dtype=wp.vec3, device=device),
-        wp.array(np.ascontiguousarray(heights, dtype=np.float32).reshape(-1) if len(heights) else
-                 np.zeros(1, np.float32), dtype=wp.float32, device=device),
-        lo, span, wp.vec3(*light), float(ambient), wp.vec3(*sky)], outputs=[rgb, nrm], device=device)
-    return rgb.numpy().reshape(hh, ww, 3), nrm.numpy().reshape(hh, ww, 3)
+    rgb, nrm, _ = shade(triangle_id, barycentrics, triangles, normals, heights, mode="hillshade",
+                        azimuth_deg=azimuth_deg, elevation_deg=elevation_deg, ambient=ambient, sky=sky,
+                        device=device)
+    return rgb, nrm
 
 
 # ------------------------------------------------------------------------------------------------
@@ -401,9 +369,7 @@ def splat_map(heights: np.ndarray, normals: np.ndarray, rules=DEFAULT_SPLAT_RULE
     grid = 1
     while 4 * grid * grid < len(rules):
         grid *= 2
-    fin = h[np.isfinite(h)]
-    lo = float(fin.min()) if fin.size else 0.0
-    span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
+    lo, span = _height_span(h)
     atlas = wp.zeros((grid * h.shape[0], grid * h.shape[1], 4), dtype=wp.float32, device=device)
     wp.launch(_splat_map_kernel, dim=h.shape, inputs=[
         wp.array(np.nan_to_num(h, nan=lo), dtype=wp.float32, device=device),
@@ -473,11 +439,8 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
             a = np.zeros((1,) + shape, dtype)
         return wp.array(a, dtype=wdt, device=device)
 
-    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
-    light = (float(np.cos(el) * np.sin(az)), float(np.sin(el)), float(-np.cos(el) * np.cos(az)))
-    fin = heights[np.isfinite(heights)]
-    lo = float(fin.min()) if fin.size else 0.0
-    span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
+    light = light_direction(azimuth_deg, elevation_deg)
+    lo, span = _height_span(np.asarray(heights))
     if splat is not None:
         atlas, grid = splat
         atlas = np.ascontiguousarray(atlas, np.float32)

@@ -11,14 +11,17 @@ papers: ``polytree`` (taylor-barrett bottom-up merging; param = tolerance level 
 ``bintree`` (mrbsp right-triangle bisection with the apparent-size LOD rule, hole fixing and forced
 splits; param = tree depth M; selected per frame).
 
-Frame cost: for LOD policies ``select + mesh + raster`` (the per-frame work); for the grid and the
-peers ``mesh + raster`` (their meshes are static, only made camera-relative per frame). The error and
+Every frame is made by :func:`terrainwarp.render`: the grid and the LOD policies from the scene, the
+peers, polytree and bintree as prebuilt mesh sources (:mod:`terrainwarp.rendering.sources`). Frame cost
+is :attr:`terrainwarp.Report.frame_ms`, ``select + mesh + raster``: the per-frame work (for the grid and
+the peers ``select`` is 0: their meshes are static, only made camera-relative per frame). The error and
 reference stages are measurement, not cost.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import math
 import time
@@ -29,7 +32,15 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
+from ..io.files import save_figure, write_text
+from ..lod.bintree import Bintree
+from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
+from ..lod.polytree import build_polytree, default_tolerances
+from ..lod.quadtree import Terrain
+from ..rendering.pipeline import Frame, MeshSource, Report, render
+from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import Scene
+from .runner import Job, Runner, SweepResult, pending_jobs
 
 __all__ = ["Setting", "default_settings", "sweep", "run_sweep", "summarise", "write_report", "TIMING_COLUMNS"]
 
@@ -83,7 +94,7 @@ class _Context:
     need_lod: bool
 
 
-_STATE: dict = {}  # per worker process: the context's Terrain, peer meshes and normal map, made once
+_STATE: dict = {}  # per worker process: the context's Terrain, mesh sources and normal map, made once
 
 
 def _state(ctx: _Context) -> dict:
@@ -91,10 +102,8 @@ def _state(ctx: _Context) -> dict:
         _STATE.clear()
         # the first copy of the scene this process received: a later copy (same token, same content) is
         # another object, and a Terrain belongs to the heightmap object it was prepared from
-        _STATE.update(token=ctx.token, scene=ctx.scene, terrain=None, prepare_ms=0.0, peers={}, nmap=None)
+        _STATE.update(token=ctx.token, scene=ctx.scene, terrain=None, prepare_ms=0.0, sources={}, cache={})
     if ctx.need_lod and _STATE["terrain"] is None:
-        from ..lod.quadtree import Terrain
-
         t0 = time.perf_counter()
         hm, lod = _STATE["scene"].heightmap, ctx.scene.lod
         _STATE["terrain"] = Terrain.prepare(hm, roots=lod.roots, tess=lod.tess, device=ctx.device)
@@ -108,26 +117,25 @@ def _state(ctx: _Context) -> dict:
     return _STATE
 
 
+def _outputs(ctx: _Context) -> tuple[str, ...]:
+    return ("error", "image") if ctx.images else ("error",)
+
+
 def _warm_up(ctx: _Context) -> None:
     """Load this process's Warp modules (from the kernel cache) with tiny frames, so that loading them is not
     timed in the first frame each worker renders."""
-    from ..rendering.pipeline import render
-
     scene = _STATE["scene"]
     cam = ctx.cameras[0].with_(width=16, height=12)
-    outs = ("error", "image") if ctx.images else ("error",)
-    render(scene.with_(camera=cam, mesh="grid", outputs=outs), device=ctx.device)
+    render(scene.with_(camera=cam, mesh="grid", outputs=_outputs(ctx)), device=ctx.device)
     if _STATE["terrain"] is not None:
         for s in (Setting("sse", 2.0), Setting("continuous", 8.0)):
             lod = scene.lod.with_policy(s.policy, s.param)
-            render(scene.with_(camera=cam, mesh="lod", lod=lod, outputs=outs), terrain=_STATE["terrain"],
+            render(scene.with_(camera=cam, mesh="lod", lod=lod, outputs=_outputs(ctx)), terrain=_STATE["terrain"],
                    device=ctx.device)
 
 
 def _reference_job(ctx: _Context, k: int) -> tuple:
     """Camera k's full-resolution grid frame: (triangle_id, depth, image or None)."""
-    from ..rendering.pipeline import render
-
     f = render(ctx.scene.with_(camera=ctx.cameras[k], mesh="grid", outputs=("depth", "image") if ctx.images else
                                ("depth",)), device=ctx.device)
     return f.triangle_id, f.depth, f.image
@@ -136,112 +144,72 @@ def _reference_job(ctx: _Context, k: int) -> tuple:
 def _peer_job(ctx: _Context, setting: Setting) -> tuple:
     """A Martini/Delatin mesh of the heightmap (view-independent: built once per sweep, then shared) and its
     measured vertical error."""
-    from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
-
     hm = ctx.scene.heightmap
     peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
     return peer, mesh_vertical_error(hm, peer)
 
 
+def _timed_build(make):
+    t0 = time.perf_counter()
+    value = make()
+    return value, (time.perf_counter() - t0) * 1e3
+
+
+def _source(ctx: _Context, refs: dict, setting: Setting) -> MeshSource:
+    """The mesh source of a martini / delatin / polytree / bintree setting, built once per worker process
+    (a peer mesh by :func:`_peer_job` for the whole sweep when it could be; one polytree for every level;
+    one bintree per depth). The sources share one cache (the normal map)."""
+    st_ = _STATE
+    if setting in st_["sources"]:
+        return st_["sources"][setting]
+    hm, device, cache = st_["scene"].heightmap, ctx.device, st_["cache"]
+    if setting.policy in ("martini", "delatin"):
+        built = refs.get(("peer", setting))
+        if built is None or isinstance(built, BaseException):
+            built = _peer_job(ctx, setting)
+        src = PeerSource(built[0], hm, built[1], cache=cache)
+    elif setting.policy == "polytree":  # taylor-barrett: view-independent levels of one polytree
+        if "polytree" not in st_:
+            st_["polytree"] = _timed_build(lambda: build_polytree(hm, default_tolerances(hm, 64), device=device))
+        tree, ms = st_["polytree"]
+        src = PolytreeSource(tree, int(setting.param), ms, cache=cache)
+    else:  # mrbsp bintree: the paper's apparent-size rule at tree depth M = param, per frame
+        key = ("bintree", int(setting.param))
+        if key not in st_:
+            st_[key] = _timed_build(lambda: Bintree.build(hm, int(setting.param), device=device))
+        tree, ms = st_[key]
+        src = BintreeSource(tree, ms, cache=cache)
+    st_["sources"][setting] = src
+    return src
+
+
 def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
     """One row: ``setting`` rendered from camera k and measured against that camera's reference."""
-    from ..kernels.displacement import sample_normal_map
-    from ..kernels.raster import rasterize
-    from ..kernels.shading import hillshade
-    from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
-    from ..measure.error import frame_error
-    from ..rendering.pipeline import Frame, Report, _srgb8, render
-
     st_ = _state(ctx)
-    scene, cam, device, images = st_["scene"], ctx.cameras[k], ctx.device, ctx.images
-    hm = scene.heightmap
-    outs = ("error", "image") if images else ("error",)
+    scene, cam, device = st_["scene"], ctx.cameras[k], ctx.device
     if isinstance(refs[k], BaseException):
         raise RuntimeError(f"reference frame {k} failed: {refs[k]}")
     tri, depth, image = refs[k]
     ref = Frame(scene.with_(camera=cam, mesh="grid"), Report(), image=image, depth=depth, triangle_id=tri)
-    row = {}
-    if setting.policy in ("martini", "delatin", "polytree", "bintree"):
-        select_ms, built_ms, peer_err = 0.0, 0.0, math.nan
-        if setting.policy in ("martini", "delatin"):
-            if setting not in st_["peers"]:  # built once for the sweep by _peer_job, else here
-                built = refs.get(("peer", setting))
-                if built is None or isinstance(built, BaseException):
-                    peer = (martini_mesh if setting.policy == "martini" else delatin_mesh)(hm, setting.param)
-                    built = (peer, mesh_vertical_error(hm, peer))
-                st_["peers"][setting] = built
-            peer, peer_err = st_["peers"][setting]
-            built_ms = peer.mesh_ms
-            t0 = time.perf_counter()
-            m = peer.to_mesh(hm, cam)
-            t_mesh = (time.perf_counter() - t0) * 1e3
-        elif setting.policy == "polytree":  # taylor-barrett: view-independent levels of one polytree
-            from ..lod.polytree import build_polytree, default_tolerances
-
-            if "polytree" not in st_:
-                t0 = time.perf_counter()
-                st_["polytree"] = build_polytree(hm, default_tolerances(hm, 64), device=device)
-                st_["polytree_ms"] = (time.perf_counter() - t0) * 1e3
-            pt = st_["polytree"]
-            built_ms = st_["polytree_ms"]
-            t0 = time.perf_counter()
-            m = pt.mesh(min(int(setting.param), pt.n_levels - 1), eye=cam.position)
-            t_mesh = (time.perf_counter() - t0) * 1e3
-        else:  # mrbsp bintree: the paper's apparent-size rule at tree depth M = param, per frame
-            from ..lod.bintree import Bintree, select_bintree
-
-            key = ("bintree", int(setting.param))
-            if key not in st_:
-                t0 = time.perf_counter()
-                st_[key] = Bintree.build(hm, int(setting.param), device=device)
-                st_[key + ("ms",)] = (time.perf_counter() - t0) * 1e3
-            built_ms = st_[key + ("ms",)]
-            t0 = time.perf_counter()
-            m = select_bintree(st_[key], cam).mesh
-            select_ms = (time.perf_counter() - t0) * 1e3
-            t_mesh = 0.0
-        t0 = time.perf_counter()
-        fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                       cam.width, cam.height, cull_back=scene.cull_back, device=device)
-        t_ras = (time.perf_counter() - t0) * 1e3
-        img = None
-        if images:
-            if st_["nmap"] is None:
-                from ..kernels.normals import sobel_normals
-
-                st_["nmap"] = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)
-            world = m.positions.astype(np.float64) + np.asarray(m.eye)
-            uv = np.stack([(world[:, 0] - hm.origin[0]) / hm.dx / max(hm.shape[1] - 1, 1),
-                           (world[:, 2] - hm.origin[1]) / hm.dz / max(hm.shape[0] - 1, 1)], 1)
-            nrm = sample_normal_map(st_["nmap"], np.clip(uv, 0, 1).astype(np.float32), device=device)
-            rgb, _ = hillshade(fr.triangle_id, fr.barycentrics, m.triangles, nrm, world[:, 1].astype(np.float32),
-                               azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
-                               device=device)
-            img = _srgb8(rgb)
-        err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics,
-                          fr.depth, ref.triangle_id, ref.depth, image=img, ref_image=ref.image)
-        row.update(select_ms=select_ms, mesh_ms=t_mesh, raster_ms=t_ras, frame_ms=select_ms + t_mesh + t_ras,
-                   patches=0, vertices=int(len(m.positions)), triangles=m.n_triangles, peer_mesh_ms=built_ms,
-                   peer_error_m=peer_err)
+    sc = scene.with_(camera=cam, outputs=_outputs(ctx))
+    built_ms, peer_err = 0.0, math.nan
+    if setting.policy in _BUILT:
+        src = _source(ctx, refs, setting)
+        f = render(sc, reference=ref, device=device, source=src)
+        built_ms, peer_err = src.build_ms, src.error_m
+    elif setting.policy == "grid":
+        f = render(sc.with_(mesh="grid"), reference=ref, device=device)
     else:
-        if setting.policy == "grid":
-            f = render(scene.with_(camera=cam, mesh="grid", outputs=outs), reference=ref, device=device)
-        else:
-            lod = scene.lod.with_policy(setting.policy, setting.param)
-            sc = scene.with_(camera=cam, mesh="lod", lod=lod, outputs=outs)
-            f = render(sc, terrain=st_["terrain"], reference=ref, device=device)
-        st = {s.name: s for s in f.report.stages}
-        sel = st["select"].time_ms if "select" in st else 0.0
-        row.update(select_ms=sel, mesh_ms=st["mesh"].time_ms, raster_ms=st["raster"].time_ms,
-                   frame_ms=sel + st["mesh"].time_ms + st["raster"].time_ms,
-                   patches=st["mesh"].counters.get("patches", 1), vertices=f.mesh.n_vertices,
-                   triangles=f.mesh.n_triangles, peer_mesh_ms=0.0, peer_error_m=math.nan)
-        err = f.error
-    row.update(max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
-               cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
-               psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
-               ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=st_["prepare_ms"])
-    return row
+        lod = scene.lod.with_policy(setting.policy, setting.param)
+        f = render(sc.with_(mesh="lod", lod=lod), terrain=st_["terrain"], reference=ref, device=device)
+    rep, err = f.report, f.error
+    return dict(select_ms=rep.stage_ms("select"), mesh_ms=rep.stage_ms("mesh"), raster_ms=rep.stage_ms("raster"),
+                frame_ms=rep.frame_ms, patches=rep.stage("mesh").counters["patches"], vertices=f.mesh.n_vertices,
+                triangles=f.mesh.n_triangles, peer_mesh_ms=built_ms, peer_error_m=peer_err,
+                max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
+                cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
+                psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
+                ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=st_["prepare_ms"])
 
 
 #: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``).
@@ -252,8 +220,6 @@ COLUMNS = ("policy", "param", "setting", "frame", "select_ms", "mesh_ms", "raste
 
 def _scene_token(scene: Scene, device: str) -> str:
     """Identifies what a worker keeps between sweeps (Terrain, peer meshes): the scene but its camera."""
-    import hashlib
-
     h = hashlib.sha256()
     hm = scene.heightmap
     h.update(np.ascontiguousarray(hm.heights).tobytes())
@@ -264,15 +230,11 @@ def _scene_token(scene: Scene, device: str) -> str:
 
 def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str) -> str:
     """Identifies a sweep's inputs (the partial file of another sweep is not resumed)."""
-    import hashlib
-
     return hashlib.sha256(repr((_scene_token(scene, device), list(cameras), images)).encode()).hexdigest()[:32]
 
 
 def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
     """The sweep's jobs: one per (setting, camera), keyed by (setting's place in the list, frame)."""
-    from .runner import Job
-
     return [Job(id=f"{s.policy}={s.param!r}|{k}", sort_key=(i, k),
                 fields={"policy": s.policy, "param": s.param, "setting": s.label, "frame": k}, args=(s, k))
             for i, s in enumerate(settings) for k in range(n_cameras)]
@@ -280,22 +242,19 @@ def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
 
 def run_sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
               images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
-              out: str | Path | None = None, runner=None):
+              out: str | Path | None = None, runner: Runner | None = None) -> SweepResult:
     """:func:`sweep`, returning the :class:`terrainwarp.experiments.runner.SweepResult` (rows plus what the run cost).
 
     ``runner`` (a :class:`terrainwarp.experiments.runner.Runner`) overrides ``scheduler`` and ``workers``.
     """
-    from .runner import Runner
-
     if runner is not None:
         return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
     with Runner(scheduler, workers) as runner:
         return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
 
 
-def _run_sweep(runner, scene, cameras, settings, progress, images, device, out):
-    from .runner import pending_jobs
-
+def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: list[Setting], progress: bool,
+               images: bool, device: str, out: str | Path | None) -> SweepResult:
     cameras = list(cameras)
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device)
@@ -390,12 +349,10 @@ def rows_to_csv(rows: list[dict]) -> str:
 
 
 def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
-    import matplotlib
+    import matplotlib  # lazy: heavy optional dependency
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..io.files import atomic_path
+    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
@@ -422,17 +379,11 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
     axes[0].legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=100)
 
 
 def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path) -> list[Path]:
     """frames.csv, pareto.png and report.md for a sweep."""
-    from ..io.files import write_text
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summ = summarise(rows)

@@ -16,11 +16,16 @@ uses, so the benefit is a number, not a claim:
   whose visible triangle changes when the naive positions are rasterized.
 
 Stages: ``sampling``, ``select`` (:func:`terrainwarp.lod.select`), ``tessellate``
-(:func:`terrainwarp.rendering.reference_tessellator.tessellate_patch` and, when importable, the frame kernel
-``terrainwarp.kernels.tessellator.tessellate_domains``), ``normals``, ``curvature``
+(:func:`terrainwarp.rendering.reference_tessellator.tessellate_patch` against the frame kernel
+``terrainwarp.kernels.tessellator.tessellate_domains``; cases without a factor: a LOD frame, watertight by
+:func:`terrainwarp.rendering.watertight.check_watertight`), ``normals``, ``curvature``
 (:mod:`terrainwarp.surface.differential`), ``raster`` (:func:`terrainwarp.render`, grid mesh), ``error``
 (:mod:`terrainwarp.measure.error` through ``render``), ``fit`` (the relaxed JAX model of :mod:`terrainwarp.fit`:
 finite cost, error and gradients, gradient against a finite difference).
+
+Outcomes: ``pass``; ``raised``, a clear error (ValueError/TypeError whose message names the argument,
+"name: expected X, got Y"); ``FAIL``, a check that failed, or any other exception, recorded with its type
+and where it was raised (function, file:line of the innermost frame), never as a pass.
 
 ::
 
@@ -30,8 +35,8 @@ finite cost, error and gradients, gradient against a finite difference).
 
 from __future__ import annotations
 
-import hashlib
 import math
+import re
 import time
 import traceback
 from dataclasses import dataclass
@@ -39,12 +44,24 @@ from pathlib import Path
 
 import numpy as np
 
+from ..fit.lod_fit import relaxed_model
+from ..io.files import digest, write_text
+from ..kernels.raster import rasterize
+from ..kernels.sampling import sample_grid
+from ..kernels.tessellator import tessellate_domains
+from ..lod.policies import ScreenErrorPolicy
+from ..lod.quadtree import Terrain, select
+from ..rendering.pipeline import render
+from ..rendering.reference_tessellator import SPACINGS, tessellate_patch
+from ..rendering.watertight import check_watertight, check_watertight_domain, lod_boundary
+from ..scene import LodConfig, Scene
+from ..surface.differential import compute_curvature, compute_normals
 from .extreme import CASES, ExtremeCase
 
-__all__ = ["Row", "STAGES", "run_suite", "run_case", "write_stability_md", "stage_hashes", "watertight_report"]
+__all__ = ["Row", "STAGES", "run_suite", "run_case", "write_stability_md", "stage_hashes"]
 
 STAGES = ("sampling", "select", "tessellate", "normals", "curvature", "raster", "error", "fit")
-PASS, RAISED, FAIL, NA, NOT_BUILT = "pass", "raised", "FAIL", "n/a", "not yet built"
+PASS, RAISED, FAIL, NA = "pass", "raised", "FAIL", "n/a"
 _F32 = np.float32
 
 
@@ -54,12 +71,11 @@ class Row:
 
     Attributes:
         case, stage: what ran.
-        status: ``pass``, ``raised`` (a clear ValueError/TypeError naming the argument), ``FAIL``, ``n/a``
-            or ``not yet built``.
+        status: ``pass``, ``raised`` (a clear ValueError/TypeError naming the argument), ``FAIL`` or ``n/a``.
         error: the float32 product's error against the float64 reference (with the GPU remedy), as text.
         naive: the same error without the remedy ("" when no remedy applies).
         note: what was checked, or the message raised.
-        hash: sha256 (16 hex digits) of the stage's output arrays ("" when none).
+        hash: :func:`terrainwarp.io.files.digest` of the stage's output arrays ("" when none).
     """
 
     case: str
@@ -69,15 +85,6 @@ class Row:
     naive: str = ""
     note: str = ""
     hash: str = ""
-
-
-def _digest(*arrays) -> str:
-    h = hashlib.sha256()
-    for a in arrays:
-        a = np.ascontiguousarray(a)
-        h.update(str(a.dtype).encode() + str(a.shape).encode())
-        h.update(a.tobytes())
-    return h.hexdigest()[:16]
 
 
 def _g(x: float) -> str:
@@ -162,55 +169,10 @@ def _three_vertex64(h: np.ndarray, step: float, axis: int, naive: bool) -> np.nd
     return k if axis == 0 else k.T
 
 
-def watertight_report(uv_or_keys: np.ndarray, triangles: np.ndarray, on_border=None) -> dict:
-    """Edge census of a triangle mesh after merging vertices with identical keys.
-
-    Args:
-        uv_or_keys: (n, k) vertex keys (exact float32 positions or domain coordinates): vertices with
-            equal rows are one vertex.
-        triangles: (m, 3) int indices.
-        on_border: optional function (n_edges, 2, k) keys -> bool mask of edges allowed to be single
-            (the mesh's outer boundary). Default: none allowed.
-
-    Returns:
-        dict: ``vertices`` (after merging), ``edges``, ``open`` (single edges not on the border),
-        ``nonmanifold`` (edges used more than twice), ``degenerate`` (triangles with a repeated vertex).
-    """
-    t = np.asarray(triangles, np.int64).reshape(-1, 3)
-    if len(t) == 0:
-        return {"vertices": 0, "edges": 0, "open": 0, "nonmanifold": 0, "degenerate": 0}
-    keys = np.ascontiguousarray(uv_or_keys)
-    _, inv = np.unique(keys.view(np.dtype((np.void, keys.dtype.itemsize * keys.shape[1]))).reshape(-1),
-                       return_inverse=True)
-    tm = inv.reshape(-1)[t]
-    degenerate = (tm[:, 0] == tm[:, 1]) | (tm[:, 1] == tm[:, 2]) | (tm[:, 0] == tm[:, 2])
-    tm = tm[~degenerate]
-    e = np.concatenate([tm[:, [0, 1]], tm[:, [1, 2]], tm[:, [2, 0]]])
-    e.sort(axis=1)
-    ue, cnt = np.unique(e, axis=0, return_counts=True)
-    single = ue[cnt == 1]
-    if on_border is not None and len(single):
-        rep = np.zeros(inv.max() + 1, np.int64)
-        rep[inv.reshape(-1)] = np.arange(len(inv))
-        ok = on_border(keys[rep[single]])
-        single = single[~ok]
-    return {"vertices": int(len(np.unique(tm))), "edges": int(len(ue)), "open": int(len(single)),
-            "nonmanifold": int((cnt > 2).sum()), "degenerate": int(degenerate.sum())}
-
-
-def _unit_square_border(k: np.ndarray) -> np.ndarray:
-    """Edges (E, 2, 2) of uv keys lying on the unit square's boundary."""
-    return np.any(np.all((k == 0.0) | (k == 1.0), axis=1) & (k[:, 0] == k[:, 1]), axis=1) | \
-        ((k[:, 0, 0] == k[:, 1, 0]) & np.isin(k[:, 0, 0], (0.0, 1.0))) | \
-        ((k[:, 0, 1] == k[:, 1, 1]) & np.isin(k[:, 0, 1], (0.0, 1.0)))
-
-
 # ------------------------------------------------------------------------------------------------
 # stages
 # ------------------------------------------------------------------------------------------------
 def _stage_sampling(case: ExtremeCase, scene) -> Row:
-    from ..kernels.sampling import sample_grid
-
     hm = scene.heightmap
     h = hm.heights
     rows, cols = h.shape
@@ -234,12 +196,10 @@ def _stage_sampling(case: ExtremeCase, scene) -> Row:
     _check(err <= bound, f"bilinear error {err:.3g} m exceeds 4 ulp of max|h| ({bound:.3g} m)")
     nan_note = f"; {int((~fin).sum())} samples NaN next to holes, as the reference" if (~fin).any() else ""
     return Row(case.name, "sampling", PASS, f"{_g(err)} m", f"{_g(nerr)} m",
-               f"bilinear at 515 points; bound 4 ulp(max|h|) = {bound:.2g} m{nan_note}", _digest(out))
+               f"bilinear at 515 points; bound 4 ulp(max|h|) = {bound:.2g} m{nan_note}", digest(out))
 
 
 def _stage_select(case: ExtremeCase, scene) -> Row:
-    from ..lod.quadtree import ScreenErrorPolicy, Terrain, select
-
     hm = scene.heightmap
     terrain = Terrain.prepare(hm, roots=4, tess=8)
     p = select(terrain, scene.camera, ScreenErrorPolicy(1.0))
@@ -250,25 +210,13 @@ def _stage_select(case: ExtremeCase, scene) -> Row:
     lv = f"levels {int(p.level.min())}..{int(p.level.max())}" if len(p) else "no patch visible"
     return Row(case.name, "select", PASS, "", "", f"{len(p)} patches, {lv}, {p.stats.get('culled', 0)} culled; "
                "factors finite in [1, 64]",
-               _digest(p.level, p.key, p.outer, p.inner, p.origin_cells))
-
-
-def _frame_tessellator():
-    try:
-        from ..kernels import tessellator  # noqa: F401
-        from ..kernels.tessellator import tessellate_domains
-    except Exception:  # the frame kernel is not there (yet)
-        return None
-    return tessellate_domains
+               digest(p.level, p.key, p.outer, p.inner, p.origin_cells))
 
 
 def _stage_tessellate(case: ExtremeCase, scene) -> Row:
-    from ..rendering.reference_tessellator import SPACINGS, tessellate_patch
-
     if case.factor is None:
         return _stage_lod_mesh(case, scene)
     f = case.factor
-    dom = _frame_tessellator()
     notes, hashes = [], []
     for sp in SPACINGS:
         uv, tri = tessellate_patch([f] * 4, [f] * 2, sp)
@@ -277,95 +225,46 @@ def _stage_tessellate(case: ExtremeCase, scene) -> Row:
         if culled:
             _check(len(tri) == 0, f"{sp}: factor {f} must cull the patch, got {len(tri)} triangles")
         else:
-            w = watertight_report(uv, tri, _unit_square_border)
-            _check(w["open"] == 0 and w["nonmanifold"] == 0, f"{sp}: not watertight {w}")
+            w = check_watertight_domain(uv, tri)
+            _check(w.n_open_edges == 0 and w.n_nonmanifold_edges == 0, f"{sp}: not watertight "
+                   f"({w.n_open_edges} open, {w.n_nonmanifold_edges} non-manifold edges)")
             a = uv[tri]
             area = 0.5 * ((a[:, 1, 0] - a[:, 0, 0]) * (a[:, 2, 1] - a[:, 0, 1])
                           - (a[:, 2, 0] - a[:, 0, 0]) * (a[:, 1, 1] - a[:, 0, 1])).astype(np.float64)
             _check(bool(np.all(area > 0)), f"{sp}: {int((area <= 0).sum())} triangles not counter-clockwise")
             _check(abs(float(area.sum()) - 1.0) < 1e-6, f"{sp}: triangles cover area {area.sum()}, not 1")
             _check(len(tri) <= 2 * 64 * 64 + 4 * 64, f"{sp}: {len(tri)} triangles exceed the level-64 maximum")
-        if dom is not None:
-            d = dom(np.full((1, 4), f, _F32), np.full((1, 2), f, _F32), sp)
-            _check(np.array_equal(d["uv"], uv) and np.array_equal(d["triangles"], tri),
-                   f"{sp}: frame kernel differs from tessellate_patch")
+        d = tessellate_domains(np.full((1, 4), f, _F32), np.full((1, 2), f, _F32), sp)
+        _check(np.array_equal(d["uv"], uv) and np.array_equal(d["triangles"], tri),
+               f"{sp}: frame kernel differs from tessellate_patch")
         notes.append(f"{sp} {len(tri)}")
         hashes += [uv, tri]
-    frame = "; frame kernel identical" if dom is not None else "; frame kernel not available"
     return Row(case.name, "tessellate", PASS, "", "",
                "triangles " + ", ".join(notes) + ("; culled" if not (f > 0) else "; watertight, ccw, area 1")
-               + frame, _digest(*hashes))
+               + "; frame kernel identical", digest(*hashes))
 
 
-def _stage_lod_mesh(case: ExtremeCase, scene) -> Row:
-    from ..rendering.pipeline import render
+def _lod_scene(scene: Scene, outputs: tuple[str, ...]) -> Scene:
+    """The case's LOD frame: screen-error 1 px, 4 roots of tessellation level 8."""
+    return scene.with_(mesh="lod", outputs=outputs, lod=LodConfig(roots=4, tess=8))
 
-    try:
-        fr = render(scene.with_(mesh="lod", outputs=("mesh",), lod=scene.lod.__class__(roots=4, tess=8)))
-    except Exception as ex:  # valid input: any exception here is the pipeline's failure, not a clear error
-        raise _Fail(f"LOD frame path: {type(ex).__name__}: {str(ex).splitlines()[0][:120]}") from ex
+
+def _stage_lod_mesh(case: ExtremeCase, scene: Scene) -> Row:
+    fr = render(_lod_scene(scene, ("mesh",)))
     m = fr.mesh
     _check(bool(np.all(np.isfinite(m.positions))), f"mesh: {int((~np.isfinite(m.positions)).any(1).sum())} "
            "vertices with non-finite positions")
     if m.n_triangles == 0:
-        return Row(case.name, "tessellate", PASS, "", "", "no visible patch (empty mesh)", _digest(m.triangles))
-    w = lod_watertight(m, fr.patches, scene.heightmap)
-    status = PASS if w["open"] == 0 and w["nonmanifold"] == 0 else FAIL
+        return Row(case.name, "tessellate", PASS, "", "", "no visible patch (empty mesh)", digest(m.triangles))
+    w = check_watertight(m, allowed=lod_boundary(fr.patches, scene.heightmap, m.eye))
+    status = PASS if w.n_open_edges == 0 and w.n_nonmanifold_edges == 0 else FAIL
     return Row(case.name, "tessellate", status, "", "",
                f"LOD mesh {m.n_vertices} vertices, {m.n_triangles} triangles, {len(fr.patches)} patches; "
-               f"{w['open']} open interior edges (cracks), {w['nonmanifold']} non-manifold",
-               _digest(m.positions, m.triangles))
-
-
-def lod_watertight(mesh, patches, heightmap) -> dict:
-    """Watertight census of a LOD mesh: vertices merged by exact (position, uv); an edge used once is
-    allowed only where the surface legitimately ends: on the heightmap's border, on the outline of the
-    drawn patches (a culled neighbour), or beside a no-data hole (a NaN sample within one vertex spacing
-    of the drawn patches, whose triangles were dropped). Anything else is a crack (``open``)."""
-    keys = np.concatenate([mesh.positions.astype(_F32), mesh.uv.astype(_F32)], 1)
-    (gx0, gz0), (gx1, gz1) = heightmap.bounds_xz
-    eye = np.asarray(mesh.eye, np.float64)
-    ox, oz = patches.origin[:, 0], patches.origin[:, 1]
-    sx, sz = patches.size[:, 0], patches.size[:, 1]
-    eps = 1e-3 * float(np.min(patches.size)) if len(patches) else 1e-3
-
-    hi, hj = np.nonzero(np.isnan(heightmap.heights))
-    hole_x = heightmap.origin[0] + hj * heightmap.dx
-    hole_z = heightmap.origin[1] + hi * heightmap.dz
-    reach = float(np.max(patches.size / np.maximum(patches.inner, 1.0))) + max(heightmap.dx, heightmap.dz) \
-        if len(patches) else 0.0
-
-    def near_hole(x, z):
-        out = np.zeros(len(x), bool)
-        for a in range(0, len(hole_x), 4096):  # blocks keep (probes x holes) small
-            out |= np.any((np.abs(x[:, None] - hole_x[None, a:a + 4096]) <= reach)
-                          & (np.abs(z[:, None] - hole_z[None, a:a + 4096]) <= reach), axis=1)
-        return out
-
-    def inside(x, z):
-        x, z = x[:, None], z[:, None]
-        in_p = np.any((x > ox) & (x < ox + sx) & (z > oz) & (z < oz + sz), axis=1)
-        ok = in_p & (x[:, 0] > gx0) & (x[:, 0] < gx1) & (z[:, 0] > gz0) & (z[:, 0] < gz1)
-        return ok & ~near_hole(x[:, 0], z[:, 0]) if len(hole_x) else ok
-
-    def allowed(k):
-        if _unit_square_border(k[:, :, 3:5]).all():
-            return np.ones(len(k), bool)
-        a = k[:, 0, :3].astype(np.float64) + eye
-        b = k[:, 1, :3].astype(np.float64) + eye
-        mid = 0.5 * (a + b)
-        d = b - a
-        ln = np.maximum(np.hypot(d[:, 0], d[:, 2]), 1e-300)
-        nx, nz = -d[:, 2] / ln * eps, d[:, 0] / ln * eps
-        both = inside(mid[:, 0] + nx, mid[:, 2] + nz) & inside(mid[:, 0] - nx, mid[:, 2] - nz)
-        return _unit_square_border(k[:, :, 3:5]) | ~both
-
-    return watertight_report(keys, mesh.triangles, allowed)
+               f"{w.n_open_edges} open interior edges (cracks), {w.n_nonmanifold_edges} non-manifold",
+               digest(m.positions, m.triangles))
 
 
 def _stage_normals(case: ExtremeCase, scene) -> Row:
-    from ..surface.differential import compute_normals
-
     hm = scene.heightmap
     n = compute_normals(hm, "sobel", border="skip")
     _check(bool(np.all(np.isfinite(n))), "normals: non-finite values")
@@ -373,7 +272,7 @@ def _stage_normals(case: ExtremeCase, scene) -> Row:
     h = hm.heights
     if min(h.shape) < 3:
         return Row(case.name, "normals", PASS, "", "", "finite unit normals (no interior sample to compare)",
-                   _digest(n))
+                   digest(n))
     win_ok = np.ones((h.shape[0] - 2, h.shape[1] - 2), bool)
     for r in range(3):
         for c in range(3):
@@ -384,12 +283,10 @@ def _stage_normals(case: ExtremeCase, scene) -> Row:
     err = float(np.max(_angle_deg(inner, ref)[win_ok])) if win_ok.any() else 0.0
     nerr = float(np.max(_angle_deg(nai, ref)[win_ok])) if win_ok.any() else 0.0
     return Row(case.name, "normals", PASS, f"{_g(err)} deg", f"{_g(nerr)} deg",
-               f"Sobel, {int(win_ok.sum())} interior samples vs float64; finite unit everywhere", _digest(n))
+               f"Sobel, {int(win_ok.sum())} interior samples vs float64; finite unit everywhere", digest(n))
 
 
 def _stage_curvature(case: ExtremeCase, scene) -> Row:
-    from ..surface.differential import compute_curvature
-
     hm = scene.heightmap
     h = hm.heights
     k = compute_curvature(hm, "three_vertex")
@@ -411,13 +308,13 @@ def _stage_curvature(case: ExtremeCase, scene) -> Row:
             errs.append(float(np.max(np.abs(got[ok] - ref[ok]))))
             nerrs.append(float(np.max(np.abs(nai[ok] - ref[ok]))))
     if not errs:
-        return Row(case.name, "curvature", PASS, "", "", "finite, >= 0 (no interior sample)", _digest(k))
+        return Row(case.name, "curvature", PASS, "", "", "finite, >= 0 (no interior sample)", digest(k))
     err, nerr = max(errs), max(nerrs)
     rel = err / kmax if kmax > 0 else err
     nrel = nerr / kmax if kmax > 0 else nerr
     unit = "(relative to max)" if kmax > 0 else "1/m (reference is 0)"
     return Row(case.name, "curvature", PASS, f"{_g(rel)} {unit}", f"{_g(nrel)} {unit}",
-               f"three-vertex x and z, interior vs float64; max k = {kmax:.3g} 1/m", _digest(k))
+               f"three-vertex x and z, interior vs float64; max k = {kmax:.3g} 1/m", digest(k))
 
 
 def _grid_world64(hm) -> np.ndarray:
@@ -428,9 +325,6 @@ def _grid_world64(hm) -> np.ndarray:
 
 
 def _stage_raster(case: ExtremeCase, scene) -> Row:
-    from ..kernels.raster import rasterize
-    from ..rendering.pipeline import render
-
     fr = render(scene.with_(outputs=("image", "depth", "normals", "mesh")))
     d = fr.depth
     _check(bool(np.all(np.isfinite(d))) and float(d.min()) >= 0.0 and float(d.max()) <= 1.0,
@@ -473,12 +367,10 @@ def _stage_raster(case: ExtremeCase, scene) -> Row:
     return Row(case.name, "raster", PASS, f"{_g(err_m)} m, {_g(err_px)} px", f"{_g(nerr_m)} m, {_g(nerr_px)} px, "
                f"{changed} px changed", f"grid mesh {m.n_triangles} triangles, coverage {cov:.1%}; depth in [0, 1]"
                + depth_note,
-               _digest(fr.triangle_id, fr.depth, fr.barycentrics))
+               digest(fr.triangle_id, fr.depth, fr.barycentrics))
 
 
 def _stage_error(case: ExtremeCase, scene) -> Row:
-    from ..rendering.pipeline import render
-
     fr = render(scene.with_(outputs=("error",)))
     e = fr.error
     vals = (e.max_px, e.p99_px, e.mean_px)
@@ -489,29 +381,17 @@ def _stage_error(case: ExtremeCase, scene) -> Row:
         # to ulp/2 = 9.5e-7 m, which is all the reprojection error may be.
         _check(e.max_px <= 1e-4, f"flat plane: grid error {e.max_px} px, expected float32 rounding only")
     note = f"grid vs its reference: max {e.max_px:.3g} px over {e.covered} px"
-    try:
-        fl = render(scene.with_(mesh="lod", outputs=("error",), lod=scene.lod.__class__(roots=4, tess=8)))
-        el = fl.error
-        _check(all(math.isfinite(x) and x >= 0 for x in (el.max_px, el.p99_px)), "LOD error: non-finite or < 0")
-        note += f"; LOD (sse 1 px) max {el.max_px:.3g} px, p99 {el.p99_px:.3g} px, {el.cracks} crack px"
-    except _Fail:
-        raise
-    except Exception as ex:  # the LOD frame path is still being written by colleagues
-        note += f"; LOD frame not measured ({type(ex).__name__}: {str(ex).splitlines()[0][:80]})"
+    el = render(_lod_scene(scene, ("error",))).error
+    _check(all(math.isfinite(x) and x >= 0 for x in (el.max_px, el.p99_px)), "LOD error: non-finite or < 0")
+    note += f"; LOD (sse 1 px) max {el.max_px:.3g} px, p99 {el.p99_px:.3g} px, {el.cracks} crack px"
     return Row(case.name, "error", PASS, f"{_g(e.max_px)} px", "", note,
-               _digest(fr.error.error_map if fr.error.error_map is not None else np.zeros(0)))
+               digest(fr.error.error_map if fr.error.error_map is not None else np.zeros(0)))
 
 
 def _stage_fit(case: ExtremeCase, scene) -> Row:
     """The JAX relaxed LOD model of :mod:`terrainwarp.fit`: finite cost, error proxy and gradients, and the
     gradient against a central finite difference of the same float32 model."""
-    try:
-        from ..fit.lod_fit import relaxed_model
-    except ImportError:
-        return Row(case.name, "fit", NOT_BUILT, note="terrainwarp.fit is not importable")
-    import jax
-
-    from ..lod.quadtree import Terrain
+    import jax  # lazy: heavy optional dependency
 
     terrain = Terrain.prepare(scene.heightmap, roots=4, tess=8)
     model = relaxed_model(terrain, [scene.camera], "sse")
@@ -553,13 +433,25 @@ def run_case(case: ExtremeCase, n: int = 33, stages: tuple[str, ...] = STAGES) -
             rows.append(_STAGE_FUNCS[st](case, scene))
         except _Fail as e:
             rows.append(Row(case.name, st, FAIL, note=str(e)))
-        except (ValueError, TypeError) as e:
-            rows.append(Row(case.name, st, RAISED, note=str(e).splitlines()[0] if str(e) else type(e).__name__))
-        except Exception as e:  # an unexpected exception is a failure: record where it came from
-            tb = traceback.extract_tb(e.__traceback__)[-1]
-            rows.append(Row(case.name, st, FAIL, note=f"{type(e).__name__}: {str(e)[:100]} "
-                                                         f"({Path(tb.filename).name}:{tb.lineno})"))
+        except Exception as e:  # noqa: BLE001 - every exception is a row: a clear error, or a failure
+            rows.append(_exception_row(case.name, st, e))
     return rows
+
+
+# a clear error names its argument first: "name: expected X, got Y" (the public boundary's convention)
+_CLEAR = re.compile(r"^[A-Za-z_][\w.\[\]]*: ")
+
+
+def _exception_row(case: str, stage: str, e: Exception) -> Row:
+    """``raised`` for a clear ValueError/TypeError naming its argument; otherwise a FAIL naming the exception
+    type and where it was raised (function, file:line of the innermost frame)."""
+    msg = str(e).splitlines()[0] if str(e) else ""
+    if isinstance(e, ValueError | TypeError) and _CLEAR.match(msg):
+        return Row(case, stage, RAISED, note=msg)
+    tb = traceback.extract_tb(e.__traceback__)[-1]
+    where = "/".join(Path(tb.filename).parts[-2:])
+    return Row(case, stage, FAIL, note=f"unexpected {type(e).__name__} in stage {stage}: {msg[:100]} "
+                                       f"(in {tb.name}, {where}:{tb.lineno})")
 
 
 def run_suite(n: int = 33, cases: list[str] | None = None, stages: tuple[str, ...] = STAGES,
@@ -586,14 +478,8 @@ def stage_hashes(rows: list[Row]) -> dict[str, str]:
     return {f"{r.case}/{r.stage}": r.hash for r in rows if r.hash}
 
 
-# Why an outcome that is not "pass" is what it should be (or a known open problem).
-EXPLANATIONS = {
-    "fit": "the JAX fit (terrainwarp.fit) is not built yet; its rows will fill in when it lands",
-    "LOD frame path": "the LOD frame (pipeline._lod_mesh -> kernels/tessellator.tessellate_patches) is being "
-                      "rewritten by a colleague; while the two disagree on the PatchList contract every LOD "
-                      "frame fails the same way, whatever the case (the factor cases test the tessellator "
-                      "itself and pass)",
-}
+# Why a FAIL is a known open problem, by a phrase of its note (none today: every FAIL is unexplained).
+EXPLANATIONS: dict[str, str] = {}
 
 
 def _esc(s: str) -> str:
@@ -604,17 +490,14 @@ def write_stability_md(rows: list[Row], out_dir: str | Path, *, title: str = "St
                        command: str = "terrainwarp stability --out DIR", n: int = 33) -> Path:
     """Write ``stability.md`` (atomically) under ``out_dir``: a case x stage summary and one row per
     (case, stage) with the error with and without the float32 remedies."""
-    from ..io.files import write_text
-
     out = Path(out_dir)
     cases = list(dict.fromkeys(r.case for r in rows))
     stages = [s for s in ("build", *STAGES) if any(r.stage == s for r in rows)]
     by = {(r.case, r.stage): r for r in rows}
-    counts = {s: sum(r.status == s for r in rows) for s in (PASS, RAISED, FAIL, NOT_BUILT)}
+    counts = {s: sum(r.status == s for r in rows) for s in (PASS, RAISED, FAIL)}
     lines = [f"# {title}", "", f"Command: `{command}`; grids of {n} x {n} samples (fixed-shape cases keep "
              "theirs). float32 product against a float64 reference computed in numpy.", "",
-             f"Outcomes: {counts[PASS]} pass, {counts[RAISED]} clear errors raised, {counts[FAIL]} FAIL, "
-             f"{counts[NOT_BUILT]} not yet built.", "",
+             f"Outcomes: {counts[PASS]} pass, {counts[RAISED]} clear errors raised, {counts[FAIL]} FAIL.", "",
              "Remedies measured (\"with\" = the product, \"without\" = the naive float32 computation): sampling "
              "weights heights relative to the cell's first sample; normals difference samples pairwise before "
              "summing; curvature takes chord slopes before the second difference; the rasterizer gets "
@@ -632,11 +515,9 @@ def write_stability_md(rows: list[Row], out_dir: str | Path, *, title: str = "St
               "|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r.case} | {r.stage} | {r.status} | {_esc(r.error)} | {_esc(r.naive)} | {_esc(r.note)} |")
-    if any(r.status == NOT_BUILT for r in rows):
-        lines += ["", "## Not yet built", "", f"- fit: {EXPLANATIONS['fit']}.", ""]
     fails = [r for r in rows if r.status == FAIL]
     if fails:
-        lines += ["## Failures", ""]
+        lines += ["", "## Failures", ""]
         seen: dict[str, list[str]] = {}
         for r in fails:
             key = next((k for k in EXPLANATIONS if k in r.note), r.note)

@@ -1,22 +1,28 @@
 """``render(scene) -> Frame``: the pipeline, run backwards from the outputs the scene asks for.
 
-Stages (each a pure function of arrays):
+Every frame in the project is made here: grid and LOD scenes, and prebuilt meshes (peer meshers, polytree
+levels, bintree selections) passed as a :class:`MeshSource` (``render(scene, source=...)``).
+
+Stages (each a small function of the frame in progress, :data:`_STAGES`):
 
 =============  =============================================================================
 stage          what
 =============  =============================================================================
 prepare        LOD scenes without a caller-held Terrain: quadtree pyramids (min/max/error)
-normal_map     the heightmap's Sobel normal map (cached in the Terrain when one is held)
+normal_map     the heightmap's Sobel normal map (cached in the Terrain or the source when one is held)
 curvature      heightmap curvature (three-normal, four directions)
-select         LOD scenes: the visible patches (policy, balance, edge factors, culling)
-mesh           the full-resolution grid, or the patches tessellated and displaced in one launch
+select         LOD scenes: the visible patches (policy, balance, edge factors, culling); a source: the
+               part of its call spent selecting (0 for a static mesh)
+mesh           the full-resolution grid, the patches tessellated and displaced in one launch, or the
+               source's mesh (the rest of its call)
 raster         the visibility pass (triangle id, depth, barycentrics per pixel)
 shade          resolve + hillshade (image, per-pixel normals)
 reference      the full-resolution grid rasterized from the same camera (only for ``error``)
 error          per-pixel screen-space error against the reference (terrainwarp.measure.error)
 =============  =============================================================================
 
-Which run, by output (LOD scenes add ``prepare`` and ``select`` wherever ``mesh`` runs):
+Which run, by output (LOD scenes add ``prepare`` and ``select`` wherever ``mesh`` runs; a source adds
+``select``):
 
 =========  ==================================================
 output     stages
@@ -30,24 +36,36 @@ error      mesh, raster, reference, error
 curvature  curvature
 report     (none: the report of whatever ran)
 =========  ==================================================
+
+Frame cost (:attr:`Report.frame_ms`) is select + mesh + raster, for every kind of mesh.
 """
 
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from ..camera import relative_origin
-from ..io.files import write_image, write_json
+from ..camera import Camera, relative_origin
+from ..heightmap import Heightmap
+from ..io.files import atomic_path, write_image, write_json
+from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
+from ..kernels.normals import sobel_normals
+from ..kernels.raster import clip_coordinates, rasterize
+from ..kernels.shading import shade, splat_map, srgb8
+from ..kernels.tessellator import tessellate_patches
+from ..lod.policies import make_policy
+from ..lod.quadtree import LodState, PatchList, Terrain, select
+from ..measure.error import ErrorStats, frame_error
 from ..mesh import Mesh
 from ..scene import Scene
+from ..surface.differential import compute_curvature
 
-__all__ = ["render", "Frame", "Report", "StageRecord", "stages_for"]
+__all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource"]
 
 STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
 _NEEDS = {
@@ -63,18 +81,40 @@ _NEEDS = {
 
 
 def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool = False) -> list[str]:
-    """The stages that the given outputs need, in pipeline order."""
+    """The stages that the given outputs need, in pipeline order.
+
+    ``mesh``: ``"grid"``, ``"lod"`` or ``"source"`` (a prebuilt :class:`MeshSource`)."""
     need: set[str] = set()
     for o in outputs:
         need |= _NEEDS[o]
-    if mesh == "lod":
+    if mesh in ("lod", "source"):
         if "mesh" in need:
             need.add("select")
-        if "select" in need and not have_terrain:
+        if mesh == "lod" and "select" in need and not have_terrain:
             need.add("prepare")
     else:
         need.discard("select")
     return [s for s in STAGE_ORDER if s in need]
+
+
+class MeshSource(Protocol):
+    """A mesh made outside the quadtree LOD path (a peer mesher's static mesh, a polytree level, a bintree
+    selection), drawn by ``render(scene, source=...)`` in place of the scene's ``mesh`` policy.
+
+    The source is an object the caller holds across frames, like a Terrain: what persists between frames
+    (the built mesh or tree, the heightmap's normal map) lives in it."""
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        """The mesh to draw from ``camera`` (positions relative to ``camera.position``) and the ms of the call
+        spent selecting (0.0 for a static mesh: the whole call is meshing)."""
+        ...
+
+    def cached(self, key: object, make: Callable[[], Any]) -> Any:
+        """The value kept under ``key``, made by ``make()`` on first use (as :meth:`Terrain.cached`)."""
+        ...
+
+    def is_cached(self, key: object) -> bool:
+        ...
 
 
 @dataclass
@@ -134,6 +174,7 @@ class Frame:
         depth: (H, W) float32 window depth in [0, 1], 1.0 on background.
         normals: (H, W, 3) float32 per-pixel unit normals (0 on background).
         triangle_id: (H, W) int32 visible triangle per pixel (-1 background), when raster ran.
+        barycentrics: (H, W, 2) float32 perspective-correct barycentrics, when shading or the error ran.
         mesh: the :class:`Mesh` drawn.
         curvature: (H, W, 4) float32 curvature of the heightmap (not the image) in the directions x, z,
             diagonal (+x,+z), diagonal (+x,-z) (:func:`terrainwarp.compute_curvature`, three-normal), 1/m;
@@ -151,8 +192,8 @@ class Frame:
     triangle_id: np.ndarray | None = None
     barycentrics: np.ndarray | None = None
     mesh: Mesh | None = None
-    patches: Any = None
-    error: Any = None
+    patches: PatchList | None = None
+    error: ErrorStats | None = None
     curvature: np.ndarray | None = None
 
     def save(self, out_dir: str | Path) -> list[Path]:
@@ -170,8 +211,6 @@ class Frame:
         if self.curvature is not None:
             written.append(write_image(out / "curvature.exr", self.curvature.astype(np.float32)))
         if self.mesh is not None and "mesh" in self.scene.outputs:
-            from ..io.files import atomic_path
-
             with atomic_path(out / "mesh.vtp") as tmp:
                 self.mesh.to_pyvista().save(str(tmp))
             written.append(out / "mesh.vtp")
@@ -186,23 +225,194 @@ class Frame:
         return written
 
 
-def _srgb8(rgb: np.ndarray) -> np.ndarray:
-    c = np.clip(rgb, 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
-    return np.round(s * 255.0).astype(np.uint8)
+# ------------------------------------------------------------------------------------------------
+# the frame in progress
+# ------------------------------------------------------------------------------------------------
+@dataclass(eq=False)
+class _Run:
+    """What the stages of one ``render`` call share: its inputs, the frame they fill in, and the
+    intermediate arrays that are not part of the frame."""
+
+    scene: Scene
+    frame: Frame
+    stages: list[str]
+    device: str
+    terrain: Terrain | None = None
+    state: LodState | None = None
+    reference: Frame | None = None
+    source: MeshSource | None = None
+    nmap: np.ndarray | None = None  # (H, W, 3) float32 heightmap normal map
+    source_mesh_ms: float = 0.0  # the part of the source's call not spent selecting
+    ref_tri: np.ndarray | None = None
+    ref_depth: np.ndarray | None = None
+
+    @property
+    def kind(self) -> str:
+        """``"source"``, ``"lod"`` or ``"grid"``: where the mesh comes from."""
+        return "source" if self.source is not None else self.scene.mesh
+
+    @property
+    def hm(self) -> Heightmap:
+        return self.scene.heightmap
+
+    @property
+    def cam(self) -> Camera:
+        return self.scene.camera
 
 
-@contextmanager
-def _timed(report: Report, name: str):
-    rec = StageRecord(name, 0.0)
-    t0 = time.perf_counter()
-    yield rec
-    rec.time_ms = (time.perf_counter() - t0) * 1e3
-    report.stages.append(rec)
+def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, reference: Frame | None,
+           source: MeshSource | None, device: str) -> _Run:
+    """Validate the arguments and open the frame's report."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene: expected a Scene, got {type(scene).__name__}")
+    hm, cam = scene.heightmap, scene.camera
+    if terrain is not None:
+        if not isinstance(terrain, Terrain):
+            raise TypeError(f"terrain: expected a Terrain, got {type(terrain).__name__}")
+        if terrain.heightmap is not hm:
+            raise ValueError("terrain: prepared for another heightmap than the scene's")
+    if source is not None and not callable(getattr(source, "mesh_for", None)):
+        raise TypeError(f"source: expected a MeshSource (with mesh_for(camera)), got {type(source).__name__}")
+    kind = "source" if source is not None else scene.mesh
+    stages = stages_for(scene.outputs, kind, have_terrain=terrain is not None)
+    report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
+                          "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
+                          "mesh_policy": kind, "outputs": list(scene.outputs), "stages_run": stages,
+                          "device": device})
+    if kind == "lod":
+        report.info["lod"] = dict(scene.lod.__dict__)
+    if kind == "source":
+        report.info["source"] = type(source).__name__
+    return _Run(scene, Frame(scene=scene, report=report), stages, device, terrain, state, reference, source)
 
 
-def render(scene: Scene, terrain=None, state=None, reference: Frame | None = None, device: str = "cpu") -> Frame:
-    """Render a scene, running only the stages its outputs need.
+# ------------------------------------------------------------------------------------------------
+# stages: each fills in its part of the run and its record's counters; a stage that measured its own
+# time (a source's selection and meshing share one call) returns it in ms, the others return None
+# ------------------------------------------------------------------------------------------------
+def _stage_prepare(run: _Run, rec: StageRecord) -> None:
+    lod = run.scene.lod
+    run.terrain = t = Terrain.prepare(run.hm, roots=lod.roots, tess=lod.tess, device=run.device)
+    rec.counters.update(roots=t.roots[0] * t.roots[1], depth=t.depth, tess=t.tess)
+
+
+def _stage_normal_map(run: _Run, rec: StageRecord) -> None:
+    hm, device = run.hm, run.device
+    key = ("normal_map", device)
+    holder = run.terrain if run.terrain is not None else run.source
+    if holder is not None and holder.is_cached(key):
+        rec.counters["cached"] = True
+    else:
+        rec.counters["samples"] = int(hm.heights.size)
+    make = lambda: sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)  # noqa: E731
+    run.nmap = make() if holder is None else holder.cached(key, make)
+
+
+def _stage_curvature(run: _Run, rec: StageRecord) -> None:
+    run.frame.curvature = compute_curvature(run.hm, "three_normal", device=run.device)
+    rec.counters.update(samples=int(run.hm.heights.size), method="three_normal")
+
+
+def _stage_select(run: _Run, rec: StageRecord) -> float | None:
+    if run.source is not None:
+        t0 = time.perf_counter()
+        run.frame.mesh, select_ms = run.source.mesh_for(run.cam)
+        run.source_mesh_ms = max((time.perf_counter() - t0) * 1e3 - select_ms, 0.0)
+        return select_ms
+    patches = select(run.terrain, run.cam, make_policy(run.scene.lod), run.state, device=run.device)
+    run.frame.patches = patches
+    rec.counters.update({k: v for k, v in patches.stats.items() if k in
+                         ("nodes_visited", "patches", "culled", "forced_splits", "max_level")})
+    return None
+
+
+def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
+    kind, frame = run.kind, run.frame
+    if kind == "source":  # made by the source's call in the select stage
+        mesh, n_patches, ms = frame.mesh, 0, run.source_mesh_ms
+    elif kind == "lod":
+        mesh, n_patches, ms = _lod_mesh(run.scene, frame.patches, run.nmap, run.device), len(frame.patches), None
+    else:
+        mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
+    frame.mesh = mesh
+    rec.counters.update(patches=n_patches, vertices=mesh.n_vertices, triangles=mesh.n_triangles)
+    return ms
+
+
+def _stage_raster(run: _Run, rec: StageRecord) -> None:
+    frame, cam, mesh = run.frame, run.cam, run.frame.mesh
+    frags = rasterize(mesh.positions, mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+                      cam.width, cam.height, cull_back=run.scene.cull_back, device=run.device)
+    rec.counters.update(frags.stats)
+    # the perspective-correct barycentric image (computed on first access) is part of the visibility pass
+    # only when a later stage interpolates with it: depth alone leaves it out
+    if "shade" in run.stages or "error" in run.stages:
+        frame.barycentrics = frags.barycentrics
+    frame.triangle_id = frags.triangle_id
+    frame.depth = frags.depth
+
+
+def _stage_shade(run: _Run, rec: StageRecord) -> None:
+    scene, frame, mesh = run.scene, run.frame, run.frame.mesh
+    normals = mesh.normals if mesh.normals is not None else _source_normals(run.hm, mesh, run.nmap, run.device)
+    world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32)
+    rgb, pix_n, counters = shade(frame.triangle_id, frame.barycentrics, mesh.triangles, normals, world_y,
+                                 mode=scene.shading, level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv,
+                                 azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
+                                 device=run.device, **_shade_inputs(run))
+    if scene.shading != "hillshade":
+        rec.counters.update(counters)
+    rec.counters["pixels"] = int(frame.triangle_id.size)
+    if "image" in scene.outputs:
+        frame.image = srgb8(rgb)
+    if "normals" in scene.outputs:
+        frame.normals = pix_n
+
+
+def _stage_reference(run: _Run, rec: StageRecord) -> None:
+    ref, frame, cam = run.reference, run.frame, run.cam
+    if ref is not None:
+        if ref.scene.camera != cam or ref.triangle_id is None or ref.depth is None:
+            raise ValueError("reference: expected a frame of the same camera with triangle ids and depth")
+        run.ref_tri, run.ref_depth = ref.triangle_id, ref.depth
+        rec.counters["given"] = True
+    elif run.kind == "grid":  # the grid frame is its own reference
+        run.ref_tri, run.ref_depth = frame.triangle_id, frame.depth
+        rec.counters["reused"] = True
+    else:
+        ref_mesh = _grid_mesh(run.hm, cam, None, run.device)
+        frags = rasterize(ref_mesh.positions, ref_mesh.triangles, cam.view_matrix(relative=True),
+                          cam.proj_matrix(), cam.width, cam.height, cull_back=run.scene.cull_back,
+                          device=run.device)
+        run.ref_tri, run.ref_depth = frags.triangle_id, frags.depth
+        rec.counters.update(triangles=ref_mesh.n_triangles, pixels_covered=frags.stats["pixels_covered"])
+
+
+def _stage_error(run: _Run, rec: StageRecord) -> None:
+    frame, mesh = run.frame, run.frame.mesh
+    if run.reference is not None:
+        ref_img = run.reference.image
+    else:
+        ref_img = frame.image if run.kind == "grid" else None
+    frame.error = e = frame_error(run.hm, run.cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
+                                  frame.barycentrics, frame.depth, run.ref_tri, run.ref_depth,
+                                  image=frame.image if ref_img is not None else None, ref_image=ref_img,
+                                  keep_maps=True)
+    rec.counters.update(max_px=round(e.max_px, 4), p99_px=round(e.p99_px, 4), cracks=e.cracks)
+
+
+_STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {
+    "prepare": _stage_prepare, "normal_map": _stage_normal_map, "curvature": _stage_curvature,
+    "select": _stage_select, "mesh": _stage_mesh, "raster": _stage_raster, "shade": _stage_shade,
+    "reference": _stage_reference, "error": _stage_error}
+
+
+# ------------------------------------------------------------------------------------------------
+# render
+# ------------------------------------------------------------------------------------------------
+def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None = None,
+           reference: Frame | None = None, device: str = "cpu", *, source: MeshSource | None = None) -> Frame:
+    """Render a scene, running only the stages its outputs need (see the module docstring).
 
     Args:
         scene: what to draw and which outputs to compute.
@@ -212,152 +422,50 @@ def render(scene: Scene, terrain=None, state=None, reference: Frame | None = Non
         state: a :class:`terrainwarp.lod.LodState` for hysteresis across frames, or None.
         reference: a full-resolution frame of the same heightmap and camera (with ``depth``) to measure
             the error against, so a sweep renders each camera's reference once; None renders it here.
+        source: a prebuilt :class:`MeshSource` to draw instead of the scene's ``mesh`` policy (the peers,
+            polytree and bintree of :mod:`terrainwarp.rendering.sources`).
 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
     """
-    from ..kernels.normals import sobel_normals
-    from ..kernels.raster import rasterize
-    from ..kernels.shading import hillshade
-
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene: expected a Scene, got {type(scene).__name__}")
-    cam = scene.camera
-    hm = scene.heightmap
-    lod = scene.mesh == "lod"
-    if terrain is not None:
-        from ..lod.quadtree import Terrain
-
-        if not isinstance(terrain, Terrain):
-            raise TypeError(f"terrain: expected a Terrain, got {type(terrain).__name__}")
-        if terrain.heightmap is not hm:
-            raise ValueError("terrain: prepared for another heightmap than the scene's")
-    stages = stages_for(scene.outputs, scene.mesh, have_terrain=terrain is not None)
-    report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
-                          "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
-                          "mesh_policy": scene.mesh, "outputs": list(scene.outputs), "stages_run": stages,
-                          "device": device})
-    if lod:
-        report.info["lod"] = dict(scene.lod.__dict__)
-    frame = Frame(scene=scene, report=report)
-    if "prepare" in stages:
-        from ..lod.quadtree import Terrain
-
-        with _timed(report, "prepare") as r:
-            terrain = Terrain.prepare(hm, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
-            r.counters.update(roots=terrain.roots[0] * terrain.roots[1], depth=terrain.depth, tess=terrain.tess)
-    nmap = None
-    if "normal_map" in stages:
-        with _timed(report, "normal_map") as r:
-            key = ("normal_map", device)
-            if terrain is not None and terrain.is_cached(key):
-                r.counters["cached"] = True
-            else:
-                r.counters["samples"] = int(hm.heights.size)
-            make = lambda: sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp", device=device)  # noqa: E731
-            nmap = make() if terrain is None else terrain.cached(key, make)
-    if "curvature" in stages:
-        from ..surface.differential import compute_curvature
-
-        with _timed(report, "curvature") as r:
-            frame.curvature = compute_curvature(hm, "three_normal", device=device)
-            r.counters.update(samples=int(hm.heights.size), method="three_normal")
-    if "select" in stages:
-        from ..lod.quadtree import select
-
-        with _timed(report, "select") as r:
-            frame.patches = select(terrain, cam, scene.lod.make_policy(), state, device=device)
-            r.counters.update({k: v for k, v in frame.patches.stats.items() if k in
-                               ("nodes_visited", "patches", "culled", "forced_splits", "max_level")})
-    mesh = None
-    if "mesh" in stages:
-        with _timed(report, "mesh") as r:
-            mesh = _lod_mesh(scene, frame.patches, nmap, device) if lod else _grid_mesh(hm, cam, nmap, device)
-            r.counters.update(patches=len(frame.patches) if lod else 1, vertices=mesh.n_vertices,
-                              triangles=mesh.n_triangles)
-        frame.mesh = mesh
-    if "raster" in stages:
-        with _timed(report, "raster") as r:
-            frags = rasterize(mesh.positions, mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                              cam.width, cam.height, cull_back=scene.cull_back, device=device)
-            r.counters.update(frags.stats)
-            # the perspective-correct barycentric image (computed on first access) is part of the visibility
-            # pass only when a later stage interpolates with it: depth alone leaves it out
-            if "shade" in stages or "error" in stages:
-                frame.barycentrics = frags.barycentrics
-        frame.triangle_id = frags.triangle_id
-        frame.depth = frags.depth
-    rgb = None
-    if "shade" in stages:
-        with _timed(report, "shade") as r:
-            world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32)
-            if scene.shading == "hillshade":
-                rgb, pix_n = hillshade(frame.triangle_id, frame.barycentrics, mesh.triangles, mesh.normals, world_y,
-                                       azimuth_deg=scene.light_azimuth_deg,
-                                       elevation_deg=scene.light_elevation_deg, device=device)
-            else:
-                rgb, pix_n, shade_counters = _shade_mode(scene, frame, mesh, world_y, nmap, device)
-                r.counters.update(shade_counters)
-            r.counters["pixels"] = int(frame.triangle_id.size)
-        if "image" in scene.outputs:
-            frame.image = _srgb8(rgb)
-        if "normals" in scene.outputs:
-            frame.normals = pix_n
-    if "reference" in stages:
-        with _timed(report, "reference") as r:
-            if reference is not None:
-                if reference.scene.camera != cam or reference.triangle_id is None or reference.depth is None:
-                    raise ValueError("reference: expected a frame of the same camera with triangle ids and depth")
-                ref_tri, ref_depth = reference.triangle_id, reference.depth
-                r.counters["given"] = True
-            elif lod:
-                ref_mesh = _grid_mesh(hm, cam, None, device)
-                ref = rasterize(ref_mesh.positions, ref_mesh.triangles, cam.view_matrix(relative=True),
-                                cam.proj_matrix(), cam.width, cam.height, cull_back=scene.cull_back, device=device)
-                ref_tri, ref_depth = ref.triangle_id, ref.depth
-                r.counters.update(triangles=ref_mesh.n_triangles, pixels_covered=ref.stats["pixels_covered"])
-            else:  # the grid frame is its own reference
-                ref_tri, ref_depth = frame.triangle_id, frame.depth
-                r.counters["reused"] = True
-    if "error" in stages:
-        from ..measure.error import frame_error
-
-        with _timed(report, "error") as r:
-            ref_img = reference.image if reference is not None else (frame.image if not lod else None)
-            frame.error = frame_error(hm, cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
-                                      frame.barycentrics, frame.depth, ref_tri, ref_depth,
-                                      image=frame.image if ref_img is not None else None, ref_image=ref_img,
-                                      keep_maps=True)
-            r.counters.update(max_px=round(frame.error.max_px, 4), p99_px=round(frame.error.p99_px, 4),
-                              cracks=frame.error.cracks)
+    run = _start(scene, terrain, state, reference, source, device)
+    for name in run.stages:
+        rec = StageRecord(name, 0.0)
+        t0 = time.perf_counter()
+        ms = _STAGES[name](run, rec)
+        rec.time_ms = (time.perf_counter() - t0) * 1e3 if ms is None else ms
+        run.frame.report.stages.append(rec)
     if "depth" not in scene.outputs:
-        frame.depth = None
-    return frame
+        run.frame.depth = None
+    return run.frame
 
 
-def _shade_mode(scene: Scene, frame: Frame, mesh: Mesh, world_y: np.ndarray, nmap, device: str):
-    """The non-default shading modes (``Scene.shading``), see ``kernels.shading.shade``."""
-    from ..kernels.raster import clip_coordinates
-    from ..kernels.shading import shade, splat_map
-
-    cam = scene.camera
-    kw = {}
+# ------------------------------------------------------------------------------------------------
+# meshes and shading inputs
+# ------------------------------------------------------------------------------------------------
+def _shade_inputs(run: _Run) -> dict[str, Any]:
+    """The extra per-vertex inputs of the wireframe and splat shading modes (``Scene.shading``)."""
+    scene, mesh, cam = run.scene, run.frame.mesh, run.cam
     if scene.shading == "wireframe":
-        kw["clip"] = clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix(),
-                                      device=device)
+        return {"clip": clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix(),
+                                         device=run.device)}
     if scene.shading == "splat":
-        hm = scene.heightmap
-        kw["splat"] = splat_map(hm.heights, nmap, device=device)
-        kw["world_xz"] = np.stack([mesh.positions[:, 0] + mesh.eye[0], mesh.positions[:, 2] + mesh.eye[2]],
-                                  1).astype(np.float32)
-    return shade(frame.triangle_id, frame.barycentrics, mesh.triangles, mesh.normals, world_y, mode=scene.shading,
-                 level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv, azimuth_deg=scene.light_azimuth_deg,
-                 elevation_deg=scene.light_elevation_deg, device=device, **kw)
+        xz = np.stack([mesh.positions[:, 0] + mesh.eye[0], mesh.positions[:, 2] + mesh.eye[2]], 1)
+        return {"splat": splat_map(run.hm.heights, run.nmap, device=run.device),
+                "world_xz": xz.astype(np.float32)}
+    return {}
 
 
-def _grid_mesh(hm, cam, nmap, device: str) -> Mesh:
-    from ..kernels.displacement import grid_mesh
+def _source_normals(hm: Heightmap, mesh: Mesh, nmap: np.ndarray, device: str) -> np.ndarray:
+    """Vertex normals of a source's mesh: the normal map fetched where each vertex lies over the heightmap
+    (its x, z in float64, as uv in [0, 1]; a source's own uv may not be heightmap coordinates)."""
+    world = mesh.world_positions()
+    uv = np.stack([(world[:, 0] - hm.origin[0]) / hm.dx / max(hm.shape[1] - 1, 1),
+                   (world[:, 2] - hm.origin[1]) / hm.dz / max(hm.shape[0] - 1, 1)], 1)
+    return sample_normal_map(nmap, np.clip(uv, 0, 1).astype(np.float32), device=device)
 
+
+def _grid_mesh(hm: Heightmap, cam: Camera, nmap: np.ndarray | None, device: str) -> Mesh:
     eye = cam.position
     rel = relative_origin(hm.origin, eye)
     pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, rel, device=device)
@@ -366,11 +474,8 @@ def _grid_mesh(hm, cam, nmap, device: str) -> Mesh:
                 patch_id=np.zeros(n, np.int32), normals=None if nmap is None else nmap.reshape(-1, 3))
 
 
-def _lod_mesh(scene: Scene, patches, nmap, device: str) -> Mesh:
+def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, device: str) -> Mesh:
     """Tessellate and displace the selected patches in one launch (the GPU's single draw call)."""
-    from ..kernels.displacement import sample_normal_map
-    from ..kernels.tessellator import tessellate_patches
-
     hm = scene.heightmap
     cam = scene.camera
     t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
@@ -380,8 +485,6 @@ def _lod_mesh(scene: Scene, patches, nmap, device: str) -> Mesh:
     normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
     positions, triangles = t.positions, t.triangles
     if np.isnan(hm.heights).any():  # no-data holes: no triangle may touch a vertex that sampled NaN
-        from ..kernels.displacement import drop_nonfinite_triangles
-
         positions, triangles = drop_nonfinite_triangles(positions, triangles, device=device)
     return Mesh(positions=positions, eye=cam.position, triangles=triangles, uv=t.uv, level=t.level,
                 patch_id=t.patch_id, normals=normals)

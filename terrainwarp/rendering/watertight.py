@@ -6,7 +6,9 @@ all), drops triangles that collapse after the merge (zero-area slivers of the fr
 picture frame), then counts
 
 * open edges: undirected edges used by exactly one triangle, other than those on the terrain's
-  border (both endpoints on the same side of the border rectangle in x, z); each one is a crack;
+  border (both endpoints on the same side of the border rectangle in x, z) and those an ``allowed``
+  rule accepts (a LOD frame's surface also ends on the outline of the drawn patches and beside no-data
+  holes: :func:`lod_boundary`); each one is a crack;
 * non-manifold edges: used by three or more triangles;
 * T-junctions: a vertex of an open edge that lies strictly inside another open edge in the
   horizontal (x, z) projection (a terrain is a height field, so a vertex that the neighbouring patch
@@ -16,11 +18,19 @@ picture frame), then counts
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["check_watertight", "WatertightReport"]
+from ..heightmap import Heightmap
+from ..lod.quadtree import PatchList
+
+__all__ = ["check_watertight", "check_watertight_domain", "WatertightReport", "lod_boundary"]
+
+#: ``allowed(a, b) -> mask``: which single edges, endpoints a and b (E, 3) float64 in the positions'
+#: frame, legitimately end the surface (besides the border rectangle).
+EdgeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -31,7 +41,8 @@ class WatertightReport:
         n_vertices: vertices after merging bit-identical positions.
         n_triangles: non-degenerate triangles after merging.
         n_degenerate: triangles dropped because two of their corners merged.
-        n_border_edges: edges used once that lie on the terrain border (allowed).
+        n_border_edges: edges used once where the surface legitimately ends: the terrain border, or where
+            the ``allowed`` rule says so.
         n_open_edges: edges used once away from the border (cracks).
         n_nonmanifold_edges: edges used by three or more triangles.
         n_t_junctions: (vertex, edge) pairs where a vertex lies inside another open edge.
@@ -76,22 +87,8 @@ def _unpack(mesh, triangles):
     raise TypeError(f"mesh: expected a Mesh, a Tessellation or (positions, triangles), got {type(mesh).__name__}")
 
 
-def check_watertight(mesh, triangles=None, border="auto") -> WatertightReport:
-    """Count cracks (open edges away from the border), non-manifold edges and T-junctions.
-
-    Args:
-        mesh: a :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or
-            positions (n, 3) float32 with ``triangles`` given separately.
-        triangles: (m, 3) int indices when ``mesh`` is a positions array.
-        border: ``"auto"``: the x, z bounding rectangle of the positions; ``None``: no border (every
-            edge used once is a crack); or ``(x_min, x_max, z_min, z_max)`` in the positions' frame.
-
-    Returns:
-        A :class:`WatertightReport` (locations in the positions' frame, float64).
-    """
-    pos, tri = _unpack(mesh, triangles)
-    if isinstance(border, str) and border != "auto":
-        raise ValueError(f"border: expected 'auto', None or (x_min, x_max, z_min, z_max), got {border!r}")
+def _check_arrays(pos: object, tri: object) -> tuple[np.ndarray, np.ndarray]:
+    """Validated (n, 3) float32 positions and (m, 3) indices."""
     pos = np.asarray(pos)
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
@@ -101,6 +98,45 @@ def check_watertight(mesh, triangles=None, border="auto") -> WatertightReport:
         raise ValueError(f"triangles: expected (m, 3) integer indices, got {tri.shape} {tri.dtype}")
     if tri.size and (tri.min() < 0 or tri.max() >= pos.shape[0]):
         raise ValueError(f"triangles: expected indices in [0, {pos.shape[0]}), got [{tri.min()}, {tri.max()}]")
+    return pos, tri
+
+
+def _border_mask(merged: np.ndarray, once: np.ndarray, border: object) -> np.ndarray:
+    """Single edges with both endpoints on the same side of the border rectangle."""
+    if border is None or once.shape[0] == 0:
+        return np.zeros(once.shape[0], bool)
+    if isinstance(border, str):
+        xz = merged[:, [0, 2]]
+        bx = (xz[:, 0].min(), xz[:, 0].max(), xz[:, 1].min(), xz[:, 1].max())
+    else:
+        bx = tuple(float(b) for b in np.asarray(border, dtype=np.float64).reshape(4))
+    a, b = merged[once[:, 0]], merged[once[:, 1]]
+    on_border = np.zeros(once.shape[0], bool)
+    for axis, val in ((0, bx[0]), (0, bx[1]), (2, bx[2]), (2, bx[3])):
+        on_border |= (a[:, axis] == val) & (b[:, axis] == val)
+    return on_border
+
+
+def check_watertight(mesh, triangles=None, border="auto", allowed: EdgeRule | None = None) -> WatertightReport:
+    """Count cracks (open edges away from the border), non-manifold edges and T-junctions.
+
+    Args:
+        mesh: a :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or
+            positions (n, 3) float32 with ``triangles`` given separately (a patch's domain:
+            :func:`check_watertight_domain`).
+        triangles: (m, 3) int indices when ``mesh`` is a positions array.
+        border: ``"auto"``: the x, z bounding rectangle of the positions; ``None``: no border (every
+            edge used once is a crack); or ``(x_min, x_max, z_min, z_max)`` in the positions' frame.
+        allowed: a rule ``(a, b) -> (E,) bool`` for the single edges (endpoints (E, 3) float64 in the
+            positions' frame) where the surface may also end, e.g. :func:`lod_boundary`.
+
+    Returns:
+        A :class:`WatertightReport` (locations in the positions' frame, float64).
+    """
+    pos, tri = _unpack(mesh, triangles)
+    if isinstance(border, str) and border != "auto":
+        raise ValueError(f"border: expected 'auto', None or (x_min, x_max, z_min, z_max), got {border!r}")
+    pos, tri = _check_arrays(pos, tri)
 
     # merge bit-identical vertices (-0.0 and 0.0 are different bits, but equal positions: canonicalise)
     canon = pos + np.float32(0.0)
@@ -118,18 +154,9 @@ def check_watertight(mesh, triangles=None, border="auto") -> WatertightReport:
     once = uniq[counts == 1]
     n_nonmanifold = int((counts > 2).sum())
 
-    if border is None or once.shape[0] == 0:
-        on_border = np.zeros(once.shape[0], bool)
-    else:
-        if isinstance(border, str):
-            xz = merged[:, [0, 2]]
-            bx = (xz[:, 0].min(), xz[:, 0].max(), xz[:, 1].min(), xz[:, 1].max())
-        else:
-            bx = tuple(float(b) for b in np.asarray(border, dtype=np.float64).reshape(4))
-        a, b = merged[once[:, 0]], merged[once[:, 1]]
-        on_border = np.zeros(once.shape[0], bool)
-        for axis, val in ((0, bx[0]), (0, bx[1]), (2, bx[2]), (2, bx[3])):
-            on_border |= (a[:, axis] == val) & (b[:, axis] == val)
+    on_border = _border_mask(merged, once, border)
+    if allowed is not None and once.shape[0]:
+        on_border |= np.asarray(allowed(merged[once[:, 0]], merged[once[:, 1]]), bool)
     open_e = once[~on_border]
     open_pos = merged[open_e] if open_e.size else np.zeros((0, 2, 3))
 
@@ -139,6 +166,60 @@ def check_watertight(mesh, triangles=None, border="auto") -> WatertightReport:
         n_border_edges=int(on_border.sum()), n_open_edges=int(open_e.shape[0]),
         n_nonmanifold_edges=n_nonmanifold, n_t_junctions=int(tj.shape[0]),
         open_edges=open_pos.reshape(-1, 2, 3), t_junctions=tj.reshape(-1, 3, 3))
+
+
+def check_watertight_domain(uv: np.ndarray, triangles: np.ndarray) -> WatertightReport:
+    """:func:`check_watertight` of one patch's tessellation in its domain: points (n, 2) (u, v) in
+    [0, 1]^2 (checked as positions (u, 0, v)); edges on the unit square's sides are its border."""
+    uv = np.asarray(uv)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv: expected shape (n, 2), got {uv.shape}")
+    pos = np.stack([uv[:, 0], np.zeros(len(uv), uv.dtype), uv[:, 1]], 1)
+    return check_watertight(pos, triangles, border=(0.0, 1.0, 0.0, 1.0))
+
+
+def lod_boundary(patches: PatchList, heightmap: Heightmap, eye: tuple[float, float, float]) -> EdgeRule:
+    """Where a LOD frame's surface legitimately ends, as an ``allowed`` rule for :func:`check_watertight`:
+    on the heightmap's border, on the outline of the drawn patches (a culled neighbour), or beside a no-data
+    hole (a NaN sample within one vertex spacing of the drawn patches, whose triangles were dropped).
+
+    An edge is allowed unless the points just either side of its midpoint (1e-3 of the smallest patch
+    away) both lie strictly inside drawn patches, inside the heightmap and away from holes.
+
+    Args:
+        patches: the frame's :class:`terrainwarp.lod.PatchList`; heightmap: its heightmap; eye: the mesh's
+            ``eye`` (positions are relative to it).
+    """
+    (gx0, gz0), (gx1, gz1) = heightmap.bounds_xz
+    ox, oz = patches.origin[:, 0], patches.origin[:, 1]
+    sx, sz = patches.size[:, 0], patches.size[:, 1]
+    eps = 1e-3 * float(np.min(patches.size)) if len(patches) else 1e-3
+    hi, hj = np.nonzero(np.isnan(heightmap.heights))
+    hole_x = heightmap.origin[0] + hj * heightmap.dx
+    hole_z = heightmap.origin[1] + hi * heightmap.dz
+    reach = float(np.max(patches.size / np.maximum(patches.inner, 1.0))) + max(heightmap.dx, heightmap.dz) \
+        if len(patches) else 0.0
+
+    def near_hole(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(x), bool)
+        for k in range(0, len(hole_x), 4096):  # blocks keep (probes x holes) small
+            out |= np.any((np.abs(x[:, None] - hole_x[None, k:k + 4096]) <= reach)
+                          & (np.abs(z[:, None] - hole_z[None, k:k + 4096]) <= reach), axis=1)
+        return out
+
+    def inside(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        in_p = np.any((x[:, None] > ox) & (x[:, None] < ox + sx) & (z[:, None] > oz) & (z[:, None] < oz + sz), axis=1)
+        ok = in_p & (x > gx0) & (x < gx1) & (z > gz0) & (z < gz1)
+        return ok & ~near_hole(x, z) if len(hole_x) else ok
+
+    def allowed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        a, b = a + np.asarray(eye, np.float64), b + np.asarray(eye, np.float64)
+        mid, d = 0.5 * (a + b), b - a
+        ln = np.maximum(np.hypot(d[:, 0], d[:, 2]), 1e-300)
+        nx, nz = -d[:, 2] / ln * eps, d[:, 0] / ln * eps
+        return ~(inside(mid[:, 0] + nx, mid[:, 2] + nz) & inside(mid[:, 0] - nx, mid[:, 2] - nz))
+
+    return allowed
 
 
 def _t_junctions(merged: np.ndarray, open_e: np.ndarray, tol: float = 1e-6, chunk: int = 1024) -> np.ndarray:

@@ -18,7 +18,6 @@ from terrainwarp.experiments.extreme import CASES, TESS_FACTORS, case_names, get
 from terrainwarp.experiments.stability import (
     EXPLANATIONS,
     FAIL,
-    NOT_BUILT,
     PASS,
     RAISED,
     STAGES,
@@ -70,7 +69,7 @@ def test_suite_every_case_and_stage_no_unexplained_failure(suite_rows, tmp_path)
         stages = {r.stage for r in suite_rows if r.case == name}
         want = {"tessellate"} if CASES[name].group == "tess" else set(STAGES) - {"fit"}
         assert stages >= want, (name, stages)
-    assert {r.status for r in suite_rows} <= {PASS, RAISED, FAIL, NOT_BUILT}
+    assert {r.status for r in suite_rows} <= {PASS, RAISED, FAIL}
     unexplained = [r for r in suite_rows if r.status == FAIL and not any(k in r.note for k in EXPLANATIONS)]
     assert not unexplained, unexplained
     # every non-tess terrain renders a finite grid frame: the raster and error stages pass everywhere
@@ -172,9 +171,9 @@ def test_lod_frame_with_holes_drops_triangles_touching_them():
     assert np.all(np.isfinite(fr.mesh.positions)) and fr.triangle_id[32, 32] == -1
     assert np.all(np.isfinite(fr.depth)) and np.isfinite(fr.error.max_px) and fr.error.max_px >= 0
     # the dropped triangles are exactly those whose vertices sampled a NaN height (the hole stays a hole)
-    from terrainwarp.experiments.stability import lod_watertight
+    from terrainwarp.rendering.watertight import check_watertight, lod_boundary
 
-    assert lod_watertight(fr.mesh, fr.patches, hm)["open"] == 0
+    assert check_watertight(fr.mesh, allowed=lod_boundary(fr.patches, hm, fr.mesh.eye)).n_open_edges == 0
 
 
 def test_nan_free_grid_mesh_unchanged_by_hole_path():
@@ -327,6 +326,33 @@ def test_cli_stability_writes_report_and_rejects_bad_args(tmp_path):
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("terrainwarp: error:"), r.stderr
         assert not (tmp_path / "x").exists()
+
+
+def test_an_exception_inside_a_stage_is_a_fail_row_naming_where(monkeypatch):
+    """A regression anywhere in a stage (here: the pipeline's select stage raising) is a FAIL row with the
+    exception's type and the file:line it came from, never a pass."""
+    from terrainwarp.rendering import pipeline
+
+    def broken_select(run, rec):
+        raise KeyError("boom")
+
+    monkeypatch.setitem(pipeline._STAGES, "select", broken_select)
+    rows = run_case(CASES["flat"], 9, stages=("tessellate", "error", "normals"))
+    by = {r.stage: r for r in rows}
+    for st in ("tessellate", "error"):  # both draw a LOD frame
+        r = by[st]
+        assert r.status == FAIL, r
+        assert "KeyError" in r.note and f"stage {st}" in r.note and "broken_select" in r.note
+        assert "test_stability.py:" in r.note
+    assert by["normals"].status == PASS  # the other stages are unaffected
+
+    # a ValueError/TypeError that does not name an argument is a failure too, not a clear error
+    def numpy_like(run, rec):
+        raise ValueError("operands could not be broadcast together")
+
+    monkeypatch.setitem(pipeline._STAGES, "select", numpy_like)
+    r = run_case(CASES["flat"], 9, stages=("error",))[0]
+    assert r.status == FAIL and "ValueError" in r.note and "test_stability.py:" in r.note
 
 
 def test_run_case_records_build_errors():
