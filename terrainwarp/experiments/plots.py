@@ -8,33 +8,34 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
+from ..io.files import save_figure
+from ..kernels.normals import sobel_normals
+from ..kernels.shading import light_direction
+from ..lod.quadtree import PatchList
 
 __all__ = ["plot_patches"]
 
 
-def _hillshade(h: np.ndarray, dx: float, dz: float) -> np.ndarray:
-    gz, gx = np.gradient(h.astype(np.float64), dz, dx)
-    n = np.stack([-gx, np.ones_like(gx), -gz], -1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    light = np.array([-0.5, 0.7071, -0.5])
-    return np.clip(n @ light, 0, 1)
+def _hillshade(heightmap: Heightmap) -> np.ndarray:
+    """(H, W) grey Lambert term in [0, 1] of the pipeline's normal map under its default sun (no-data as 0 m)."""
+    n = sobel_normals(np.nan_to_num(heightmap.heights), heightmap.dx, heightmap.dz, border="clamp")
+    return np.clip(n.astype(np.float64) @ np.asarray(light_direction(315.0, 45.0)), 0, 1)
 
 
-def plot_patches(heightmap: Heightmap, patches, camera: Camera | None, path: str | Path, title: str = "") -> Path:
+def plot_patches(heightmap: Heightmap, patches: PatchList, camera: Camera | None, path: str | Path,
+                 title: str = "") -> Path:
     """Top-down map (north up: -z at the top) of the selected patches coloured by level over a hillshade,
     with the camera and the horizontal footprint of its frustum."""
-    import matplotlib
+    import matplotlib  # lazy: heavy optional dependency
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import PatchCollection
-    from matplotlib.patches import Rectangle
-
-    from ..io.files import atomic_path
+    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
+    from matplotlib.collections import PatchCollection  # lazy: heavy optional dependency
+    from matplotlib.patches import Rectangle  # lazy: heavy optional dependency
 
     (x0, z0), (x1, z1) = heightmap.bounds_xz
     fig, ax = plt.subplots(figsize=(8, 8 * max(0.3, (z1 - z0) / max(x1 - x0, 1e-9))) if x1 > x0 else (8, 8))
-    hs = _hillshade(np.nan_to_num(heightmap.heights), heightmap.dx, heightmap.dz)
+    hs = _hillshade(heightmap)
     ax.imshow(hs, cmap="gray", extent=(x0, x1, z1, z0), origin="upper", vmin=0, vmax=1, interpolation="nearest")
     lv = np.asarray(patches.level)
     cmap = plt.get_cmap("viridis", max(int(lv.max()) + 1 if len(lv) else 1, 1))
@@ -67,8 +68,4 @@ def plot_patches(heightmap: Heightmap, patches, camera: Camera | None, path: str
     fig.colorbar(sm, ax=ax, label="level", ticks=range(cmap.N), fraction=0.04)
     ax.set_title(title or f"{len(lv)} patches")
     fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=110)

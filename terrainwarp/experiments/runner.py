@@ -49,6 +49,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..io.files import write_text
+
 __all__ = ["Job", "Runner", "SweepResult", "SchedulerUnreachableError", "close_local_clusters", "pending_jobs",
            "RUN_COLUMNS"]
 
@@ -137,7 +139,7 @@ def close_local_clusters() -> None:
 
 
 def _local_client(n: int):
-    from distributed import Client, LocalCluster
+    from distributed import Client, LocalCluster  # lazy: heavy optional dependency
 
     if not _LOCAL:  # registered after distributed's own exit handlers, so it runs before them
         atexit.register(close_local_clusters)
@@ -176,7 +178,7 @@ def _attempt(fn: Callable, n_shared: int, *args) -> tuple[str, Any]:
 
 def _nbytes(obj: Any) -> int:
     """Pickled size (cloudpickle, as Dask sends functions and arguments)."""
-    import cloudpickle
+    import cloudpickle  # lazy: comes with the heavy optional dask/distributed
 
     return len(cloudpickle.dumps(obj, protocol=5))
 
@@ -295,7 +297,7 @@ class Runner:
         self.bytes_shared = 0
         self.client = None
         if scheduler is not None:
-            from distributed import Client
+            from distributed import Client  # lazy: heavy optional dependency
 
             addr = _check_address(scheduler)
             if workers == 0:
@@ -381,7 +383,7 @@ class Runner:
             to_csv: ``rows -> str`` for the final file (default: repr floats).
             on_row: called with each row as it arrives (in completion order).
         """
-        from tqdm import tqdm
+        from tqdm import tqdm  # lazy: heavy optional dependency
 
         ids = [j.id for j in jobs]
         if len(set(ids)) != len(ids):
@@ -396,107 +398,114 @@ class Runner:
             done = {k: v for k, v in _read_partial(_partial_path(out), fingerprint).items() if k in by_id}
         n_resumed = len(done)
         todo = [j for j in jobs if j.id not in done]
-        journal = _Journal(out, fingerprint, cols, done) if out is not None else None
         bar = tqdm(total=len(jobs), initial=n_resumed, desc=desc, unit="job", disable=not progress, leave=False,
                    file=sys.stderr)
-        n_failed = sum(1 for r in done.values() if r.get("error"))
-        n_retried = 0
-        bytes_jobs = bytes_results = 0
+        tally = _Tally(done, _Journal(out, fingerprint, cols, done) if out is not None else None, bar, on_row,
+                       measure=self.client is not None)
+        bytes_jobs = sum(_nbytes((fn, j.args)) for j in todo) if self.client is not None else 0
+        try:
+            if self.client is None:
+                for j in todo:
+                    tally.record(j, *_attempt(fn, len(shared), *shared, *j.args), 0)
+            else:
+                self._run_distributed(todo, fn, shared, tally, f"tw-{desc}-", fingerprint)
+        finally:
+            tally.close()
+        rows = _table(jobs, done, cols)
+        if out is not None:
+            write_text(out, (to_csv or _default_csv)(rows))
+            with contextlib.suppress(FileNotFoundError):
+                _partial_path(out).unlink()
+        res = SweepResult(rows=rows, n_jobs=len(jobs), n_run=len(todo), n_resumed=n_resumed,
+                          n_failed=tally.n_failed, n_retried=tally.n_retried, workers=self.n_workers,
+                          wall_s=time.perf_counter() - t0, bytes_shared=self.bytes_shared, bytes_jobs=bytes_jobs,
+                          bytes_results=tally.bytes_results, where=self.where)
+        if progress:
+            print(f"{desc}: {res.summary()}", file=sys.stderr)
+        return res
 
-        def record(job: Job, status: str, value: Any, retries: int) -> None:
-            nonlocal n_failed, n_retried, bytes_results
-            if status == "ok":
-                if not isinstance(value, dict):
-                    status, value = "error", f"TypeError: fn: expected a dict row, got {type(value).__name__}"
-            row = {**job.fields, **(value if status == "ok" else {}), "error": "" if status == "ok" else value,
-                   "retries": retries}
-            n_failed += status != "ok"
-            n_retried += retries > 0
-            if self.client is not None:
-                bytes_results += _nbytes(value)
-            done[job.id] = row
-            if journal is not None:
-                journal.append(job.id, row)
-            if on_row is not None:
-                on_row(row)
-            bar.update(1)
-            bar.set_postfix(failed=n_failed, retried=n_retried, refresh=status != "ok" or retries > 0)
+    # -- distributed: submit every job, collect rows as they finish ----------------------------------
+    def _run_distributed(self, todo: list[Job], fn: Callable, shared: tuple, tally: _Tally, prefix: str,
+                         fingerprint: str) -> None:
+        from distributed import as_completed  # lazy: heavy optional dependency
 
         futures: dict = {}
         try:
             for j in todo:
-                bytes_jobs += _nbytes((fn, j.args)) if self.client is not None else 0
-            if self.client is None:
-                for j in todo:
-                    status, value = _attempt(fn, len(shared), *shared, *j.args)
-                    record(j, status, value, 0)
-            else:
-                from distributed import as_completed
-
-                for j in todo:
-                    key = f"tw-{desc}-{j.id}-{fingerprint[:12]}-{time.time_ns()}"
-                    futures[self.client.submit(_attempt, fn, len(shared), *shared, *j.args, key=key,
-                                               pure=False)] = j
-                finished: list = []
-                last = time.monotonic()
-
-                def flush() -> None:
-                    # one scheduler round trip for the retry counts of everything finished since the last
-                    # flush (at most every 0.5 s); the futures are held until then so the scheduler still
-                    # knows their tasks
-                    nonlocal last
-                    if not finished:
-                        return
-                    try:
-                        susp = self.client.run_on_scheduler(_suspicious, keys=[f.key for f in finished])
-                    except Exception:  # noqa: BLE001 - the count is informative; never fail the sweep over it
-                        susp = {}
-                    for f in finished:
-                        j = futures.pop(f)
-                        try:
-                            status, value = f.result()
-                        except Exception as e:  # noqa: BLE001 - KilledWorker (too many deaths) and the like
-                            msg = str(e).splitlines()[0] if str(e) else ""
-                            status, value = "error", f"{type(e).__name__}: {msg}"
-                        record(j, status, value, susp.get(f.key, 0))
-                        f.release()
-                    finished.clear()
+                key = f"{prefix}{j.id}-{fingerprint[:12]}-{time.time_ns()}"
+                futures[self.client.submit(_attempt, fn, len(shared), *shared, *j.args, key=key, pure=False)] = j
+            finished: list = []
+            last = time.monotonic()
+            for f in as_completed(futures, loop=self.client.loop):
+                finished.append(f)
+                if time.monotonic() - last >= 0.5:
+                    self._flush(finished, futures, tally)
                     last = time.monotonic()
-
-                for f in as_completed(futures, loop=self.client.loop):
-                    finished.append(f)
-                    if time.monotonic() - last >= 0.5:
-                        flush()
-                flush()
+            self._flush(finished, futures, tally)
         except BaseException:
             for f in futures:
                 f.cancel()
-            bar.close()
-            if journal is not None:
-                journal.close()
             raise
-        bar.close()
-        if journal is not None:
-            journal.close()
 
-        if cols is None:
-            first = next((done[j.id] for j in jobs if j.id in done and not done[j.id].get("error")), None)
-            cols = list(first) if first else [*(jobs[0].fields if jobs else {}), *RUN_COLUMNS]
-            cols += [c for c in RUN_COLUMNS if c not in cols]
-        rows = []
-        for j in sorted(jobs, key=lambda j: j.sort_key):
-            r = done[j.id]
-            rows.append({c: r.get(c, "" if c == "error" else 0 if c == "retries" else math.nan) for c in cols})
-        if out is not None:
-            from ..io.files import write_text
+    def _flush(self, finished: list, futures: dict, tally: _Tally) -> None:
+        """Record the rows finished since the last flush (at most every 0.5 s), with one scheduler round trip
+        for their retry counts; the futures are held until then so the scheduler still knows their tasks."""
+        if not finished:
+            return
+        try:
+            susp = self.client.run_on_scheduler(_suspicious, keys=[f.key for f in finished])
+        except Exception:  # noqa: BLE001 - the count is informative; never fail the sweep over it
+            susp = {}
+        for f in finished:
+            j = futures.pop(f)
+            try:
+                status, value = f.result()
+            except Exception as e:  # noqa: BLE001 - KilledWorker (too many deaths) and the like
+                msg = str(e).splitlines()[0] if str(e) else ""
+                status, value = "error", f"{type(e).__name__}: {msg}"
+            tally.record(j, status, value, susp.get(f.key, 0))
+            f.release()
+        finished.clear()
 
-            write_text(out, (to_csv or _default_csv)(rows))
-            with contextlib.suppress(FileNotFoundError):
-                _partial_path(out).unlink()
-        res = SweepResult(rows=rows, n_jobs=len(jobs), n_run=len(todo), n_resumed=n_resumed, n_failed=n_failed,
-                          n_retried=n_retried, workers=self.n_workers, wall_s=time.perf_counter() - t0,
-                          bytes_shared=self.bytes_shared, bytes_jobs=bytes_jobs, bytes_results=bytes_results,
-                          where=self.where)
-        if progress:
-            print(f"{desc}: {res.summary()}", file=sys.stderr)
-        return res
+
+class _Tally:
+    """A run's rows as they arrive: kept by job id, appended to the journal, counted, shown on the bar."""
+
+    def __init__(self, done: dict[str, dict], journal: _Journal | None, bar: Any,
+                 on_row: Callable[[dict], None] | None, measure: bool):
+        self.done, self.journal, self.bar, self.on_row, self.measure = done, journal, bar, on_row, measure
+        self.n_failed = sum(1 for r in done.values() if r.get("error"))
+        self.n_retried = 0
+        self.bytes_results = 0
+
+    def record(self, job: Job, status: str, value: Any, retries: int) -> None:
+        if status == "ok" and not isinstance(value, dict):
+            status, value = "error", f"TypeError: fn: expected a dict row, got {type(value).__name__}"
+        row = {**job.fields, **(value if status == "ok" else {}), "error": "" if status == "ok" else value,
+               "retries": retries}
+        self.n_failed += status != "ok"
+        self.n_retried += retries > 0
+        if self.measure:
+            self.bytes_results += _nbytes(value)
+        self.done[job.id] = row
+        if self.journal is not None:
+            self.journal.append(job.id, row)
+        if self.on_row is not None:
+            self.on_row(row)
+        self.bar.update(1)
+        self.bar.set_postfix(failed=self.n_failed, retried=self.n_retried, refresh=status != "ok" or retries > 0)
+
+    def close(self) -> None:
+        self.bar.close()
+        if self.journal is not None:
+            self.journal.close()
+
+
+def _table(jobs: Sequence[Job], done: dict[str, dict], cols: list[str] | None) -> list[dict]:
+    """The rows sorted by job key, in ``cols`` (default: the first successful row's columns)."""
+    if cols is None:
+        first = next((done[j.id] for j in jobs if j.id in done and not done[j.id].get("error")), None)
+        cols = list(first) if first else [*(jobs[0].fields if jobs else {}), *RUN_COLUMNS]
+        cols += [c for c in RUN_COLUMNS if c not in cols]
+    return [{c: done[j.id].get(c, "" if c == "error" else 0 if c == "retries" else math.nan) for c in cols}
+            for j in sorted(jobs, key=lambda j: j.sort_key)]

@@ -1,8 +1,11 @@
-"""Making frames: the pipeline (``render``), the reference tessellator, the watertightness check and the
-differentiable resolve (:mod:`.interpolate`, imports JAX: not imported here).
+"""Making frames: the pipeline (``render``, the one maker of every frame in the project), the prebuilt mesh
+sources it draws beside the LOD policies (:mod:`.sources`: peers, polytree, bintree), the reference
+tessellator, the watertightness check and the differentiable resolve (:mod:`.interpolate`, imports JAX:
+not imported here).
 
 The package is named ``rendering``, not ``render``, because ``terrainwarp.render`` is the public function."""
 
-from .pipeline import Frame, Report, render
+from .pipeline import Frame, MeshSource, Report, render
+from .sources import BintreeSource, PeerSource, PolytreeSource
 
-__all__ = ["render", "Frame", "Report"]
+__all__ = ["render", "Frame", "Report", "MeshSource", "PeerSource", "PolytreeSource", "BintreeSource"]

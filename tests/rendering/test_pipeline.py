@@ -190,3 +190,40 @@ def test_lod_config_with_policy():
     assert c.with_policy("sse", 1.0).spacing == "equal"  # fractional_odd cannot stitch a quadtree
     with pytest.raises(ValueError, match="policy"):
         base.with_policy("bogus", 1.0)
+
+
+def test_render_draws_prebuilt_mesh_sources():
+    """Peers, polytree levels and bintree selections are frames of ``render`` too: their mesh is drawn by the
+    same rasterizer, shaded and measured by the same stages, and their cost is the same frame_ms."""
+    from terrainwarp import Bintree, build_polytree, rasterize
+    from terrainwarp.lod.peers import delatin_mesh
+    from terrainwarp.lod.polytree import default_tolerances
+    from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource
+
+    hm = Heightmap.fbm(33, seed=4, dx=10.0, max_height=120.0)
+    cam = Camera.default_for(hm, 64, 48)
+    sc = Scene(hm, camera=cam, outputs=("image", "depth", "error"))
+    cache: dict = {}
+    sources = [PeerSource(delatin_mesh(hm, 1.0), hm, cache=cache),
+               PolytreeSource(build_polytree(hm, default_tolerances(hm, 8)), 2, cache=cache),
+               BintreeSource(Bintree.build(hm, 11), cache=cache)]
+    for src in sources:
+        f = render(sc, source=src)
+        names = [s.name for s in f.report.stages]
+        assert names == ["normal_map", "select", "mesh", "raster", "shade", "reference", "error"], names
+        assert f.report.info["mesh_policy"] == "source" and f.patches is None
+        r = f.report
+        assert r.frame_ms == r.stage_ms("select") + r.stage_ms("mesh") + r.stage_ms("raster")
+        if not isinstance(src, BintreeSource):
+            assert r.stage_ms("select") == 0.0  # static meshes: no selection
+        m, _ = src.mesh_for(cam)
+        ref = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), 64, 48)
+        assert np.array_equal(f.triangle_id, ref.triangle_id) and np.array_equal(f.depth, ref.depth)
+        assert f.image.shape == (48, 64, 3) and np.isfinite(f.error.max_px) and f.error.cracks == 0
+        assert r.stage("mesh").counters["triangles"] == m.n_triangles
+    assert ("normal_map", "cpu") in cache  # made once, shared by the sources
+    assert [s.name for s in render(sc, source=sources[0]).report.stages][:1] == ["normal_map"]
+    assert render(sc, source=sources[0]).report.stage("normal_map").counters == {"cached": True}
+    with pytest.raises(TypeError, match="source"):
+        render(sc, source=object())
+    assert stages_for(("depth",), "source") == ["select", "mesh", "raster"]
