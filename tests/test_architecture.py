@@ -47,9 +47,9 @@ FACADE = PKG
 TOP_LAYER = len(LAYERS) - 1
 
 # Imports allowed inside a function body: heavy optional libraries, imported only when used. optax is
-# JAX's optimiser library (importing it imports JAX).
-LAZY_OK = frozenset({"jax", "optax", "matplotlib", "rasterio", "affine", "dask", "distributed", "pyvista",
-                     "skimage", "scipy", "pymartini", "pydelatin", "OpenImageIO", "tqdm", "moderngl"})
+# JAX's optimiser library (importing it imports JAX); cloudpickle is the serialiser of dask/distributed.
+LAZY_OK = frozenset({"jax", "optax", "matplotlib", "rasterio", "affine", "dask", "distributed", "cloudpickle",
+                     "pyvista", "skimage", "scipy", "pymartini", "pydelatin", "OpenImageIO", "tqdm", "moderngl"})
 
 
 # -- reading the tree --------------------------------------------------------------------------------
