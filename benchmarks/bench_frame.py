@@ -8,7 +8,7 @@ import time
 
 from _common import best_of, md_table, write_result
 
-from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, Terrain, render
 
 
 def vtk_time(frame, cam: Camera) -> float | str:
@@ -63,8 +63,6 @@ def main() -> None:
             + md_table(["viewport", "normals_ms", "mesh_ms", "raster_ms", "shade_ms", "total_ms", "triangles",
                         "pixels_covered", "vtk_ms", "ratio"], rows))
     # a scene computes only what it needs: time per output set (LOD scene, 1920x1080, caller-held terrain)
-    from terrainwarp import LodConfig, Terrain
-
     cam = Camera.default_for(hm, 1920, 1080)
     terrain = Terrain.prepare(hm, roots=16, tess=16)
     out_rows = []

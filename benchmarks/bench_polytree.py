@@ -9,13 +9,18 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import dataclass
 
 import matplotlib.tri as mtri
 import numpy as np
 from _common import best_of, md_table, write_result
 
-from terrainwarp import Camera, Heightmap, rasterize
-from terrainwarp.lod.polytree import build_polytree, default_tolerances
+from terrainwarp import Camera, Heightmap, Scene, rasterize, render
+from terrainwarp.experiments.pareto import Setting, pareto, summarise, sweep
+from terrainwarp.lod.peers import delatin_mesh, martini_mesh
+from terrainwarp.lod.polytree import Polytree, build_polytree, default_tolerances
+from terrainwarp.mesh import Mesh
+from terrainwarp.rendering.sources import PolytreeSource, SourceBase
 from terrainwarp.surface.differential import compute_curvature, max_curvature
 
 PAPER_TIME_S = 55.0  # 100 tolerances of a rough 256x256 terrain, HP 9000/750 (section 3.4)
@@ -154,8 +159,6 @@ def uniform_grid(h: np.ndarray, n_tri: int) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def peer_at(kind: str, hm: Heightmap, n_tri: int):
-    from terrainwarp.lod.peers import delatin_mesh, martini_mesh
-
     f = martini_mesh if kind == "martini" else delatin_mesh
     lo, hi = 0.0, float(hm.height_range[1] - hm.height_range[0])
     best = None
@@ -303,13 +306,26 @@ def popping_section(hm: Heightmap, pt, levels: int, per_level: int, width: int, 
     return body
 
 
+@dataclass(eq=False)
+class MorphSource(SourceBase):
+    """The polytree's continuous policy as a mesh source: the morphed level for the camera's distance to the
+    terrain's centre, between ``levels``, over the distances ``span``."""
+
+    tree: Polytree
+    centre: np.ndarray
+    span: tuple[float, float]
+    levels: tuple[int, int]
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        d = float(np.linalg.norm(np.asarray(camera.position) - self.centre))
+        level = self.tree.level_for_distance(d, *self.span, levels=self.levels)
+        return self.tree.morph_mesh(level, eye=camera.position), 0.0
+
+
 def pareto_section(frames: int, width: int, height: int, quick: bool) -> str:
     """The polytree as policies of the error-versus-time report: fixed tolerances (static meshes, like the
     peers) and a continuous level from the camera distance (morphed per frame), measured with the report's
     metric against the same full-resolution reference, beside a few of the report's own settings."""
-    from terrainwarp import Scene, render
-    from terrainwarp.experiments.pareto import Setting, pareto, summarise, sweep
-    from terrainwarp.measure.error import frame_error
 
     hm = Heightmap.example()
     sc = Scene(hm, name="demo")
@@ -344,23 +360,15 @@ def pareto_section(frames: int, width: int, height: int, quick: bool) -> str:
     policies = [("polytree", float(t)) for t in fixed] + [("polytree-morph", float(fixed[0]))]
     for pol, param in policies:
         label = f"{pol}=L{int(param)}" if pol == "polytree" else f"{pol}=L{int(param)}..L{fixed[-1]}"
+        src = PolytreeSource(pt, int(param), build_ms) if pol == "polytree" else \
+            MorphSource(pt, ctr, (d0, d1), (fixed[0], fixed[-1]))
         for k, cam in enumerate(cams):
-            t0 = time.perf_counter()
-            if pol == "polytree":
-                m = pt.mesh(int(param), eye=cam.position)
-            else:
-                m = pt.morph_mesh(pt.level_for_distance(dists[k], d0, d1, levels=(param, fixed[-1])),
-                                  eye=cam.position)
-            t_mesh = (time.perf_counter() - t0) * 1e3
-            t0 = time.perf_counter()
-            fr = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width,
-                           cam.height, cull_back=sc.cull_back)
-            t_ras = (time.perf_counter() - t0) * 1e3
-            err = frame_error(hm, cam, m.positions, m.eye, m.triangles, fr.triangle_id, fr.barycentrics, fr.depth,
-                              refs[k].triangle_id, refs[k].depth)
-            rows.append({"policy": pol, "param": param, "setting": label, "frame": k, "select_ms": 0.0,
-                         "mesh_ms": t_mesh, "raster_ms": t_ras, "frame_ms": t_mesh + t_ras, "patches": 0,
-                         "vertices": m.n_vertices, "triangles": m.n_triangles, "peer_mesh_ms": build_ms,
+            f = render(sc.with_(camera=cam, outputs=("error",)), reference=refs[k], source=src)
+            r, err = f.report, f.error
+            rows.append({"policy": pol, "param": param, "setting": label, "frame": k,
+                         "select_ms": r.stage_ms("select"), "mesh_ms": r.stage_ms("mesh"),
+                         "raster_ms": r.stage_ms("raster"), "frame_ms": r.frame_ms, "patches": 0,
+                         "vertices": f.mesh.n_vertices, "triangles": f.mesh.n_triangles, "peer_mesh_ms": build_ms,
                          "peer_error_m": float("nan"), "max_px": err.max_px, "p99_px": err.p99_px,
                          "mean_px": err.mean_px, "approx_p99_px": err.approx_p99_px, "cracks": err.cracks,
                          "mismatched": err.mismatched, "silhouette": err.silhouette, "psnr_db": float("nan"),

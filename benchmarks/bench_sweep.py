@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
+import sys
 import time
 
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, Scene
-from terrainwarp.experiments.pareto import TIMING_COLUMNS, Setting, _Context, rows_to_csv, run_sweep
-from terrainwarp.experiments.runner import Runner, _nbytes, close_local_clusters
+from terrainwarp.experiments.pareto import TIMING_COLUMNS, Setting, SweepContext, rows_to_csv, run_sweep
+from terrainwarp.experiments.runner import Runner, close_local_clusters, pickled_nbytes
 
 
 def settings() -> list[Setting]:
@@ -33,7 +35,7 @@ def settings() -> list[Setting]:
 
 
 def _cpu_s() -> float:
-    import psutil
+    import psutil  # lazy: optional, only for this measurement
 
     t = psutil.Process().cpu_times()
     return t.user + t.system
@@ -101,9 +103,6 @@ def _solo(hm_n: int, w: int, h: int, n_cams: int) -> None:
 def machine_ceiling(hm_n: int, w: int, h: int, n_cams: int) -> tuple[float, float, float]:
     """Wall time of the in-process sweep alone, and of two copies at once in separate processes (no Dask):
     the throughput two processes get from this machine, the ceiling of a 2-worker speed-up here."""
-    import subprocess
-    import sys
-
     cmd = [sys.executable, __file__, "--solo", str(hm_n), str(w), str(h), str(n_cams)]
 
     def runs(k: int) -> list[float]:
@@ -166,7 +165,7 @@ def main(argv=None) -> None:
     ]
     results, sc, cams, hm = small
     two = results[2]
-    ctx_bytes = _nbytes(_Context("x" * 32, sc, tuple(cams), True, "cpu", True))
+    ctx_bytes = pickled_nbytes(SweepContext("x" * 32, sc, tuple(cams), True, "cpu", True))
     refs_bytes = two.bytes_shared / two.workers - ctx_bytes
     per_job = two.bytes_jobs / two.n_run
     naive = per_job + ctx_bytes + refs_bytes / n_cams  # scene in every job + its camera's reference

@@ -21,33 +21,31 @@ import numpy as np
 import pytest
 
 import terrainwarp as tw
-from terrainwarp.io.files import digest as _digest
+from terrainwarp.camera import relative_origin
+from terrainwarp.io.files import digest
+from terrainwarp.kernels.displacement import grid_mesh
+from terrainwarp.kernels.noise import fbm
+from terrainwarp.kernels.normals import sobel_normals
+from terrainwarp.rendering.reference_tessellator import tessellate_patch
 
 
 def compute() -> dict[str, str]:
     """The demo scene's stable stage outputs, hashed (cpu device)."""
-    from terrainwarp.kernels.displacement import grid_mesh
-    from terrainwarp.kernels.noise import fbm
-    from terrainwarp.kernels.normals import sobel_normals
-    from terrainwarp.rendering.reference_tessellator import tessellate_patch
-
     hm = tw.Heightmap.example("jacksboro")
     cam = tw.Camera.default_for(hm, 96, 72)
-    eye = cam.position
-    rel = (hm.origin[0] - eye[0], eye[1], hm.origin[1] - eye[2])
-    pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, rel)
+    pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, relative_origin(hm.origin, cam.position))
     tess = []
     for outer, inner, sp in (([3, 5, 7, 2], [4, 6], "equal"), ([2.5, 7.3, 1.1, 9.9], [5.5, 3.2], "fractional_odd"),
                              ([63.99, 1, 64, 17], [30.5, 2.2], "fractional_even")):
         tess += list(tessellate_patch(outer, inner, sp))
     return {
-        "heights": _digest(hm.heights, np.array([hm.dx, hm.dz])),
-        "camera": _digest(cam.view_matrix(relative=True), cam.proj_matrix()),
-        "normal_map": _digest(sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp")),
-        "curvature": _digest(tw.compute_curvature(hm, "three_normal")),
-        "grid_mesh": _digest(pos, uv, tri),
-        "fbm": _digest(fbm(64, 48, seed=5, row0=1000, col0=-300)),
-        "tessellate_patch": _digest(*tess),
+        "heights": digest(hm.heights, np.array([hm.dx, hm.dz])),
+        "camera": digest(cam.view_matrix(relative=True), cam.proj_matrix()),
+        "normal_map": digest(sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp")),
+        "curvature": digest(tw.compute_curvature(hm, "three_normal")),
+        "grid_mesh": digest(pos, uv, tri),
+        "fbm": digest(fbm(64, 48, seed=5, row0=1000, col0=-300)),
+        "tessellate_patch": digest(*tess),
     }
 
 

@@ -42,7 +42,8 @@ from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import Scene
 from .runner import Job, Runner, SweepResult, pending_jobs
 
-__all__ = ["Setting", "default_settings", "sweep", "run_sweep", "summarise", "write_report", "TIMING_COLUMNS"]
+__all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
+           "TIMING_COLUMNS"]
 
 _BUILT = ("martini", "delatin", "polytree", "bintree")  # meshes built once, apart from frames
 TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
@@ -80,7 +81,7 @@ def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]
 
 
 @dataclass(frozen=True)
-class _Context:
+class SweepContext:
     """What every job of a report sweep shares; sent to each worker once.
 
     ``token`` identifies the scene without its camera: a worker keeps its Terrain and peer meshes for the
@@ -97,7 +98,7 @@ class _Context:
 _STATE: dict = {}  # per worker process: the context's Terrain, mesh sources and normal map, made once
 
 
-def _state(ctx: _Context) -> dict:
+def _state(ctx: SweepContext) -> dict:
     if _STATE.get("token") != ctx.token:
         _STATE.clear()
         # the first copy of the scene this process received: a later copy (same token, same content) is
@@ -117,11 +118,11 @@ def _state(ctx: _Context) -> dict:
     return _STATE
 
 
-def _outputs(ctx: _Context) -> tuple[str, ...]:
+def _outputs(ctx: SweepContext) -> tuple[str, ...]:
     return ("error", "image") if ctx.images else ("error",)
 
 
-def _warm_up(ctx: _Context) -> None:
+def _warm_up(ctx: SweepContext) -> None:
     """Load this process's Warp modules (from the kernel cache) with tiny frames, so that loading them is not
     timed in the first frame each worker renders."""
     scene = _STATE["scene"]
@@ -134,14 +135,14 @@ def _warm_up(ctx: _Context) -> None:
                    device=ctx.device)
 
 
-def _reference_job(ctx: _Context, k: int) -> tuple:
+def _reference_job(ctx: SweepContext, k: int) -> tuple:
     """Camera k's full-resolution grid frame: (triangle_id, depth, image or None)."""
     f = render(ctx.scene.with_(camera=ctx.cameras[k], mesh="grid", outputs=("depth", "image") if ctx.images else
                                ("depth",)), device=ctx.device)
     return f.triangle_id, f.depth, f.image
 
 
-def _peer_job(ctx: _Context, setting: Setting) -> tuple:
+def _peer_job(ctx: SweepContext, setting: Setting) -> tuple:
     """A Martini/Delatin mesh of the heightmap (view-independent: built once per sweep, then shared) and its
     measured vertical error."""
     hm = ctx.scene.heightmap
@@ -155,7 +156,7 @@ def _timed_build(make):
     return value, (time.perf_counter() - t0) * 1e3
 
 
-def _source(ctx: _Context, refs: dict, setting: Setting) -> MeshSource:
+def _source(ctx: SweepContext, refs: dict, setting: Setting) -> MeshSource:
     """The mesh source of a martini / delatin / polytree / bintree setting, built once per worker process
     (a peer mesh by :func:`_peer_job` for the whole sweep when it could be; one polytree for every level;
     one bintree per depth). The sources share one cache (the normal map)."""
@@ -183,7 +184,7 @@ def _source(ctx: _Context, refs: dict, setting: Setting) -> MeshSource:
     return src
 
 
-def _frame_job(ctx: _Context, refs: dict, setting: Setting, k: int) -> dict:
+def _frame_job(ctx: SweepContext, refs: dict, setting: Setting, k: int) -> dict:
     """One row: ``setting`` rendered from camera k and measured against that camera's reference."""
     st_ = _state(ctx)
     scene, cam, device = st_["scene"], ctx.cameras[k], ctx.device
@@ -258,7 +259,7 @@ def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: li
     cameras = list(cameras)
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device)
-    ctx = _Context(_scene_token(scene, device), scene, tuple(cameras), images, device,
+    ctx = SweepContext(_scene_token(scene, device), scene, tuple(cameras), images, device,
                    any(s.policy in ("sse", "distance", "continuous") for s in settings))
     ctx_h = runner.share(ctx)
     todo = pending_jobs(jobs, out, fp)

@@ -52,7 +52,7 @@ from typing import Any
 from ..io.files import write_text
 
 __all__ = ["Job", "Runner", "SweepResult", "SchedulerUnreachableError", "close_local_clusters", "pending_jobs",
-           "RUN_COLUMNS"]
+           "RUN_COLUMNS", "pickled_nbytes"]
 
 #: Columns the runner adds to every row: the job's error ("" when it succeeded) and how many times the
 #: scheduler rescheduled it after a worker died. Not part of the result proper (``retries`` depends on
@@ -176,7 +176,7 @@ def _attempt(fn: Callable, n_shared: int, *args) -> tuple[str, Any]:
         return "error", f"{type(e).__name__}: {msg}" if msg else type(e).__name__
 
 
-def _nbytes(obj: Any) -> int:
+def pickled_nbytes(obj: Any) -> int:
     """Pickled size (cloudpickle, as Dask sends functions and arguments)."""
     import cloudpickle  # lazy: comes with the heavy optional dask/distributed
 
@@ -343,7 +343,7 @@ class Runner:
         """Send ``obj`` to every worker once; returns what to pass to :meth:`run` / :meth:`map` as shared."""
         if self.client is None:  # nothing is sent
             return obj
-        nbytes = _nbytes(obj)
+        nbytes = pickled_nbytes(obj)
         n = self.n_workers
         fut = self.client.scatter([obj], broadcast=True, hash=False)[0]  # a list: a dict is one object
         self.bytes_shared += nbytes * n
@@ -402,7 +402,7 @@ class Runner:
                    file=sys.stderr)
         tally = _Tally(done, _Journal(out, fingerprint, cols, done) if out is not None else None, bar, on_row,
                        measure=self.client is not None)
-        bytes_jobs = sum(_nbytes((fn, j.args)) for j in todo) if self.client is not None else 0
+        bytes_jobs = sum(pickled_nbytes((fn, j.args)) for j in todo) if self.client is not None else 0
         try:
             if self.client is None:
                 for j in todo:
@@ -486,7 +486,7 @@ class _Tally:
         self.n_failed += status != "ok"
         self.n_retried += retries > 0
         if self.measure:
-            self.bytes_results += _nbytes(value)
+            self.bytes_results += pickled_nbytes(value)
         self.done[job.id] = row
         if self.journal is not None:
             self.journal.append(job.id, row)

@@ -28,12 +28,13 @@ from ..lod.peers import PeerMesh
 from ..lod.polytree import Polytree
 from ..mesh import Mesh
 
-__all__ = ["PeerSource", "PolytreeSource", "BintreeSource"]
+__all__ = ["SourceBase", "PeerSource", "PolytreeSource", "BintreeSource"]
 
 
 @dataclass(eq=False)
-class _Cached:
-    """The cache every source carries (a dict the caller may share between sources of one heightmap)."""
+class SourceBase:
+    """What every source carries: a cache (a dict the caller may share between sources of one heightmap).
+    Subclass it and add ``mesh_for(camera)`` for a new kind of source."""
 
     cache: dict = field(default_factory=dict, kw_only=True, repr=False)
 
@@ -47,7 +48,7 @@ class _Cached:
 
 
 @dataclass(eq=False)
-class PeerSource(_Cached):
+class PeerSource(SourceBase):
     """A peer mesher's static mesh; ``error_m`` its measured vertical error (metres, NaN when not measured)."""
 
     peer: PeerMesh
@@ -63,7 +64,7 @@ class PeerSource(_Cached):
 
 
 @dataclass(eq=False)
-class PolytreeSource(_Cached):
+class PolytreeSource(SourceBase):
     """One level of a polytree (view-independent: the finest level is used when ``level`` is past it)."""
 
     tree: Polytree
@@ -76,7 +77,7 @@ class PolytreeSource(_Cached):
 
 
 @dataclass(eq=False)
-class BintreeSource(_Cached):
+class BintreeSource(SourceBase):
     """A bintree selected per frame with the paper's apparent-size rule; the whole call is selection."""
 
     tree: Bintree

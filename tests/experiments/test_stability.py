@@ -14,7 +14,7 @@ import pytest
 
 import terrainwarp as tw
 from terrainwarp.cli import main
-from terrainwarp.experiments.extreme import CASES, TESS_FACTORS, case_names, get_case
+from terrainwarp.experiments.extreme import CASES, TESS_FACTORS, ExtremeCase, case_names, get_case
 from terrainwarp.experiments.stability import (
     EXPLANATIONS,
     FAIL,
@@ -26,6 +26,12 @@ from terrainwarp.experiments.stability import (
     stage_hashes,
     write_stability_md,
 )
+from terrainwarp.kernels.displacement import drop_nonfinite_triangles, grid_mesh
+from terrainwarp.kernels.noise import fbm
+from terrainwarp.lod import Terrain
+from terrainwarp.rendering import pipeline
+from terrainwarp.rendering.reference_tessellator import tessellate_patch
+from terrainwarp.rendering.watertight import check_watertight, lod_boundary
 
 FIT_CASES = ["everest", "cam_on_surface", "nan_holes", "grid_1x1"]  # the JAX fit compiles per case (~1.3 s)
 
@@ -132,8 +138,6 @@ def _holes():
 
 
 def test_nan_holes_no_triangle_touches_a_hole_and_render_as_background():
-    from terrainwarp.kernels.displacement import grid_mesh
-
     hm = _holes()
     pos, uv, tri = grid_mesh(hm.heights, 1.0, 1.0, (0.0, 0.0, 0.0))
     assert np.all(np.isfinite(pos))
@@ -157,8 +161,6 @@ def test_nan_holes_no_triangle_touches_a_hole_and_render_as_background():
 
 
 def test_lod_frame_with_holes_drops_triangles_touching_them():
-    from terrainwarp.kernels.displacement import drop_nonfinite_triangles
-
     pos = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [np.nan, 0, 1], [1, 0, 1]], np.float32)
     tri = np.array([[0, 2, 1], [1, 2, 4], [2, 3, 4], [0, 3, 1]], np.int32)
     p, t = drop_nonfinite_triangles(pos, tri)
@@ -171,14 +173,11 @@ def test_lod_frame_with_holes_drops_triangles_touching_them():
     assert np.all(np.isfinite(fr.mesh.positions)) and fr.triangle_id[32, 32] == -1
     assert np.all(np.isfinite(fr.depth)) and np.isfinite(fr.error.max_px) and fr.error.max_px >= 0
     # the dropped triangles are exactly those whose vertices sampled a NaN height (the hole stays a hole)
-    from terrainwarp.rendering.watertight import check_watertight, lod_boundary
 
     assert check_watertight(fr.mesh, allowed=lod_boundary(fr.patches, hm, fr.mesh.eye)).n_open_edges == 0
 
 
 def test_nan_free_grid_mesh_unchanged_by_hole_path():
-    from terrainwarp.kernels.displacement import grid_mesh
-
     h = np.random.default_rng(1).random((9, 11)).astype(np.float32)
     _, _, t0 = grid_mesh(h, 1.0, 1.0, (0.0, 0.0, 0.0))
     h2 = h.copy()
@@ -189,8 +188,6 @@ def test_nan_free_grid_mesh_unchanged_by_hole_path():
 
 # -- determinism across tile sizes ------------------------------------------------------------------
 def test_fbm_tiles_equal_the_whole():
-    from terrainwarp.kernels.noise import fbm
-
     whole = fbm(96, 80, seed=3, base_frequency=1 / 32)
     for tile in (16, 37):
         rows = [np.concatenate([fbm(min(tile, 96 - r), min(tile, 80 - c), seed=3, base_frequency=1 / 32, row0=r,
@@ -232,9 +229,6 @@ def test_api_bad_input_names_the_argument(call, arg):
 
 
 def test_tessellator_and_lod_bad_input():
-    from terrainwarp.lod import Terrain
-    from terrainwarp.rendering.reference_tessellator import tessellate_patch
-
     with pytest.raises(ValueError, match="outer"):
         tessellate_patch([1, 2, 3], [1, 1], "equal")
     with pytest.raises(ValueError, match="inner"):
@@ -331,8 +325,6 @@ def test_cli_stability_writes_report_and_rejects_bad_args(tmp_path):
 def test_an_exception_inside_a_stage_is_a_fail_row_naming_where(monkeypatch):
     """A regression anywhere in a stage (here: the pipeline's select stage raising) is a FAIL row with the
     exception's type and the file:line it came from, never a pass."""
-    from terrainwarp.rendering import pipeline
-
     def broken_select(run, rec):
         raise KeyError("boom")
 
@@ -356,8 +348,6 @@ def test_an_exception_inside_a_stage_is_a_fail_row_naming_where(monkeypatch):
 
 
 def test_run_case_records_build_errors():
-    from terrainwarp.experiments.extreme import ExtremeCase
-
     def bad(n):
         return tw.Scene(tw.Heightmap.from_array(np.ones((n, n)), -1.0))
 

@@ -17,6 +17,7 @@ from pathlib import Path
 import cloudpickle
 import pytest
 
+import terrainwarp.experiments.pareto as report
 from terrainwarp import Camera, Heightmap, Scene
 from terrainwarp.cli import main
 from terrainwarp.experiments.pareto import TIMING_COLUMNS, Setting, rows_to_csv, run_sweep
@@ -196,8 +197,6 @@ def test_report_cli_uses_the_runner_and_leaves_no_partial_file(tmp_path, capsys)
 
 
 def test_an_interrupted_report_sweep_resumes(small, tmp_path, monkeypatch):
-    import terrainwarp.experiments.pareto as report
-
     sc, cams = small
     out = tmp_path / "frames.csv"
     real, calls = report._frame_job, []

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import terrainwarp as tw
+from terrainwarp.kernels.normals import sobel_normals
 from terrainwarp.kernels.raster import clip_coordinates, rasterize
 from terrainwarp.kernels.shading import (
     CRACK_COLOUR,
@@ -109,7 +110,6 @@ def test_splat_map_rules_and_atlas_layout():
 
 def test_splat_shading_uses_the_texture_of_the_place():
     hm = tw.Heightmap.fbm(64, 64, seed=4, max_height=900.0)
-    from terrainwarp.kernels.normals import sobel_normals
 
     nmap = sobel_normals(hm.heights, hm.dx, hm.dz, border="clamp")
     scene = tw.Scene(hm, camera=tw.Camera.default_for(hm, width=96, height=64), shading="splat",

@@ -3,8 +3,22 @@ import pytest
 from conftest import digest
 from scipy import ndimage
 
-from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp import (
+    Bintree,
+    Camera,
+    Heightmap,
+    LodConfig,
+    Scene,
+    Terrain,
+    build_polytree,
+    check_watertight,
+    rasterize,
+    render,
+)
+from terrainwarp.lod.peers import delatin_mesh
+from terrainwarp.lod.polytree import default_tolerances
 from terrainwarp.rendering.pipeline import stages_for
+from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource
 
 
 @pytest.fixture(scope="module")
@@ -151,8 +165,6 @@ def test_error_output_of_the_grid_is_zero(tmp_path):
 
 
 def test_lod_config_refuses_settings_that_crack():
-    from terrainwarp import LodConfig
-
     with pytest.raises(ValueError, match="fractional_odd"):
         LodConfig(policy="sse", spacing="fractional_odd")
     with pytest.raises(ValueError, match="power of two"):
@@ -161,8 +173,6 @@ def test_lod_config_refuses_settings_that_crack():
 
 
 def test_lod_frame_is_watertight_and_close_to_the_reference():
-    from terrainwarp import LodConfig, Terrain, check_watertight
-
     hm = Heightmap.example()
     cam = Camera.default_for(hm, 320, 240)
     terrain = Terrain.prepare(hm, roots=16, tess=16)
@@ -179,8 +189,6 @@ def test_lod_frame_is_watertight_and_close_to_the_reference():
 
 
 def test_lod_config_with_policy():
-    from terrainwarp import LodConfig
-
     base = LodConfig(roots=4, tess=8, spacing="fractional_even")
     s = base.with_policy("sse", 2.5)
     assert s.tolerance_px == 2.5 and s.spacing == "fractional_even"
@@ -195,11 +203,6 @@ def test_lod_config_with_policy():
 def test_render_draws_prebuilt_mesh_sources():
     """Peers, polytree levels and bintree selections are frames of ``render`` too: their mesh is drawn by the
     same rasterizer, shaded and measured by the same stages, and their cost is the same frame_ms."""
-    from terrainwarp import Bintree, build_polytree, rasterize
-    from terrainwarp.lod.peers import delatin_mesh
-    from terrainwarp.lod.polytree import default_tolerances
-    from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource
-
     hm = Heightmap.fbm(33, seed=4, dx=10.0, max_height=120.0)
     cam = Camera.default_for(hm, 64, 48)
     sc = Scene(hm, camera=cam, outputs=("image", "depth", "error"))

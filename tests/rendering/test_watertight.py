@@ -8,8 +8,9 @@ import hashlib
 import numpy as np
 import pytest
 
-from terrainwarp import check_watertight
+from terrainwarp import Camera, Heightmap, check_watertight
 from terrainwarp.kernels.tessellator import tessellate_patches
+from terrainwarp.lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, Terrain, select
 
 SPACINGS = ["equal", "fractional_even", "fractional_odd"]
 
@@ -165,9 +166,6 @@ def test_report_is_deterministic():
 @pytest.mark.parametrize("name", ["jacksboro", "fbm"])
 def test_lod_frames_are_watertight(name):
     """Frames selected by the LOD issue's policies (doubled edges, continuous per-edge factors)."""
-    from terrainwarp import Camera, Heightmap
-    from terrainwarp.lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, Terrain, select
-
     hm = Heightmap.example("jacksboro") if name == "jacksboro" else Heightmap.fbm(257, seed=3)
     terrain = Terrain.prepare(hm, roots=4, tess=16)
     cam = Camera.default_for(hm, 320, 240)
