@@ -37,7 +37,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
     """Write an (H, W) or (H, W, C) uint8, uint16 or float32 array through OpenImageIO; row 0 is the
-    top of the image. EXR files are zip-compressed (lossless) float32."""
+    top of the image. EXR files are zip-compressed (lossless) float32. The file holds no timestamp: the
+    same array gives the same bytes on every run."""
     import OpenImageIO as oiio  # lazy: heavy optional dependency
 
     p = Path(path)
@@ -50,6 +51,9 @@ def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
         raise TypeError(f"a: expected uint8, uint16, int32 or float32 pixels, got {a.dtype}")
     nch = 1 if a.ndim == 2 else a.shape[2]
     spec = oiio.ImageSpec(a.shape[1], a.shape[0], nch, fmts[a.dtype])
+    # OpenImageIO stamps EXR and TIFF files with the time of writing (a DateTime header); an empty value
+    # leaves it out, so the same pixels always give the same bytes.
+    spec.attribute("DateTime", "")
     if ext == ".exr":
         spec.attribute("compression", "zip")
     with atomic_path(p) as tmp:
@@ -106,12 +110,18 @@ def digest(*arrays: object) -> str:
 
 def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: float = 100, **savefig_kw: object) -> Path:
     """Save a matplotlib figure atomically (format from the suffix, PNG by default) and release it from
-    pyplot if pyplot made it. Returns the path."""
+    pyplot if pyplot made it. No timestamp is written: the same figure gives the same bytes. Returns the
+    path."""
     import matplotlib.pyplot as plt  # lazy: heavy optional dependency
 
     p = Path(path)
     fmt = p.suffix.lstrip(".").lower() or "png"
-    with atomic_path(p) as tmp:
+    # No creation date in PDF/SVG/PS files and fixed SVG element ids: the same figure, the same bytes.
+    undated = {"pdf": {"CreationDate": None}, "svg": {"Date": None}, "ps": {"CreationDate": None},
+               "eps": {"CreationDate": None}}
+    if fmt in undated:
+        savefig_kw.setdefault("metadata", undated[fmt])
+    with atomic_path(p) as tmp, plt.rc_context({"svg.hashsalt": "terrainwarp"}):
         fig.savefig(tmp, format=fmt, dpi=dpi, **savefig_kw)
     plt.close(fig)
     return p
