@@ -44,6 +44,8 @@ from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES"]
 
+# the spacing names (OpenGL: equal_spacing, fractional_even_spacing, fractional_odd_spacing) and the codes the
+# kernels take: the one list of spacing names (terrainwarp.scene.SPACINGS and the reference tessellator derive theirs)
 SPACING_CODES = {"equal": 0, "fractional_even": 1, "fractional_odd": 2}
 FILTER_CODES = {"bilinear": 0, "bicubic": 1}
 FXP_ONE = 65536
@@ -683,18 +685,6 @@ class Tessellation(NamedTuple):
     vertex_offsets: np.ndarray
     triangle_offsets: np.ndarray
     eye: tuple[float, float, float]
-
-    def to_mesh(self, normals: np.ndarray | None = None):
-        """The frame as a :class:`terrainwarp.Mesh` (``normals``: optional (n, 3) float32 unit vertex
-        normals, e.g. a normal map sampled at ``uv``; exported as point data by ``Mesh.to_pyvista``)."""
-        from terrainwarp.mesh import Mesh
-
-        if normals is not None:
-            normals = np.asarray(normals, dtype=np.float32)
-            if normals.shape != self.positions.shape:
-                raise ValueError(f"normals: expected shape {self.positions.shape}, got {normals.shape}")
-        return Mesh(positions=self.positions, eye=self.eye, triangles=self.triangles, uv=self.uv,
-                    level=self.level, patch_id=self.patch_id, normals=normals)
 
 
 def _get(patches, name: str, required: bool = True):

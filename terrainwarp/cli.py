@@ -7,11 +7,29 @@ none is given. Outputs go under ``--out DIR``. Bad arguments print one line on s
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
-__all__ = ["main"]
+from .camera import Camera
+from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
+from .experiments.plots import plot_patches
+from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
+from .fit.lod_fit import Evaluation, evaluations_from_rows, fit_lod, plot_fit
+from .heightmap import Heightmap
+from .io.files import write_json, write_text
+from .lod.policies import make_policy
+from .lod.quadtree import Terrain, select
+from .rendering.pipeline import render
+from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
+from .scene import LOD_POLICIES, POLICY_TABLE, SPACINGS, LodConfig, Scene
+
+__all__ = ["main", "sweep_evaluator"]
+
+
+_LOD = LodConfig()  # the defaults of the LOD options
 
 
 class _Parser(argparse.ArgumentParser):
@@ -20,19 +38,13 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def _scene(args: argparse.Namespace):
-    from .scene import Scene
-
+def _scene(args: argparse.Namespace) -> Scene:
     if getattr(args, "scene", None):
         sc = Scene.load(args.scene)
     else:
-        from .heightmap import Heightmap
-
         sc = Scene(Heightmap.example("jacksboro"), name="demo")
     cam = sc.camera
     if getattr(args, "width", None) is not None or getattr(args, "height", None) is not None:
-        from .camera import Camera
-
         w = cam.width if args.width is None else args.width
         h = cam.height if args.height is None else args.height
         cam = Camera.default_for(sc.heightmap, w, h, cam.fov_y_deg) if not sc.source.get("camera") \
@@ -42,8 +54,6 @@ def _scene(args: argparse.Namespace):
 
 
 def _cmd_render(args: argparse.Namespace) -> int:
-    from .rendering.pipeline import render
-
     sc = _scene(args)
     if "report" not in sc.outputs:
         sc = sc.with_(outputs=(*sc.outputs, "report"))
@@ -74,26 +84,14 @@ def _nonnegative_int(s: str) -> int:
     return v
 
 
-def _lod_policy(args: argparse.Namespace):
-    from .lod.quadtree import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy
-
-    if args.policy == "sse":
-        return ScreenErrorPolicy(args.tolerance_px, hysteresis=args.hysteresis)
-    if args.policy == "distance":
-        return DistancePolicy(args.k, hysteresis=args.hysteresis)
-    return ContinuousPolicy(args.target_px, level=args.level)
-
-
 def _cmd_lod(args: argparse.Namespace) -> int:
-    import json
-    from pathlib import Path
-
-    from .experiments.plots import plot_patches
-    from .lod.quadtree import Terrain, select
-
     sc = _scene(args)
     terrain = Terrain.prepare(sc.heightmap, roots=args.roots, tess=args.tess)
-    patches = select(terrain, sc.camera, _lod_policy(args))
+    # the policy from the table: the chosen policy's parameter (--tolerance-px, --k or --target-px), the
+    # hysteresis and the level; roots and tess go to the terrain (any tess in 1..64 here)
+    cfg = LodConfig(policy=args.policy, hysteresis=args.hysteresis, level=args.level,
+                    **{s.field: getattr(args, s.field) for s in POLICY_TABLE.values()})
+    patches = select(terrain, sc.camera, make_policy(cfg))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     patches.to_csv(out / "patches.csv")
@@ -105,8 +103,6 @@ def _cmd_lod(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from .experiments.pareto import default_settings, summarise, sweep, write_report
-
     sc = _scene(args)
     cams = sc.camera_path(args.frames)
     settings = default_settings(sc.heightmap, quick=args.quick)
@@ -116,8 +112,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
         if bad:
             raise ValueError(f"--policies: unknown {sorted(bad)}")
         settings = [s for s in settings if s.policy in want]
-    from pathlib import Path
-
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
     rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
@@ -132,16 +126,26 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
+                    scheduler: str | None = None, device: str = "cpu"):
+    """A grid-search evaluator (:func:`terrainwarp.fit.grid_search`) that runs the evaluations as jobs of the
+    sweep runner (:func:`terrainwarp.experiments.pareto.sweep`, dask.distributed): ``workers`` local worker
+    processes (None: one per core) or an existing ``scheduler``; the workers prepare their own terrain and
+    references, and the table is the same as in-process."""
+    def run(values: list[float]) -> list[Evaluation]:
+        rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
+                     device=device, scheduler=scheduler, workers=workers)
+        return evaluations_from_rows(rows, policy, values)
+
+    return run
+
+
 def _cmd_fit(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from .fit.lod_fit import fit_lod, plot_fit
-    from .io.files import write_json, write_text
-
     sc = _scene(args)
     cams = sc.camera_path(args.frames)
+    grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers)
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points,
-                  grid_workers=args.workers)
+                  grid_evaluator=grid_evaluator)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
@@ -172,8 +176,6 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
-    from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
-
     n = 129 if args.full else 33
     cases = [c for c in args.cases.split(",") if c] if args.cases else None
     rows = run_suite(n, cases=cases, progress=not args.no_progress)
@@ -191,12 +193,6 @@ def _cmd_stability(args: argparse.Namespace) -> int:
 
 
 def _cmd_tessellate(args: argparse.Namespace) -> int:
-    import json
-    from pathlib import Path
-
-    from .io.files import write_json
-    from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
-
     out = Path(args.out)
     doc = tessellation_json(args.outer, args.inner, args.spacing)
     write_tessellation_picture(out / "tessellation.png", args.outer, args.inner, args.spacing)
@@ -222,14 +218,14 @@ def build_parser() -> argparse.ArgumentParser:
     lo = sub.add_parser("lod", help="select LOD patches: top-down picture (lod.png) and table (patches.csv)")
     lo.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
     lo.add_argument("--out", default="out/lod")
-    lo.add_argument("--policy", choices=["sse", "distance", "continuous"], default="sse")
-    lo.add_argument("--tolerance-px", type=_positive_float, default=1.0, help="screen-space error tolerance")
-    lo.add_argument("--k", type=_positive_float, default=2.0, help="distance policy: split below k * node size")
-    lo.add_argument("--target-px", type=_positive_float, default=8.0, help="continuous: pixels per edge segment")
-    lo.add_argument("--level", type=int, default=3, help="continuous: the patch grid's level")
-    lo.add_argument("--hysteresis", type=float, default=0.0)
-    lo.add_argument("--roots", type=int, default=16)
-    lo.add_argument("--tess", type=int, default=16)
+    lo.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy)
+    for spec in POLICY_TABLE.values():  # --tolerance-px, --k, --target-px
+        lo.add_argument("--" + spec.field.replace("_", "-"), type=_positive_float, default=getattr(_LOD, spec.field),
+                        help=spec.help)
+    lo.add_argument("--level", type=int, default=_LOD.level, help="continuous: the patch grid's level")
+    lo.add_argument("--hysteresis", type=float, default=_LOD.hysteresis)
+    lo.add_argument("--roots", type=int, default=_LOD.roots)
+    lo.add_argument("--tess", type=int, default=_LOD.tess)
     lo.add_argument("--width", type=int, default=None)
     lo.add_argument("--height", type=int, default=None)
     lo.set_defaults(func=_cmd_lod)
@@ -259,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     ft = sub.add_parser("fit", help="fit LOD thresholds to a screen-space error budget (fit.json, fit.png)")
     ft.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
-    ft.add_argument("--policy", choices=["sse", "distance", "continuous"], default="sse")
+    ft.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy)
     ft.add_argument("--frames", type=int, default=None)
     ft.add_argument("--grid-points", type=int, default=0, help="also run a grid search baseline with N points")
     ft.add_argument("--workers", type=int, default=0,
@@ -275,7 +271,7 @@ def build_parser() -> argparse.ArgumentParser:
     te.add_argument("--outer", type=float, nargs=4, required=True, metavar="L",
                     help="4 outer levels: u=0, v=0, u=1, v=1 edges (gl_TessLevelOuter order)")
     te.add_argument("--inner", type=float, nargs=2, required=True, metavar="L", help="2 inner levels: along u, v")
-    te.add_argument("--spacing", choices=["equal", "fractional_even", "fractional_odd"], default="equal")
+    te.add_argument("--spacing", choices=list(SPACINGS), default=SPACINGS[0])
     te.add_argument("--out", default="out/tessellate")
     te.set_defaults(func=_cmd_tessellate)
     return p

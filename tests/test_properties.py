@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import terrainwarp as tw
-from terrainwarp.experiments.stability import _unit_square_border, watertight_report
 from terrainwarp.rendering.reference_tessellator import SPACINGS, tessellate_patch
+from terrainwarp.rendering.watertight import check_watertight, check_watertight_domain
 
 SETTINGS = settings(max_examples=15, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -79,14 +79,11 @@ def test_random_grid_frames_are_finite_and_inside_the_viewport(data):
     assert e.covered == int((tid >= 0).sum())
     if not np.isnan(hm.heights).any() and len(m.triangles):  # the grid is watertight (only border edges single)
         rows, cols = hm.shape
-        ij = np.stack(np.divmod(np.arange(rows * cols), cols), 1).astype(np.float32)
-
-        def border(k):
-            return ((k[:, 0, 0] == k[:, 1, 0]) & np.isin(k[:, 0, 0], (0, rows - 1))) | \
-                ((k[:, 0, 1] == k[:, 1, 1]) & np.isin(k[:, 0, 1], (0, cols - 1)))
-
-        w = watertight_report(ij, m.triangles, border)
-        assert w["open"] == 0 and w["nonmanifold"] == 0 and w["degenerate"] == 0
+        i, j = np.divmod(np.arange(rows * cols), cols)
+        # each vertex at its (column, 0, row): distinct points, the grid's border is their bounding rectangle
+        ij = np.stack([j, np.zeros_like(j), i], 1).astype(np.float32)
+        w = check_watertight(ij, m.triangles)
+        assert w.n_open_edges == 0 and w.n_nonmanifold_edges == 0 and w.n_degenerate == 0
 
 
 factor = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32),
@@ -104,10 +101,10 @@ def test_random_factors_cull_or_tessellate_watertight(outer, inner, spacing):
         return
     assert np.all(np.isfinite(uv)) and uv.min() >= 0.0 and uv.max() <= 1.0
     assert tri.min() >= 0 and tri.max() < len(uv) and len(tri) <= 2 * 64 * 64 + 4 * 64
-    w = watertight_report(uv, tri, _unit_square_border)
+    w = check_watertight_domain(uv, tri)
     # zero-area triangles are allowed: the D3D11 reference tessellator emits them when a fractional_odd inner
     # level clamps to 1 beside larger outer levels (the inner ring collapses), and rasterizers drop them
-    assert w["open"] == 0 and w["nonmanifold"] == 0
+    assert w.n_open_edges == 0 and w.n_nonmanifold_edges == 0
     a = uv[tri].astype(np.float64)
     e1, e2 = a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]
     area = 0.5 * (e1[:, 0] * e2[:, 1] - e2[:, 0] * e1[:, 1])

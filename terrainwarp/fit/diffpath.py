@@ -63,11 +63,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from jax.scipy.special import logsumexp
 
 from ..camera import Camera
 from ..heightmap import Heightmap
-from ..lod.quadtree import MAX_TESS, ContinuousPolicy, Terrain, select
+from ..kernels.raster import rasterize
+from ..kernels.tessellator import tessellate_patches
+from ..lod.policies import EDGE_PX_MAX, ContinuousPolicy, continuous_factors, edge_pixels
+from ..lod.quadtree import PatchList, Terrain, select
+from ..rendering.interpolate import clip_positions, interpolate
 
 __all__ = ["DiffFrame", "prepare", "levels", "domain_points", "positions", "pixel_error", "soft_max_px",
            "frame_loss", "loss_and_grads", "log_slope", "place_fixed"]
@@ -223,8 +230,9 @@ class DiffFrame:
 
     Attributes:
         log_target0: the log(target_px) the frame was built at.
-        raw: (P, 4) float32 per-edge factors at target 1 px (``L * focal / d``), unclamped; ``const``
-            (P, 4) bool marks edges whose factor does not depend on the target (eye on the midpoint: 64).
+        raw: (P, 4) float32 projected edge lengths in pixels (:func:`terrainwarp.lod.edge_pixels`: the
+            per-edge factors at target 1 px, unclamped); ``const`` (P, 4) bool marks edges whose factor does
+            not depend on the target (eye on the midpoint: ``EDGE_PX_MAX``, whose factor is 64 for any target).
         frame_flag: (P,) bool, the picture-frame rule's inner lower bound (1 + 2^-16) applies.
         coords: the frozen placement of every domain point.
         domain: (n, 2) float32 the Warp tessellator's domain points (exact multiples of 2^-16).
@@ -256,28 +264,8 @@ class DiffFrame:
     mvp: np.ndarray
     width: int
     height: int
-    patches: object
+    patches: PatchList
     _jit: dict = field(default_factory=dict, repr=False)
-
-
-def _raw_factors(heightmap: Heightmap, camera: Camera, origin: np.ndarray, size: np.ndarray):
-    """Per-edge ``L * focal / d`` (float64, as :func:`terrainwarp.lod._continuous_factors` at target 1)."""
-    eye = np.asarray(camera.position)
-    x0, z0 = origin[:, 0], origin[:, 1]
-    x1, z1 = x0 + size[:, 0], z0 + size[:, 1]
-    corners = {"00": (x0, z0), "10": (x1, z0), "01": (x0, z1), "11": (x1, z1)}
-    hc = {k: heightmap.sample(*v).astype(np.float64) for k, v in corners.items()}
-    raw, const = [], []
-    for a, b in (("00", "01"), ("00", "10"), ("10", "11"), ("01", "11")):
-        pa = np.stack([corners[a][0], hc[a], corners[a][1]], axis=1)
-        pb = np.stack([corners[b][0], hc[b], corners[b][1]], axis=1)
-        d = np.linalg.norm(0.5 * (pa + pb) - eye, axis=1)
-        length = np.linalg.norm(pb - pa, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.where(d > 0, length * camera.focal_px / np.maximum(d, 1e-300), 1.0)
-        raw.append(np.minimum(r, 1e30))
-        const.append(~(d > 0))
-    return np.stack(raw, 1).astype(np.float32), np.stack(const, 1)
 
 
 def prepare(heightmap: Heightmap, camera: Camera, target_px: float, level: int = 3, *, roots=16,
@@ -296,9 +284,6 @@ def prepare(heightmap: Heightmap, camera: Camera, target_px: float, level: int =
     Returns:
         A :class:`DiffFrame`.
     """
-    from ..kernels.raster import rasterize
-    from ..kernels.tessellator import tessellate_patches
-
     if not isinstance(heightmap, Heightmap):
         raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
     if not isinstance(camera, Camera):
@@ -325,7 +310,8 @@ def prepare(heightmap: Heightmap, camera: Camera, target_px: float, level: int =
     co, _, fixed, frame_flag = _topology(pl.outer, pl.inner)
     if len(fixed) != len(t.domain) or not np.array_equal(fixed.astype(np.float32) / FXP_ONE, t.domain):
         raise RuntimeError("diffpath: the frozen topology does not reproduce the tessellator's points")
-    raw, const = _raw_factors(hm, camera, pl.origin, pl.size)
+    edge_px = edge_pixels(hm, camera.position, camera.focal_px, pl.origin, pl.size)
+    raw, const = edge_px.astype(np.float32), edge_px >= EDGE_PX_MAX
     # patch extents on the 2^-16-cell lattice, as tessellate_patches rounds them, in cells
     sc = np.array([FXP_ONE / hm.dx, FXP_ONE / hm.dz])
     lo = np.rint((pl.origin - hm.origin) * sc) / FXP_ONE
@@ -347,14 +333,12 @@ def prepare(heightmap: Heightmap, camera: Camera, target_px: float, level: int =
 # ------------------------------------------------------------------------------------------------
 def levels(frame: DiffFrame, log_target):
     """(P, 6) float32 tessellation levels (outer 0..3, inner u, inner v) as the tessellator uses them:
-    the policy's ``clamp(raw / t, 1, 64)``, inner = mean of opposite edges, then the fractional_odd clamp
-    to [1, 63] (inner: [1 + 2^-16, 63] under the picture-frame rule). Zero derivative where clamped."""
-    import jax.numpy as jnp
-
-    inv_t = jnp.exp(-jnp.asarray(log_target, jnp.float32))
-    f = jnp.where(jnp.asarray(frame.const), jnp.float32(MAX_TESS),
-                  jnp.clip(jnp.asarray(frame.raw) * inv_t, 1.0, float(MAX_TESS)))
-    inner = jnp.stack([0.5 * (f[:, 1] + f[:, 3]), 0.5 * (f[:, 0] + f[:, 2])], 1)
+    the policy's rule (:func:`terrainwarp.lod.continuous_factors`, here in float32 JAX: ``clamp(raw / t, 1,
+    64)``, inner = mean of opposite edges), then the fractional_odd clamp to [1, 63] (inner: [1 + 2^-16, 63]
+    under the picture-frame rule). Zero derivative where clamped. Within one float32 rounding of the factors
+    :func:`terrainwarp.lod.select` gives (float64 rule, rounded once), checked by the tests."""
+    t = jnp.exp(jnp.asarray(log_target, jnp.float32))
+    f, inner = continuous_factors(jnp.asarray(frame.raw), t, xp=jnp)
     lo_in = jnp.where(jnp.asarray(frame.frame_flag), _LO_IN, jnp.float32(1.0))[:, None]
     return jnp.concatenate([jnp.clip(f, 1.0, float(_HI)), jnp.clip(inner, lo_in, float(_HI))], 1)
 
@@ -363,8 +347,6 @@ def domain_points(frame, lv):
     """(n, 2) float32 domain coordinates of every point, the model's continuous placement at levels
     ``lv`` (P, 6) with the frozen topology (not snapped to 2^-16; within 2^-16 of the hardware at the
     frame's own levels). Differentiable in ``lv``. ``frame`` may also be the frozen coordinates alone."""
-    import jax.numpy as jnp
-
     c = frame.coords if isinstance(frame, DiffFrame) else frame
     slot = jnp.asarray(c.slot)
     f = lv[jnp.asarray(c.patch)[:, None], jnp.maximum(slot, 0)]  # (n, 2)
@@ -376,9 +358,6 @@ def domain_points(frame, lv):
 
 def _bilinear(h, gx, gz):
     """``terrainwarp.kernels.sampling.sample_bilinear`` in JAX (clamped), differentiable in gx, gz."""
-    import jax
-    import jax.numpy as jnp
-
     rows, cols = h.shape
     uc = jnp.clip(gx, 0.0, float(cols - 1))
     vc = jnp.clip(gz, 0.0, float(rows - 1))
@@ -401,8 +380,6 @@ def positions(frame: DiffFrame, uv):
     """(n, 3) float32 camera-relative positions of domain points ``uv`` (n, 2): the patch's extent on the
     heightmap (clamped to the grid, as the displacement kernel clamps past-the-grid points), heights
     by bilinear sampling. Differentiable in ``uv``."""
-    import jax.numpy as jnp
-
     h = jnp.asarray(frame.heights)
     p = jnp.asarray(frame.coords.patch)
     box = frame.box
@@ -423,9 +400,6 @@ def positions(frame: DiffFrame, uv):
 def _reference_height(frame: DiffFrame, x, z):
     """Height of the full-resolution triangulated grid at world (x, z) (``metrics.reference_height``),
     JAX float32, differentiable in x, z (piecewise linear)."""
-    import jax
-    import jax.numpy as jnp
-
     h = jnp.asarray(frame.heights)
     rows, cols = frame.heights.shape
     u = jnp.clip((x - frame.origin[0]) / frame.dx, 0.0, float(cols - 1))
@@ -452,10 +426,7 @@ def pixel_error(frame: DiffFrame, log_target):
         full-resolution surface point with P's x and z (as :func:`terrainwarp.measure.error.frame_error`); 0
         where not ``valid`` (background, or R behind the camera).
     """
-    import jax
-    import jax.numpy as jnp
 
-    from ..rendering.interpolate import clip_positions, interpolate
 
     lv = levels(frame, log_target)
     lv0 = jax.lax.stop_gradient(levels(frame, frame.log_target0))
@@ -486,9 +457,6 @@ def pixel_error(frame: DiffFrame, log_target):
 def soft_max_px(err, valid, temperature_px: float = 0.25):
     """Smooth maximum of ``err`` over the ``valid`` pixels: ``T log(mean exp(err / T))`` (log-mean-exp,
     between the mean and the maximum; the maximum as T -> 0, within T log(N) of it)."""
-    import jax.numpy as jnp
-    from jax.scipy.special import logsumexp
-
     v = jnp.asarray(valid)
     n = jnp.sum(v)
     z = jnp.where(v, err / temperature_px, -1e30)  # not -inf: finite gradients even with no valid pixel
@@ -499,9 +467,6 @@ def tail_mean_px(err, valid, q: float = 0.99):
     """Mean of the largest ``ceil((1 - q) N)`` errors over the ``valid`` pixels (the expected shortfall
     above the q-quantile, >= the q-quantile). Differentiable almost everywhere: the set of tail pixels is
     chosen at the current value (its derivative is that of the tail's values)."""
-    import jax
-    import jax.numpy as jnp
-
     flat = jnp.where(jnp.asarray(valid), err, -1.0).reshape(-1)
     n = flat.shape[0]
     k = max(int(math.ceil((1.0 - q) * n)), 1)  # static: of all pixels, then of the valid ones below
@@ -515,8 +480,6 @@ def tail_mean_px(err, valid, q: float = 0.99):
 def frame_loss(frame: DiffFrame, log_target, temperature_px: float = 0.25, q: float = 0.99):
     """(soft maximum px, mean px, tail mean above the q-quantile px) of the per-pixel error at
     ``log_target``; all differentiable."""
-    import jax.numpy as jnp
-
     err, valid = pixel_error(frame, log_target)
     n = jnp.maximum(jnp.sum(valid), 1)
     return soft_max_px(err, valid, temperature_px), jnp.sum(err) / n, tail_mean_px(err, valid, q)
@@ -529,9 +492,6 @@ def loss_and_grads(frame: DiffFrame, log_target, temperature_px: float = 0.25):
 
     One forward pass and three reverse passes through the same VJP (``jax.jacrev`` would vmap the
     cotangents through the Warp kernel's backward, which ``warp.jax_kernel`` does not support)."""
-    import jax
-    import jax.numpy as jnp
-
     key = ("loss_and_grads", float(temperature_px))
     fn = frame._jit.get(key)
     if fn is None:

@@ -37,30 +37,29 @@ from __future__ import annotations
 
 import math
 import time
+from collections import namedtuple
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
-from ..lod.quadtree import Terrain, node_metrics
-from ..scene import Scene
+from ..io.files import save_figure
+from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
+from ..lod.quadtree import Terrain, node_metrics, select
+from ..rendering.pipeline import Frame, render
+from ..scene import LOD_POLICIES, POLICY_TABLE, LodConfig, Scene
 
-__all__ = ["LodParams", "FitResult", "fit_lod", "evaluate", "grid_search", "relaxed_model"]
+__all__ = ["LodParams", "FitResult", "Evaluation", "fit_lod", "evaluate", "grid_search", "evaluations_from_rows",
+           "relaxed_model", "plot_fit"]
 
-POLICIES = ("sse", "distance", "continuous")
-_FIELD = {"sse": "log_tolerance_px", "distance": "log_k", "continuous": "log_target_px"}
-_RANGE = {"sse": (0.05, 64.0), "distance": (0.25, 32.0), "continuous": (0.5, 64.0)}
-# larger parameter -> coarser mesh (cheaper, more error) for sse and continuous; the reverse for distance
-_COARSER_UP = {"sse": True, "distance": False, "continuous": True}
-
-
-class LodParams(NamedTuple):
-    """Fitted parameters (a pytree), in log space."""
-
-    log_tolerance_px: float = math.log(1.0)
-    log_k: float = math.log(2.0)
-    log_target_px: float = math.log(8.0)
+LodParams = namedtuple("LodParams", [f"log_{s.field}" for s in POLICY_TABLE.values()],
+                       defaults=[math.log(getattr(LodConfig(), s.field)) for s in POLICY_TABLE.values()])
+LodParams.__doc__ = ("Fitted parameters (a pytree), in log space: ``log_`` + each policy's ``POLICY_TABLE`` field "
+                     "(log_tolerance_px, log_k, log_target_px), defaults the logs of the LodConfig defaults.")
+# A grid search's evaluator: the parameter values -> their exact evaluations, in the same order.
+Evaluator = Callable[[list[float]], list["Evaluation"]]
 
 
 @dataclass
@@ -122,50 +121,54 @@ class FitResult:
 # ------------------------------------------------------------------------------------------------
 # exact pipeline
 # ------------------------------------------------------------------------------------------------
-def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list,
+def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list[Frame],
              device: str = "cpu") -> Evaluation:
-    """Run the exact pipeline at one parameter value over all cameras (references given)."""
-    from ..rendering.pipeline import render
-
+    """Run the exact pipeline at one parameter value over all cameras (references given); the frame cost
+    is ``Report.frame_ms``."""
     ev = Evaluation(float(value), [], [], [], [])
     cfg = scene.lod.with_policy(policy, value)
     for cam, ref in zip(cameras, refs):
         f = render(scene.with_(camera=cam, mesh="lod", lod=cfg, outputs=("error",)), terrain=terrain,
                    reference=ref, device=device)
-        st = {s.name: s.time_ms for s in f.report.stages}
         ev.p99_px.append(float(f.error.p99_px))
         ev.max_px.append(float(f.error.max_px))
         ev.triangles.append(int(f.mesh.n_triangles))
-        ev.frame_ms.append(st.get("select", 0.0) + st["mesh"] + st["raster"])
+        ev.frame_ms.append(f.report.frame_ms)
     return ev
 
 
-def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float, refs: list,
-                points: int = 24, device: str = "cpu", workers: int | None = 0, scheduler: str | None = None) -> dict:
-    """Evaluate ``points`` log-spaced values on the exact pipeline; the cheapest that meets the budget.
+def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) -> list[Evaluation]:
+    """The :class:`Evaluation` of each value from a sweep's rows (``policy``, ``param``, ``frame``, ``p99_px``,
+    ``max_px``, ``triangles``, ``frame_ms``, ``error``: :func:`terrainwarp.experiments.pareto.sweep`),
+    for a grid search run on the sweep runner. A failed row raises RuntimeError."""
+    evs = []
+    for v in values:
+        rs = sorted((r for r in rows if r["policy"] == policy and r["param"] == v), key=lambda r: r["frame"])
+        if any(r.get("error") for r in rs):
+            raise RuntimeError(f"grid search: evaluating {POLICY_TABLE[policy].field} = {v:g} failed: "
+                               f"{rs[0]['error']}")
+        evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
+                              [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs]))
+    return evs
 
-    With the default ``workers=0`` the evaluations run here, on the caller's ``terrain`` and ``refs``.
-    Otherwise they are jobs of the report's sweep runner (:mod:`terrainwarp.experiments.runner`, dask.distributed):
-    ``workers`` local worker processes (None: one per core) or an existing ``scheduler``; the workers
-    prepare their own terrain and references, and the table is the same.
+
+def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float,
+                refs: list[Frame], points: int = 24, device: str = "cpu", evaluator: Evaluator | None = None) -> dict:
+    """Evaluate ``points`` log-spaced values of the policy's ``POLICY_TABLE`` fit range on the exact pipeline;
+    the cheapest that meets the budget.
+
+    ``evaluator(values) -> [Evaluation]`` runs the evaluations; default: here, one after another, on the
+    caller's ``terrain`` and ``refs`` (:func:`evaluate`). The command line (``terrainwarp fit --workers N``)
+    passes one that runs them as jobs of the sweep runner (dask.distributed), whose workers prepare their
+    own terrain and references; the table is the same.
     """
-    lo, hi = _RANGE[policy]
+    lo, hi = POLICY_TABLE[policy].fit_range
     t0 = time.perf_counter()
     values = [float(v) for v in np.geomspace(lo, hi, points)]
-    if workers == 0 and scheduler is None:
+    if evaluator is None:
         evs = [evaluate(scene, terrain, cameras, policy, v, refs, device) for v in values]
     else:
-        from ..experiments.pareto import Setting, sweep
-
-        rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
-                     device=device, scheduler=scheduler, workers=workers)
-        evs = []
-        for v in values:
-            rs = sorted((r for r in rows if r["policy"] == policy and r["param"] == v), key=lambda r: r["frame"])
-            if any(r.get("error") for r in rs):
-                raise RuntimeError(f"grid search: evaluating {_name(policy)} = {v:g} failed: {rs[0]['error']}")
-            evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
-                                  [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs]))
+        evs = evaluator(values)
     ok = [e for e in evs if e.worst_p99 <= budget_px]
     best = min(ok, key=lambda e: e.cost) if ok else None
     return {"points": points, "evaluations": points * len(cameras), "wall_s": time.perf_counter() - t0,
@@ -197,7 +200,7 @@ def _tree_arrays(terrain: Terrain, metrics: list) -> dict:
 def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: str = "cpu"):
     """A function ``(log_value, temperature) -> (expected triangles per frame (mean), error proxy px (max
     over frames of the soft maximum))``, differentiable with JAX, for a discrete policy."""
-    import jax
+    import jax  # lazy: heavy optional dependency
     import jax.numpy as jnp
 
     metrics = [node_metrics(terrain, c, device) for c in cameras]
@@ -246,68 +249,93 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 # ------------------------------------------------------------------------------------------------
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
-            grid_workers: int | None = 0,
-            seed: int = 0, progress: bool = False, gradient: str = "relaxed", device: str = "cpu") -> FitResult:
+            grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu") -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
     within ``budget_px`` at the lowest cost (triangles).
 
     Args:
         scene: the scene (heightmap, LOD config: roots, tess); its camera path unless ``cameras``.
         budget_px: the screen-space error budget, pixels (> 0).
-        policy: ``"sse"``, ``"distance"`` or ``"continuous"``.
+        policy: ``"sse"``, ``"distance"`` or ``"continuous"`` (a row of ``terrainwarp.scene.POLICY_TABLE``).
         steps: optax Adam steps of the relaxed fit.
         max_validations: exact-pipeline validations (each runs every camera) for the correction.
         rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
         grid_points: if > 0, also run the grid-search baseline with that many points.
-        grid_workers: the grid search's workers (0: in this process; see :func:`grid_search`).
-        seed: reserved for stochastic variants; the fit is deterministic.
+        grid_evaluator: how the grid search runs its evaluations (None: in this process; see
+            :func:`grid_search`).
         gradient: the slope of the correction steps before the budget is bracketed: ``"relaxed"`` (the
             calibrated relaxed model) or, for the continuous policy, ``"pixels"`` (Newton steps in log space
             with d log(mean pixel error above the p99) / d log(target_px) of the worst frame from
             :mod:`terrainwarp.fit.diffpath`: the per-pixel error through the Warp resolve kernel; one extra
             pipeline run per step, counted in ``evaluations``).
     """
-    import jax
-    import jax.numpy as jnp
-    import optax
+    _check_fit_arguments(budget_px, policy, gradient)
+    t_start = time.perf_counter()
+    cams = cameras if cameras is not None else scene.camera_path()
+    if not cams:
+        raise ValueError("cameras: expected at least one camera")
+    terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
+    refs = [render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device) for c in cams]
+    exact = _Exact(scene, terrain, cams, refs, policy, device)
+    if policy == "continuous":
+        model = _continuous_model(terrain, cams, scene.lod.level)
+    else:
+        model = relaxed_model(terrain, cams, policy, device)
+    v = _relaxed_fit(model, POLICY_TABLE[policy].fit_range, budget_px, steps, exact.history)
+    good = _validate(exact, model, v, budget_px, rel_tol, max_validations, gradient)
+    res = _result(exact, good, budget_px, t_start)
+    if grid_points:
+        res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
+                               evaluator=grid_evaluator)
+    return res
 
-    if policy not in POLICIES:
-        raise ValueError(f"policy: expected one of {list(POLICIES)}, got {policy!r}")
+
+def _check_fit_arguments(budget_px: float, policy: str, gradient: str) -> None:
+    if policy not in LOD_POLICIES:
+        raise ValueError(f"policy: expected one of {list(LOD_POLICIES)}, got {policy!r}")
     if gradient not in ("relaxed", "pixels") or (gradient == "pixels" and policy != "continuous"):
         raise ValueError(f"gradient: expected 'relaxed', or 'pixels' with the continuous policy, got {gradient!r}")
     if isinstance(budget_px, bool) or not isinstance(budget_px, int | float) or not math.isfinite(budget_px) \
             or budget_px <= 0:
         raise ValueError(f"budget_px: expected a positive finite number of pixels, got {budget_px!r}")
-    t_start = time.perf_counter()
-    cams = cameras if cameras is not None else scene.camera_path()
-    if not cams:
-        raise ValueError("cameras: expected at least one camera")
-    from ..rendering.pipeline import render
 
-    terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
-    refs = [render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device) for c in cams]
-    lo, hi = _RANGE[policy]
-    history: list[dict] = []
-    n_eval = 0
-    evals: dict[float, Evaluation] = {}
 
-    def exact(v: float) -> Evaluation:
-        nonlocal n_eval
+@dataclass
+class _Exact:
+    """The exact pipeline over the camera path, one evaluation per value (clipped to the fit range), with
+    the count of frames it ran and the fit's history."""
+
+    scene: Scene
+    terrain: Terrain
+    cams: list[Camera]
+    refs: list[Frame]
+    policy: str
+    device: str
+    history: list[dict] = field(default_factory=list)
+    n_eval: int = 0
+    evals: dict[float, Evaluation] = field(default_factory=dict)
+
+    def __call__(self, v: float) -> Evaluation:
+        lo, hi = POLICY_TABLE[self.policy].fit_range
         v = float(np.clip(v, lo, hi))
-        if v not in evals:
-            evals[v] = evaluate(scene, terrain, cams, policy, v, refs, device)
-            n_eval += len(cams)
-            history.append({"stage": "validate", "value": v, "worst_p99_px": evals[v].worst_p99,
-                            "cost": evals[v].cost})
-        return evals[v]
+        if v not in self.evals:
+            self.evals[v] = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device)
+            self.n_eval += len(self.cams)
+            self.history.append({"stage": "validate", "value": v, "worst_p99_px": self.evals[v].worst_p99,
+                                 "cost": self.evals[v].cost})
+        return self.evals[v]
 
-    finest = lo if _COARSER_UP[policy] else hi
 
-    # -- relaxed fit -------------------------------------------------------------------------------
-    if policy == "continuous":
-        model = _continuous_model(terrain, cams, scene.lod.level)
-    else:
-        model = relaxed_model(terrain, cams, policy, device)
+# -- relaxed fit -----------------------------------------------------------------------------------
+def _relaxed_fit(model: Callable, fit_range: tuple[float, float], budget_px: float, steps: int,
+                 history: list[dict]) -> float:
+    """optax Adam on the relaxed loss ``log(cost) + 20 softplus(log error - log budget)``, the temperature
+    annealed from 1 to 0.05, from the middle of the fit range (log space). Returns the value found."""
+    import jax  # lazy: heavy optional dependency
+    import jax.numpy as jnp
+    import optax
+
+    lo, hi = fit_range
     log_budget = math.log(budget_px)
     tri_scale = float(model(jnp.asarray(math.log(math.sqrt(lo * hi))), 1.0)[0]) + 1.0
 
@@ -329,157 +357,170 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             history.append({"stage": "relaxed", "iter": it, "temperature": temp, "loss": float(val),
                             "cost": float(c), "error_proxy_px": float(math.exp(float(le))),
                             "value": float(math.exp(float(log_v)))})
+    return float(math.exp(float(log_v)))
 
-    # -- validation and correction -----------------------------------------------------------------
-    # The relaxed error is an estimate: calibrate it on the exact pipeline. Each round evaluates the exact
-    # pipeline once, sets the offset between exact and relaxed log error there, and solves the relaxed
-    # model (monotone in the parameter) for the budget with that offset; once a feasible and an
-    # infeasible value bracket the budget, interpolate in log-log between them (regula falsi).
+
+# -- exact validation ------------------------------------------------------------------------------
+def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_tol: float, max_validations: int,
+              gradient: str) -> Evaluation | None:
+    """Correct the relaxed value on the exact pipeline; the coarsest value that met the budget (None: none).
+
+    The relaxed error is an estimate: calibrate it on the exact pipeline. Each round evaluates the exact
+    pipeline once, sets the offset between exact and relaxed log error there, and solves the relaxed
+    model (monotone in the parameter) for the budget with that offset; once a feasible and an
+    infeasible value bracket the budget, interpolate in log-log between them (regula falsi)."""
+    import jax  # lazy: heavy optional dependency
+    import jax.numpy as jnp
+
+    spec = POLICY_TABLE[exact.policy]
     log_model = jax.jit(lambda lv: model(lv, 0.05)[1])
     target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
-
-    def solve_relaxed(offset: float) -> float:
-        a, b = math.log(lo), math.log(hi)
-        fa = float(log_model(jnp.asarray(a))) + offset - target
-        fb = float(log_model(jnp.asarray(b))) + offset - target
-        if fa * fb > 0:  # no sign change: the end nearest the target
-            return math.exp(a if abs(fa) < abs(fb) else b)
-        for _ in range(40):
-            m = 0.5 * (a + b)
-            fm = float(log_model(jnp.asarray(m))) + offset - target
-            if (fm > 0) == (fa > 0):
-                a, fa = m, fm
-            else:
-                b = m
-        return math.exp(0.5 * (a + b))
-
-    v = float(math.exp(float(log_v)))
     good: Evaluation | None = None  # feasible (met), coarsest so far
     bad: Evaluation | None = None  # infeasible, finest so far
     for _ in range(max_validations):
         e = exact(v)
         if e.worst_p99 <= budget_px:
-            if good is None or _coarser(policy, e.value, good.value):
+            if good is None or _coarser(exact.policy, e.value, good.value):
                 good = e
             if e.worst_p99 >= budget_px * (1 - rel_tol):
                 break
-        elif bad is None or _coarser(policy, bad.value, e.value):
+        elif bad is None or _coarser(exact.policy, bad.value, e.value):
             bad = e
         if good is not None and bad is not None:
-            lg, lb = math.log(good.value), math.log(bad.value)
-            # cost is monotone in the parameter: nothing in the bracket is cheaper than bad.cost, so
-            # the remaining gain is at most the cost gap; the exact error is a step function of the
-            # parameter (discrete levels), so a narrow bracket is as far as refining can go
-            if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < 0.08:
+            nv = _bracket_step(good, bad, target, rel_tol)
+            if nv is None:
                 break
-            eg, eb = math.log(max(good.worst_p99, 1e-9)), math.log(max(bad.worst_p99, 1e-9))
-            t = (target - eg) / (eb - eg) if eb > eg else 0.5
-            t = min(max(t, 0.1), 0.9)  # keep clear of the ends: the curve is not straight
-            nv = math.exp(lg + t * (lb - lg))
         elif gradient == "pixels":
-            from .diffpath import log_slope
-
-            w = int(np.argmax(e.p99_px))
-            _, slope = log_slope(scene.heightmap, cams[w], v, scene.lod.level, terrain, cull_back=scene.cull_back,
-                                 device=device)
-            n_eval += 1
-            history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
-            step = (target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
-                (1.0 if (e.worst_p99 <= budget_px) == _COARSER_UP[policy] else -1.0)
-            nv = v * math.exp(min(max(step, -1.0), 1.0))
+            nv = _pixel_step(exact, e, v, target, budget_px)
         else:
             offset = math.log(max(e.worst_p99, 1e-9)) - float(log_model(jnp.asarray(math.log(v))))
-            nv = solve_relaxed(offset)
+            nv = _solve_relaxed(log_model, spec.fit_range, offset, target)
             # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
             # finer after an infeasible one). The exact error is flat over wide ranges (whole levels,
             # the triangulation floor), where a calibrated step alone can stall.
-            coarser = (e.worst_p99 <= budget_px) == _COARSER_UP[policy]
+            coarser = (e.worst_p99 <= budget_px) == spec.coarser_up
             nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
-        v = float(np.clip(nv, lo, hi))
-        history.append({"stage": "correct", "next_value": v})
+        v = float(np.clip(nv, *spec.fit_range))
+        exact.history.append({"stage": "correct", "next_value": v})
+    return good
+
+
+def _bracket_step(good: Evaluation, bad: Evaluation, target: float, rel_tol: float) -> float | None:
+    """The next value between a feasible and an infeasible one (log-log interpolation), or None when
+    refining cannot pay: cost is monotone in the parameter, so nothing in the bracket is cheaper than
+    bad.cost and the remaining gain is at most the cost gap; the exact error is a step function of the
+    parameter (discrete levels), so a narrow bracket is as far as refining can go."""
+    lg, lb = math.log(good.value), math.log(bad.value)
+    if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < 0.08:
+        return None
+    eg, eb = math.log(max(good.worst_p99, 1e-9)), math.log(max(bad.worst_p99, 1e-9))
+    t = (target - eg) / (eb - eg) if eb > eg else 0.5
+    t = min(max(t, 0.1), 0.9)  # keep clear of the ends: the curve is not straight
+    return math.exp(lg + t * (lb - lg))
+
+
+def _pixel_step(exact: _Exact, e: Evaluation, v: float, target: float, budget_px: float) -> float:
+    """A Newton step in log space with the worst frame's pixel-error slope (:func:`diffpath.log_slope`)."""
+    from .diffpath import log_slope  # lazy: imports JAX
+
+    sc = exact.scene
+    w = int(np.argmax(e.p99_px))
+    _, slope = log_slope(sc.heightmap, exact.cams[w], v, sc.lod.level, exact.terrain, cull_back=sc.cull_back,
+                         device=exact.device)
+    exact.n_eval += 1
+    exact.history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
+    step = (target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
+        (1.0 if (e.worst_p99 <= budget_px) == POLICY_TABLE[exact.policy].coarser_up else -1.0)
+    return v * math.exp(min(max(step, -1.0), 1.0))
+
+
+def _solve_relaxed(log_model: Callable, fit_range: tuple[float, float], offset: float, target: float) -> float:
+    """The value where the relaxed log error plus ``offset`` equals ``target`` (bisection in log space;
+    without a sign change, the end of the range nearest the target)."""
+    import jax.numpy as jnp  # lazy: heavy optional dependency
+
+    a, b = math.log(fit_range[0]), math.log(fit_range[1])
+    fa = float(log_model(jnp.asarray(a))) + offset - target
+    fb = float(log_model(jnp.asarray(b))) + offset - target
+    if fa * fb > 0:  # no sign change: the end nearest the target
+        return math.exp(a if abs(fa) < abs(fb) else b)
+    for _ in range(40):
+        m = 0.5 * (a + b)
+        fm = float(log_model(jnp.asarray(m))) + offset - target
+        if (fm > 0) == (fa > 0):
+            a, fa = m, fm
+        else:
+            b = m
+    return math.exp(0.5 * (a + b))
+
+
+def _result(exact: _Exact, good: Evaluation | None, budget_px: float, t_start: float) -> FitResult:
+    """The fit's result: the coarsest feasible value, or the finest setting when none met the budget (then
+    reported as met only if even that is within it); wall time from ``t_start`` (``time.perf_counter``)."""
+    policy = exact.policy
+    spec = POLICY_TABLE[policy]
     if good is None:  # never met: is the budget reachable at all?
+        finest = spec.fit_range[0] if spec.coarser_up else spec.fit_range[1]
         floor = exact(finest)
         if floor.worst_p99 > budget_px:
-            return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, n_eval,
-                             time.perf_counter() - t_start,
-                             f"budget {budget_px:g} px cannot be met: even the finest setting "
-                             f"({_name(policy)} = {finest:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px",
-                             history)
+            msg = (f"budget {budget_px:g} px cannot be met: even the finest setting ({spec.field} = {finest:g}) "
+                   f"has a worst-frame p99 error of {floor.worst_p99:.3g} px")
+            return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, exact.n_eval,
+                             time.perf_counter() - t_start, msg, exact.history)
         good = floor
     res = FitResult(policy, budget_px, good.worst_p99 <= budget_px, good.value, _params(policy, good.value), good,
-                    n_eval, time.perf_counter() - t_start, "", history)
-    res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px with {_name(policy)} = "
+                    exact.n_eval, time.perf_counter() - t_start, "", exact.history)
+    res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px with {spec.field} = "
                    f"{good.value:.4g}, {good.cost:.0f} triangles per frame")
-    if grid_points:
-        res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
-                               workers=grid_workers)
-    _ = seed
     return res
 
 
 def _coarser(policy: str, a: float, b: float) -> bool:
-    return a > b if _COARSER_UP[policy] else a < b
-
-
-def _name(policy: str) -> str:
-    return {"sse": "tolerance_px", "distance": "k", "continuous": "target_px"}[policy]
+    return a > b if POLICY_TABLE[policy].coarser_up else a < b
 
 
 def _params(policy: str, value: float) -> LodParams:
-    return LodParams()._replace(**{_FIELD[policy]: math.log(value)})
+    return LodParams()._replace(**{f"log_{POLICY_TABLE[policy].field}": math.log(value)})
 
 
-def _continuous_model(terrain: Terrain, cameras: list[Camera], level: int):
-    """Relaxed cost/error of the continuous policy: per-edge factors from the edge endpoints, soft clamped."""
-    import jax
+def _continuous_frame(terrain: Terrain, cam: Camera, level: int) -> tuple[np.ndarray, ...]:
+    """What the continuous relaxed model needs of one camera: the patches' projected edge lengths
+    (:func:`terrainwarp.lod.edge_pixels`, unclamped), eye distances, geometric errors per pyramid level at
+    each patch, the levels' vertex spacings (cells) and the patches' sides (cells)."""
+    pl = select(terrain, cam, ContinuousPolicy(1.0, level=level))
+    edge_px = edge_pixels(terrain.heightmap, cam.position, cam.focal_px, pl.origin, pl.size)
+    dist = np.maximum(pl.distance.astype(np.float64), 1e-9)
+    # geometric error against vertex spacing (in cells), log-log through the pyramid levels
+    errs = []
+    for L in range(terrain.depth + 1):
+        cells = terrain.root_cells / 2 ** L
+        k = np.floor(pl.origin_cells / cells).astype(np.int64)
+        st = terrain.stats[L][2]
+        k[:, 0] = np.clip(k[:, 0], 0, st.shape[1] - 1)
+        k[:, 1] = np.clip(k[:, 1], 0, st.shape[0] - 1)
+        errs.append(st[k[:, 1], k[:, 0]].astype(np.float64))
+    spacing = np.array([terrain.root_cells / 2 ** L / terrain.tess for L in range(terrain.depth + 1)])
+    return edge_px, dist, np.stack(errs, 1), spacing, pl.size_cells.astype(np.float64)
+
+
+def _continuous_model(terrain: Terrain, cameras: list[Camera], level: int) -> Callable:
+    """Relaxed cost/error of the continuous policy: the policy's factor rule
+    (:func:`terrainwarp.lod.continuous_factors`) with a soft clamp."""
+    import jax  # lazy: heavy optional dependency
     import jax.numpy as jnp
 
-    from ..lod.quadtree import ContinuousPolicy, select
-
-    lvl = min(level, terrain.depth)
     focal = cameras[0].focal_px
-    per_cam = []
-    for cam in cameras:
-        pl = select(terrain, cam, ContinuousPolicy(1.0, level=lvl))
-        # outer factors at target 1 px are the projected edge lengths in px (clamped to [1, 64]: unclamp
-        # by recomputing the raw value from the geometry)
-        hm = terrain.heightmap
-        eye = np.asarray(cam.position)
-        o, s = pl.origin, pl.size
-        mids = []
-        lens = []
-        for a, b in (((0, 0), (0, 1)), ((0, 0), (1, 0)), ((1, 0), (1, 1)), ((0, 1), (1, 1))):
-            pa = np.stack([o[:, 0] + a[0] * s[:, 0], o[:, 1] + a[1] * s[:, 1]], 1)
-            pb = np.stack([o[:, 0] + b[0] * s[:, 0], o[:, 1] + b[1] * s[:, 1]], 1)
-            ha = hm.sample(pa[:, 0], pa[:, 1]).astype(np.float64)
-            hb = hm.sample(pb[:, 0], pb[:, 1]).astype(np.float64)
-            A = np.stack([pa[:, 0], ha, pa[:, 1]], 1)
-            B = np.stack([pb[:, 0], hb, pb[:, 1]], 1)
-            lens.append(np.linalg.norm(B - A, axis=1))
-            mids.append(np.linalg.norm(0.5 * (A + B) - eye, axis=1))
-        raw = np.stack(lens, 1) * cam.focal_px / np.maximum(np.stack(mids, 1), 1e-9)
-        dist = np.maximum(pl.distance.astype(np.float64), 1e-9)
-        # geometric error against vertex spacing (in cells), log-log through the pyramid levels
-        errs = []
-        for L in range(terrain.depth + 1):
-            cells = terrain.root_cells / 2 ** L
-            k = np.floor(pl.origin_cells / cells).astype(np.int64)
-            st = terrain.stats[L][2]
-            k[:, 0] = np.clip(k[:, 0], 0, st.shape[1] - 1)
-            k[:, 1] = np.clip(k[:, 1], 0, st.shape[0] - 1)
-            errs.append(st[k[:, 1], k[:, 0]].astype(np.float64))
-        spacing = np.array([terrain.root_cells / 2 ** L / terrain.tess for L in range(terrain.depth + 1)])
-        per_cam.append((raw, dist, np.stack(errs, 1), spacing, pl.size_cells.astype(np.float64)))
+    per_cam = [_continuous_frame(terrain, cam, min(level, terrain.depth)) for cam in cameras]
 
     def softclamp(x, a, b, t=0.5):
         return a + t * jax.nn.softplus((x - a) / t) - t * jax.nn.softplus((x - b) / t)
 
     def model(log_target, temp, err_temp=0.25):
         costs, errs = [], []
-        for raw, dist, gerr, spacing, size_cells in per_cam:
-            f = softclamp(jnp.asarray(raw) / jnp.exp(log_target), 1.0, 64.0, jnp.maximum(temp, 0.05))
-            inner_u = 0.5 * (f[:, 1] + f[:, 3])
-            inner_v = 0.5 * (f[:, 0] + f[:, 2])
+        for edge_px, dist, gerr, spacing, size_cells in per_cam:
+            _, inner = continuous_factors(jnp.asarray(edge_px), jnp.exp(log_target), xp=jnp,
+                                          clamp=lambda x, a, b: softclamp(x, a, b, jnp.maximum(temp, 0.05)))
+            inner_u, inner_v = inner[:, 0], inner[:, 1]
             costs.append(jnp.sum(2.0 * inner_u * inner_v))
             s = jnp.asarray(size_cells) / jnp.maximum(0.5 * (inner_u + inner_v), 1.0)  # cells per segment
             ls = jnp.log(jnp.asarray(spacing))
@@ -494,17 +535,13 @@ def _continuous_model(terrain: Terrain, cameras: list[Camera], level: int):
     return model
 
 
-def plot_fit(result: FitResult, path, budgets_curve: list[tuple[float, float]] | None = None):
+def plot_fit(result: FitResult, path: str | Path, budgets_curve: list[tuple[float, float]] | None = None) -> Path:
     """fit.png: the relaxed optimisation (loss, cost, error proxy against iteration), the validation steps,
     and, if given, the fitted cost against the budget."""
-    import matplotlib
+    import matplotlib  # lazy: heavy optional dependency
 
     matplotlib.use("Agg")
-    from pathlib import Path
-
     import matplotlib.pyplot as plt
-
-    from ..io.files import atomic_path
 
     rel = [h for h in result.history if h.get("stage") == "relaxed"]
     val = [h for h in result.history if h.get("stage") == "validate"]
@@ -537,8 +574,4 @@ def plot_fit(result: FitResult, path, budgets_curve: list[tuple[float, float]] |
         ax[2].set_ylabel("fitted triangles per frame")
         ax[2].set_title("cost against budget")
     fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    return p
+    return save_figure(fig, path, dpi=100)

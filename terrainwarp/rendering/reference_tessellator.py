@@ -64,12 +64,16 @@ ring, edge by edge), though only the set of triangles is observable on a GPU.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
+from ..io.files import save_figure
+from ..kernels.tessellator import SPACING_CODES
+
 __all__ = ["tessellate_patch", "patch_counts", "SPACINGS"]
 
-SPACINGS = ("equal", "fractional_even", "fractional_odd")
+SPACINGS = tuple(SPACING_CODES)  # the spacing names, from the Warp tessellator's codes
 
 FXP_ONE = 1 << 16
 FXP_HALF = 1 << 15
@@ -460,12 +464,10 @@ def tessellation_json(outer, inner, spacing: str) -> dict:
             "n_triangles": int(tri.shape[0]), "points": uv.tolist(), "triangles": tri.tolist()}
 
 
-def write_tessellation_picture(path, outer, inner, spacing: str, size_px: int = 800):
+def write_tessellation_picture(path: str | Path, outer, inner, spacing: str, size_px: int = 800) -> Path:
     """Draw the domain triangulation of one patch (u right, v up) to a PNG; returns the path."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: heavy optional dependency
     from matplotlib.figure import Figure
-
-    from ..io.files import atomic_path
 
     uv, tri = tessellate_patch(outer, inner, spacing)
     fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
@@ -488,6 +490,4 @@ def write_tessellation_picture(path, outer, inner, spacing: str, size_px: int = 
     ax.set_aspect("equal")
     ax.set_xlabel("u")
     ax.set_ylabel("v")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
+    return save_figure(fig, path, dpi=100)

@@ -235,3 +235,33 @@ def test_fit_lod_with_pixel_gradients_meets_the_budget(hm, cam):
         fit_lod(sc, 0.5, policy="sse", cameras=[cam], gradient="pixels")
     with pytest.raises(ValueError, match="gradient"):
         fit_lod(sc, 0.5, policy="continuous", cameras=[cam], gradient="magic")
+
+
+def _ulps(a, b) -> int:
+    """Largest distance in float32 units in the last place between two float32 arrays of one sign."""
+    a, b = np.asarray(a, np.float32), np.asarray(b, np.float32)
+    return int(np.abs(a.view(np.int32).astype(np.int64) - b.view(np.int32).astype(np.int64)).max())
+
+
+def test_factor_rule_is_one_function_evaluated_by_numpy_and_jax(hm, cam, terrain):
+    """The continuous per-edge factor rule is ``terrainwarp.lod.continuous_factors``, one function: select
+    evaluates it in numpy float64 (rounded once to float32), the fit and this path in JAX float32. JAX's
+    CPU division is the product with the reciprocal, not IEEE division, so for the same float32 inputs the
+    outer factors agree to the last float32 ulp and the inner ones (a mean of two) within 2 ulps; through
+    ``levels`` (which also rounds the edge lengths to float32 and takes the target as exp(log target)) they
+    agree with select's within 2 ulps (outer) and 3 (inner)."""
+    from terrainwarp.lod import ContinuousPolicy, continuous_factors, edge_pixels, select
+
+    for t in (0.3, 1.7, 3.0, 11.0):
+        pl = select(terrain, cam, ContinuousPolicy(t, level=LEVEL))
+        px = edge_pixels(hm, cam.position, cam.focal_px, pl.origin, pl.size)
+        o64, i64 = continuous_factors(px, t)  # what select draws, before its rounding to float32
+        assert np.array_equal(o64.astype(np.float32), pl.outer) and np.array_equal(i64.astype(np.float32), pl.inner)
+        o32, i32 = continuous_factors(px.astype(np.float32), np.float32(t))
+        oj, ij = continuous_factors(jnp.asarray(px, jnp.float32), jnp.float32(t), xp=jnp)
+        assert _ulps(oj, o32) <= 1 and _ulps(ij, i32) <= 2
+        fr = dp.prepare(hm, cam, t, level=LEVEL, terrain=terrain)
+        lv = np.asarray(dp.levels(fr, fr.log_target0))
+        assert _ulps(lv[:, :4], np.clip(pl.outer, 1.0, 63.0)) <= 2
+        lo_in = np.where(fr.frame_flag, np.float32(1.0 + 2.0**-16), np.float32(1.0))[:, None]
+        assert _ulps(lv[:, 4:], np.clip(pl.inner, lo_in, 63.0)) <= 3

@@ -6,8 +6,11 @@ import numpy as np
 import pytest
 
 from terrainwarp import Camera, Heightmap, LodConfig, Scene
-from terrainwarp.fit import fit_lod, relaxed_model
+from terrainwarp.cli import sweep_evaluator
+from terrainwarp.fit import LodParams, evaluate, fit_lod, grid_search, relaxed_model
 from terrainwarp.lod import Terrain
+from terrainwarp.rendering.pipeline import render
+from terrainwarp.scene import POLICY_TABLE
 
 
 @pytest.fixture(scope="module")
@@ -67,12 +70,24 @@ def test_impossible_and_bad_budgets(scene):
 
 
 def test_grid_search_on_the_sweep_runner_matches_in_process(scene):
-    from terrainwarp.fit import grid_search
-    from terrainwarp.rendering.pipeline import render
-
     sc, cams = scene
     terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
     refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
     here = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5)
-    dask = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5, workers=1)
+    # what `terrainwarp fit --workers 1` passes: the evaluations as jobs of the sweep runner
+    dask = grid_search(sc, terrain, cams, "sse", 1.5, refs, points=5, evaluator=sweep_evaluator(sc, cams, "sse", 1))
     assert here["table"] == dask["table"] and here["value"] == dask["value"]
+
+
+def test_parameters_and_ranges_come_from_the_policy_table(scene):
+    assert LodParams._fields == tuple(f"log_{s.field}" for s in POLICY_TABLE.values())
+    assert LodParams() == tuple(math.log(getattr(LodConfig(), s.field)) for s in POLICY_TABLE.values())
+    sc, cams = scene
+    terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
+    refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams[:1]]
+    g = grid_search(sc, terrain, cams[:1], "distance", 1.0, refs, points=2)
+    assert [row[0] for row in g["table"]] == pytest.approx(list(POLICY_TABLE["distance"].fit_range))
+    ev = evaluate(sc, terrain, cams[:1], "sse", 2.0, refs)
+    f = render(sc.with_(camera=cams[0], mesh="lod", lod=sc.lod.with_policy("sse", 2.0), outputs=("error",)),
+               terrain=terrain, reference=refs[0])
+    assert ev.triangles == [f.mesh.n_triangles] and ev.frame_ms[0] > 0  # frame cost: Report.frame_ms

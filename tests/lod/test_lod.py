@@ -1,18 +1,25 @@
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
+from terrainwarp.kernels.tessellator import SPACING_CODES
 from terrainwarp.lod import (
+    POLICY_CLASSES,
     ContinuousPolicy,
     DistancePolicy,
     LodState,
     ScreenErrorPolicy,
     Terrain,
+    continuous_factors,
+    edge_pixels,
+    make_policy,
     select,
     tile_from_key,
     tile_key,
     tile_name,
 )
+from terrainwarp.rendering.reference_tessellator import SPACINGS as REFERENCE_SPACINGS
+from terrainwarp.scene import LOD_POLICIES, POLICY_TABLE, SPACINGS
 
 
 def test_keys_round_trip():
@@ -244,3 +251,44 @@ def test_bad_input():
     d = np.unique(uniform.distance)
     with pytest.raises(ValueError, match="tess"):  # mixed levels would need 2 * 40 > 64
         select(big, cam, DistancePolicy(thresholds=(1e9, 0.5 * (d[0] + d[1]))))
+
+
+def test_policy_table_drives_config_policies_and_validation():
+    assert set(POLICY_CLASSES) == set(POLICY_TABLE) == set(LOD_POLICIES)
+    for name, spec in POLICY_TABLE.items():
+        cfg = LodConfig().with_policy(name, 3.5)
+        assert cfg.policy == name and getattr(cfg, spec.field) == 3.5 and cfg.value == 3.5
+        assert cfg.spacing == (spec.spacing or "equal")
+        p = make_policy(cfg)
+        assert type(p) is POLICY_CLASSES[name] and getattr(p, spec.field) == 3.5
+        lo, hi = spec.fit_range
+        assert 0 < lo < hi
+        with pytest.raises(ValueError, match=spec.field):
+            LodConfig(policy=name, **{spec.field: -1.0})
+        with pytest.raises(ValueError, match=spec.field):  # the policy object validates with the same rule
+            POLICY_CLASSES[name](**{spec.field: float("nan")})
+        with pytest.raises(ValueError, match="hysteresis"):
+            LodConfig(policy=name, hysteresis=1.0)
+    assert make_policy(LodConfig(policy="continuous", level=2)).level == 2
+    LodConfig(policy="distance", k=0.0)  # k >= 0 is allowed, tolerances must be positive
+    LodConfig(policy="sse", k=-1.0)  # only the chosen policy's parameter is checked
+    with pytest.raises(ValueError, match="level"):
+        LodConfig(policy="continuous", level=-1)
+    with pytest.raises(TypeError, match="LodConfig"):
+        make_policy("sse")
+    # the spacing names come from the Warp tessellator's codes
+    assert SPACINGS == tuple(SPACING_CODES) == REFERENCE_SPACINGS
+
+
+def test_continuous_select_uses_the_one_factor_rule(dem_terrain):
+    cam = _cams(dem_terrain.heightmap)[1]
+    pl = select(dem_terrain, cam, ContinuousPolicy(target_px=6.0, level=3))
+    px = edge_pixels(dem_terrain.heightmap, cam.position, cam.focal_px, pl.origin, pl.size)
+    outer, inner = continuous_factors(px, 6.0)
+    assert np.array_equal(outer.astype(np.float32), pl.outer) and np.array_equal(inner.astype(np.float32), pl.inner)
+    # the rule by hand: clamp(L * focal / d / target, 1, 64), inner the means of opposite edges
+    o = pl.origin[0]
+    a = np.array([o[0], dem_terrain.heightmap.sample(o[0], o[1]), o[1]])
+    b = np.array([o[0], dem_terrain.heightmap.sample(o[0], o[1] + pl.size[0, 1]), o[1] + pl.size[0, 1]])
+    f = np.linalg.norm(b - a) * cam.focal_px / np.linalg.norm(0.5 * (a + b) - np.asarray(cam.position)) / 6.0
+    assert pl.outer[0, 0] == pytest.approx(min(max(f, 1.0), 64.0), rel=1e-6)
