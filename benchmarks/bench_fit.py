@@ -16,6 +16,7 @@ from terrainwarp import Camera, Heightmap, LodConfig, Scene
 from terrainwarp.fit import fit_lod, grid_search
 from terrainwarp.lod import Terrain
 from terrainwarp.rendering.pipeline import render
+from terrainwarp.scene import LOD_POLICIES
 
 BUDGETS = (0.5, 1.0, 2.0, 4.0)
 
@@ -36,7 +37,7 @@ def main() -> None:
     terrain = Terrain.prepare(hm, roots=16, tess=16)
     refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
     rows = []
-    for policy in (("sse", "distance", "continuous") if a.all else ("sse",)):
+    for policy in (LOD_POLICIES if a.all else ("sse",)):
         t0 = time.perf_counter()
         g_all = {b: grid_search(sc, terrain, cams, policy, b, refs, points) for b in BUDGETS[:1]}
         grid_wall = time.perf_counter() - t0

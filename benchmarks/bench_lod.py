@@ -14,7 +14,7 @@ import numpy as np
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, flyover
-from terrainwarp.lod import DistancePolicy, Terrain, select
+from terrainwarp.lod import DistancePolicy, LodState, ScreenErrorPolicy, Terrain, select
 
 PAPER = {  # deaconu2021 Table 1: processed vertices (CPU), frames per second on a GTX 1050
     (4, False, 1): (256, 5720.53), (4, False, 32): (256, 2351.13), (4, True, 32): (4194304, 447.27),
@@ -94,8 +94,6 @@ def main() -> None:
                 "middle seeing the whole terrain; best of 3):\n")
     body.append(md_table(["depth", "leaves", "nodes_visited", "select_ms", "us_per_leaf"], grow))
     # hysteresis (malafeev2014): level changes along a camera moving back and forth
-    from terrainwarp.lod import LodState, ScreenErrorPolicy
-
     terrain = Terrain.prepare(hm, roots=16, tess=16)
     path = []
     for k in range(200):

@@ -27,7 +27,13 @@ import time
 import numpy as np
 from _common import best_of, md_table, write_result
 
-from terrainwarp.kernels.tessellator import SPACING_CODES, _frame_device, _prepare, _tessellate, tessellate_patches
+from terrainwarp.kernels.tessellator import (
+    SPACING_CODES,
+    frame_device,
+    prepare_frame,
+    tessellate_device,
+    tessellate_patches,
+)
 
 LEVEL = 32
 ROOTS = 8  # per side: 64 roots
@@ -81,8 +87,8 @@ def numpy_frame(pt: dict, h: np.ndarray, eye):
 
 
 def device_frame(pt: dict, h: np.ndarray, eye):
-    args, _ = _prepare(pt, h, DX, DX, eye, "equal", "bilinear", (0.0, 0.0))
-    return _frame_device(*args, "cpu")
+    args, _ = prepare_frame(pt, h, DX, DX, eye, "equal", "bilinear", (0.0, 0.0))
+    return frame_device(*args, "cpu")
 
 
 def main() -> None:
@@ -99,7 +105,7 @@ def main() -> None:
     for k in args.k:
         pt = frame(k)
         p = pt["outer"].shape[0]
-        t_dom, res = best_of(lambda pt=pt: _tessellate(pt["outer"], pt["inner"], code, "cpu"), args.repeat)
+        t_dom, res = best_of(lambda pt=pt: tessellate_device(pt["outer"], pt["inner"], code, "cpu"), args.repeat)
         nv, nt = res[0], res[1]
         del res
         t_dev, res = best_of(lambda pt=pt: device_frame(pt, h, eye), args.repeat)
@@ -134,7 +140,7 @@ def main() -> None:
     if args.full:
         pt = frame(32)
         t0 = time.perf_counter()
-        res = _tessellate(pt["outer"], pt["inner"], code, "cpu")
+        res = tessellate_device(pt["outer"], pt["inner"], code, "cpu")
         t_dom = time.perf_counter() - t0
         del res
         t0 = time.perf_counter()

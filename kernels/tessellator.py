@@ -42,7 +42,8 @@ import warp as wp
 
 from .sampling import sample_height
 
-__all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES"]
+__all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
+           "tessellate_device", "prepare_frame", "frame_device"]
 
 # the spacing names (OpenGL: equal_spacing, fractional_even_spacing, fractional_odd_spacing) and the codes the
 # kernels take: the one list of spacing names (terrainwarp.scene.SPACINGS and the reference tessellator derive theirs)
@@ -612,7 +613,10 @@ def _spacing_code(spacing: str) -> int:
     return SPACING_CODES[spacing]
 
 
-def _tessellate(o: np.ndarray, i: np.ndarray, code: int, device: str):
+def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
+    """Count, scan and emit for P patches (levels (P, 4) and (P, 2) float32, a ``SPACING_CODES`` code), no
+    validation: -> (points n, triangles m, Warp arrays domain (16.16), patch id, triangles, vertex and
+    triangle offsets). The device part of :func:`tessellate_domains` (timed alone by the benchmarks)."""
     p = o.shape[0]
     wo = wp.array(o, dtype=wp.vec4, device=device)
     wi = wp.array(i, dtype=wp.vec2, device=device)
@@ -650,7 +654,7 @@ def tessellate_domains(outer, inner, spacing: str, device: str = "cpu"):
         :func:`terrainwarp.tessellate_patch` with indices shifted by its vertex offset.
     """
     o, i = _levels(outer, inner)
-    n, m, dom, pid, tri, v_off, t_off = _tessellate(o, i, _spacing_code(spacing), device)
+    n, m, dom, pid, tri, v_off, t_off = tessellate_device(o, i, _spacing_code(spacing), device)
     return {
         "uv": (dom.numpy()[:n].astype(np.float64) / FXP_ONE).astype(np.float32).reshape(-1, 2),
         "patch_id": pid.numpy()[:n].copy(),
@@ -720,8 +724,8 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     lattice offset from the eye (relative error 2^-24 of the distance to the eye); the sampling
     coordinate is float32 (2^-12 cells at column 4,096).
     """
-    args, e = _prepare(patches, heights, dx, dz, eye, spacing, filter, origin)
-    n, m, dom, pid, tri, v_off, t_off, pos, uv, lev = _frame_device(*args, device)
+    args, e = prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
+    n, m, dom, pid, tri, v_off, t_off, pos, uv, lev = frame_device(*args, device)
     tri_np = tri.numpy()[:m].reshape(-1, 3)
     tri_np[:, [1, 2]] = tri_np[:, [2, 1]]  # GL ccw in (u, v) = (x, z) is clockwise seen from +y: swap, in place
     return Tessellation(
@@ -732,9 +736,9 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
         eye=(float(e[0]), float(e[1]), float(e[2])))
 
 
-def _frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device):
+def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device):
     """Device stages of :func:`tessellate_patches` (count, scan, emit, displace); Warp arrays out."""
-    n, m, dom, pid, tri, v_off, t_off = _tessellate(o, i, code, device)
+    n, m, dom, pid, tri, v_off, t_off = tessellate_device(o, i, code, device)
     pos = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
     uv = wp.empty(max(n, 1), dtype=wp.vec2, device=device)
     lev = wp.empty(max(n, 1), dtype=wp.int32, device=device)
@@ -749,8 +753,8 @@ def _frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device
     return n, m, dom, pid, tri, v_off, t_off, pos, uv, lev
 
 
-def _prepare(patches, heights, dx, dz, eye, spacing, filter, origin):
-    """Validate :func:`tessellate_patches`' arguments; -> (arguments of _frame_device but the device, eye)."""
+def prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin):
+    """Validate :func:`tessellate_patches`' arguments; -> (arguments of frame_device but the device, eye)."""
     o, i = _levels(_get(patches, "outer"), _get(patches, "inner"))
     p = o.shape[0]
     org = np.asarray(_get(patches, "origin_xz"), dtype=np.float64)
