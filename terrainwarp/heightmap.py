@@ -36,13 +36,34 @@ def _positive(name: str, v: object) -> float:
     return f
 
 
+def check_heights(name: str, h: np.ndarray, *, allow_nan: bool) -> None:
+    """The one set of rules for heights, shared by :meth:`Heightmap.from_array` and the constructor: a
+    non-empty 2D grid; float heights finite, NaN only as no-data holes (``allow_nan``) and never every
+    one of them. Raises ValueError naming ``name``."""
+    if h.ndim != 2:
+        raise ValueError(f"{name}: expected a 2D array (H, W), got shape {h.shape}")
+    if h.size == 0:
+        raise ValueError(f"{name}: expected a non-empty array, got shape {h.shape}")
+    if not np.issubdtype(h.dtype, np.floating):
+        return
+    n_inf = int(np.isinf(h).sum())
+    if n_inf:
+        raise ValueError(f"{name}: expected finite heights, got {n_inf} infinite values")
+    nn = int(np.isnan(h).sum())
+    if nn and not allow_nan:
+        raise ValueError(f"{name}: {nn} NaN heights; pass allow_nan=True to treat NaN as no-data holes")
+    if nn == h.size:
+        raise ValueError(f"{name}: every height is NaN")
+
+
 @dataclass(frozen=True, eq=False)
 class Heightmap:
     """A regular grid of heights.
 
     Attributes:
         heights: (H, W) float32 metres, read-only. Row i runs along +z, column j along +x.
-            NaN marks no-data holes only when the heightmap was made with ``allow_nan=True``.
+            NaN marks no-data holes (``from_array`` accepts them only with ``allow_nan=True``); the
+            constructor and ``from_array`` check the heights by the same rules (:func:`check_heights`).
         dx, dz: sample spacing along x (columns) and z (rows), metres.
         origin: world (x, z) of sample (0, 0), metres (float64; far-from-origin terrains keep their
             precision because the pipeline subtracts the eye in float64 before casting to float32).
@@ -61,6 +82,7 @@ class Heightmap:
         h = self.heights
         if not isinstance(h, np.ndarray) or h.dtype != np.float32 or h.ndim != 2:
             raise TypeError("heights: use Heightmap.from_array() to build a Heightmap from arbitrary data")
+        check_heights("heights", h, allow_nan=True)  # NaN: no-data holes, as from_array(allow_nan=True)
         h = np.ascontiguousarray(h)
         h.setflags(write=False)
         object.__setattr__(self, "heights", h)
@@ -93,10 +115,7 @@ class Heightmap:
             raise TypeError(f"a: expected an integer or float array, got dtype {arr.dtype}")
         if arr.ndim == 3 and arr.shape[2] == 1:
             arr = arr[:, :, 0]
-        if arr.ndim != 2:
-            raise ValueError(f"a: expected a 2D array (H, W), got shape {arr.shape}")
-        if arr.size == 0:
-            raise ValueError(f"a: expected a non-empty array, got shape {arr.shape}")
+        check_heights("a", arr, allow_nan=allow_nan)  # shape, then values (the scaled ones below)
         if max_height is not None:
             n = _positive("max_height", max_height)
             if np.issubdtype(arr.dtype, np.integer):
@@ -106,15 +125,8 @@ class Heightmap:
                 h64 = arr.astype(np.float64) * n
         else:
             h64 = None
-        if np.issubdtype(arr.dtype, np.floating):
-            src = arr if h64 is None else h64
-            if np.isinf(src).any():
-                raise ValueError(f"a: expected finite heights, got {int(np.isinf(src).sum())} infinite values")
-            nn = int(np.isnan(src).sum())
-            if nn and not allow_nan:
-                raise ValueError(f"a: {nn} NaN heights; pass allow_nan=True to treat NaN as no-data holes")
-            if nn == src.size:
-                raise ValueError("a: every height is NaN")
+        if h64 is not None and np.issubdtype(arr.dtype, np.floating):
+            check_heights("a", h64, allow_nan=allow_nan)  # scaling may overflow to inf
         with np.errstate(over="ignore"):
             h = (h64 if h64 is not None else arr).astype(np.float32)
         if np.isinf(h).any():
