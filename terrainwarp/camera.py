@@ -50,6 +50,30 @@ def _vec3(name: str, v: object) -> tuple[float, float, float]:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
+def _pixels(name: str, v: object) -> int:
+    if isinstance(v, bool) or not isinstance(v, int | np.integer):
+        raise TypeError(f"{name}: expected a positive integer number of pixels, got {v!r}")
+    if not 1 <= int(v) <= 16384:
+        raise ValueError(f"{name}: expected 1..16384 pixels, got {v}")
+    return int(v)
+
+
+def _finite(name: str, v: object) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer):
+        raise TypeError(f"{name}: expected a number, got {v!r}")
+    if not math.isfinite(float(v)):
+        raise ValueError(f"{name}: expected a finite number, got {v}")
+    return float(v)
+
+
+def _fov(v: object) -> float:
+    """The one field-of-view rule (the camera's and every camera maker's): degrees in (0, 180)."""
+    f = _finite("fov_y_deg", v)
+    if not 0.0 < f < 180.0:
+        raise ValueError(f"fov_y_deg: expected a value in (0, 180) degrees, got {v}")
+    return f
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera in OpenGL conventions (see the module docstring).
@@ -77,21 +101,10 @@ class Camera:
         for name in ("position", "target", "up"):
             object.__setattr__(self, name, _vec3(name, getattr(self, name)))
         for name in ("width", "height"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | np.integer):
-                raise TypeError(f"{name}: expected a positive integer number of pixels, got {v!r}")
-            if not 1 <= int(v) <= 16384:
-                raise ValueError(f"{name}: expected 1..16384 pixels, got {v}")
-            object.__setattr__(self, name, int(v))
-        for name in ("fov_y_deg", "near", "far"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer):
-                raise TypeError(f"{name}: expected a number, got {v!r}")
-            if not math.isfinite(float(v)):
-                raise ValueError(f"{name}: expected a finite number, got {v}")
-            object.__setattr__(self, name, float(v))
-        if not 0.0 < self.fov_y_deg < 180.0:
-            raise ValueError(f"fov_y_deg: expected a value in (0, 180) degrees, got {self.fov_y_deg}")
+            object.__setattr__(self, name, _pixels(name, getattr(self, name)))
+        object.__setattr__(self, "fov_y_deg", _fov(self.fov_y_deg))
+        for name in ("near", "far"):
+            object.__setattr__(self, name, _finite(name, getattr(self, name)))
         if not self.near > 0.0:
             raise ValueError(f"near: expected > 0, got {self.near}")
         if not self.far > self.near:
@@ -165,6 +178,8 @@ class Camera:
     def default_for(cls, heightmap: Heightmap, width: int = 640, height: int = 480,
                     fov_y_deg: float = 45.0) -> Camera:
         """A three-quarter view from the south (+z) side that frames the whole terrain."""
+        fov_y_deg = _fov(fov_y_deg)  # before it divides the distance
+        width, height = _pixels("width", width), _pixels("height", height)
         (x0, z0), (x1, z1) = heightmap.bounds_xz
         finite = heightmap.heights[np.isfinite(heightmap.heights)]
         hmin = float(finite.min()) if finite.size else 0.0
