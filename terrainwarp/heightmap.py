@@ -20,6 +20,7 @@ import numpy as np
 from .io import geotiff
 from .io.files import atomic_path, write_image
 from .io.geodesy import metres_per_degree
+from .io.memory import check_heightmap_fits
 from .kernels import noise, sampling
 
 __all__ = ["Heightmap", "metres_per_degree"]  # metres_per_degree lives in io.geodesy; re-exported as before
@@ -174,6 +175,9 @@ class Heightmap:
                             f"{', '.join(sorted(raster_options))}; {p.name} is read by OpenImageIO or numpy")
         dx = 1.0 if dx is None else dx
         if ext == ".npy":
+            shape = _npy_shape(p)
+            if shape is not None and len(shape) >= 2:
+                check_heightmap_fits("path", shape[0], shape[1], what=f"array in {p.name}")
             try:
                 arr = np.load(p, allow_pickle=False)
             except Exception as e:  # numpy raises several types for corrupt files
@@ -237,6 +241,7 @@ class Heightmap:
                 raise ValueError(f"{nm}: expected a positive integer, got {v!r}")
         n = _positive("max_height", max_height)
         fs = _positive("feature_size", feature_size)
+        check_heightmap_fits("rows" if rows >= cols else "cols", rows, cols)
         a = noise.fbm(int(rows), int(cols), seed=int(seed), base_frequency=1.0 / fs, octaves=int(octaves),
                        lacunarity=float(lacunarity), gain=float(gain), ridged=ridged)
         h = ((a + np.float32(1.0)) * np.float32(0.5 * n)).astype(np.float32)
@@ -354,6 +359,7 @@ def _read_image(p: Path, channel: int) -> np.ndarray:
             raise ValueError(f"path: image {p} is empty ({spec.width}x{spec.height})")
         if not 0 <= channel < spec.nchannels:
             raise ValueError(f"channel: expected 0..{spec.nchannels - 1} for {p}, got {channel}")
+        check_heightmap_fits("path", spec.height, spec.width, what=f"image {p.name}")  # from the header
         px = inp.read_image(0, 0, channel, channel + 1, oiio.UNKNOWN)
         if px is None:
             raise ValueError(f"path: {p} is corrupt or truncated: {inp.geterror().strip()}")
@@ -365,3 +371,16 @@ def _read_image(p: Path, channel: int) -> np.ndarray:
     if arr.dtype == np.float16:
         arr = arr.astype(np.float32)
     return arr
+
+
+def _npy_shape(p: Path) -> tuple[int, ...] | None:
+    """The shape a ``.npy`` file's header declares, or None when the header cannot be read (np.load then
+    says why)."""
+    try:
+        with p.open("rb") as f:
+            version = np.lib.format.read_magic(f)
+            shape, _, _ = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0(f))
+        return tuple(int(v) for v in shape)
+    except (ValueError, OSError, EOFError):
+        return None

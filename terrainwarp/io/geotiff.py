@@ -39,6 +39,7 @@ import numpy as np
 
 from .files import atomic_path
 from .geodesy import WGS84_A, WGS84_INV_F, metres_per_degree
+from .memory import check_heightmap_fits
 
 if TYPE_CHECKING:  # rasterio and affine are imported where used (heavy optional dependencies)
     from affine import Affine
@@ -262,7 +263,12 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
         if b > src.count:
             raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
         _check_transform(src, p)
-        part = _read_part(src, b, _pixel_window(src, window, bounds), k, resampling)
+        pw = _pixel_window(src, window, bounds)
+        check_heightmap_fits("window" if window is not None else "bounds" if bounds is not None else "path",
+                             pw[2] // k, pw[3] // k, what=f"part of {p.name} read as heights",
+                             hint="read a part with window= or bounds=, or one sample per k x k block "
+                                  "with decimate=k")  # from the header, before GDAL decodes anything
+        part = _read_part(src, b, pw, k, resampling)
         file_meta = dict(source=str(p), driver=src.driver, band=b, band_count=src.count,
                          raster_shape=[int(src.height), int(src.width)],
                          area_or_point=src.tags().get("AREA_OR_POINT", "Area"))
