@@ -16,21 +16,13 @@ import os as _os
 
 import warp as _wp
 
+from .io.native import native_stderr_silenced as _native_stderr_silenced
+
 if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
     _wp.config.log_level = _wp.LOG_WARNING  # no per-module "load took ... ms" lines
     # Warp's native library prints "Could not find or load the NVIDIA CUDA driver" on every start of a
     # machine without a GPU (the CPU is what we run on); silence its stderr while it initialises only.
-    try:
-        _fd = _os.dup(2)
-        _null = _os.open(_os.devnull, _os.O_WRONLY)
-        _os.dup2(_null, 2)
-        try:
-            _wp.init()
-        finally:
-            _os.dup2(_fd, 2)
-            _os.close(_fd)
-            _os.close(_null)
-    except OSError:  # no file descriptors to juggle (unusual embedding): let Warp print
+    with _native_stderr_silenced():
         _wp.init()
 
 from .camera import Camera, flyover, orbit  # noqa: E402

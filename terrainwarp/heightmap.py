@@ -21,6 +21,7 @@ from .io import geotiff
 from .io.files import atomic_path, write_image
 from .io.geodesy import metres_per_degree
 from .io.memory import check_heightmap_fits
+from .io.native import native_stderr_silenced
 from .kernels import noise, sampling
 
 __all__ = ["Heightmap", "metres_per_degree"]  # metres_per_degree lives in io.geodesy; re-exported as before
@@ -350,9 +351,10 @@ class Heightmap:
 def _read_image(p: Path, channel: int) -> np.ndarray:
     import OpenImageIO as oiio  # lazy: heavy optional dependency
 
-    inp = oiio.ImageInput.open(str(p))
+    with native_stderr_silenced():  # libpng prints "libpng error: ..." itself; the ValueError says it
+        inp = oiio.ImageInput.open(str(p))
     if inp is None:
-        raise ValueError(f"path: cannot read {p} as an image: {oiio.geterror().strip() or 'unknown format'}")
+        raise ValueError(f"path: cannot read {p} as an image: {_one_line(oiio.geterror()) or 'unknown format'}")
     try:
         spec = inp.spec()
         if spec.width <= 0 or spec.height <= 0:
@@ -360,9 +362,10 @@ def _read_image(p: Path, channel: int) -> np.ndarray:
         if not 0 <= channel < spec.nchannels:
             raise ValueError(f"channel: expected 0..{spec.nchannels - 1} for {p}, got {channel}")
         check_heightmap_fits("path", spec.height, spec.width, what=f"image {p.name}")  # from the header
-        px = inp.read_image(0, 0, channel, channel + 1, oiio.UNKNOWN)
+        with native_stderr_silenced():
+            px = inp.read_image(0, 0, channel, channel + 1, oiio.UNKNOWN)
         if px is None:
-            raise ValueError(f"path: {p} is corrupt or truncated: {inp.geterror().strip()}")
+            raise ValueError(f"path: {p} is corrupt or truncated: {_one_line(inp.geterror())}")
     finally:
         inp.close()
     arr = np.asarray(px)
@@ -371,6 +374,15 @@ def _read_image(p: Path, channel: int) -> np.ndarray:
     if arr.dtype == np.float16:
         arr = arr.astype(np.float32)
     return arr
+
+
+def _one_line(err: str) -> str:
+    """OpenImageIO's error text (one line per library layer) as one line, repeats left out."""
+    parts: list[str] = []
+    for line in err.splitlines():
+        if line.strip() and line.strip() not in parts:
+            parts.append(line.strip())
+    return "; ".join(parts)
 
 
 def _npy_shape(p: Path) -> tuple[int, ...] | None:

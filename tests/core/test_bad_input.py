@@ -179,3 +179,23 @@ def test_available_memory_and_formatting():
     assert avail is not None and 0 < avail <= os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     assert [memory.format_bytes(v) for v in (512, 1536, 21.3e9, 8e12)] == ["512 B", "1.5 kB", "21.3 GB",
                                                                            "8.0 TB"]
+
+
+# -- item 12: no native "libpng error:" line beside the one-line ValueError ---------------------------
+@pytest.mark.parametrize("cut", ["truncated", "garbage"])
+def test_corrupt_png_gives_one_line_and_no_libpng_noise(tmp_path, capfd, cut):
+    good = Heightmap.from_array(np.arange(64 * 64).reshape(64, 64) % 1000)
+    good.save(tmp_path / "good.png")
+    b = (tmp_path / "good.png").read_bytes()
+    p = tmp_path / "bad.png"
+    p.write_bytes(b[:len(b) // 2] if cut == "truncated" else b[:40] + b"garbage" * 50)
+    capfd.readouterr()
+    with pytest.raises(ValueError, match=r"^path: .*bad\.png (is corrupt or truncated|as an image): ") as e:
+        Heightmap.load(p)
+    assert "\n" not in str(e.value)
+    out, err = capfd.readouterr()
+    assert "libpng" not in err and "PNG" not in err
+    assert (out, err) == ("", "")
+    # stderr works again afterwards, at the descriptor level too
+    os.write(2, b"still here\n")
+    assert capfd.readouterr().err == "still here\n"
