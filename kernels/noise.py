@@ -18,12 +18,14 @@ import warp as wp
 
 @wp.func
 def hash_u32(x: wp.uint32, y: wp.uint32, s: wp.uint32) -> wp.uint32:
-    # A few rounds of a multiply-xorshift mixer (murmur3 finaliser) over the three words.
-    h = s * wp.uint32(0x9E3779B9) + x * wp.uint32(0x85EBCA6B) + y * wp.uint32(0xC2B2AE35)
+    # A few rounds of a multiply-xorshift mixer (murmur3 finaliser) over the three words. Warp's codegen
+    # declares an integer literal as int32, so constants >= 2^31 are written as their int32 values (same
+    # 32 bits: 0x9E3779B9, 0x85EBCA6B, 0xC2B2AE35, 0x846CA68B) and no compiler warns about a narrowing.
+    h = s * wp.uint32(-1640531527) + x * wp.uint32(-2048144789) + y * wp.uint32(-1028477387)
     h = h ^ (h >> wp.uint32(16))
     h = h * wp.uint32(0x7FEB352D)
     h = h ^ (h >> wp.uint32(15))
-    h = h * wp.uint32(0x846CA68B)
+    h = h * wp.uint32(-2073254261)
     h = h ^ (h >> wp.uint32(16))
     return h
 
@@ -103,7 +105,7 @@ def _fbm_kernel(
     norm = float(0.0)
     freq = float(1.0)
     for o in range(octaves):
-        s = wp.uint32(seed) * wp.uint32(2654435761) + wp.uint32(o) * wp.uint32(40503)
+        s = wp.uint32(seed) * wp.uint32(-1640531535) + wp.uint32(o) * wp.uint32(40503)  # 2654435761
         n = perlin2(x * freq + float(o) * 17.31, z * freq - float(o) * 9.73, s)
         if ridged != 0:
             n = 0.70710678 - 2.0 * wp.abs(n)  # ridges where the noise crosses zero, same range
