@@ -1,6 +1,7 @@
 """Native libraries that print to the process's stderr (file descriptor 2) by themselves: Warp's
 initialisation on a machine without a GPU, libpng on a corrupt PNG. Their lines duplicate (or contradict)
-the one-line errors terrainwarp raises, so they are silenced while such a call runs, and only then."""
+the one-line errors terrainwarp raises, so they are silenced while such a call runs, and only then. And the
+one word said about Warp's compiler: the first run compiles the kernels (see :func:`first_compile_note`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import os
 import sys
 from collections.abc import Iterator
 
-__all__ = ["native_stderr_silenced"]
+__all__ = ["KERNEL_MODULE_PREFIX", "first_compile_note", "native_stderr_silenced"]
+
+# Warp names a compiled module's cache folder "wp_" + the module's name + "_" + its hash.
+KERNEL_MODULE_PREFIX = "wp_terrainwarp.kernels."
 
 
 @contextlib.contextmanager
@@ -38,3 +42,19 @@ def native_stderr_silenced() -> Iterator[None]:
         os.dup2(saved, 2)
         os.close(saved)
         os.close(null)
+
+
+def first_compile_note(kernel_cache_dir: str | os.PathLike | None) -> str | None:
+    """The one line to print when Warp's kernel cache holds no compiled terrainwarp kernel yet (missing,
+    empty, or only other programs' kernels): the first run then compiles every kernel module, which takes
+    about a minute on a CPU, and would otherwise be silent. None when the kernels are cached."""
+    if kernel_cache_dir is None:
+        return None
+    try:
+        with os.scandir(kernel_cache_dir) as entries:
+            if any(e.name.startswith(KERNEL_MODULE_PREFIX) for e in entries):
+                return None
+    except OSError:  # missing or unreadable: Warp will compile (and try to cache) on first use
+        pass
+    return (f"terrainwarp: compiling Warp kernels on first use; they are cached in {os.fspath(kernel_cache_dir)} "
+            "(about a minute, once)")
