@@ -1,0 +1,359 @@
+"""Screen-space error at the heightmap's samples: the drawn surface's height above every sample, and the
+pixel distance between two points above one sample, as Warp launches over samples.
+
+Measurement, not pipeline: the per-sample kernels run in float64 (the float32 pipeline is measured, its
+rounding is not hidden by the measurement's own). The maths is :mod:`terrainwarp.measure.sample_error`'s
+(see there); in short:
+
+1. :func:`surface_at_samples`: a top-down "raster" whose pixels are the heightmap's samples, done as a
+   scatter over triangles: each triangle visits the samples in its (x, z) bounding box and claims those
+   inside it (an inclusive float64 test: within 8 float32 ulps of the coordinates outside an edge, the
+   rounding by which a sample and a vertex at the same place may differ) with an atomic min of its id, so the
+   lowest-numbered triangle holding a sample wins, whatever the launch order. Then, per sample, that
+   triangle's plane is evaluated in float64 at the sample's exact camera-relative (x, z) (float32, computed
+   as :func:`terrainwarp.kernels.displacement.grid_mesh` places its vertices). A sample that is a vertex
+   (same x and z, bit for bit) takes the vertex's height exactly.
+
+   Not :func:`terrainwarp.kernels.raster.rasterize` with an orthographic camera: its fill rule gives the
+   samples on a mesh's outer boundary to no triangle, and a triangle smaller than a cell (the bintree's
+   level-M vertex grid is finer than the bundled DEM's samples) may hold a sample yet cover no pixel
+   centre, so the sample would get a neighbour's plane extrapolated (measured: up to 0.49 m on 2.5% of
+   the DEM's samples with a pixel-centre look-up nudged off the boundary).
+2. :func:`sample_displacement`: per sample P = (x, h, z), its visibility in the frame (viewport, near and
+   far planes, depth test against a full-detail depth buffer with a tolerance) and the pixel distance
+   between the projections of (x, y_a, z) and (x, y_b, z) (y_a = h for the primary error).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+NONE = 2147483647  # no triangle covers the sample (the cover map's initial value)
+CONTAIN_ULPS = 8.0  # slack of the inclusive point-in-triangle test, float32 ulps of the coordinates
+DEPTH_REL_TOL = 1.0e-4  # relative slack of view depths (float32 positions and the rasterizer's depth plane)
+DEPTH_ULPS = 8.0  # float32 ulps of window depth the depth buffer may be off by (quantisation + plane rounding)
+
+# sample states (out_state of sample_displacement)
+VISIBLE = 0  # measured
+NO_DATA = 1  # the sample's height is NaN
+OUTSIDE = 2  # outside the viewport, in front of the near plane or beyond the far plane
+HIDDEN = 3  # fails the depth test against the full-detail frame
+MISSING = 4  # visible, but no drawn surface above or below it (culled patch, hole)
+
+# ------------------------------------------------------------------------------------------------
+# functions
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _sample_xz(rel_origin: wp.vec3, dx: float, dz: float, i: int, j: int) -> wp.vec2d:
+    """Camera-relative (x, z) of sample (i, j), rounded as grid_mesh's float32 vertices are."""
+    x = rel_origin[0] + float(j) * dx
+    z = rel_origin[2] + float(i) * dz
+    return wp.vec2d(wp.float64(x), wp.float64(z))
+
+
+@wp.func
+def _vertex(pos: wp.array(dtype=wp.vec3), k: int, offset: wp.vec3d) -> wp.vec3d:
+    p = pos[k]
+    return wp.vec3d(wp.float64(p[0]) + offset[0], wp.float64(p[1]) + offset[1], wp.float64(p[2]) + offset[2])
+
+
+@wp.func
+def _weights(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, p: wp.vec2d) -> wp.vec3d:
+    """Barycentric weights of (x, z) = p in triangle abc projected on the xz plane; (-1e300, ...) when
+    the projection is degenerate."""
+    det = (b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])
+    if det == wp.float64(0.0):
+        return wp.vec3d(wp.float64(-1.0e300), wp.float64(0.0), wp.float64(0.0))
+    wb = ((p[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (p[1] - a[2])) / det
+    wc = ((b[0] - a[0]) * (p[1] - a[2]) - (p[0] - a[0]) * (b[2] - a[2])) / det
+    return wp.vec3d(wp.float64(1.0) - wb - wc, wb, wc)
+
+
+@wp.func
+def _plane_y(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, p: wp.vec2d) -> wp.float64:
+    """Height of triangle abc's plane at (x, z) = p; a vertex at p gives its own height exactly."""
+    if a[0] == p[0] and a[2] == p[1]:
+        return a[1]
+    if b[0] == p[0] and b[2] == p[1]:
+        return b[1]
+    if c[0] == p[0] and c[2] == p[1]:
+        return c[1]
+    w = _weights(a, b, c, p)
+    if w[0] == wp.float64(-1.0e300):
+        return wp.float64(wp.nan)
+    return w[0] * a[1] + w[1] * b[1] + w[2] * c[1]
+
+
+@wp.func
+def _inside(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, p: wp.vec2d) -> wp.bool:
+    """Whether (x, z) = p lies in triangle abc's xz projection or within CONTAIN_ULPS float32 ulps of the
+    largest camera-relative coordinate outside one of its edges (vertices and samples are float32 rounded
+    differently: a sample on a mesh's border must not fall off it). Degenerate projections hold nothing."""
+    det = (b[0] - a[0]) * (c[2] - a[2]) - (c[0] - a[0]) * (b[2] - a[2])
+    if det == wp.float64(0.0):
+        return False
+    m = wp.max(wp.max(wp.max(wp.abs(a[0]), wp.abs(a[2])), wp.max(wp.abs(b[0]), wp.abs(b[2]))),
+               wp.max(wp.max(wp.abs(c[0]), wp.abs(c[2])), wp.max(wp.abs(p[0]), wp.abs(p[1]))))
+    tol = wp.float64(CONTAIN_ULPS) * wp.float64(5.9604644775390625e-08) * m
+    s = wp.sign(det)
+    # signed distances (positive inside) of p from the edges bc, ca, ab
+    e0 = s * ((c[0] - b[0]) * (p[1] - b[2]) - (c[2] - b[2]) * (p[0] - b[0]))
+    e1 = s * ((a[0] - c[0]) * (p[1] - c[2]) - (a[2] - c[2]) * (p[0] - c[0]))
+    e2 = s * ((b[0] - a[0]) * (p[1] - a[2]) - (b[2] - a[2]) * (p[0] - a[0]))
+    l0 = wp.sqrt((c[0] - b[0]) * (c[0] - b[0]) + (c[2] - b[2]) * (c[2] - b[2]))
+    l1 = wp.sqrt((a[0] - c[0]) * (a[0] - c[0]) + (a[2] - c[2]) * (a[2] - c[2]))
+    l2 = wp.sqrt((b[0] - a[0]) * (b[0] - a[0]) + (b[2] - a[2]) * (b[2] - a[2]))
+    return e0 >= -tol * l0 and e1 >= -tol * l1 and e2 >= -tol * l2
+
+
+@wp.func
+def _project(m: wp.mat44d, x: wp.float64, y: wp.float64, z: wp.float64, width: int, height: int) -> wp.vec4d:
+    """Window (x, y) in pixels (origin bottom-left), clip z and clip w of a camera-relative point."""
+    cx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
+    cy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
+    cz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
+    cw = m[3, 0] * x + m[3, 1] * y + m[3, 2] * z + m[3, 3]
+    half = wp.float64(0.5)
+    return wp.vec4d((cx / cw * half + half) * wp.float64(width), (cy / cw * half + half) * wp.float64(height),
+                    cz, cw)
+
+
+@wp.func
+def _view_depth(d: wp.float32, near: wp.float64, far: wp.float64) -> wp.float64:
+    """View depth (clip w) of window depth d in [0, 1) under gluPerspective(near, far)."""
+    zn = wp.float64(2.0) * wp.float64(d) - wp.float64(1.0)
+    return wp.float64(2.0) * far * near / ((far + near) - zn * (far - near))
+
+
+@wp.func
+def _one_sided(depth: wp.array2d(dtype=wp.float32), r: int, c: int, dr: int, dc: int, dc0: wp.float64,
+               near: wp.float64, far: wp.float64) -> wp.float64:
+    """|view depth change| from pixel (r, c) to (r + dr, c + dc); -1 when that pixel is off the image or
+    background."""
+    r1 = r + dr
+    c1 = c + dc
+    if r1 < 0 or c1 < 0 or r1 >= depth.shape[0] or c1 >= depth.shape[1]:
+        return wp.float64(-1.0)
+    d = depth[r1, c1]
+    if d >= wp.float32(1.0):
+        return wp.float64(-1.0)
+    return wp.abs(_view_depth(d, near, far) - dc0)
+
+
+@wp.func
+def _minmod(a: wp.float64, b: wp.float64) -> wp.float64:
+    """The smaller of two one-sided differences (-1: missing): an occluding edge on one side does not
+    widen the tolerance."""
+    if a < wp.float64(0.0):
+        return wp.max(b, wp.float64(0.0))
+    if b < wp.float64(0.0):
+        return a
+    return wp.min(a, b)
+
+
+@wp.func
+def _depth_tolerance(depth: wp.array2d(dtype=wp.float32), r: int, c: int, dref: wp.float64, near: wp.float64,
+                     far: wp.float64) -> wp.float64:
+    """Slack of the depth test at pixel (r, c) whose view depth is dref (see the module docstring of
+    terrainwarp.measure.sample_error): relative rounding, depth-buffer quantisation, one pixel's change."""
+    gx = _minmod(_one_sided(depth, r, c, 0, -1, dref, near, far), _one_sided(depth, r, c, 0, 1, dref, near, far))
+    gy = _minmod(_one_sided(depth, r, c, -1, 0, dref, near, far), _one_sided(depth, r, c, 1, 0, dref, near, far))
+    quant = wp.float64(DEPTH_ULPS) * wp.float64(5.9604644775390625e-08) * dref * dref * (far - near) / (far * near)
+    return wp.float64(DEPTH_REL_TOL) * dref + quant + gx + gy
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.kernel(enable_backward=False)
+def _cover_kernel(
+    pos: wp.array(dtype=wp.vec3),
+    tris: wp.array2d(dtype=wp.int32),
+    offset: wp.vec3d,
+    rel_origin: wp.vec3,
+    dx: float,
+    dz: float,
+    rows: int,
+    cols: int,
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+):
+    t = wp.tid()
+    a = _vertex(pos, tris[t, 0], offset)
+    b = _vertex(pos, tris[t, 1], offset)
+    c = _vertex(pos, tris[t, 2], offset)
+    ox = wp.float64(rel_origin[0])
+    oz = wp.float64(rel_origin[2])
+    lo = wp.float64(-1.0)
+    gx0 = wp.clamp((wp.min(a[0], wp.min(b[0], c[0])) - ox) / wp.float64(dx), lo, wp.float64(cols))
+    gx1 = wp.clamp((wp.max(a[0], wp.max(b[0], c[0])) - ox) / wp.float64(dx), lo, wp.float64(cols))
+    gz0 = wp.clamp((wp.min(a[2], wp.min(b[2], c[2])) - oz) / wp.float64(dz), lo, wp.float64(rows))
+    gz1 = wp.clamp((wp.max(a[2], wp.max(b[2], c[2])) - oz) / wp.float64(dz), lo, wp.float64(rows))
+    slack = wp.float64(1.0e-6)
+    j0 = wp.max(int(wp.floor(gx0 - slack)), 0)
+    j1 = wp.min(int(wp.ceil(gx1 + slack)), cols - 1)
+    i0 = wp.max(int(wp.floor(gz0 - slack)), 0)
+    i1 = wp.min(int(wp.ceil(gz1 + slack)), rows - 1)
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            if _inside(a, b, c, _sample_xz(rel_origin, dx, dz, i, j)):
+                wp.atomic_min(out_tri, i, j, t)
+
+
+@wp.kernel(enable_backward=False)
+def _surface_kernel(
+    cover: wp.array2d(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec3),
+    tris: wp.array2d(dtype=wp.int32),
+    offset: wp.vec3d,
+    rel_origin: wp.vec3,
+    dx: float,
+    dz: float,
+    # outputs
+    out_y: wp.array2d(dtype=wp.float64),
+):
+    i, j = wp.tid()
+    t = cover[i, j]
+    if t == NONE:
+        out_y[i, j] = wp.float64(wp.nan)
+        return
+    out_y[i, j] = _plane_y(_vertex(pos, tris[t, 0], offset), _vertex(pos, tris[t, 1], offset),
+                           _vertex(pos, tris[t, 2], offset), _sample_xz(rel_origin, dx, dz, i, j))
+
+
+@wp.kernel(enable_backward=False)
+def _displacement_kernel(
+    h: wp.array2d(dtype=wp.float32),
+    ya: wp.array2d(dtype=wp.float64),
+    yb: wp.array2d(dtype=wp.float64),
+    use_sample: int,
+    depth: wp.array2d(dtype=wp.float32),
+    rel_origin: wp.vec3,
+    dx: float,
+    dz: float,
+    mvp: wp.mat44d,
+    near: wp.float64,
+    far: wp.float64,
+    width: int,
+    height: int,
+    # outputs
+    out_err: wp.array2d(dtype=wp.float64),
+    out_state: wp.array2d(dtype=wp.int32),
+    out_pix: wp.array2d(dtype=wp.int32),
+):
+    i, j = wp.tid()
+    out_err[i, j] = wp.float64(wp.nan)
+    out_pix[i, j] = -1
+    hv = h[i, j]
+    if wp.isnan(hv):
+        out_state[i, j] = NO_DATA
+        return
+    p = _sample_xz(rel_origin, dx, dz, i, j)
+    py = wp.float64(hv - rel_origin[1])  # float32, as grid_mesh's vertex
+    s = _project(mvp, p[0], py, p[1], width, height)
+    if not (s[3] > wp.float64(0.0) and s[2] >= -s[3] and s[2] <= s[3] and s[0] >= wp.float64(0.0)
+            and s[1] >= wp.float64(0.0) and s[0] < wp.float64(width) and s[1] < wp.float64(height)):
+        out_state[i, j] = OUTSIDE
+        return
+    col = wp.min(int(wp.floor(s[0])), width - 1)
+    row = height - 1 - wp.min(int(wp.floor(s[1])), height - 1)
+    d = depth[row, col]
+    if d < wp.float32(1.0):  # background: nothing in front of the sample
+        dref = _view_depth(d, near, far)
+        if s[3] > dref + _depth_tolerance(depth, row, col, dref, near, far):
+            out_state[i, j] = HIDDEN
+            return
+    out_pix[i, j] = row * width + col
+    a = py
+    if use_sample == 0:
+        a = ya[i, j]
+    b = yb[i, j]
+    if wp.isnan(a) or wp.isnan(b):
+        out_state[i, j] = MISSING
+        return
+    out_state[i, j] = VISIBLE
+    pa = _project(mvp, p[0], a, p[1], width, height)
+    pb = _project(mvp, p[0], b, p[1], width, height)
+    if pa[3] > wp.float64(0.0) and pb[3] > wp.float64(0.0):
+        ex = pa[0] - pb[0]
+        ey = pa[1] - pb[1]
+        out_err[i, j] = wp.sqrt(ex * ex + ey * ey)
+    else:
+        out_err[i, j] = wp.float64(wp.inf)  # a surface point behind the eye: unbounded on screen
+
+
+# ------------------------------------------------------------------------------------------------
+# host drivers
+# ------------------------------------------------------------------------------------------------
+
+
+def surface_at_samples(positions: np.ndarray, triangles: np.ndarray, offset: tuple[float, float, float],
+                       rel_origin: tuple[float, float, float], spacing: tuple[float, float], shape: tuple[int, int],
+                       device: str = "cpu") -> np.ndarray:
+    """The drawn surface's camera-relative height above every heightmap sample.
+
+    Args:
+        positions: (n, 3) float32 vertex positions relative to the mesh's eye; triangles: (m, 3) int32.
+        offset: mesh eye minus the measuring eye (float64; zero when both are the frame camera's).
+        rel_origin: (x0 - eye_x, eye_y, z0 - eye_z) of the measuring eye, as grid_mesh takes it.
+        spacing: (dx, dz) metres; shape: (rows, cols) of the heightmap.
+
+    Returns:
+        (rows, cols) float64 height relative to the measuring eye, NaN where no triangle lies above or
+        below the sample. Two launches (over triangles, then over samples).
+    """
+    rows, cols = int(shape[0]), int(shape[1])
+    pos = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
+    tri = np.ascontiguousarray(triangles, np.int32).reshape(-1, 3)
+    pos_wp = wp.array(pos if len(pos) else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=device)
+    tri_wp = wp.array(tri if len(tri) else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
+    off = wp.vec3d(*[float(v) for v in offset])
+    org = wp.vec3(*[float(v) for v in rel_origin])
+    dx, dz = float(spacing[0]), float(spacing[1])
+    cover = wp.full((rows, cols), value=NONE, dtype=wp.int32, device=device)
+    if len(tri):
+        wp.launch(_cover_kernel, dim=len(tri), inputs=[pos_wp, tri_wp, off, org, dx, dz, rows, cols],
+                  outputs=[cover], device=device)
+    out = wp.empty((rows, cols), dtype=wp.float64, device=device)
+    wp.launch(_surface_kernel, dim=(rows, cols), inputs=[cover, pos_wp, tri_wp, off, org, dx, dz], outputs=[out],
+              device=device)
+    return out.numpy()
+
+
+def sample_displacement(heights: np.ndarray, ya: np.ndarray | None, yb: np.ndarray, depth: np.ndarray,
+                        rel_origin: tuple[float, float, float], spacing: tuple[float, float], mvp: np.ndarray,
+                        near: float, far: float, device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per sample: visibility against ``depth`` and the pixel distance between (x, ya, z) and (x, yb, z).
+
+    Args:
+        heights: (rows, cols) float32 heightmap (NaN = no data).
+        ya: (rows, cols) float64 first height relative to the eye, or None: the sample itself.
+        yb: (rows, cols) float64 second height relative to the eye (NaN = no surface).
+        depth: (H, W) float32 full-detail window depth of the frame, 1.0 on background, row 0 at the top.
+        rel_origin: (x0 - eye_x, eye_y, z0 - eye_z); spacing: (dx, dz).
+        mvp: (4, 4) float64 ``proj @ view(relative=True)``; near, far: its planes.
+
+    Returns:
+        (error (rows, cols) float64 px, NaN unless VISIBLE, +inf where a point is behind the eye;
+        state (rows, cols) int32, one of VISIBLE, NO_DATA, OUTSIDE, HIDDEN, MISSING;
+        pixel (rows, cols) int32 image index row * W + col of the sample, -1 unless VISIBLE or MISSING).
+    """
+    rows, cols = heights.shape
+    hh, ww = depth.shape
+    yb_wp = wp.array(np.ascontiguousarray(yb, np.float64), dtype=wp.float64, device=device)
+    ya_wp = yb_wp if ya is None else wp.array(np.ascontiguousarray(ya, np.float64), dtype=wp.float64, device=device)
+    err = wp.empty((rows, cols), dtype=wp.float64, device=device)
+    state = wp.empty((rows, cols), dtype=wp.int32, device=device)
+    pix = wp.empty((rows, cols), dtype=wp.int32, device=device)
+    wp.launch(_displacement_kernel, dim=(rows, cols), inputs=[
+        wp.array(np.ascontiguousarray(heights, np.float32), dtype=wp.float32, device=device), ya_wp, yb_wp,
+        int(ya is None), wp.array(np.ascontiguousarray(depth, np.float32), dtype=wp.float32, device=device),
+        wp.vec3(*[float(v) for v in rel_origin]), float(spacing[0]), float(spacing[1]),
+        wp.mat44d(*np.asarray(mvp, np.float64).reshape(-1).tolist()), float(near), float(far), int(ww), int(hh)],
+        outputs=[err, state, pix], device=device)
+    return err.numpy(), state.numpy(), pix.numpy()
