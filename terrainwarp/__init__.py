@@ -13,12 +13,11 @@ Differentiable resolve for JAX (imports JAX): ``terrainwarp.rendering.interpolat
 from __future__ import annotations
 
 import os as _os
-import sys as _sys
 
 import warp as _wp
 
-from .io.native import first_compile_note as _first_compile_note
 from .io.native import native_stderr_silenced as _native_stderr_silenced
+from .io.native import say_first_compile as _say_first_compile
 
 if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
     _wp.config.log_level = _wp.LOG_WARNING  # no per-module "load took ... ms" lines
@@ -26,10 +25,8 @@ if _os.environ.get("TERRAINWARP_VERBOSE", "") == "":
     # machine without a GPU (the CPU is what we run on); silence its stderr while it initialises only.
     with _native_stderr_silenced():
         _wp.init()
-_note = _first_compile_note(_wp.config.kernel_cache_dir)  # said once: the cache is filled on this run
-if _note:
-    print(_note, file=_sys.stderr)
-del _note
+# Said once, on a terminal, when no kernel is cached yet: this run compiles them (about a minute on a CPU).
+_say_first_compile(_wp.config.kernel_cache_dir)
 
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .fit.lod_fit import FitResult, fit_lod  # noqa: E402

@@ -9,8 +9,9 @@ import contextlib
 import os
 import sys
 from collections.abc import Iterator
+from typing import TextIO
 
-__all__ = ["KERNEL_MODULE_PREFIX", "first_compile_note", "native_stderr_silenced"]
+__all__ = ["KERNEL_MODULE_PREFIX", "first_compile_note", "native_stderr_silenced", "say_first_compile"]
 
 # Warp names a compiled module's cache folder "wp_" + the module's name + "_" + its hash.
 KERNEL_MODULE_PREFIX = "wp_terrainwarp.kernels."
@@ -58,3 +59,19 @@ def first_compile_note(kernel_cache_dir: str | os.PathLike | None) -> str | None
         pass
     return (f"terrainwarp: compiling Warp kernels on first use; they are cached in {os.fspath(kernel_cache_dir)} "
             "(about a minute, once)")
+
+
+def say_first_compile(kernel_cache_dir: str | os.PathLike | None, stream: TextIO | None = None) -> bool:
+    """Print :func:`first_compile_note` on ``stream`` (default ``sys.stderr``) when it is a terminal: the
+    note is for a person waiting, and a program reading stderr through a pipe (the CLI's callers and
+    tests, which expect exactly one line on an error) gets only what it asked for. True when printed."""
+    stream = sys.stderr if stream is None else stream
+    note = first_compile_note(kernel_cache_dir)
+    try:
+        tty = stream is not None and stream.isatty()
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        tty = False
+    if note is None or not tty:
+        return False
+    print(note, file=stream, flush=True)
+    return True
