@@ -310,3 +310,17 @@ def test_pop_when_the_selection_changes_is_bounded_by_the_two_errors():
     both = ~np.isnan(p.pop_map) & ~np.isnan(e0) & ~np.isnan(e1)
     assert both.sum() == p.visible
     assert (p.pop_map[both] <= e0[both] + e1[both] + 1e-4).all()
+
+
+def test_same_result_on_every_device(device):
+    hm = Heightmap.example()
+    cam = _path(hm, 0.02)[0]
+    depth = tw.render(Scene(hm, cam, outputs=("depth",))).depth
+    mesh = tw.render(Scene(hm, cam, outputs=("mesh",), mesh="lod", lod=LodConfig(tolerance_px=2.0, **LOD))).mesh
+    here = sample_error(hm, cam, mesh, depth, keep_map=True, device=device)
+    cpu = sample_error(hm, cam, mesh, depth, keep_map=True)
+    assert here.visible == cpu.visible and here.hidden == cpu.hidden and here.missing == cpu.missing
+    np.testing.assert_allclose(here.error_map, cpu.error_map, rtol=1e-9, atol=1e-9, equal_nan=True)
+    # (CUDA may fuse multiply-adds in float64: equal to far below a micrometre, not bit for bit)
+    np.testing.assert_allclose(surface_heights(hm, mesh, device=device), surface_heights(hm, mesh), rtol=0,
+                               atol=1e-9, equal_nan=True)
