@@ -25,18 +25,25 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .camera import Camera, flyover, orbit
 from .heightmap import EXAMPLES, Heightmap
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 
 __all__ = ["Scene", "LodConfig", "PolicySpec", "POLICY_TABLE", "OUTPUTS", "MESH_POLICIES", "LOD_POLICIES",
-           "SPACINGS", "FILTERS", "check_policy_numbers"]
+           "SPACINGS", "FILTERS", "MAX_TESS", "QUADTREE_TESS", "check_policy_numbers", "check_tess", "check_roots"]
 
 OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error")
 MESH_POLICIES = ("grid", "lod")
 SHADINGS = ("hillshade", "level", "patch", "wireframe", "splat", "cracks")
 SPACINGS = tuple(SPACING_CODES)  # the tessellator's spacing names, in its code order
 FILTERS = tuple(FILTER_CODES)
+MAX_TESS = 64  # the hardware's maximum tessellation level
+# A quadtree doubles the factor on edges toward a finer neighbour. The hardware's fixed-point 1/L is exact
+# only for powers of two, and 2L is even and must stay <= MAX_TESS: so a quadtree policy's level T is a
+# power of two in 1..MAX_TESS/2 (crack-free only then; measured by the tessellator tests).
+QUADTREE_TESS = tuple(2 ** i for i in range(MAX_TESS.bit_length() - 1))  # 1, 2, 4, ..., 32
 
 
 # ------------------------------------------------------------------------------------------------
@@ -95,6 +102,37 @@ def check_policy_numbers(policy: str, value: float, hysteresis: float, level: in
         raise ValueError(f"level: expected >= 0, got {level}")
 
 
+def _is_int(v: object) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int | np.integer)
+
+
+def check_tess(tess: object, policy: str | None = None) -> int:
+    """The one rule for a tessellation level T: an integer in 1..``MAX_TESS``; for a quadtree policy
+    (every policy of ``POLICY_TABLE`` but ``"continuous"``, whose uniform patch grid has no doubled edges)
+    a power of two in ``QUADTREE_TESS``. ``policy=None``: the terrain's own rule (no policy yet; the
+    quadtree refuses a doubled edge above ``MAX_TESS`` when it selects). Returns ``int(tess)``."""
+    if not _is_int(tess) or not 1 <= int(tess) <= MAX_TESS:
+        raise ValueError(f"tess: expected an integer level in 1..{MAX_TESS}, got {tess!r}")
+    if policy is not None and policy != "continuous" and int(tess) not in QUADTREE_TESS:
+        raise ValueError(f"tess: expected a power of two in 1..{QUADTREE_TESS[-1]} for the quadtree policy "
+                         f"{policy!r} (doubled edges are crack-free only then; any level in 1..{MAX_TESS} "
+                         f"with policy 'continuous'), got {tess!r}")
+    return int(tess)
+
+
+def check_roots(roots: object) -> None:
+    """The one rule for root nodes: an integer >= 1, or a pair (nx, nz) of integers >= 1."""
+    if isinstance(roots, tuple | list):
+        if len(roots) != 2 or not all(_is_int(r) for r in roots):
+            raise TypeError(f"roots: expected an int or (nx, nz), got {roots!r}")
+        if min(int(r) for r in roots) < 1:
+            raise ValueError(f"roots: expected positive counts, got {tuple(int(r) for r in roots)}")
+    elif not _is_int(roots):
+        raise TypeError(f"roots: expected an int or (nx, nz), got {roots!r}")
+    elif int(roots) < 1:
+        raise ValueError(f"roots: expected >= 1 root nodes, got {int(roots)}")
+
+
 @dataclass(frozen=True)
 class LodConfig:
     """How a ``mesh = "lod"`` scene selects and tessellates patches.
@@ -107,8 +145,9 @@ class LodConfig:
         target_px: continuous policy: target pixels per triangle edge.
         level: continuous policy: the level of the uniform patch grid.
         hysteresis: band for separate split/merge thresholds (malafeev2014), in [0, 1).
-        roots: root nodes (deaconu2021 tests 4, 16, 32, 64).
-        tess: tessellation level T of every patch (<= 32 when edges double toward finer neighbours).
+        roots: root nodes (deaconu2021 tests 4, 16, 32, 64), >= 1 (:func:`check_roots`).
+        tess: tessellation level T of every patch (:func:`check_tess`): a power of two in 1..32 for a
+            quadtree policy (edges double toward finer neighbours), any integer in 1..64 for "continuous".
         spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
         filter: ``"bilinear"`` or ``"bicubic"`` height sampling in the domain shader.
 
@@ -133,16 +172,15 @@ class LodConfig:
             raise ValueError(f"lod.spacing: expected one of {list(SPACINGS)}, got {self.spacing!r}")
         if self.filter not in FILTERS:
             raise ValueError(f"lod.filter: expected one of {list(FILTERS)}, got {self.filter!r}")
-        if self.policy != "continuous":
-            # A quadtree doubles the factor on edges toward a finer neighbour. The hardware's fixed-point
-            # 1/L is exact only for powers of two, and 2L is even: so power-of-two levels and equal or
-            # fractional_even spacing are the only crack-free choices (measured by the tessellator tests).
-            if self.spacing == "fractional_odd":
-                raise ValueError("lod.spacing: fractional_odd cannot stitch doubled edges (2L is even); use "
-                                 "'equal' or 'fractional_even' with a quadtree, or policy 'continuous'")
-            if int(self.tess) not in (1, 2, 4, 8, 16, 32):
-                raise ValueError(f"lod.tess: expected a power of two in 1..32 for a quadtree (doubled edges are "
-                                 f"crack-free only then), got {self.tess}")
+        if self.policy != "continuous" and self.spacing == "fractional_odd":
+            # doubled edges (2L) are even: see QUADTREE_TESS
+            raise ValueError("lod.spacing: fractional_odd cannot stitch doubled edges (2L is even); use "
+                             "'equal' or 'fractional_even' with a quadtree, or policy 'continuous'")
+        try:
+            check_tess(self.tess, self.policy)
+            check_roots(self.roots)
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"lod.{e}") from None
         check_policy_numbers(self.policy, float(self.value), float(self.hysteresis), int(self.level))
 
     @property
@@ -267,8 +305,14 @@ class Scene:
         p = Path(path)
         if not p.exists():
             raise FileNotFoundError(f"scene: no such file: {p}")
+        if p.is_dir():
+            raise ValueError(f"scene: {p} is a directory, expected a TOML file")
         try:
-            data = tomllib.loads(p.read_text())
+            text = p.read_text()
+        except OSError as e:
+            raise ValueError(f"scene: cannot read {p}: {e.strerror or e}") from None
+        try:
+            data = tomllib.loads(text)
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"scene: {p} is not valid TOML: {e}") from e
         return cls.from_dict(data, base_dir=p.parent, name=p.stem)

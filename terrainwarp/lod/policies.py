@@ -17,12 +17,11 @@ from types import ModuleType
 import numpy as np
 
 from ..heightmap import Heightmap
-from ..scene import POLICY_TABLE, LodConfig, check_policy_numbers
+from ..scene import MAX_TESS, POLICY_TABLE, LodConfig, check_policy_numbers
 
 __all__ = ["DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "Policy", "POLICY_CLASSES", "make_policy",
            "check_policy", "edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES"]
 
-MAX_TESS = 64  # the hardware's maximum tessellation level
 # the projected length given to an edge whose midpoint is the eye (distance 0): any target gives MAX_TESS,
 # and it stays finite so that float32 derivatives through the rule stay finite (zero where clamped)
 EDGE_PX_MAX = 1e20

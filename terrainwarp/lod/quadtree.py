@@ -47,6 +47,7 @@ from ..heightmap import Heightmap
 from ..io.files import write_text
 from ..kernels.lod import frustum_planes, select_level
 from ..kernels.pyramid import node_stats
+from ..scene import check_roots, check_tess
 from .policies import (
     MAX_TESS,
     ContinuousPolicy,
@@ -101,22 +102,15 @@ def tile_name(key: int) -> str:
 # terrain (precomputed once per heightmap)
 # ------------------------------------------------------------------------------------------------
 def _roots_shape(roots: int | tuple[int, int], shape: tuple[int, int]) -> tuple[int, int]:
+    check_roots(roots)  # the one rule (terrainwarp.scene): >= 1, or (nx, nz) each >= 1
     if isinstance(roots, tuple | list):
-        nx, nz = (int(roots[0]), int(roots[1]))
-    else:
-        if isinstance(roots, bool) or not isinstance(roots, int | np.integer):
-            raise TypeError(f"roots: expected an int or (nx, nz), got {roots!r}")
-        n = int(roots)
-        if n < 1:
-            raise ValueError(f"roots: expected >= 1 root nodes, got {n}")
-        # the factorisation nx * nz = n closest to the grid's aspect ratio (wider along the longer axis)
-        aspect = (shape[1] - 1) / max(shape[0] - 1, 1)
-        best = min(((a, n // a) for a in range(1, n + 1) if n % a == 0),
-                   key=lambda p: abs(math.log(p[0] / p[1]) - math.log(max(aspect, 1e-9))))
-        nx, nz = best
-    if nx < 1 or nz < 1:
-        raise ValueError(f"roots: expected positive counts, got {(nx, nz)}")
-    return nx, nz
+        return int(roots[0]), int(roots[1])
+    n = int(roots)
+    # the factorisation nx * nz = n closest to the grid's aspect ratio (wider along the longer axis)
+    aspect = (shape[1] - 1) / max(shape[0] - 1, 1)
+    best = min(((a, n // a) for a in range(1, n + 1) if n % a == 0),
+               key=lambda p: abs(math.log(p[0] / p[1]) - math.log(max(aspect, 1e-9))))
+    return best
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,8 +149,7 @@ class Terrain:
         """
         if not isinstance(heightmap, Heightmap):
             raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
-        if isinstance(tess, bool) or not isinstance(tess, int | np.integer) or not 1 <= int(tess) <= MAX_TESS:
-            raise ValueError(f"tess: expected an integer level in 1..{MAX_TESS}, got {tess!r}")
+        check_tess(tess)  # the one rule (terrainwarp.scene); a quadtree's doubled edges are checked in select
         hh, ww = heightmap.shape
         nx, nz = _roots_shape(roots, (hh, ww))
         need = max((ww - 1) / nx, (hh - 1) / nz, 1e-9)

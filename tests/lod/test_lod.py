@@ -19,7 +19,7 @@ from terrainwarp.lod import (
     tile_name,
 )
 from terrainwarp.rendering.reference_tessellator import SPACINGS as REFERENCE_SPACINGS
-from terrainwarp.scene import LOD_POLICIES, POLICY_TABLE, SPACINGS
+from terrainwarp.scene import LOD_POLICIES, MAX_TESS, POLICY_TABLE, QUADTREE_TESS, SPACINGS, check_tess
 
 
 def test_keys_round_trip():
@@ -292,3 +292,38 @@ def test_continuous_select_uses_the_one_factor_rule(dem_terrain):
     b = np.array([o[0], dem_terrain.heightmap.sample(o[0], o[1] + pl.size[0, 1]), o[1] + pl.size[0, 1]])
     f = np.linalg.norm(b - a) * cam.focal_px / np.linalg.norm(0.5 * (a + b) - np.asarray(cam.position)) / 6.0
     assert pl.outer[0, 0] == pytest.approx(min(max(f, 1.0), 64.0), rel=1e-6)
+
+
+# -- issue 20 item 8: LOD numbers are validated when the configuration is made, by one rule -------------------
+@pytest.mark.parametrize("kw, match", [
+    ({"roots": 0}, "roots"), ({"roots": -4}, "roots"), ({"roots": (2, 0)}, "roots"), ({"roots": 2.0}, "roots"),
+    ({"roots": True}, "roots"), ({"tess": 16.0}, "tess"), ({"tess": 0}, "tess"), ({"tess": 3}, "tess"),
+    ({"tess": 64}, "tess"), ({"policy": "continuous", "tess": 65}, "tess"),
+    ({"policy": "continuous", "tess": 8.0}, "tess"), ({"policy": "distance", "tess": 12}, "tess")])
+def test_lod_config_refuses_bad_roots_and_tess_at_construction(kw, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        LodConfig(**kw)
+
+
+def test_one_tess_rule_for_config_terrain_and_render():
+    assert QUADTREE_TESS == (1, 2, 4, 8, 16, 32) and MAX_TESS == 64
+    for t in QUADTREE_TESS:
+        for policy in LOD_POLICIES:
+            assert LodConfig(policy=policy, tess=t).tess == t
+    for t in (3, 12, 40, 64):  # the continuous policy has no doubled edges: any level the hardware takes
+        assert LodConfig(policy="continuous", spacing="fractional_odd", tess=t).tess == t
+    # the same range in every message: the configuration's, the terrain's and check_tess's
+    hm = Heightmap.fbm(33, seed=0)
+    msgs = []
+    for make in (lambda: LodConfig(policy="continuous", tess=65), lambda: Terrain.prepare(hm, tess=65),
+                 lambda: check_tess(65)):
+        with pytest.raises(ValueError) as e:
+            make()
+        msgs.append(str(e.value).removeprefix("lod."))
+    assert msgs[0] == msgs[1] == msgs[2] and f"1..{MAX_TESS}" in msgs[0]
+    with pytest.raises(ValueError, match=f"power of two in 1..{QUADTREE_TESS[-1]}"):
+        LodConfig(policy="sse", tess=64)
+    with pytest.raises(ValueError, match="roots"):
+        Terrain.prepare(hm, roots=(0, 2))
+    with pytest.raises(TypeError, match="roots"):
+        Terrain.prepare(hm, roots=2.5)
