@@ -36,6 +36,7 @@ Baseline: a grid search over the same parameter on the exact pipeline, in the sa
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections import namedtuple
 from collections.abc import Callable
@@ -122,9 +123,9 @@ class FitResult:
 # exact pipeline
 # ------------------------------------------------------------------------------------------------
 def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list[Frame],
-             device: str = "cpu") -> Evaluation:
+             device: str = "cpu", *, on_frame: Callable[[], None] | None = None) -> Evaluation:
     """Run the exact pipeline at one parameter value over all cameras (references given); the frame cost
-    is ``Report.frame_ms``."""
+    is ``Report.frame_ms``. ``on_frame()`` is called after each frame (progress)."""
     ev = Evaluation(float(value), [], [], [], [])
     cfg = scene.lod.with_policy(policy, value)
     for cam, ref in zip(cameras, refs):
@@ -134,6 +135,8 @@ def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str,
         ev.max_px.append(float(f.error.max_px))
         ev.triangles.append(int(f.mesh.n_triangles))
         ev.frame_ms.append(f.report.frame_ms)
+        if on_frame is not None:
+            on_frame()
     return ev
 
 
@@ -153,22 +156,28 @@ def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) ->
 
 
 def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float,
-                refs: list[Frame], points: int = 24, device: str = "cpu", evaluator: Evaluator | None = None) -> dict:
+                refs: list[Frame], points: int = 24, device: str = "cpu", evaluator: Evaluator | None = None, *,
+                on_frame: Callable[[], None] | None = None) -> dict:
     """Evaluate ``points`` log-spaced values of the policy's ``POLICY_TABLE`` fit range on the exact pipeline;
     the cheapest that meets the budget.
 
     ``evaluator(values) -> [Evaluation]`` runs the evaluations; default: here, one after another, on the
     caller's ``terrain`` and ``refs`` (:func:`evaluate`). The command line (``terrainwarp fit --workers N``)
     passes one that runs them as jobs of the sweep runner (dask.distributed), whose workers prepare their
-    own terrain and references; the table is the same.
+    own terrain and references; the table is the same. ``on_frame()`` is called once per frame evaluated
+    (progress; after the evaluator returns when there is one).
     """
+    if isinstance(points, bool) or not isinstance(points, int | np.integer) or points < 1:
+        raise ValueError(f"points: expected an integer >= 1, got {points!r}")
     lo, hi = POLICY_TABLE[policy].fit_range
     t0 = time.perf_counter()
     values = [float(v) for v in np.geomspace(lo, hi, points)]
     if evaluator is None:
-        evs = [evaluate(scene, terrain, cameras, policy, v, refs, device) for v in values]
+        evs = [evaluate(scene, terrain, cameras, policy, v, refs, device, on_frame=on_frame) for v in values]
     else:
         evs = evaluator(values)
+        for _ in range(len(values) * len(cameras) if on_frame is not None else 0):
+            on_frame()
     ok = [e for e in evs if e.worst_p99 <= budget_px]
     best = min(ok, key=lambda e: e.cost) if ok else None
     return {"points": points, "evaluations": points * len(cameras), "wall_s": time.perf_counter() - t0,
@@ -249,7 +258,8 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 # ------------------------------------------------------------------------------------------------
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
-            grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu") -> FitResult:
+            grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu",
+            progress: bool = False) -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
     within ``budget_px`` at the lowest cost (triangles).
 
@@ -268,29 +278,74 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             with d log(mean pixel error above the p99) / d log(target_px) of the worst frame from
             :mod:`terrainwarp.fit.diffpath`: the per-pixel error through the Warp resolve kernel; one extra
             pipeline run per step, counted in ``evaluations``).
+        progress: show a progress bar on stderr (tqdm): the reference frames, the relaxed fit's steps, the
+            exact validations' frames and the grid search's frames.
     """
-    _check_fit_arguments(budget_px, policy, gradient)
+    _check_fit_arguments(budget_px, policy, gradient, steps, max_validations, grid_points)
     t_start = time.perf_counter()
     cams = cameras if cameras is not None else scene.camera_path()
     if not cams:
         raise ValueError("cameras: expected at least one camera")
-    terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
-    refs = [render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device) for c in cams]
-    exact = _Exact(scene, terrain, cams, refs, policy, device)
-    if policy == "continuous":
-        model = _continuous_model(terrain, cams, scene.lod.level)
-    else:
-        model = relaxed_model(terrain, cams, policy, device)
-    v = _relaxed_fit(model, POLICY_TABLE[policy].fit_range, budget_px, steps, exact.history)
-    good = _validate(exact, model, v, budget_px, rel_tol, max_validations, gradient)
-    res = _result(exact, good, budget_px, t_start)
-    if grid_points:
-        res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
-                               evaluator=grid_evaluator)
+    bar = _Progress(progress, len(cams) * (1 + max_validations + grid_points) + steps,
+                    f"fit {policy} {budget_px:g} px")
+    try:
+        terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
+        refs = [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
+                for c in cams]
+        exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar)
+        if policy == "continuous":
+            model = _continuous_model(terrain, cams, scene.lod.level)
+        else:
+            model = relaxed_model(terrain, cams, policy, device)
+        v = _relaxed_fit(model, POLICY_TABLE[policy].fit_range, budget_px, steps, exact.history, on_step=bar)
+        good = _validate(exact, model, v, budget_px, rel_tol, max_validations, gradient)
+        res = _result(exact, good, budget_px, t_start)
+        if grid_points:
+            bar.expect(len(cams) * grid_points)  # the validations may have stopped early
+            res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
+                                   evaluator=grid_evaluator, on_frame=bar)
+    finally:
+        bar.close()
     return res
 
 
-def _check_fit_arguments(budget_px: float, policy: str, gradient: str) -> None:
+class _Progress:
+    """A tqdm bar on stderr (``leave=False``, as the sweeps'), or nothing when disabled; call it to advance
+    one step."""
+
+    def __init__(self, enabled: bool, total: int, desc: str) -> None:
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm  # lazy: heavy optional dependency
+
+            self.bar = tqdm(total=total, desc=desc, unit="step", leave=False, file=sys.stderr)
+
+    def __call__(self) -> None:
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def after(self, x: object) -> object:
+        """Advance one step and return ``x`` (for comprehensions)."""
+        self()
+        return x
+
+    def expect(self, remaining: int) -> None:
+        """Set the total to the steps done plus ``remaining``."""
+        if self.bar is not None:
+            self.bar.total = self.bar.n + remaining
+            self.bar.refresh()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: int, max_validations: int,
+                         grid_points: int) -> None:
+    for name, n, least in (("steps", steps, 1), ("max_validations", max_validations, 1),
+                           ("grid_points", grid_points, 0)):
+        if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < least:
+            raise ValueError(f"{name}: expected an integer >= {least}, got {n!r}")
     if policy not in LOD_POLICIES:
         raise ValueError(f"policy: expected one of {list(LOD_POLICIES)}, got {policy!r}")
     if gradient not in ("relaxed", "pixels") or (gradient == "pixels" and policy != "continuous"):
@@ -314,12 +369,14 @@ class _Exact:
     history: list[dict] = field(default_factory=list)
     n_eval: int = 0
     evals: dict[float, Evaluation] = field(default_factory=dict)
+    on_frame: Callable[[], None] | None = None
 
     def __call__(self, v: float) -> Evaluation:
         lo, hi = POLICY_TABLE[self.policy].fit_range
         v = float(np.clip(v, lo, hi))
         if v not in self.evals:
-            self.evals[v] = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device)
+            self.evals[v] = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
+                                     on_frame=self.on_frame)
             self.n_eval += len(self.cams)
             self.history.append({"stage": "validate", "value": v, "worst_p99_px": self.evals[v].worst_p99,
                                  "cost": self.evals[v].cost})
@@ -328,9 +385,10 @@ class _Exact:
 
 # -- relaxed fit -----------------------------------------------------------------------------------
 def _relaxed_fit(model: Callable, fit_range: tuple[float, float], budget_px: float, steps: int,
-                 history: list[dict]) -> float:
+                 history: list[dict], on_step: Callable[[], None] | None = None) -> float:
     """optax Adam on the relaxed loss ``log(cost) + 20 softplus(log error - log budget)``, the temperature
-    annealed from 1 to 0.05, from the middle of the fit range (log space). Returns the value found."""
+    annealed from 1 to 0.05, from the middle of the fit range (log space). Returns the value found;
+    ``on_step()`` is called after each step (progress)."""
     import jax  # lazy: heavy optional dependency
     import jax.numpy as jnp
     import optax
@@ -357,6 +415,8 @@ def _relaxed_fit(model: Callable, fit_range: tuple[float, float], budget_px: flo
             history.append({"stage": "relaxed", "iter": it, "temperature": temp, "loss": float(val),
                             "cost": float(c), "error_proxy_px": float(math.exp(float(le))),
                             "value": float(math.exp(float(log_v)))})
+        if on_step is not None:
+            on_step()
     return float(math.exp(float(log_v)))
 
 
@@ -536,8 +596,9 @@ def _continuous_model(terrain: Terrain, cameras: list[Camera], level: int) -> Ca
 
 
 def plot_fit(result: FitResult, path: str | Path, budgets_curve: list[tuple[float, float]] | None = None) -> Path:
-    """fit.png: the relaxed optimisation (loss, cost, error proxy against iteration), the validation steps,
-    and, if given, the fitted cost against the budget."""
+    """fit.png: the relaxed optimisation (cost and error proxy against iteration), the exact validation steps
+    with the chosen try marked, and, if given, the fitted cost against the budget. Legends sit below the
+    panels, clear of the curves."""
     import matplotlib  # lazy: heavy optional dependency
 
     matplotlib.use("Agg")
@@ -546,25 +607,11 @@ def plot_fit(result: FitResult, path: str | Path, budgets_curve: list[tuple[floa
     rel = [h for h in result.history if h.get("stage") == "relaxed"]
     val = [h for h in result.history if h.get("stage") == "validate"]
     n = 3 if budgets_curve else 2
-    fig, ax = plt.subplots(1, n, figsize=(5 * n, 4))
+    fig, ax = plt.subplots(1, n, figsize=(5 * n, 4.6))
     if rel:
-        it = [h["iter"] for h in rel]
-        ax[0].plot(it, [h["cost"] for h in rel], "o-", label="expected triangles")
-        ax[0].set_yscale("log")
-        a2 = ax[0].twinx()
-        a2.plot(it, [h["error_proxy_px"] for h in rel], "s--", color="C1", label="error proxy (px)")
-        a2.axhline(result.budget_px, color="C1", lw=0.8, ls=":")
-        ax[0].set_xlabel("iteration (relaxed, annealed)")
-        ax[0].set_title("relaxed fit")
-        ax[0].legend(loc="upper left", fontsize=8)
-        a2.legend(loc="upper right", fontsize=8)
+        _plot_relaxed(ax[0], rel, result.budget_px)
     if val:
-        ax[1].plot(range(len(val)), [h["worst_p99_px"] for h in val], "o-", label="exact worst-frame p99 (px)")
-        ax[1].axhline(result.budget_px, color="r", ls=":", label="budget")
-        ax[1].set_yscale("log")
-        ax[1].set_xlabel("exact validation")
-        ax[1].legend(fontsize=8)
-        ax[1].set_title(f"validation: {'met' if result.met else 'MISSED'}")
+        _plot_validation(ax[1], val, result)
     if budgets_curve:
         b, c = zip(*budgets_curve)
         ax[2].plot(b, c, "o-")
@@ -574,4 +621,39 @@ def plot_fit(result: FitResult, path: str | Path, budgets_curve: list[tuple[floa
         ax[2].set_ylabel("fitted triangles per frame")
         ax[2].set_title("cost against budget")
     fig.tight_layout()
-    return save_figure(fig, path, dpi=100)
+    return save_figure(fig, path, dpi=100, bbox_inches="tight")
+
+
+def _legend_below(ax, handles: list) -> None:
+    """One legend for ``handles`` under the axes' x label, outside the plotting area."""
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, fontsize=8, frameon=False)
+
+
+def _plot_relaxed(ax, rel: list[dict], budget_px: float) -> None:
+    it = [h["iter"] for h in rel]
+    (cost,) = ax.plot(it, [h["cost"] for h in rel], "o-", label="expected triangles")
+    ax.set_yscale("log")
+    a2 = ax.twinx()
+    (err,) = a2.plot(it, [h["error_proxy_px"] for h in rel], "s--", color="C1", label="error proxy (px)")
+    budget = a2.axhline(budget_px, color="C1", lw=0.8, ls=":", label="budget (px)")
+    ax.set_xlabel("iteration (relaxed, annealed)")
+    ax.set_title("relaxed fit")
+    _legend_below(ax, [cost, err, budget])
+
+
+def _plot_validation(ax, val: list[dict], result: FitResult) -> None:
+    x = list(range(len(val)))
+    (tries,) = ax.plot(x, [h["worst_p99_px"] for h in val], "o-", label="exact worst-frame p99 (px)")
+    budget = ax.axhline(result.budget_px, color="r", ls=":", label="budget")
+    handles = [tries, budget]
+    chosen = [i for i, h in enumerate(val) if h["value"] == result.value]
+    if chosen:
+        i = chosen[-1]
+        (mark,) = ax.plot([i], [val[i]["worst_p99_px"]], "*", ms=16, color="C2", markeredgecolor="k", zorder=5,
+                          label=f"chosen: {result.value:.4g}")
+        handles.append(mark)
+    ax.set_yscale("log")
+    ax.set_xticks(x)
+    ax.set_xlabel("exact validation (try)")
+    ax.set_title(f"validation: {'met' if result.met else 'MISSED'}")
+    _legend_below(ax, handles)

@@ -91,3 +91,58 @@ def test_parameters_and_ranges_come_from_the_policy_table(scene):
     f = render(sc.with_(camera=cams[0], mesh="lod", lod=sc.lod.with_policy("sse", 2.0), outputs=("error",)),
                terrain=terrain, reference=refs[0])
     assert ev.triangles == [f.mesh.n_triangles] and ev.frame_ms[0] > 0  # frame cost: Report.frame_ms
+
+
+# -- issue 20: fit's numbers checked before any work (item 8), a progress bar (item 9), fit.png (item 12) ----
+def test_bad_counts_are_refused_before_any_work(scene, monkeypatch):
+    import terrainwarp.fit.lod_fit as lod_fit
+
+    sc, cams = scene
+    monkeypatch.setattr(lod_fit, "render", lambda *a, **k: pytest.fail("rendered before validating"))
+    for kw, name in (({"grid_points": -1}, "grid_points"), ({"steps": 0}, "steps"),
+                     ({"max_validations": -2}, "max_validations"), ({"grid_points": 2.5}, "grid_points")):
+        with pytest.raises(ValueError, match=name):
+            fit_lod(sc, 1.0, cameras=cams, **kw)
+
+
+def test_fit_progress_bar_counts_every_step(scene, capsys):
+    sc, cams = scene
+    fit_lod(sc, 2.0, policy="sse", cameras=cams[:1], steps=4, max_validations=1, grid_points=2, progress=True)
+    err = capsys.readouterr().err
+    assert "fit sse 2 px" in err and "step" in err
+    fit_lod(sc, 2.0, policy="sse", cameras=cams[:1], steps=4, max_validations=1)  # progress off by default
+    assert capsys.readouterr().err == ""
+
+
+def _fit_figure(monkeypatch, tmp_path, result, curve=None):
+    import terrainwarp.fit.lod_fit as lod_fit
+
+    figs = []
+    monkeypatch.setattr(lod_fit, "save_figure", lambda fig, path, **kw: figs.append(fig) or path)
+    lod_fit.plot_fit(result, tmp_path / "fit.png", curve)
+    fig = figs[0]
+    fig.canvas.draw()
+    return fig
+
+
+def test_fit_png_legends_clear_of_curves_and_chosen_try_marked(monkeypatch, tmp_path):
+    from terrainwarp.fit import FitResult
+
+    hist = [{"stage": "relaxed", "iter": i, "temperature": 1.0, "loss": 0.0, "cost": 1e5 / (i + 1),
+             "error_proxy_px": 0.5 + 0.1 * i, "value": 1.0} for i in range(0, 60, 10)]
+    tries = [(2.0, 3.1), (0.8, 0.9), (1.2, 1.4), (1.0, 1.1)]
+    hist += [{"stage": "validate", "value": v, "worst_p99_px": e, "cost": 1e4 / v} for v, e in tries]
+    res = FitResult("sse", 1.5, True, 1.2, LodParams(), None, 8, 1.0, "met", hist)
+    fig = _fit_figure(monkeypatch, tmp_path, res, [(1.0, 2e4), (2.0, 1e4)])
+    r = fig.canvas.get_renderer()
+    legends = [lg for ax in fig.axes if (lg := ax.get_legend()) is not None]
+    assert len(legends) == 2
+    for lg in legends:
+        box = lg.get_window_extent(r)
+        for ax in fig.axes:  # no plotted point of any panel lies under a legend
+            assert not box.overlaps(ax.get_window_extent(r)) or not any(
+                box.contains(*ax.transData.transform(p)) for ln in ax.get_lines() for p in ln.get_xydata())
+            assert not box.overlaps(ax.patch.get_window_extent(r)), "legend over a plotting area"
+    val_ax = fig.axes[1]
+    chosen = [ln for ln in val_ax.get_lines() if ln.get_label().startswith("chosen")]
+    assert len(chosen) == 1 and list(chosen[0].get_xydata()[0]) == [2.0, 1.4]  # the third try, value 1.2
