@@ -1,18 +1,24 @@
 """The ``terrainwarp`` command line.
 
 Every command that takes a scene file uses the demo scene (the bundled SRTM DEM, default camera) when
-none is given. Outputs go under ``--out DIR``. Bad arguments print one line on stderr and exit 2.
+none is given. Outputs go under ``--out DIR``. Bad arguments, paths and scene files print one line on
+stderr and exit 2, and leave no new file in ``--out``; a run that succeeds says which files in ``--out``
+it did not write (left from an earlier run; never deleted).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from . import __version__
 from .camera import Camera
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
 from .experiments.plots import plot_patches
@@ -24,7 +30,7 @@ from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
-from .scene import LOD_POLICIES, POLICY_TABLE, SPACINGS, LodConfig, Scene
+from .scene import LOD_POLICIES, MAX_TESS, POLICY_TABLE, QUADTREE_TESS, SPACINGS, LodConfig, Scene, check_tess
 
 __all__ = ["main", "sweep_evaluator"]
 
@@ -74,23 +80,49 @@ def _positive_float(s: str) -> float:
     return v
 
 
-def _nonnegative_int(s: str) -> int:
+def _int_at_least(s: str, least: int) -> int:
     try:
         v = int(s)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"expected >= 0, got {v}")
+    if v < least:
+        raise argparse.ArgumentTypeError(f"expected an integer >= {least}, got {v}")
     return v
 
 
+def _nonnegative_int(s: str) -> int:
+    return _int_at_least(s, 0)
+
+
+def _positive_int(s: str) -> int:
+    return _int_at_least(s, 1)
+
+
+def _tess_level(s: str) -> int:
+    """A tessellation level by the one rule (:func:`terrainwarp.scene.check_tess`); the policy's part of the
+    rule (powers of two for a quadtree) is checked with the policy, by ``LodConfig``."""
+    try:
+        return check_tess(_int_at_least(s, 1))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e).removeprefix("tess: ")) from None
+
+
+def _lod_config(args: argparse.Namespace) -> LodConfig:
+    """The LOD options as a LodConfig, validated by its rules (the policy table's) before any work: the
+    chosen policy's parameter (--tolerance-px, --k or --target-px), the hysteresis, the level, the roots and
+    the tessellation level (a power of two for a quadtree policy)."""
+    try:
+        return LodConfig(policy=args.policy, hysteresis=args.hysteresis, level=args.level, roots=args.roots,
+                         tess=args.tess, **{s.field: getattr(args, s.field) for s in POLICY_TABLE.values()})
+    except (TypeError, ValueError) as e:  # name the option: "lod.tess: ..." -> "--tess: ..."
+        name, _, rest = str(e).removeprefix("lod.").partition(":")
+        raise ValueError(f"--{name.replace('_', '-')}:{rest}" if name in vars(args) else str(e)) from None
+
+
 def _cmd_lod(args: argparse.Namespace) -> int:
+    cfg = _lod_config(args)
     sc = _scene(args)
-    terrain = Terrain.prepare(sc.heightmap, roots=args.roots, tess=args.tess)
-    # the policy from the table: the chosen policy's parameter (--tolerance-px, --k or --target-px), the
-    # hysteresis and the level; roots and tess go to the terrain (any tess in 1..64 here)
-    cfg = LodConfig(policy=args.policy, hysteresis=args.hysteresis, level=args.level,
-                    **{s.field: getattr(args, s.field) for s in POLICY_TABLE.values()})
+    terrain = Terrain.prepare(sc.heightmap, roots=cfg.roots, tess=cfg.tess)
     patches = select(terrain, sc.camera, make_policy(cfg))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -145,12 +177,12 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     cams = sc.camera_path(args.frames)
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers)
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points,
-                  grid_evaluator=grid_evaluator)
+                  grid_evaluator=grid_evaluator, progress=not args.no_progress)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
     for b in args.curve_budgets:
-        r = fit_lod(sc, b, policy=args.policy, cameras=cams)
+        r = fit_lod(sc, b, policy=args.policy, cameras=cams, progress=not args.no_progress)
         if r.met:
             curve.append((b, r.validated.cost))
     write_json(out / "fit.json", res.to_dict())
@@ -195,100 +227,282 @@ def _cmd_stability(args: argparse.Namespace) -> int:
 def _cmd_tessellate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     doc = tessellation_json(args.outer, args.inner, args.spacing)
-    write_tessellation_picture(out / "tessellation.png", args.outer, args.inner, args.spacing)
-    write_json(out / "tessellation.json", doc)
-    print(json.dumps(doc))
+    paths = [write_tessellation_picture(out / "tessellation.png", args.outer, args.inner, args.spacing),
+             write_json(out / "tessellation.json", doc)]
+    levels = lambda a: "[" + ", ".join("nan" if x is None else f"{x:g}" for x in a) + "]"  # noqa: E731
+    print(f"{doc['spacing']}: outer {levels(doc['outer'])}, inner {levels(doc['inner'])}: {doc['n_points']} "
+          f"points, {doc['n_triangles']} triangles" + ("" if doc["n_triangles"] else " (patch discarded)"))
+    print("wrote: " + ", ".join(str(p) for p in paths))
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.")
-    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser)
-    d = sub.add_parser("demo", help="render the bundled real DEM (frame.png, depth.exr, report.json)")
-    d.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    d.add_argument("--width", type=int, default=None)
-    d.add_argument("--height", type=int, default=None)
-    d.set_defaults(func=_cmd_render, scene=None)
-    r = sub.add_parser("render", help="render a scene file")
-    r.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
-    r.add_argument("--out", default="out/render")
-    r.add_argument("--width", type=int, default=None)
-    r.add_argument("--height", type=int, default=None)
-    r.set_defaults(func=_cmd_render)
-    lo = sub.add_parser("lod", help="select LOD patches: top-down picture (lod.png) and table (patches.csv)")
-    lo.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
-    lo.add_argument("--out", default="out/lod")
-    lo.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy)
+# ------------------------------------------------------------------------------------------------
+# bench
+# ------------------------------------------------------------------------------------------------
+BENCHMARKS_DIR = Path(__file__).resolve().parents[1] / "benchmarks"  # a source checkout's benchmarks/
+
+
+def _benchmarks() -> dict[str, Path]:
+    """The benchmarks by name (``bench_<name>.py`` in ``BENCHMARKS_DIR``); ValueError when there are none."""
+    found = {b.stem.removeprefix("bench_"): b for b in sorted(BENCHMARKS_DIR.glob("bench_*.py"))}
+    if not (BENCHMARKS_DIR / "run_all.py").is_file() or not found:
+        raise ValueError(f"bench: no benchmarks at {BENCHMARKS_DIR} (an installed wheel has none; run "
+                         f"'terrainwarp bench' from a source checkout)")
+    return found
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    found = _benchmarks()
+    if args.list:
+        print("\n".join(found))
+        return 0
+    unknown = [n for n in args.names if n not in found]
+    if unknown:
+        raise ValueError(f"bench: unknown benchmark(s) {unknown}; expected some of {list(found)}")
+    root = BENCHMARKS_DIR.parent
+    if not args.names:  # all of them, then BENCHMARKS.md: benchmarks/run_all.py
+        return subprocess.run([sys.executable, str(BENCHMARKS_DIR / "run_all.py")], cwd=root).returncode
+    rc = 0
+    for n in dict.fromkeys(args.names):
+        print(f"== {found[n].name}", flush=True)
+        rc = rc or subprocess.run([sys.executable, str(found[n])], cwd=root).returncode
+    subprocess.run([sys.executable, str(BENCHMARKS_DIR / "collect.py")], cwd=root)
+    return rc
+
+
+# ------------------------------------------------------------------------------------------------
+# the parser
+# ------------------------------------------------------------------------------------------------
+class _Help(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help ends with its default, except where there is none to show (None, a flag)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.default is None or action.default is False or action.default is argparse.SUPPRESS \
+                or action.default == [] or not action.help:
+            return action.help or ""
+        return super()._get_help_string(action)
+
+
+def _command(sub, name: str, help: str, func) -> _Parser:
+    c = sub.add_parser(name, help=help, description=help[:1].upper() + help[1:] + ".", formatter_class=_Help)
+    c.set_defaults(func=func)
+    return c
+
+
+def _add_scene(c: argparse.ArgumentParser, out: str, viewport: bool = True) -> None:
+    c.add_argument("scene", nargs="?", default=None, help="scene TOML file (default: the demo scene)")
+    _add_out(c, out)
+    if viewport:
+        _add_viewport(c)
+
+
+def _add_out(c: argparse.ArgumentParser, out: str) -> None:
+    c.add_argument("--out", default=out, metavar="DIR", help="output folder (created if missing)")
+
+
+def _add_viewport(c: argparse.ArgumentParser) -> None:
+    c.add_argument("--width", type=_positive_int, default=None, help="viewport width in pixels (default: the "
+                   "scene camera's)")
+    c.add_argument("--height", type=_positive_int, default=None, help="viewport height in pixels (default: the "
+                   "scene camera's)")
+
+
+def _add_demo_render_lod(sub) -> None:
+    d = _command(sub, "demo", "render the bundled real DEM (frame.png, depth.exr, report.json)", _cmd_render)
+    _add_out(d, "out/demo")
+    _add_viewport(d)
+    d.set_defaults(scene=None)
+    _add_scene(_command(sub, "render", "render a scene file (the outputs its [render] table asks for, and "
+                        "report.json)", _cmd_render), "out/render")
+    lo = _command(sub, "lod", "select LOD patches: top-down picture (lod.png) and table (patches.csv)", _cmd_lod)
+    _add_scene(lo, "out/lod")
+    lo.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy, help="LOD policy")
     for spec in POLICY_TABLE.values():  # --tolerance-px, --k, --target-px
         lo.add_argument("--" + spec.field.replace("_", "-"), type=_positive_float, default=getattr(_LOD, spec.field),
-                        help=spec.help)
-    lo.add_argument("--level", type=int, default=_LOD.level, help="continuous: the patch grid's level")
-    lo.add_argument("--hysteresis", type=float, default=_LOD.hysteresis)
-    lo.add_argument("--roots", type=int, default=_LOD.roots)
-    lo.add_argument("--tess", type=int, default=_LOD.tess)
-    lo.add_argument("--width", type=int, default=None)
-    lo.add_argument("--height", type=int, default=None)
-    lo.set_defaults(func=_cmd_lod)
-    rp = sub.add_parser("report", help="sweep LOD settings and peers over the camera path: frames.csv, "
-                                       "pareto.png, report.md")
-    rp.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
-    rp.add_argument("--out", default="out/report")
-    rp.add_argument("--frames", type=int, default=None, help="cameras on the path (default: the scene's, or 8)")
+                        help=f"{spec.help} (policy {spec.name})")
+    lo.add_argument("--level", type=_nonnegative_int, default=_LOD.level,
+                    help="continuous: the level of the uniform patch grid")
+    lo.add_argument("--hysteresis", type=float, default=_LOD.hysteresis,
+                    help="band in [0, 1) between the split and merge thresholds")
+    lo.add_argument("--roots", type=_positive_int, default=_LOD.roots, help="root nodes of the quadtree")
+    lo.add_argument("--tess", type=_tess_level, default=_LOD.tess,
+                    help=f"tessellation level of every patch: a power of two in 1..{QUADTREE_TESS[-1]} for a "
+                         f"quadtree policy, 1..{MAX_TESS} for continuous")
+
+
+def _add_report_fit(sub) -> None:
+    rp = _command(sub, "report", "sweep LOD settings and peers over the camera path: frames.csv, pareto.png, "
+                  "report.md", _cmd_report)
+    _add_scene(rp, "out/report")
+    rp.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
+                    "scene's [path] n, or 8)")
     rp.add_argument("--policies", default=None,
-                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree")
+                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree "
+                         "(default: all)")
     rp.add_argument("--quick", action="store_true", help="two settings per policy")
     rp.add_argument("--no-images", action="store_true", help="skip shading (no PSNR/SSIM)")
-    rp.add_argument("--no-progress", action="store_true")
-    rp.add_argument("--width", type=int, default=None)
-    rp.add_argument("--height", type=int, default=None)
+    rp.add_argument("--no-progress", action="store_true", help="no progress bar")
     rp.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
                     help="run the jobs on this Dask scheduler's cluster (default: a local cluster)")
     rp.add_argument("--workers", type=_nonnegative_int, default=None,
                     help="local worker processes (default: one per core; 0: in this process)")
-    rp.set_defaults(func=_cmd_report)
-    st = sub.add_parser("stability", help="run the extreme-case stability suite through every stage: stability.md")
-    st.add_argument("--out", required=True, help="output folder for stability.md")
-    st.add_argument("--full", action="store_true", help="129 x 129 grids instead of 33 x 33")
-    st.add_argument("--cases", default=None, help="comma-separated subset of terrainwarp.experiments.extreme.CASES")
-    st.add_argument("--no-progress", action="store_true")
-    st.set_defaults(func=_cmd_stability)
-    ft = sub.add_parser("fit", help="fit LOD thresholds to a screen-space error budget (fit.json, fit.png)")
-    ft.add_argument("scene", nargs="?", default=None, help="scene TOML (default: the demo scene)")
+    ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
+                  _cmd_fit)
+    _add_scene(ft, "out/fit")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
-    ft.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy)
-    ft.add_argument("--frames", type=int, default=None)
-    ft.add_argument("--grid-points", type=int, default=0, help="also run a grid search baseline with N points")
-    ft.add_argument("--workers", type=int, default=0,
+    ft.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy, help="LOD policy to fit")
+    ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
+                    "scene's [path] n, or 8)")
+    ft.add_argument("--grid-points", type=_nonnegative_int, default=0,
+                    help="also run a grid search baseline with N points (0: none)")
+    ft.add_argument("--workers", type=_nonnegative_int, default=0,
                     help="grid search on the sweep runner with N worker processes (0: in this process)")
-    ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[],
+    ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[], metavar="PX",
                     help="also fit these budgets for the cost-against-budget curve")
-    ft.add_argument("--out", default="out/fit")
-    ft.add_argument("--width", type=int, default=None)
-    ft.add_argument("--height", type=int, default=None)
-    ft.set_defaults(func=_cmd_fit)
-    te = sub.add_parser("tessellate", help="one quad patch through the GPU tessellator: tessellation.png and the "
-                                          "triangles as JSON")
+    ft.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_stability_tessellate_bench(sub) -> None:
+    st = _command(sub, "stability", "run the extreme-case stability suite through every stage: stability.md",
+                  _cmd_stability)
+    st.add_argument("--out", required=True, metavar="DIR", help="output folder for stability.md")
+    st.add_argument("--full", action="store_true", help="129 x 129 grids instead of 33 x 33")
+    st.add_argument("--cases", default=None, help="comma-separated subset of terrainwarp.experiments.extreme.CASES "
+                    "(default: all)")
+    st.add_argument("--no-progress", action="store_true", help="no progress bar")
+    te = _command(sub, "tessellate", "one quad patch through the GPU tessellator: tessellation.png and "
+                  "tessellation.json (points and triangles)", _cmd_tessellate)
     te.add_argument("--outer", type=float, nargs=4, required=True, metavar="L",
                     help="4 outer levels: u=0, v=0, u=1, v=1 edges (gl_TessLevelOuter order)")
     te.add_argument("--inner", type=float, nargs=2, required=True, metavar="L", help="2 inner levels: along u, v")
-    te.add_argument("--spacing", choices=list(SPACINGS), default=SPACINGS[0])
-    te.add_argument("--out", default="out/tessellate")
-    te.set_defaults(func=_cmd_tessellate)
+    te.add_argument("--spacing", choices=list(SPACINGS), default=SPACINGS[0], help="tessellation spacing")
+    _add_out(te, "out/tessellate")
+    b = _command(sub, "bench", "run the benchmarks of benchmarks/ (all, then BENCHMARKS.md, or those named); "
+                 "a source checkout only", _cmd_bench)
+    b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run, e.g. lod frame (default: all)")
+    b.add_argument("--list", action="store_true", help="list the benchmarks' names and exit")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.",
+                epilog="'terrainwarp COMMAND --help' shows a command's options.")
+    p.add_argument("--version", action="version", version=f"terrainwarp {__version__}")
+    sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser, metavar="COMMAND")
+    _add_demo_render_lod(sub)
+    _add_report_fit(sub)
+    _add_stability_tessellate_bench(sub)
     return p
 
 
+# ------------------------------------------------------------------------------------------------
+# main: one line and exit 2 on bad input, and --out left as it was found
+# ------------------------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv:  # bare `terrainwarp`: the usage and the commands, on stderr, exit 2 (as for a missing argument)
+        parser.print_help(sys.stderr)
+        return 2
     args = parser.parse_args(argv)
+    out = _OutDir(args.out) if getattr(args, "out", None) else None
     try:
-        return int(args.func(args) or 0)
-    except (ValueError, TypeError, FileNotFoundError, IsADirectoryError, PermissionError) as e:
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"terrainwarp: error: {msg}", file=sys.stderr)
+        if out is not None:
+            out.check()
+        rc = int(args.func(args) or 0)
+    except (ValueError, TypeError, OSError) as e:
+        if out is not None:
+            out.clean_up()
+        print(f"terrainwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("terrainwarp: interrupted", file=sys.stderr)
         return 130
+    if out is not None:
+        out.note_stale()
+    return rc
+
+
+def _one_line(e: BaseException) -> str:
+    """The first line of the error that started it all: an OSError raised while cleaning up after another
+    (a temporary file that cannot be removed from a read-only folder) hides the real one in its context."""
+    while isinstance(e, OSError) and isinstance(e.__context__, OSError) and not e.__suppress_context__:
+        e = e.__context__
+    if isinstance(e, OSError) and e.strerror and e.filename:
+        return f"{e.filename}: {e.strerror}"
+    return str(e).splitlines()[0] if str(e) else type(e).__name__
+
+
+class _OutDir:
+    """``--out``: checked before the command runs (a folder, or a path whose nearest existing ancestor is a
+    writable folder); on failure the files and folders the run created are removed again (nothing that was
+    there before is touched); on success, the files that were there before and that the run did not write
+    are named."""
+
+    DEPTH = 2  # the commands write into --out and at most one folder below
+
+    def __init__(self, out: str) -> None:
+        self.path = Path(out)
+        self.before: dict[Path, tuple[int, int, int]] | None = None
+        self.dirs: set[Path] = set()
+        self.anchor = self.path
+
+    def check(self) -> None:
+        p = self.path
+        if p.exists() and not p.is_dir():
+            raise ValueError(f"--out: {p} is a file, expected a folder")
+        a = p
+        while not a.exists() and a != a.parent:
+            a = a.parent
+        if not a.is_dir():
+            raise ValueError(f"--out: {p} lies under the file {a}, expected a folder")
+        if not os.access(a, os.W_OK | os.X_OK):
+            raise ValueError(f"--out: cannot write in {a} (read-only or no permission)")
+        self.anchor = a
+        self.before = self._files()
+        self.dirs = self._dirs()
+
+    def _walk(self) -> list[Path]:
+        if not self.path.is_dir():
+            return []
+        found, level = [], [self.path]
+        for _ in range(self.DEPTH):
+            level = [c for d in level for c in sorted(d.iterdir())]
+            found += level
+            level = [c for c in level if c.is_dir() and not c.is_symlink()]
+        return found
+
+    def _files(self) -> dict[Path, tuple[int, int, int]]:
+        return {f: (st.st_ino, st.st_mtime_ns, st.st_size) for f in self._walk() if not f.is_dir()
+                for st in (f.lstat(),)}
+
+    def _dirs(self) -> set[Path]:
+        ancestors = {self.path, *self.path.parents}
+        return {d for d in [*self._walk(), *ancestors] if d.is_dir()}
+
+    def clean_up(self) -> None:
+        """Remove what a failed run created: new files, then new (empty) folders, ``--out`` itself included."""
+        if self.before is None:
+            return
+        for f in self._files():
+            if f not in self.before:
+                with contextlib.suppress(OSError):  # the one error to report is the command's
+                    f.unlink()
+        new_dirs = [d for d in [*self._walk(), self.path, *self.path.parents] if d.is_dir() and d not in self.dirs]
+        for d in sorted(new_dirs, key=lambda d: len(d.parts), reverse=True):
+            with contextlib.suppress(OSError):
+                if not any(d.iterdir()):
+                    d.rmdir()
+
+    def note_stale(self) -> None:
+        """Name the files in ``--out`` that were there before and that this run did not write."""
+        if not self.before:
+            return
+        now = self._files()
+        stale = sorted(str(f.relative_to(self.path)) for f, sig in self.before.items() if now.get(f) == sig)
+        if stale:
+            more = f" and {len(stale) - 5} more" if len(stale) > 5 else ""
+            print(f"terrainwarp: note: {self.path} also holds {len(stale)} file(s) this run did not write (from an "
+                  f"earlier run?): {', '.join(stale[:5])}{more}", file=sys.stderr)
 
 
 if __name__ == "__main__":

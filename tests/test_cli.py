@@ -1,3 +1,4 @@
+import argparse
 import json
 import subprocess
 import sys
@@ -44,3 +45,129 @@ def test_lod_writes_picture_and_table(tmp_path, capsys):
     stats = json.loads(capsys.readouterr().out.splitlines()[0])
     assert len(rows) == 1 + stats["patches"]
     assert rows[0].startswith("key,zoom_x_y,level")
+
+
+def _run(argv):
+    """main's exit code, whether it returns or argparse exits."""
+    try:
+        return main(argv)
+    except SystemExit as e:
+        return e.code
+
+
+# -- issue 20 item 8: numbers refused when parsed, by the LodConfig / policy-table rule ------------------
+@pytest.mark.parametrize("argv, option", [
+    (["lod", "--tess", "3"], "--tess"), (["lod", "--tess", "16.0"], "--tess"), (["lod", "--tess", "0"], "--tess"),
+    (["lod", "--policy", "continuous", "--tess", "65"], "--tess"), (["lod", "--roots", "0"], "--roots"),
+    (["lod", "--hysteresis", "1.5"], "--hysteresis"), (["lod", "--level", "-1"], "--level"),
+    (["fit", "--budget-px", "1", "--grid-points", "-1"], "--grid-points"),
+    (["fit", "--budget-px", "1", "--workers", "-1"], "--workers"), (["fit", "--budget-px", "1", "--frames", "0"],
+                                                                    "--frames"),
+    (["report", "--frames", "-2"], "--frames"), (["render", "--width", "-5"], "--width")])
+def test_bad_numbers_refused_at_once_naming_the_option(argv, option, tmp_path, capsys, monkeypatch):
+    import terrainwarp.cli as cli
+
+    monkeypatch.setattr(cli, "_scene", lambda args: pytest.fail("work started before the numbers were checked"))
+    assert _run([*argv, "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and option in err[0], err
+    assert not (tmp_path / "o").exists()
+
+
+def test_lod_tess_rule_follows_the_policy(tmp_path, capsys):
+    # the continuous policy has no doubled edges: any level 1..64 (the quadtree policies: powers of two)
+    assert main(["lod", "--policy", "continuous", "--tess", "3", "--level", "1", "--width", "48", "--height", "32",
+                 "--out", str(tmp_path)]) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[0])["tess"] == 3
+
+
+# -- issue 20 item 9: help, usage, version, progress, tessellate's summary, bench ----------------------------
+def _subcommands():
+    from terrainwarp.cli import build_parser
+
+    p = build_parser()
+    return p, next(a for a in p._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def test_every_option_has_help_and_shows_its_default():
+    _, subs = _subcommands()
+    assert set(subs) == {"demo", "render", "lod", "report", "fit", "stability", "tessellate", "bench"}
+    for name, sp in subs.items():
+        fmt = sp.formatter_class(prog=name)
+        for a in sp._actions:
+            if isinstance(a, argparse._HelpAction):
+                continue
+            assert a.help, f"{name} {a.option_strings or a.dest}: no help text"
+            if a.default is not None and a.default is not False and a.default != []:
+                assert "(default: %(default)s)" in fmt._get_help_string(a) or "default" in a.help, \
+                    f"{name} {a.option_strings}: default {a.default!r} not shown"
+    for opt in ("--out", "--width", "--height", "--roots", "--tess", "--hysteresis", "--policy"):
+        assert opt in subs["lod"].format_help()
+    assert "(default: out/lod)" in " ".join(subs["lod"].format_help().split())
+
+
+def test_bare_command_prints_usage_and_version(capsys):
+    assert main([]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: terrainwarp") and all(c in err for c in ("demo", "fit", "bench", "tessellate"))
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    from terrainwarp import __version__
+
+    assert capsys.readouterr().out.strip() == f"terrainwarp {__version__}"
+
+
+def test_fit_command_shows_progress_unless_told_not_to(monkeypatch, tmp_path, capsys):
+    import terrainwarp.cli as cli
+
+    seen = []
+
+    def fake_fit(*a, **kw):
+        seen.append(kw.get("progress"))
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(cli, "fit_lod", fake_fit)
+    base = ["fit", "--budget-px", "1", "--frames", "1", "--width", "32", "--height", "24", "--out", str(tmp_path)]
+    assert main(base) == 2
+    assert main([*base, "--no-progress"]) == 2
+    assert seen == [True, False]
+
+
+def test_tessellate_prints_a_summary_and_what_it_wrote(tmp_path, capsys):
+    assert main(["tessellate", "--outer", "3", "5", "1", "7", "--inner", "4", "4", "--out", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    doc = json.loads((tmp_path / "tessellation.json").read_text())
+    assert len(lines) == 2 and f"{doc['n_triangles']} triangles" in lines[0] and not lines[0].startswith("{")
+    assert lines[1] == f"wrote: {tmp_path / 'tessellation.png'}, {tmp_path / 'tessellation.json'}"
+
+
+def _fake_benchmarks(root):
+    b = root / "benchmarks"
+    b.mkdir()
+    (b / "run_all.py").write_text("print('run_all ran')\n")
+    (b / "collect.py").write_text("print('collect ran')\n")
+    for n in ("alpha", "beta"):
+        (b / f"bench_{n}.py").write_text(f"print('{n} ran')\n")
+    return b
+
+
+def test_bench_lists_runs_all_or_named_and_refuses_unknown(monkeypatch, tmp_path, capfd):
+    import terrainwarp.cli as cli
+
+    assert main(["bench", "--list"]) == 0  # the real benchmarks/ of this checkout
+    assert {"lod", "frame", "tessellate"} <= set(capfd.readouterr().out.split())
+    monkeypatch.setattr(cli, "BENCHMARKS_DIR", _fake_benchmarks(tmp_path))
+    assert main(["bench"]) == 0
+    assert capfd.readouterr().out.split("\n")[0] == "run_all ran"
+    assert main(["bench", "beta"]) == 0
+    out = capfd.readouterr().out
+    assert "beta ran" in out and "alpha ran" not in out and "collect ran" in out
+    assert main(["bench", "beta", "gamma"]) == 2
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gamma" in err[0] and "alpha" in err[0]
+    monkeypatch.setattr(cli, "BENCHMARKS_DIR", tmp_path / "site-packages" / "benchmarks")  # an installed wheel
+    for argv in (["bench"], ["bench", "--list"], ["bench", "lod"]):
+        assert main(argv) == 2
+        err = capfd.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "no benchmarks" in err[0] and "source checkout" in err[0]
