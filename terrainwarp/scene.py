@@ -308,11 +308,9 @@ class Scene:
         if p.is_dir():
             raise ValueError(f"scene: {p} is a directory, expected a TOML file")
         try:
-            text = p.read_text()
+            data = tomllib.loads(p.read_text())
         except OSError as e:
             raise ValueError(f"scene: cannot read {p}: {e.strerror or e}") from None
-        try:
-            data = tomllib.loads(text)
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
             raise ValueError(f"scene: {p} is not valid TOML: {e}") from e
         return cls.from_dict(data, base_dir=p.parent, name=p.stem)
