@@ -35,6 +35,14 @@ class Mesh:
     patch_id: np.ndarray
     normals: np.ndarray | None = None
 
+    def __post_init__(self) -> None:
+        # the per-vertex arrays must describe the same vertices: a mismatch is a pipeline bug, caught here
+        n = np.shape(self.positions)
+        if len(n) != 2 or n[1] != 3:
+            raise ValueError(f"positions: expected shape (n, 3), got {n}")
+        if self.normals is not None and np.shape(self.normals) != n:
+            raise ValueError(f"normals: expected shape {n}, got {np.shape(self.normals)}")
+
     @property
     def n_vertices(self) -> int:
         return int(self.positions.shape[0])

@@ -31,7 +31,8 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp
         os.replace(tmp, p)
     finally:
-        with contextlib.suppress(FileNotFoundError):
+        # the cleanup never hides the real error (a read-only filesystem fails the unlink too)
+        with contextlib.suppress(OSError):
             tmp.unlink()
 
 

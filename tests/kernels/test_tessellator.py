@@ -287,6 +287,9 @@ def test_frame_on_the_real_dem_is_watertight_and_exports(tmp_path):
     assert "level" in pd.point_data and "patch_id" in pd.point_data and "Normals" in pd.point_data
     pd.save(tmp_path / "frame.vtp")
     assert (tmp_path / "frame.vtp").stat().st_size > 0
+    with pytest.raises(ValueError, match="normals"):
+        Mesh(positions=t.positions, eye=t.eye, triangles=t.triangles, uv=t.uv, level=t.level,
+             patch_id=t.patch_id, normals=np.zeros((2, 3), np.float32))
 
 
 def test_tessellate_patches_is_deterministic():
@@ -307,7 +310,9 @@ def test_cli_tessellate(tmp_path, capsys):
 
     assert main(["tessellate", "--outer", "3", "5", "1", "7", "--inner", "4", "4", "--spacing", "fractional_odd",
                  "--out", str(tmp_path)]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    assert "wrote:" in printed and "tessellation.json" in printed
+    doc = json.loads((tmp_path / "tessellation.json").read_text())
     uv, tri = tessellate_patch([3, 5, 1, 7], [4, 4], "fractional_odd")
     assert doc["triangles"] == tri.tolist() and doc["points"] == uv.tolist()
     assert (tmp_path / "tessellation.png").stat().st_size > 1000
