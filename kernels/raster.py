@@ -42,6 +42,8 @@ Output images have row 0 at the top (window y is flipped once, here).
 import numpy as np
 import warp as wp
 
+from .parallel import atomic_add_i32, atomic_min_u64, launch, threads
+
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
 SUBPIXEL_HALF = SUBPIXEL // 2
@@ -49,6 +51,10 @@ GUARD_BAND_PX = 0.0  # x and y are clipped at the viewport itself, as llvmpipe d
 TILE = 16  # screen tile edge in pixels (binning of large triangles)
 SMALL_PX = 16  # triangles whose pixel box spans fewer pixels than this each way are drawn at once
 _EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
+# the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
+_MIN_TRIANGLES = 2048
+_MIN_TILES = 64
+_MIN_PIXELS = 32768
 
 poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
@@ -295,7 +301,8 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
                 fa: wp.vec3, fb: wp.vec3, fc: wp.vec3, t: int, r: wp.vec4i, width: int, height: int,
                 out_key: wp.array(dtype=wp.uint64)) -> wp.vec3l:
     """Cover the pixel centres of rectangle r = (x0, x1, y0, y1) inside the CCW triangle; depth-test
-    with a 64-bit atomic min. Returns (fragments tested, fragments inside, pixels written)."""
+    with a 64-bit atomic min (a true one: chunks of a launch run on several CPU threads).
+    Returns (fragments tested, fragments inside, pixels written)."""
     half = wp.int64(SUBPIXEL_HALF)
     one = wp.int64(SUBPIXEL)
     xmin = wp.min(ax, wp.min(bx, cx))
@@ -354,7 +361,7 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
                 d = wp.clamp(zr + dzdx * float(i), 0.0, 1.0)
                 if d < 1.0:
                     key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | tid
-                    old = wp.atomic_min(out_key, row + i, key)
+                    old = atomic_min_u64(out_key, row + i, key)
                     if key < old:
                         written += wp.int64(1)
             e0 += e0dx
@@ -434,12 +441,13 @@ def _clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.
 
 @wp.kernel(enable_backward=False)
 def _vertex_kernel(
+    offset: int,
     pos: wp.array(dtype=wp.vec3),
     mvp: wp.mat44,
     # outputs
     out_clip: wp.array(dtype=wp.vec4),
 ):
-    k = wp.tid()
+    k = wp.tid() + offset
     p = pos[k]
     out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
 
@@ -459,6 +467,8 @@ def _transform_kernel(
 
 @wp.kernel(enable_backward=False)
 def _small_count_kernel(
+    offset: int,
+    part: int,
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     width: int,
@@ -470,11 +480,11 @@ def _small_count_kernel(
     out_key: wp.array(dtype=wp.uint64),
     out_big: wp.array(dtype=wp.int32),
     out_tile_count: wp.array(dtype=wp.int32),
-    out_stats: wp.array(dtype=wp.int64),
+    out_stats: wp.array2d(dtype=wp.int64),
 ):
     """Per triangle: set up; draw it at once when its pixel box spans at most SMALL_PX pixels each
-    way, else count the screen tiles it may cover (out_big[t] = 1)."""
-    t = wp.tid()
+    way, else count the screen tiles it may cover (out_big[t] = 1). Counters go to row ``part``."""
+    t = wp.tid() + offset
     out_big[t] = 0
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
@@ -514,10 +524,10 @@ def _small_count_kernel(
             c = _raster_tri(ax, ay, bx, by, cx, cy, fa, fb, fc, t, wp.vec4i(0, width - 1, 0, height - 1),
                             width, height, out_key)
             if c[0] > wp.int64(0):
-                wp.atomic_add(out_stats, 0, wp.int64(1))
-                wp.atomic_add(out_stats, 1, c[0])
-                wp.atomic_add(out_stats, 2, c[1])
-                wp.atomic_add(out_stats, 3, c[2])
+                wp.atomic_add(out_stats, part, 0, wp.int64(1))
+                wp.atomic_add(out_stats, part, 1, c[0])
+                wp.atomic_add(out_stats, part, 2, c[1])
+                wp.atomic_add(out_stats, part, 3, c[2])
             return
     n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
     if n == 0:
@@ -528,26 +538,27 @@ def _small_count_kernel(
     if box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX:
         acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key)
         if acc[0] > wp.int64(0):
-            wp.atomic_add(out_stats, 0, wp.int64(1))
-            wp.atomic_add(out_stats, 1, acc[1])
-            wp.atomic_add(out_stats, 2, acc[2])
-            wp.atomic_add(out_stats, 3, acc[3])
+            wp.atomic_add(out_stats, part, 0, wp.int64(1))
+            wp.atomic_add(out_stats, part, 1, acc[1])
+            wp.atomic_add(out_stats, part, 2, acc[2])
+            wp.atomic_add(out_stats, part, 3, acc[3])
         return
     ntiles = int(0)  # noqa: UP018 -- a mutable Warp int
     for ty in range(box[2] / TILE, box[3] / TILE + 1):
         for tx in range(box[0] / TILE, box[1] / TILE + 1):
             if _poly_rect(n, xs, ys, _tile_rect(tx, ty, width, height), cull_back):
-                wp.atomic_add(out_tile_count, ty * tiles_x + tx, 1)
+                atomic_add_i32(out_tile_count, ty * tiles_x + tx, 1)
                 ntiles += 1
     if ntiles > 0:
         out_big[t] = 1
-        wp.atomic_add(out_stats, 0, wp.int64(1))
-        wp.atomic_add(out_stats, 4, wp.int64(1))
-        wp.atomic_add(out_stats, 5, wp.int64(ntiles))
+        wp.atomic_add(out_stats, part, 0, wp.int64(1))
+        wp.atomic_add(out_stats, part, 4, wp.int64(1))
+        wp.atomic_add(out_stats, part, 5, wp.int64(ntiles))
 
 
 @wp.kernel(enable_backward=False)
 def _bin_kernel(
+    offset: int,
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     big: wp.array(dtype=wp.int32),
@@ -561,8 +572,9 @@ def _bin_kernel(
     out_cursor: wp.array(dtype=wp.int32),
     out_list: wp.array(dtype=wp.int32),
 ):
-    """Per large triangle: write its id into the list of every tile it may cover."""
-    t = wp.tid()
+    """Per large triangle: write its id into the list of every tile it may cover (the order within a
+    tile's list depends on thread timing; what the tile kernel draws from it does not)."""
+    t = wp.tid() + offset
     if big[t] == 0:
         return
     c0 = clip[tris[t, 0]]
@@ -574,12 +586,14 @@ def _bin_kernel(
         for tx in range(box[0] / TILE, box[1] / TILE + 1):
             if _poly_rect(n, xs, ys, _tile_rect(tx, ty, width, height), cull_back):
                 tile = ty * tiles_x + tx
-                slot = wp.atomic_add(out_cursor, tile, 1)
+                slot = atomic_add_i32(out_cursor, tile, 1)
                 out_list[tile_start[tile] + slot] = t
 
 
 @wp.kernel(enable_backward=False)
 def _tile_kernel(
+    offset: int,
+    part: int,
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     width: int,
@@ -592,10 +606,10 @@ def _tile_kernel(
     tri_list: wp.array(dtype=wp.int32),
     # outputs
     out_key: wp.array(dtype=wp.uint64),
-    out_stats: wp.array(dtype=wp.int64),
+    out_stats: wp.array2d(dtype=wp.int64),
 ):
     """Per screen tile: draw the large triangles binned to it, clipped to the tile."""
-    tile = wp.tid()
+    tile = wp.tid() + offset
     ty = tile / tiles_x
     tx = tile - ty * tiles_x
     r = _tile_rect(tx, ty, width, height)
@@ -609,20 +623,21 @@ def _tile_kernel(
         n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
         acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key)
     if tile_count[tile] > 0:
-        wp.atomic_add(out_stats, 1, acc[1])
-        wp.atomic_add(out_stats, 2, acc[2])
-        wp.atomic_add(out_stats, 3, acc[3])
+        wp.atomic_add(out_stats, part, 1, acc[1])
+        wp.atomic_add(out_stats, part, 2, acc[2])
+        wp.atomic_add(out_stats, part, 3, acc[3])
 
 
 @wp.kernel(enable_backward=False)
 def _resolve_ids_kernel(
+    offset: int,
     key: wp.array(dtype=wp.uint64),
     # outputs
     out_id: wp.array(dtype=wp.int32),
     out_depth: wp.array(dtype=wp.float32),
 ):
     """Decode the depth|id keys: triangle id (-1 background) and window depth (1 background)."""
-    p = wp.tid()
+    p = wp.tid() + offset
     k = key[p]
     if k == wp.uint64(0xFFFFFFFFFFFFFFFF):
         out_id[p] = -1
@@ -634,6 +649,7 @@ def _resolve_ids_kernel(
 
 @wp.kernel(enable_backward=False)
 def _barycentrics_kernel(
+    offset: int,
     tri_id: wp.array2d(dtype=wp.int32),
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
@@ -642,6 +658,7 @@ def _barycentrics_kernel(
 ):
     """Perspective-correct barycentrics (b0, b1) of each pixel centre on its visible triangle."""
     i, j = wp.tid()
+    i += offset
     t = tri_id[i, j]
     if t < 0:
         out_bary[i, j] = wp.vec2(0.0, 0.0)
@@ -699,7 +716,9 @@ class Fragments:
             after trivial rejection, clipping, zero-area and back-face culling); triangles_binned (large
             triangles drawn tile by tile) and tile_entries; fragments_tested (pixel centres
             evaluated), fragments_inside (centres covered), pixels_written (depth tests passed), and
-            pixels_covered (non-background pixels in the end).
+            pixels_covered (non-background pixels in the end). pixels_written alone depends on the
+            order of the depth tests, so, as on a GPU, it may differ between runs with more than one
+            thread (``terrainwarp.set_threads``); the images and every other counter never do.
 
     Iterating yields (triangle_id, depth, barycentrics, stats), as the earlier NamedTuple did.
     """
@@ -718,9 +737,9 @@ class Fragments:
         if self._bary is None:
             hh, ww = self.triangle_id.shape
             out = wp.empty((hh, ww), dtype=wp.vec2, device=self._device)
-            wp.launch(_barycentrics_kernel, dim=(hh, ww),
-                      inputs=[wp.array(self.triangle_id, dtype=wp.int32, device=self._device), self._clip,
-                              self._tris], outputs=[out], device=self._device)
+            launch(_barycentrics_kernel, (hh, ww),
+                   [wp.array(self.triangle_id, dtype=wp.int32, device=self._device), self._clip, self._tris],
+                   [out], self._device)
             self._bary = out.numpy().reshape(hh, ww, 2)
             self._clip = self._tris = None
         return self._bary
@@ -770,7 +789,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
         key = wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
     else:
         key = wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
-    stats = wp.zeros(6, dtype=wp.int64, device=device)
+    stats = wp.zeros((threads(), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
     m = int(tri.shape[0])
     tri_wp = wp.array(tri if m else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
     tiles_x = (width + TILE - 1) // TILE
@@ -780,24 +799,24 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
         cb = int(bool(cull_back))
         big = wp.empty(m, dtype=wp.int32, device=device)
         tile_count = wp.zeros(tiles_x * tiles_y, dtype=wp.int32, device=device)
-        wp.launch(_small_count_kernel, dim=m, inputs=[clip, tri_wp, width, height, cb, gb, tiles_x],
-                  outputs=[key, big, tile_count, stats], device=device)
-        total = int(stats.numpy()[5])
+        launch(_small_count_kernel, m, [clip, tri_wp, width, height, cb, gb, tiles_x],
+               [key, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES)
+        total = int(stats.numpy()[:, 5].sum())
         if total:
             tile_start = wp.empty_like(tile_count)
             wp.utils.array_scan(tile_count, tile_start, inclusive=False)
             cursor = wp.zeros_like(tile_count)
             tri_list = wp.empty(total, dtype=wp.int32, device=device)
-            wp.launch(_bin_kernel, dim=m, inputs=[clip, tri_wp, big, width, height, cb, gb, tiles_x, tile_start],
-                      outputs=[cursor, tri_list], device=device)
-            wp.launch(_tile_kernel, dim=tiles_x * tiles_y,
-                      inputs=[clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
-                      outputs=[key, stats], device=device)
+            launch(_bin_kernel, m, [clip, tri_wp, big, width, height, cb, gb, tiles_x, tile_start],
+                   [cursor, tri_list], device, min_items=_MIN_TRIANGLES)
+            launch(_tile_kernel, tiles_x * tiles_y,
+                   [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
+                   [key, stats], device, parts=True, min_items=_MIN_TILES)
     out_id = wp.empty(npx, dtype=wp.int32, device=device)
     out_depth = wp.empty(npx, dtype=wp.float32, device=device)
-    wp.launch(_resolve_ids_kernel, dim=npx, inputs=[key], outputs=[out_id, out_depth], device=device)
+    launch(_resolve_ids_kernel, npx, [key], [out_id, out_depth], device, min_items=_MIN_PIXELS)
     ids = out_id.numpy().reshape(height, width)
-    c = stats.numpy()
+    c = stats.numpy().sum(axis=0)  # integer sums: the same whatever the chunks
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
                "pixels_written": int(c[3]), "pixels_covered": int(np.count_nonzero(ids >= 0))}
@@ -838,9 +857,8 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.a
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     clip = wp.empty(max(len(pos32), 1), dtype=wp.vec4, device=device)
     if len(pos32):
-        wp.launch(_vertex_kernel, dim=len(pos32), inputs=[wp.array(pos32, dtype=wp.vec3, device=device),
-                                                          wp.mat44(*mvp.reshape(-1).tolist())],
-                  outputs=[clip], device=device)
+        launch(_vertex_kernel, len(pos32), [wp.array(pos32, dtype=wp.vec3, device=device),
+                                            wp.mat44(*mvp.reshape(-1).tolist())], [clip], device)
     return clip
 
 

@@ -1,0 +1,196 @@
+"""The one parallel-launch helper: a kernel's index range split across CPU threads.
+
+Warp's CPU backend runs a launch on the calling thread, one index after another. Its launches release
+the GIL (the kernel is called through ctypes), so Python threads that each launch one contiguous chunk
+of the outermost index range run on as many cores. :func:`launch` does that on the CPU and launches
+once on CUDA:
+
+- A kernel launched through it takes ``offset: int`` as its first parameter (the outermost index of its
+  first item; ``i = wp.tid() + offset``, or ``i, j = wp.tid(); i += offset``). With ``parts=True`` it
+  takes ``part: int`` second: this chunk's index in ``[0, threads())``, for per-chunk partial sums
+  (``out_stats[part, k]``) that the host adds up in a fixed order.
+- Chunks are contiguous, in order, and write disjoint ranges. Warp's CPU atomics are plain
+  read-modify-writes (the CPU backend has been single-threaded), so a kernel whose chunks may touch the
+  same element uses the true atomics below (:func:`atomic_min_u64`, :func:`atomic_min_i32`,
+  :func:`atomic_add_i32`), whose result does not depend on order; anything order-dependent gets a
+  deterministic merge. Outputs are then bit-identical for any thread count.
+- Thread count: ``TERRAINWARP_THREADS`` (environment), or :func:`set_threads`; by default the cores this
+  process may use (``os.sched_getaffinity``). Sweep workers set 1 so they never oversubscribe.
+- Modules are loaded (compiled) on the calling thread before any chunk starts.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import warp as wp
+
+THREADS_ENV = "TERRAINWARP_THREADS"
+MIN_ITEMS = 4096  # fewer items per chunk than this are not worth a thread hand-off (~20 us)
+
+_lock = threading.Lock()
+_state: dict = {"threads": None, "pool": None, "pool_size": 0}
+
+
+# ------------------------------------------------------------------------------------------------
+# true atomics on the CPU (Warp's own are plain read-modify-writes there); CUDA's as on the GPU
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return (uint64_t)atomicMin((unsigned long long*)wp::address(a, i), (unsigned long long)v);
+#else
+uint64_t* p = wp::address(a, i);
+uint64_t old = __atomic_load_n(p, __ATOMIC_RELAXED);
+while (v < old && !__atomic_compare_exchange_n(p, &old, v, true, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
+return old;
+#endif
+""")
+def atomic_min_u64(a: wp.array(dtype=wp.uint64), i: int, v: wp.uint64) -> wp.uint64:
+    """``a[i] = min(a[i], v)`` atomically; returns the old value."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return atomicMin(wp::address(a, i, j), v);
+#else
+int32_t* p = wp::address(a, i, j);
+int32_t old = __atomic_load_n(p, __ATOMIC_RELAXED);
+while (v < old && !__atomic_compare_exchange_n(p, &old, v, true, __ATOMIC_RELAXED, __ATOMIC_RELAXED)) {}
+return old;
+#endif
+""")
+def atomic_min_i32(a: wp.array2d(dtype=wp.int32), i: int, j: int, v: int) -> int:
+    """``a[i, j] = min(a[i, j], v)`` atomically; returns the old value."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return atomicAdd(wp::address(a, i), v);
+#else
+return __atomic_fetch_add(wp::address(a, i), v, __ATOMIC_RELAXED);
+#endif
+""")
+def atomic_add_i32(a: wp.array(dtype=wp.int32), i: int, v: int) -> int:
+    """``a[i] += v`` atomically; returns the old value."""
+    ...
+
+
+# ------------------------------------------------------------------------------------------------
+# thread count
+# ------------------------------------------------------------------------------------------------
+
+
+def default_threads() -> int:
+    """``TERRAINWARP_THREADS`` when set, else the cores this process may use."""
+    env = os.environ.get(THREADS_ENV, "").strip()
+    if env:
+        try:
+            n = int(env)
+        except ValueError:
+            n = 0
+        if n < 1:
+            raise ValueError(f"{THREADS_ENV}: expected a positive integer, got {env!r}")
+        return n
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def set_threads(n: int | None) -> None:
+    """Set the number of CPU threads each kernel launch is split across (``None``: back to the default,
+    ``TERRAINWARP_THREADS`` or the cores this process may use). Outputs do not depend on it."""
+    if n is not None:
+        if isinstance(n, bool) or not isinstance(n, int):
+            raise TypeError(f"n: expected an integer or None, got {n!r}")
+        if n < 1:
+            raise ValueError(f"n: expected at least 1 thread, got {n}")
+    with _lock:
+        _state["threads"] = n
+
+
+def threads() -> int:
+    """The number of CPU threads a launch is split across now."""
+    n = _state["threads"]
+    return default_threads() if n is None else n
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    with _lock:
+        if _state["pool"] is None or _state["pool_size"] < n:
+            if _state["pool"] is not None:
+                _state["pool"].shutdown(wait=False)
+            _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="terrainwarp")
+            _state["pool_size"] = n
+        return _state["pool"]
+
+
+def _forget_pool() -> None:  # a forked child (a sweep worker) has no pool threads
+    _state["pool"] = None
+    _state["pool_size"] = 0
+
+
+os.register_at_fork(after_in_child=_forget_pool)
+
+
+# ------------------------------------------------------------------------------------------------
+# launch
+# ------------------------------------------------------------------------------------------------
+
+
+def chunks(n: int, items_per_row: int = 1, min_items: int = MIN_ITEMS) -> list[tuple[int, int]]:
+    """The contiguous ``[start, stop)`` ranges of the outermost index (``n`` rows of ``items_per_row``)
+    that a CPU launch runs on separate threads."""
+    if n <= 0:
+        return []
+    k = min(threads(), n, max(1, (n * max(items_per_row, 1)) // max(min_items, 1)))
+    step = math.ceil(n / k)
+    return [(s, min(s + step, n)) for s in range(0, n, step)]
+
+
+def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), outputs: Sequence = (),
+           device: str | wp.Device | None = None, *, parts: bool = False, min_items: int = MIN_ITEMS) -> None:
+    """Launch ``kernel`` over ``dim``, split along the outermost index across :func:`threads` CPU threads.
+
+    Args:
+        kernel: a Warp kernel whose first parameter is ``offset: int`` (and second ``part: int`` with
+            ``parts=True``), then the ``inputs`` and ``outputs`` given here.
+        dim: the whole launch (an int or a shape); chunks split ``dim[0]``.
+        parts: pass each chunk its index (``part``) as well as its offset.
+        min_items: the fewest items (product of the chunk's shape) worth a thread of their own.
+    """
+    shape = (int(dim),) if isinstance(dim, int | np.integer) else tuple(int(d) for d in dim)
+    dev = wp.get_device(device)
+    if shape[0] <= 0 or math.prod(shape) == 0:
+        return
+    head = (0, 0) if parts else (0,)
+    if not dev.is_cpu:
+        wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
+        return
+    rest = math.prod(shape[1:])
+    ranges = chunks(shape[0], rest, min_items)
+    if len(ranges) == 1:
+        wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
+        return
+    kernel.module.load(dev)  # compile / load once, here, before any thread launches it
+
+    def run(k: int) -> None:
+        s, e = ranges[k]
+        head = (s, k) if parts else (s,)
+        wp.launch(kernel, dim=(e - s, *shape[1:]), inputs=[*head, *inputs], outputs=list(outputs), device=dev)
+
+    futures = [_pool(len(ranges) - 1).submit(run, k) for k in range(1, len(ranges))]
+    try:
+        run(0)
+    finally:
+        for f in futures:
+            f.result()
