@@ -48,6 +48,7 @@ import warp as wp
 
 from .normals import METHODS as NORMAL_METHODS
 from .normals import check_spacing, device_heights, fetch, vertex_normals_device
+from .parallel import launch
 
 DIRECTIONS = ("x", "z", "diag_xz", "diag_x_negz")
 CURVATURE_METHODS = {"two_normal": 0, "three_normal": 1, "three_vertex": 2, "edge_angle": 3}
@@ -261,6 +262,7 @@ def surface_k(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz: fl
 
 @wp.kernel(enable_backward=False)
 def _directional_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     nrm: wp.array2d(dtype=wp.vec3),
     dx: float,
@@ -272,6 +274,7 @@ def _directional_kernel(
     out_k: wp.array2d(dtype=wp.vec4),
 ):
     i, j = wp.tid()
+    i += offset
     if wp.isnan(h[i, j]):
         out_k[i, j] = wp.vec4(_nan())
         return
@@ -283,6 +286,7 @@ def _directional_kernel(
 
 @wp.kernel(enable_backward=False)
 def _surface_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     dx: float,
     dz: float,
@@ -291,6 +295,7 @@ def _surface_kernel(
     out_k: wp.array2d(dtype=wp.vec4),
 ):
     i, j = wp.tid()
+    i += offset
     if wp.isnan(h[i, j]):
         out_k[i, j] = wp.vec4(_nan())
         return
@@ -299,12 +304,14 @@ def _surface_kernel(
 
 @wp.kernel(enable_backward=False)
 def _max_kernel(
+    offset: int,
     k: wp.array2d(dtype=wp.vec4),
     # outputs
     out_k: wp.array2d(dtype=wp.float32),
     out_dir: wp.array2d(dtype=wp.int32),
 ):
     i, j = wp.tid()
+    i += offset
     v = k[i, j]
     best = v[0]
     bd = int(0)
@@ -360,8 +367,8 @@ def directional_curvature(heights: np.ndarray, dx: float, dz: float, method: str
     else:
         nrm = wp.empty((1, 1), dtype=wp.vec3, device=device)
     out = wp.empty(h.shape, dtype=wp.vec4, device=device)
-    wp.launch(_directional_kernel, dim=h.shape, inputs=[h, nrm, dx, dz, m, sc, int(distance)], outputs=[out],
-              device=device)
+    launch(_directional_kernel, dim=h.shape, inputs=[h, nrm, dx, dz, m, sc, int(distance)], outputs=[out],
+           device=device)
     return out.numpy().reshape(h.shape[0], h.shape[1], 4)
 
 
@@ -373,8 +380,8 @@ def surface_curvature(heights: np.ndarray, dx: float, dz: float, scheme: str = "
     dx, dz = check_spacing(dx, dz)
     h = device_heights(heights, device)
     out = wp.empty(h.shape, dtype=wp.vec4, device=device)
-    wp.launch(_surface_kernel, dim=h.shape, inputs=[h, dx, dz, SURFACE_SCHEMES[scheme]], outputs=[out],
-              device=device)
+    launch(_surface_kernel, dim=h.shape, inputs=[h, dx, dz, SURFACE_SCHEMES[scheme]], outputs=[out],
+           device=device)
     return out.numpy().reshape(h.shape[0], h.shape[1], 4)
 
 
@@ -394,5 +401,5 @@ def max_curvature(curvature: np.ndarray, device: str = "cpu") -> tuple[np.ndarra
     kd = wp.array(np.ascontiguousarray(k), dtype=wp.vec4, device=device)
     out_k = wp.empty(k.shape[:2], dtype=wp.float32, device=device)
     out_d = wp.empty(k.shape[:2], dtype=wp.int32, device=device)
-    wp.launch(_max_kernel, dim=k.shape[:2], inputs=[kd], outputs=[out_k, out_d], device=device)
+    launch(_max_kernel, dim=k.shape[:2], inputs=[kd], outputs=[out_k, out_d], device=device)
     return out_k.numpy(), out_d.numpy()

@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch
+
 vec3d = wp.types.vector(length=3, dtype=wp.float64)
 mat44d = wp.types.matrix(shape=(4, 4), dtype=wp.float64)
 
@@ -50,6 +52,7 @@ def _to_pixel(m: mat44d, p: vec3d, w: int, hgt: int) -> wp.vec3d:
 
 @wp.kernel(enable_backward=False)
 def _pixel_error_kernel(
+    offset: int,
     tri_id: wp.array(dtype=wp.int32),
     bary: wp.array(dtype=wp.vec2),
     pos: wp.array(dtype=wp.vec3),
@@ -66,7 +69,7 @@ def _pixel_error_kernel(
     out_err: wp.array(dtype=wp.float64),
     out_approx: wp.array(dtype=wp.float64),
 ):
-    k = wp.tid()
+    k = wp.tid() + offset
     t = tri_id[k]
     if t < 0:
         out_err[k] = wp.float64(-1.0)
@@ -115,7 +118,7 @@ def pixel_error(triangle_id: np.ndarray, barycentrics: np.ndarray, positions: np
     tri[: len(triangles)] = triangles
     pos = np.zeros((max(len(positions), 1), 3), np.float32)
     pos[: len(positions)] = positions
-    wp.launch(_pixel_error_kernel, dim=n, inputs=[
+    launch(_pixel_error_kernel, dim=n, inputs=[
         wp.array(np.ascontiguousarray(triangle_id, np.int32).reshape(-1), dtype=wp.int32, device=device),
         wp.array(np.ascontiguousarray(barycentrics, np.float32).reshape(-1, 2), dtype=wp.vec2, device=device),
         wp.array(pos, dtype=wp.vec3, device=device), wp.array(tri, dtype=wp.int32, device=device),

@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch
+
 
 @wp.func
 def hash_u32(x: wp.uint32, y: wp.uint32, s: wp.uint32) -> wp.uint32:
@@ -86,6 +88,7 @@ def perlin2(x: float, z: float, seed: wp.uint32) -> float:
 
 @wp.kernel(enable_backward=False)
 def _fbm_kernel(
+    offset: int,
     row0: int,
     col0: int,
     base_frequency: float,
@@ -98,6 +101,7 @@ def _fbm_kernel(
     out_h: wp.array2d(dtype=wp.float32),
 ):
     i, j = wp.tid()
+    i += offset
     x = float(col0 + j) * base_frequency
     z = float(row0 + i) * base_frequency
     amp = float(1.0)
@@ -121,8 +125,8 @@ def fbm(rows: int, cols: int, *, seed: int = 0, base_frequency: float = 1.0 / 25
         device: str = "cpu") -> np.ndarray:
     """fBm in [-1, 1], float32 (rows, cols), of the window starting at (row0, col0)."""
     out = wp.empty((rows, cols), dtype=wp.float32, device=device)
-    wp.launch(_fbm_kernel, dim=(rows, cols),
-              inputs=[int(row0), int(col0), float(base_frequency), int(octaves), float(lacunarity),
-                      float(gain), int(seed) & 0x7FFFFFFF, int(bool(ridged))],
-              outputs=[out], device=device)
+    launch(_fbm_kernel, dim=(rows, cols),
+           inputs=[int(row0), int(col0), float(base_frequency), int(octaves), float(lacunarity),
+                   float(gain), int(seed) & 0x7FFFFFFF, int(bool(ridged))],
+           outputs=[out], device=device, min_items=1024)
     return out.numpy()

@@ -34,6 +34,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch
+
 BORDERS = {"constant": 0, "clamp": 1, "skip": 2}
 METHODS = {"sobel": 0, "edge": 1, "triangle": 2, "quad": 3}
 
@@ -207,6 +209,7 @@ def vertex_normal(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz
 
 @wp.kernel(enable_backward=False)
 def _sobel_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     dx: float,
     dz: float,
@@ -216,11 +219,13 @@ def _sobel_kernel(
     out_n: wp.array2d(dtype=wp.vec3),
 ):
     i, j = wp.tid()
+    i += offset
     out_n[i, j] = sobel_normal(h, i, j, dx, dz, border, c)
 
 
 @wp.kernel(enable_backward=False)
 def _normals_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     dx: float,
     dz: float,
@@ -231,17 +236,20 @@ def _normals_kernel(
     out_n: wp.array2d(dtype=wp.vec3),
 ):
     i, j = wp.tid()
+    i += offset
     out_n[i, j] = vertex_normal(h, i, j, dx, dz, method, border, c)
 
 
 @wp.kernel(enable_backward=False)
 def _encode_kernel(
+    offset: int,
     n: wp.array2d(dtype=wp.vec3),
     swap_yz: int,
     # outputs
     out_rgb: wp.array3d(dtype=wp.uint8),
 ):
     i, j = wp.tid()
+    i += offset
     v = n[i, j]
     if swap_yz != 0:
         v = wp.vec3(v[0], v[2], v[1])
@@ -291,8 +299,8 @@ def sobel_normals(heights: np.ndarray, dx: float, dz: float, border: str = "clam
     dx, dz = check_spacing(dx, dz)
     h = device_heights(heights, device)
     out = wp.empty(h.shape, dtype=wp.vec3, device=device)
-    wp.launch(_sobel_kernel, dim=h.shape, inputs=[h, dx, dz, BORDERS[border], float(constant)],
-              outputs=[out], device=device)
+    launch(_sobel_kernel, dim=h.shape, inputs=[h, dx, dz, BORDERS[border], float(constant)],
+           outputs=[out], device=device)
     return out.numpy().reshape(h.shape[0], h.shape[1], 3)
 
 
@@ -300,9 +308,9 @@ def vertex_normals_device(h: wp.array, dx: float, dz: float, method: str = "quad
                           constant: float = 0.0) -> wp.array:
     """Device version of :func:`vertex_normals`: (H, W) wp.vec3 array on ``h.device``."""
     out = wp.empty(h.shape, dtype=wp.vec3, device=h.device)
-    wp.launch(_normals_kernel, dim=h.shape,
-              inputs=[h, dx, dz, METHODS[method], BORDERS[border], float(constant)], outputs=[out],
-              device=h.device)
+    launch(_normals_kernel, dim=h.shape,
+           inputs=[h, dx, dz, METHODS[method], BORDERS[border], float(constant)], outputs=[out],
+           device=h.device)
     return out
 
 
@@ -340,7 +348,7 @@ def encode_normal_map(normals: np.ndarray, layout: str = "xzy", device: str = "c
         raise ValueError(f"layout: expected 'xzy' or 'xyz', got {layout!r}")
     nd = wp.array(np.ascontiguousarray(n), dtype=wp.vec3, device=device)
     out = wp.empty((n.shape[0], n.shape[1], 3), dtype=wp.uint8, device=device)
-    wp.launch(_encode_kernel, dim=n.shape[:2], inputs=[nd, int(layout == "xzy")], outputs=[out], device=device)
+    launch(_encode_kernel, dim=n.shape[:2], inputs=[nd, int(layout == "xzy")], outputs=[out], device=device)
     return out.numpy()
 
 

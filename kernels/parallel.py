@@ -34,7 +34,7 @@ THREADS_ENV = "TERRAINWARP_THREADS"
 MIN_ITEMS = 4096  # fewer items per chunk than this are not worth a thread hand-off (~20 us)
 
 _lock = threading.Lock()
-_state: dict = {"threads": None, "pool": None, "pool_size": 0}
+_state: dict = {"threads": None, "min_items": None, "pool": None, "pool_size": 0}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -124,6 +124,14 @@ def threads() -> int:
     return default_threads() if n is None else n
 
 
+def set_min_items(n: int | None) -> None:
+    """Override every launch's ``min_items`` (``1``: split even the smallest launch as finely as the threads
+    allow, as the determinism tests do; ``None``: each launch's own)."""
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise ValueError(f"n: expected a positive integer or None, got {n!r}")
+    _state["min_items"] = n
+
+
 def _pool(n: int) -> ThreadPoolExecutor:
     with _lock:
         if _state["pool"] is None or _state["pool_size"] < n:
@@ -147,26 +155,35 @@ os.register_at_fork(after_in_child=_forget_pool)
 # ------------------------------------------------------------------------------------------------
 
 
-def chunks(n: int, items_per_row: int = 1, min_items: int = MIN_ITEMS) -> list[tuple[int, int]]:
+def chunks(n: int, items_per_row: int = 1, min_items: int = MIN_ITEMS, oversplit: int = 1) -> list[tuple[int, int]]:
     """The contiguous ``[start, stop)`` ranges of the outermost index (``n`` rows of ``items_per_row``)
-    that a CPU launch runs on separate threads."""
+    that a CPU launch hands to its threads: at most ``threads() * oversplit`` of them."""
     if n <= 0:
         return []
-    k = min(threads(), n, max(1, (n * max(items_per_row, 1)) // max(min_items, 1)))
+    min_items = _state["min_items"] or min_items
+    k = min(threads() * max(oversplit, 1), n, max(1, (n * max(items_per_row, 1)) // max(min_items, 1)))
     step = math.ceil(n / k)
     return [(s, min(s + step, n)) for s in range(0, n, step)]
 
 
+def max_parts(oversplit: int = 1) -> int:
+    """Rows a ``parts=True`` launch may index (``part`` is below this)."""
+    return threads() * max(oversplit, 1)
+
+
 def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), outputs: Sequence = (),
-           device: str | wp.Device | None = None, *, parts: bool = False, min_items: int = MIN_ITEMS) -> None:
+           device: str | wp.Device | None = None, *, parts: bool = False, min_items: int = MIN_ITEMS,
+           oversplit: int = 1) -> None:
     """Launch ``kernel`` over ``dim``, split along the outermost index across :func:`threads` CPU threads.
 
     Args:
         kernel: a Warp kernel whose first parameter is ``offset: int`` (and second ``part: int`` with
             ``parts=True``), then the ``inputs`` and ``outputs`` given here.
         dim: the whole launch (an int or a shape); chunks split ``dim[0]``.
-        parts: pass each chunk its index (``part``) as well as its offset.
+        parts: pass each chunk its index (``part``, below :func:`max_parts`) as well as its offset.
         min_items: the fewest items (product of the chunk's shape) worth a thread of their own.
+        oversplit: chunks per thread, taken in turn by whichever thread is free (for uneven work per
+            item: patches of different sizes, triangles near and far).
     """
     shape = (int(dim),) if isinstance(dim, int | np.integer) else tuple(int(d) for d in dim)
     dev = wp.get_device(device)
@@ -176,21 +193,23 @@ def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), o
     if not dev.is_cpu:
         wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
         return
-    rest = math.prod(shape[1:])
-    ranges = chunks(shape[0], rest, min_items)
+    ranges = chunks(shape[0], math.prod(shape[1:]), min_items, oversplit)
     if len(ranges) == 1:
         wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
         return
     kernel.module.load(dev)  # compile / load once, here, before any thread launches it
+    order = iter(range(len(ranges)))  # next() on it is atomic under the GIL
 
-    def run(k: int) -> None:
-        s, e = ranges[k]
-        head = (s, k) if parts else (s,)
-        wp.launch(kernel, dim=(e - s, *shape[1:]), inputs=[*head, *inputs], outputs=list(outputs), device=dev)
+    def work() -> None:
+        for k in order:
+            s, e = ranges[k]
+            wp.launch(kernel, dim=(e - s, *shape[1:]), inputs=[*((s, k) if parts else (s,)), *inputs],
+                      outputs=list(outputs), device=dev)
 
-    futures = [_pool(len(ranges) - 1).submit(run, k) for k in range(1, len(ranges))]
+    helpers = min(threads(), len(ranges)) - 1
+    futures = [_pool(helpers).submit(work) for _ in range(helpers)]
     try:
-        run(0)
+        work()
     finally:
         for f in futures:
             f.result()

@@ -20,11 +20,13 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch
 from .sampling import sample_bilinear
 
 
 @wp.kernel(enable_backward=False)
 def _node_stats_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     size_cells: float,
     tess: int,
@@ -34,6 +36,7 @@ def _node_stats_kernel(
     out_err: wp.array2d(dtype=wp.float32),
 ):
     y, x = wp.tid()
+    y += offset
     rows = h.shape[0]
     cols = h.shape[1]
     ox = float(x) * size_cells
@@ -102,8 +105,8 @@ def node_stats(heights: np.ndarray, roots: tuple[int, int], root_cells: float, d
         mn = wp.empty(shape, dtype=wp.float32, device=device)
         mx = wp.empty(shape, dtype=wp.float32, device=device)
         er = wp.empty(shape, dtype=wp.float32, device=device)
-        wp.launch(_node_stats_kernel, dim=shape, inputs=[h, float(root_cells) / float(1 << lvl), int(tess)],
-                  outputs=[mn, mx, er], device=device)
+        launch(_node_stats_kernel, dim=shape, inputs=[h, float(root_cells) / float(1 << lvl), int(tess)],
+               outputs=[mn, mx, er], device=device, min_items=16)  # a node loops over its cells
         out.append((mn.numpy(), mx.numpy(), er.numpy()))
     for lvl in range(depth - 1, -1, -1):  # monotone errors, bottom-up
         child = out[lvl + 1][2]

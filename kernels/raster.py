@@ -42,7 +42,7 @@ Output images have row 0 at the top (window y is flipped once, here).
 import numpy as np
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_u64, launch, threads
+from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
 
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
@@ -55,6 +55,7 @@ _EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
 _MIN_TRIANGLES = 2048
 _MIN_TILES = 64
 _MIN_PIXELS = 32768
+_OVERSPLIT = 4  # chunks per thread where the work per item is uneven (near and far triangles)
 
 poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
@@ -789,7 +790,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
         key = wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
     else:
         key = wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
-    stats = wp.zeros((threads(), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
+    stats = wp.zeros((max_parts(_OVERSPLIT), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
     m = int(tri.shape[0])
     tri_wp = wp.array(tri if m else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
     tiles_x = (width + TILE - 1) // TILE
@@ -800,7 +801,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
         big = wp.empty(m, dtype=wp.int32, device=device)
         tile_count = wp.zeros(tiles_x * tiles_y, dtype=wp.int32, device=device)
         launch(_small_count_kernel, m, [clip, tri_wp, width, height, cb, gb, tiles_x],
-               [key, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES)
+               [key, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES, oversplit=_OVERSPLIT)
         total = int(stats.numpy()[:, 5].sum())
         if total:
             tile_start = wp.empty_like(tile_count)
@@ -811,7 +812,8 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                    [cursor, tri_list], device, min_items=_MIN_TRIANGLES)
             launch(_tile_kernel, tiles_x * tiles_y,
                    [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
-                   [key, stats], device, parts=True, min_items=_MIN_TILES)
+                   [key, stats], device, parts=True, min_items=_MIN_TILES,
+                   oversplit=_OVERSPLIT)
     out_id = wp.empty(npx, dtype=wp.int32, device=device)
     out_depth = wp.empty(npx, dtype=wp.float32, device=device)
     launch(_resolve_ids_kernel, npx, [key], [out_id, out_depth], device, min_items=_MIN_PIXELS)

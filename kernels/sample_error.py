@@ -29,6 +29,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import atomic_min_i32, launch
+
 NONE = 2147483647  # no triangle covers the sample (the cover map's initial value)
 CONTAIN_ULPS = 8.0  # slack of the inclusive point-in-triangle test, float32 ulps of the coordinates
 DEPTH_REL_TOL = 1.0e-4  # relative slack of view depths (float32 positions and the rasterizer's depth plane)
@@ -172,9 +174,10 @@ def _depth_tolerance(depth: wp.array2d(dtype=wp.float32), r: int, c: int, dref: 
 
 @wp.kernel(enable_backward=False)
 def _cover_kernel(
+    offset: int,
     pos: wp.array(dtype=wp.vec3),
     tris: wp.array2d(dtype=wp.int32),
-    offset: wp.vec3d,
+    eye_shift: wp.vec3d,
     rel_origin: wp.vec3,
     dx: float,
     dz: float,
@@ -183,10 +186,10 @@ def _cover_kernel(
     # outputs
     out_tri: wp.array2d(dtype=wp.int32),
 ):
-    t = wp.tid()
-    a = _vertex(pos, tris[t, 0], offset)
-    b = _vertex(pos, tris[t, 1], offset)
-    c = _vertex(pos, tris[t, 2], offset)
+    t = wp.tid() + offset
+    a = _vertex(pos, tris[t, 0], eye_shift)
+    b = _vertex(pos, tris[t, 1], eye_shift)
+    c = _vertex(pos, tris[t, 2], eye_shift)
     ox = wp.float64(rel_origin[0])
     oz = wp.float64(rel_origin[2])
     lo = wp.float64(-1.0)
@@ -202,15 +205,16 @@ def _cover_kernel(
     for i in range(i0, i1 + 1):
         for j in range(j0, j1 + 1):
             if _inside(a, b, c, _sample_xz(rel_origin, dx, dz, i, j)):
-                wp.atomic_min(out_tri, i, j, t)
+                atomic_min_i32(out_tri, i, j, t)  # a true atomic: chunks run on several threads
 
 
 @wp.kernel(enable_backward=False)
 def _surface_kernel(
+    offset: int,
     cover: wp.array2d(dtype=wp.int32),
     pos: wp.array(dtype=wp.vec3),
     tris: wp.array2d(dtype=wp.int32),
-    offset: wp.vec3d,
+    eye_shift: wp.vec3d,
     rel_origin: wp.vec3,
     dx: float,
     dz: float,
@@ -218,16 +222,18 @@ def _surface_kernel(
     out_y: wp.array2d(dtype=wp.float64),
 ):
     i, j = wp.tid()
+    i += offset
     t = cover[i, j]
     if t == NONE:
         out_y[i, j] = wp.float64(wp.nan)
         return
-    out_y[i, j] = _plane_y(_vertex(pos, tris[t, 0], offset), _vertex(pos, tris[t, 1], offset),
-                           _vertex(pos, tris[t, 2], offset), _sample_xz(rel_origin, dx, dz, i, j))
+    out_y[i, j] = _plane_y(_vertex(pos, tris[t, 0], eye_shift), _vertex(pos, tris[t, 1], eye_shift),
+                           _vertex(pos, tris[t, 2], eye_shift), _sample_xz(rel_origin, dx, dz, i, j))
 
 
 @wp.kernel(enable_backward=False)
 def _displacement_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     ya: wp.array2d(dtype=wp.float64),
     yb: wp.array2d(dtype=wp.float64),
@@ -247,6 +253,7 @@ def _displacement_kernel(
     out_pix: wp.array2d(dtype=wp.int32),
 ):
     i, j = wp.tid()
+    i += offset
     out_err[i, j] = wp.float64(wp.nan)
     out_pix[i, j] = -1
     hv = h[i, j]
@@ -317,11 +324,11 @@ def surface_at_samples(positions: np.ndarray, triangles: np.ndarray, offset: tup
     dx, dz = float(spacing[0]), float(spacing[1])
     cover = wp.full((rows, cols), value=NONE, dtype=wp.int32, device=device)
     if len(tri):
-        wp.launch(_cover_kernel, dim=len(tri), inputs=[pos_wp, tri_wp, off, org, dx, dz, rows, cols],
-                  outputs=[cover], device=device)
+        launch(_cover_kernel, dim=len(tri), inputs=[pos_wp, tri_wp, off, org, dx, dz, rows, cols],
+               outputs=[cover], device=device)
     out = wp.empty((rows, cols), dtype=wp.float64, device=device)
-    wp.launch(_surface_kernel, dim=(rows, cols), inputs=[cover, pos_wp, tri_wp, off, org, dx, dz], outputs=[out],
-              device=device)
+    launch(_surface_kernel, dim=(rows, cols), inputs=[cover, pos_wp, tri_wp, off, org, dx, dz], outputs=[out],
+           device=device)
     return out.numpy()
 
 
@@ -350,7 +357,7 @@ def sample_displacement(heights: np.ndarray, ya: np.ndarray | None, yb: np.ndarr
     err = wp.empty((rows, cols), dtype=wp.float64, device=device)
     state = wp.empty((rows, cols), dtype=wp.int32, device=device)
     pix = wp.empty((rows, cols), dtype=wp.int32, device=device)
-    wp.launch(_displacement_kernel, dim=(rows, cols), inputs=[
+    launch(_displacement_kernel, dim=(rows, cols), inputs=[
         wp.array(np.ascontiguousarray(heights, np.float32), dtype=wp.float32, device=device), ya_wp, yb_wp,
         int(ya is None), wp.array(np.ascontiguousarray(depth, np.float32), dtype=wp.float32, device=device),
         wp.vec3(*[float(v) for v in rel_origin]), float(spacing[0]), float(spacing[1]),

@@ -21,6 +21,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch
+
 # ------------------------------------------------------------------------------------------------
 # functions
 # ------------------------------------------------------------------------------------------------
@@ -117,13 +119,14 @@ def sample_height(h: wp.array2d(dtype=wp.float32), u: float, v: float, method: i
 
 @wp.kernel
 def _sample_kernel(
+    offset: int,
     h: wp.array2d(dtype=wp.float32),
     uv: wp.array(dtype=wp.vec2),
     method: int,
     # outputs
     out_h: wp.array(dtype=wp.float32),
 ):
-    k = wp.tid()
+    k = wp.tid() + offset
     p = uv[k]
     out_h[k] = sample_height(h, p[0], p[1], method)
 
@@ -160,6 +163,6 @@ def sample_grid(heights: np.ndarray, u: np.ndarray, v: np.ndarray, method: str =
     uv = np.stack([u.reshape(-1), v.reshape(-1)], axis=1)
     h = wp.array(np.ascontiguousarray(heights, dtype=np.float32), dtype=wp.float32, device=device)
     out = wp.empty(n, dtype=wp.float32, device=device)
-    wp.launch(_sample_kernel, dim=n, inputs=[h, wp.array(uv, dtype=wp.vec2, device=device), METHODS[method]],
-              outputs=[out], device=device)
+    launch(_sample_kernel, dim=n, inputs=[h, wp.array(uv, dtype=wp.vec2, device=device), METHODS[method]],
+           outputs=[out], device=device)
     return out.numpy().reshape(shape)

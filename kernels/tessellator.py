@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from .parallel import launch
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
@@ -420,6 +421,7 @@ def _stitch_regular(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: ve
 
 @wp.kernel(enable_backward=False)
 def _count_kernel(
+    offset: int,
     outer: wp.array(dtype=wp.vec4),
     inner: wp.array(dtype=wp.vec2),
     spacing: int,
@@ -427,7 +429,7 @@ def _count_kernel(
     out_nv: wp.array(dtype=wp.int32),
     out_nt: wp.array(dtype=wp.int32),
 ):
-    p = wp.tid()
+    p = wp.tid() + offset
     status, fx, odd = _process(outer[p], inner[p], spacing)
     if status == 0:
         out_nv[p] = 0
@@ -451,6 +453,7 @@ def _point(out_dom: wp.array(dtype=wp.vec2i), out_pid: wp.array(dtype=wp.int32),
 
 @wp.kernel(enable_backward=False)
 def _emit_kernel(
+    offset: int,
     outer: wp.array(dtype=wp.vec4),
     inner: wp.array(dtype=wp.vec2),
     spacing: int,
@@ -461,7 +464,7 @@ def _emit_kernel(
     out_pid: wp.array(dtype=wp.int32),
     out_tri: wp.array(dtype=wp.vec3i),
 ):
-    p = wp.tid()
+    p = wp.tid() + offset
     status, fx, odd = _process(outer[p], inner[p], spacing)
     vb = v_off[p]
     t = t_off[p]
@@ -558,6 +561,7 @@ def _grid(n: wp.int64) -> float:
 
 @wp.kernel(enable_backward=False)
 def _displace_kernel(
+    offset: int,
     dom: wp.array(dtype=wp.vec2i),
     pid: wp.array(dtype=wp.int32),
     box: wp.array(dtype=vec4l),
@@ -573,7 +577,7 @@ def _displace_kernel(
     out_uv: wp.array(dtype=wp.vec2),
     out_level: wp.array(dtype=wp.int32),
 ):
-    k = wp.tid()
+    k = wp.tid() + offset
     d = dom[k]
     p = pid[k]
     b = box[p]
@@ -623,7 +627,7 @@ def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
     nv = wp.zeros(p + 1, dtype=wp.int32, device=device)
     nt = wp.zeros(p + 1, dtype=wp.int32, device=device)
     if p:
-        wp.launch(_count_kernel, dim=p, inputs=[wo, wi, code], outputs=[nv, nt], device=device)
+        launch(_count_kernel, p, [wo, wi, code], [nv, nt], device)
     v_off = wp.empty(p + 1, dtype=wp.int32, device=device)
     t_off = wp.empty(p + 1, dtype=wp.int32, device=device)
     wp.utils.array_scan(nv, v_off, inclusive=False)
@@ -634,7 +638,8 @@ def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
     pid = wp.empty(max(n, 1), dtype=wp.int32, device=device)
     tri = wp.empty(max(m, 1), dtype=wp.vec3i, device=device)
     if p:
-        wp.launch(_emit_kernel, dim=p, inputs=[wo, wi, code, v_off, t_off], outputs=[dom, pid, tri], device=device)
+        launch(_emit_kernel, p, [wo, wi, code, v_off, t_off], [dom, pid, tri], device, min_items=64,
+               oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ in size
     return n, m, dom, pid, tri, v_off, t_off
 
 
@@ -743,13 +748,11 @@ def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device)
     uv = wp.empty(max(n, 1), dtype=wp.vec2, device=device)
     lev = wp.empty(max(n, 1), dtype=wp.int32, device=device)
     if n:
-        wp.launch(_displace_kernel, dim=n,
-                  inputs=[dom, pid, wp.array(box, dtype=vec4l, device=device),
-                          wp.array(lvl, dtype=wp.int32, device=device),
-                          wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device),
-                          int(el_int[0]), int(el_int[1]), wp.vec3(*eye_rem),
-                          wp.vec2(float(cell[0]), float(cell[1])), method],
-                  outputs=[pos, uv, lev], device=device)
+        launch(_displace_kernel, n,
+               [dom, pid, wp.array(box, dtype=vec4l, device=device), wp.array(lvl, dtype=wp.int32, device=device),
+                wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device),
+                int(el_int[0]), int(el_int[1]), wp.vec3(*eye_rem), wp.vec2(float(cell[0]), float(cell[1])), method],
+               [pos, uv, lev], device)
     return n, m, dom, pid, tri, v_off, t_off, pos, uv, lev
 
 

@@ -5,7 +5,7 @@ Public API::
     Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
     Terrain, LodState, select, fit_lod, FitResult, compute_normals, compute_curvature,
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
-    rasterize_clip, clip_coordinates, build_polytree, Polytree
+    rasterize_clip, clip_coordinates, build_polytree, Polytree, set_threads
 
 Differentiable resolve for JAX (imports JAX): ``terrainwarp.rendering.interpolate.interpolate``.
 """
@@ -31,6 +31,7 @@ _say_first_compile(_wp.config.kernel_cache_dir)
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .fit.lod_fit import FitResult, fit_lod  # noqa: E402
 from .heightmap import Heightmap  # noqa: E402
+from .kernels.parallel import set_threads  # noqa: E402
 from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
 from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
 from .lod.bintree import Bintree, select_bintree  # noqa: E402
@@ -50,4 +51,4 @@ __all__ = ["fit_lod", "FitResult", "Heightmap", "Camera", "Scene", "render", "Fr
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
            "rasterize_clip", "clip_coordinates", "Bintree", "select_bintree", "precompute_visibility",
-           "build_polytree", "Polytree", "__version__"]
+           "build_polytree", "Polytree", "set_threads", "__version__"]
