@@ -39,13 +39,14 @@ from ..lod.polytree import build_polytree, default_tolerances
 from ..lod.quadtree import Terrain
 from ..rendering.pipeline import Frame, MeshSource, Report, render
 from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
-from ..scene import Scene
+from ..scene import LOD_POLICIES, Scene
 from .runner import Job, Runner, SweepResult, pending_jobs
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
            "TIMING_COLUMNS"]
 
-_BUILT = ("martini", "delatin", "polytree", "bintree")  # meshes built once, apart from frames
+_PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
+_BUILT = (*_PEERS, "polytree", "bintree")  # meshes built once, apart from frames: drawn as mesh sources
 TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
 
 
@@ -164,7 +165,7 @@ def _source(ctx: SweepContext, refs: dict, setting: Setting) -> MeshSource:
     if setting in st_["sources"]:
         return st_["sources"][setting]
     hm, device, cache = st_["scene"].heightmap, ctx.device, st_["cache"]
-    if setting.policy in ("martini", "delatin"):
+    if setting.policy in _PEERS:
         built = refs.get(("peer", setting))
         if built is None or isinstance(built, BaseException):
             built = _peer_job(ctx, setting)
@@ -260,12 +261,12 @@ def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: li
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device)
     ctx = SweepContext(_scene_token(scene, device), scene, tuple(cameras), images, device,
-                   any(s.policy in ("sse", "distance", "continuous") for s in settings))
+                   any(s.policy in LOD_POLICIES for s in settings))
     ctx_h = runner.share(ctx)
     todo = pending_jobs(jobs, out, fp)
     need = sorted({j.args[1] for j in todo})  # references only for frames still to do
     refs = dict(zip(need, runner.map(_reference_job, need, ctx_h)))
-    peers = list(dict.fromkeys(j.args[0] for j in todo if j.args[0].policy in ("martini", "delatin")))
+    peers = list(dict.fromkeys(j.args[0] for j in todo if j.args[0].policy in _PEERS))
     refs.update(zip((("peer", s) for s in peers), runner.map(_peer_job, peers, ctx_h)))
     refs_h = runner.share(refs)  # reference frames by camera, peer meshes by ("peer", setting)
     return runner.run(jobs, _frame_job, ctx_h, refs_h, out=out, fingerprint=fp, columns=COLUMNS,
