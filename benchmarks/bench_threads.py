@@ -1,8 +1,8 @@
 """Scaling with CPU threads: each stage and the whole frame at 1, 2 (and 4, 8 where the machine has them)
 threads, as speed-up against 1 thread in the same run, with the parallel efficiency (speed-up / threads).
 
-Stages, each through the parallel-launch helper (``terrainwarp.set_threads``), best of ``--reps`` after
-a warm-up at every thread count:
+Stages, each through the parallel-launch helper (``terrainwarp.set_threads``), best of ``--reps`` (the thread
+counts taking turns in each repetition) after a warm-up at every thread count:
 
 * frame: ``render(Scene(mesh="lod", outputs=("depth",)))`` of a 1025^2 fBm at 1920x1080 (terrain
   prepared once, untimed), counted as every table counts it (``Report.frame_ms`` = select + mesh +
@@ -73,6 +73,7 @@ def frame_stages(size: int, tol: float) -> tuple[dict[str, Callable[[], float]],
         return time.perf_counter() - t0
 
     timers = {"frame (select + mesh + raster)": frame,
+              "  frame: select stage": lambda: tw.render(sc, terrain=terrain).report.stage_ms("select") / 1e3,
               "  frame: mesh stage": lambda: tw.render(sc, terrain=terrain).report.stage_ms("mesh") / 1e3,
               "  frame: raster stage": lambda: tw.render(sc, terrain=terrain).report.stage_ms("raster") / 1e3,
               "tessellate_patches": tess, "rasterize 1080p": ras}
@@ -100,13 +101,19 @@ def grid_stages(size: int) -> dict[str, Callable[[], float]]:
 
 
 def measure(timers: dict[str, Callable[[], float]], counts: list[int], reps: int) -> dict[str, dict[int, float]]:
-    out: dict[str, dict[int, float]] = {k: {} for k in timers}
+    """Best time of each stage at each thread count; the counts take turns in every repetition, so a load
+    that comes and goes on a shared machine falls on all of them alike."""
+    out: dict[str, dict[int, float]] = {k: dict.fromkeys(counts, float("inf")) for k in timers}
     try:
-        for n in counts:
+        for n in counts:  # warm-up (and compile, on the first count)
             tw.set_threads(n)
+            for fn in timers.values():
+                fn()
+        for _ in range(reps):
             for name, fn in timers.items():
-                fn()  # warm-up (and compile on the first count)
-                out[name][n] = min(fn() for _ in range(reps))
+                for n in counts:
+                    tw.set_threads(n)
+                    out[name][n] = min(out[name][n], fn())
     finally:
         tw.set_threads(None)
     return out
@@ -130,7 +137,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller heightmaps (fBm 513^2, grids 1025^2)")
     ap.add_argument("--size", type=int, default=2049, help="side of the heightmap of the grid stages")
-    ap.add_argument("--reps", type=int, default=3, help="timed repetitions (best of), after one warm-up")
+    ap.add_argument("--reps", type=int, default=5, help="timed repetitions (best of), after one warm-up")
     args = ap.parse_args(argv)
     counts = thread_counts()
     load0 = os.getloadavg()[0]
@@ -140,10 +147,11 @@ def main(argv=None) -> None:
     times = measure(timers, counts, max(1, args.reps))
     body = (f"Frame: {label}. Thread counts: {counts} (cores this process may use: "
             f"{len(os.sched_getaffinity(0))}); load average at the start {load0:.2f}, at the end "
-            f"{os.getloadavg()[0]:.2f}. Wall time, best of {args.reps} after a warm-up; speed-up = 1-thread "
+            f"{os.getloadavg()[0]:.2f}. Wall time, best of {args.reps} (thread counts taking turns) after a warm-up; "
+            f"speed-up = 1-thread "
             f"time / n-thread time in the same run; efficiency = speed-up / n.\n\n" + table(times, counts) + "\n\n"
             "Outputs are bit-identical for every thread count (tests/kernels/test_parallel.py). Launch split: "
-            f"`terrainwarp/kernels/parallel.py`, at most threads x oversplit chunks, at least "
+            f"`kernels/parallel.py`, at most threads x oversplit chunks, at least "
             f"{parallel.MIN_ITEMS} items each by default.")
     write_result("threads", "Scaling with CPU threads (bench_threads.py)", body)
 
