@@ -48,6 +48,7 @@ from terrainwarp import Camera, Heightmap, Scene, render
 from terrainwarp.kernels.raster import rasterize
 from terrainwarp.kernels.tessellator import tessellate_patches
 from terrainwarp.lod import Terrain, select
+from terrainwarp.lod.policies import make_policy
 from terrainwarp.scene import LodConfig
 
 WIDTH, HEIGHT = 1920, 1080
@@ -88,7 +89,7 @@ def ours_once(sc, terrain):
 def ours_cpu(hm, cam, terrain, cfg: LodConfig, view, proj) -> float:
     """CPU seconds of the three stages called directly, as ``render`` calls them (no barycentric image)."""
     c0 = time.process_time()
-    pl = select(terrain, cam, cfg.make_policy())
+    pl = select(terrain, cam, make_policy(cfg))
     t = tessellate_patches({"origin_xz": pl.origin, "size": pl.size, "outer": pl.outer, "inner": pl.inner,
                             "level": pl.level}, hm.heights, hm.dx, hm.dz, cam.position, spacing=cfg.spacing,
                            filter=cfg.filter, origin=hm.origin)
