@@ -155,6 +155,20 @@ os.register_at_fork(after_in_child=_forget_pool)
 # ------------------------------------------------------------------------------------------------
 
 
+def empty(shape: int | Sequence[int], dtype: type, device: str | wp.Device | None = None) -> wp.array:
+    """``wp.empty``, but on the CPU through numpy, whose large allocations ask for huge pages: the first
+    touch of a frame-sized output (by a launch's threads) then costs 2-3x less page faulting."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        return wp.empty(shape, dtype=dtype, device=dev)
+    shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    inner = tuple(getattr(dtype, "_shape_", ()))
+    a = np.empty((*shape, *inner), dtype=wp.dtype_to_numpy(scalar))
+    return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+
 def chunks(n: int, items_per_row: int = 1, min_items: int = MIN_ITEMS, oversplit: int = 1) -> list[tuple[int, int]]:
     """The contiguous ``[start, stop)`` ranges of the outermost index (``n`` rows of ``items_per_row``)
     that a CPU launch hands to its threads: at most ``threads() * oversplit`` of them."""

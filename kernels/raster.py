@@ -42,7 +42,7 @@ Output images have row 0 at the top (window y is flipped once, here).
 import numpy as np
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
+from .parallel import atomic_add_i32, atomic_min_u64, empty, launch, max_parts
 
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
@@ -737,7 +737,7 @@ class Fragments:
     def barycentrics(self) -> np.ndarray:
         if self._bary is None:
             hh, ww = self.triangle_id.shape
-            out = wp.empty((hh, ww), dtype=wp.vec2, device=self._device)
+            out = empty((hh, ww), wp.vec2, self._device)
             launch(_barycentrics_kernel, (hh, ww),
                    [wp.array(self.triangle_id, dtype=wp.int32, device=self._device), self._clip, self._tris],
                    [out], self._device)
@@ -785,7 +785,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                     device: str) -> Fragments:
     npx = width * height
     if wp.get_device(device).is_cpu:
-        key_np = np.empty(npx, np.uint64)
+        key_np = np.empty(npx, np.uint64)  # numpy's large allocations ask for huge pages (parallel.empty)
         key_np.view(np.uint8).fill(255)  # all ones: the empty key (a byte fill is faster than wp.full)
         key = wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
     else:
@@ -814,8 +814,8 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                    [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
                    [key, stats], device, parts=True, min_items=_MIN_TILES,
                    oversplit=_OVERSPLIT)
-    out_id = wp.empty(npx, dtype=wp.int32, device=device)
-    out_depth = wp.empty(npx, dtype=wp.float32, device=device)
+    out_id = empty(npx, wp.int32, device)
+    out_depth = empty(npx, wp.float32, device)
     launch(_resolve_ids_kernel, npx, [key], [out_id, out_depth], device, min_items=_MIN_PIXELS)
     ids = out_id.numpy().reshape(height, width)
     c = stats.numpy().sum(axis=0)  # integer sums: the same whatever the chunks

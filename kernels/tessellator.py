@@ -40,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from .parallel import launch
+from .parallel import empty, launch
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
@@ -634,9 +634,9 @@ def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
     wp.utils.array_scan(nt, t_off, inclusive=False)
     n = int(v_off.numpy()[p])
     m = int(t_off.numpy()[p])
-    dom = wp.empty(max(n, 1), dtype=wp.vec2i, device=device)
-    pid = wp.empty(max(n, 1), dtype=wp.int32, device=device)
-    tri = wp.empty(max(m, 1), dtype=wp.vec3i, device=device)
+    dom = empty(max(n, 1), wp.vec2i, device)
+    pid = empty(max(n, 1), wp.int32, device)
+    tri = empty(max(m, 1), wp.vec3i, device)
     if p:
         launch(_emit_kernel, p, [wo, wi, code, v_off, t_off], [dom, pid, tri], device, min_items=64,
                oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ in size
@@ -744,9 +744,9 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
 def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device):
     """Device stages of :func:`tessellate_patches` (count, scan, emit, displace); Warp arrays out."""
     n, m, dom, pid, tri, v_off, t_off = tessellate_device(o, i, code, device)
-    pos = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
-    uv = wp.empty(max(n, 1), dtype=wp.vec2, device=device)
-    lev = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+    pos = empty(max(n, 1), wp.vec3, device)
+    uv = empty(max(n, 1), wp.vec2, device)
+    lev = empty(max(n, 1), wp.int32, device)
     if n:
         launch(_displace_kernel, n,
                [dom, pid, wp.array(box, dtype=vec4l, device=device), wp.array(lvl, dtype=wp.int32, device=device),
