@@ -39,6 +39,8 @@ same computation as a differentiable kernel (gradients to clip positions and att
 Output images have row 0 at the top (window y is flipped once, here).
 """
 
+import threading
+
 import numpy as np
 import warp as wp
 
@@ -397,6 +399,17 @@ def _raster_poly(n: int, xs: vec9l, ys: vec9l, fxs: vec9f, fys: vec9f, zs: vec9f
 
 
 @wp.func
+def _note_rows(out_stats: wp.array2d(dtype=wp.int64), part: int, height: int, py0: int, py1: int):
+    """Widen this chunk's band of image rows that may hold drawn keys by window rows [py0, py1]:
+    column 8 holds max(height - top row), column 9 max(bottom row + 1), both 0 when nothing was drawn."""
+    a = wp.clamp(py0, 0, height - 1)
+    b = wp.clamp(py1, 0, height - 1)
+    if a <= b:
+        out_stats[part, 8] = wp.max(out_stats[part, 8], wp.int64(b + 1))  # height - top row, top = height-1-b
+        out_stats[part, 9] = wp.max(out_stats[part, 9], wp.int64(height - a))  # bottom row + 1
+
+
+@wp.func
 def _poly_rect(n: int, xs: vec9l, ys: vec9l, r: wp.vec4i, cull_back: int) -> wp.bool:
     """Whether some drawable fan triangle of the polygon may cover a pixel centre of rectangle r."""
     hit = wp.bool(False)
@@ -524,6 +537,7 @@ def _small_count_kernel(
         if xmax - xmin < wp.int64((SMALL_PX - 1) * SUBPIXEL) and ymax - ymin < wp.int64((SMALL_PX - 1) * SUBPIXEL):
             c = _raster_tri(ax, ay, bx, by, cx, cy, fa, fb, fc, t, wp.vec4i(0, width - 1, 0, height - 1),
                             width, height, out_key)
+            _note_rows(out_stats, part, height, _pixel_lo(ymin), _pixel_hi(ymax))
             if c[0] > wp.int64(0):
                 wp.atomic_add(out_stats, part, 0, wp.int64(1))
                 wp.atomic_add(out_stats, part, 1, c[0])
@@ -538,6 +552,7 @@ def _small_count_kernel(
         return
     if box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX:
         acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key)
+        _note_rows(out_stats, part, height, box[2], box[3])
         if acc[0] > wp.int64(0):
             wp.atomic_add(out_stats, part, 0, wp.int64(1))
             wp.atomic_add(out_stats, part, 1, acc[1])
@@ -624,6 +639,7 @@ def _tile_kernel(
         n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
         acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key)
     if tile_count[tile] > 0:
+        _note_rows(out_stats, part, height, r[2], r[3])
         wp.atomic_add(out_stats, part, 1, acc[1])
         wp.atomic_add(out_stats, part, 2, acc[2])
         wp.atomic_add(out_stats, part, 3, acc[3])
@@ -632,14 +648,17 @@ def _tile_kernel(
 @wp.kernel(enable_backward=False)
 def _resolve_ids_kernel(
     offset: int,
-    key: wp.array(dtype=wp.uint64),
+    first: int,
     # outputs
+    out_key: wp.array(dtype=wp.uint64),
     out_id: wp.array(dtype=wp.int32),
     out_depth: wp.array(dtype=wp.float32),
 ):
-    """Decode the depth|id keys: triangle id (-1 background) and window depth (1 background)."""
-    p = wp.tid() + offset
-    k = key[p]
+    """Decode the depth|id keys from pixel ``first`` on: triangle id (-1 background) and window depth (1
+    background); each key is set back to empty, so the buffer is clear for the next frame."""
+    p = wp.tid() + offset + first
+    k = out_key[p]
+    out_key[p] = wp.uint64(0xFFFFFFFFFFFFFFFF)
     if k == wp.uint64(0xFFFFFFFFFFFFFFFF):
         out_id[p] = -1
         out_depth[p] = 1.0
@@ -651,15 +670,17 @@ def _resolve_ids_kernel(
 @wp.kernel(enable_backward=False)
 def _barycentrics_kernel(
     offset: int,
+    row0: int,
     tri_id: wp.array2d(dtype=wp.int32),
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     # outputs
     out_bary: wp.array2d(dtype=wp.vec2),
 ):
-    """Perspective-correct barycentrics (b0, b1) of each pixel centre on its visible triangle."""
+    """Perspective-correct barycentrics (b0, b1) of each pixel centre on its visible triangle, from image
+    row ``row0`` on."""
     i, j = wp.tid()
-    i += offset
+    i += offset + row0
     t = tri_id[i, j]
     if t < 0:
         out_bary[i, j] = wp.vec2(0.0, 0.0)
@@ -724,25 +745,35 @@ class Fragments:
     Iterating yields (triangle_id, depth, barycentrics, stats), as the earlier NamedTuple did.
     """
 
-    __slots__ = ("triangle_id", "depth", "stats", "_bary", "_clip", "_tris", "_device")
+    __slots__ = ("triangle_id", "depth", "stats", "_bary", "_clip", "_tris", "_device", "_ids", "_rows")
 
-    def __init__(self, triangle_id, depth, barycentrics, stats, *, clip=None, tris=None, device="cpu"):
+    def __init__(self, triangle_id, depth, barycentrics, stats, *, clip=None, tris=None, device="cpu", ids=None,
+                 rows=None):
         self.triangle_id = triangle_id
         self.depth = depth
         self.stats = stats
         self._bary = barycentrics
         self._clip, self._tris, self._device = clip, tris, device
+        self._ids = ids  # the triangle ids as a device array (on the CPU: triangle_id's own memory)
+        self._rows = rows  # image rows [top, bottom) outside which every pixel is background
 
     @property
     def barycentrics(self) -> np.ndarray:
         if self._bary is None:
             hh, ww = self.triangle_id.shape
+            top, bottom = (0, hh) if self._rows is None else self._rows
+            ids = self._ids
+            if ids is None or ids.device.is_cuda:  # the host image, as the caller may have changed it
+                ids = wp.array(self.triangle_id, dtype=wp.int32, device=self._device)
             out = empty((hh, ww), wp.vec2, self._device)
-            launch(_barycentrics_kernel, (hh, ww),
-                   [wp.array(self.triangle_id, dtype=wp.int32, device=self._device), self._clip, self._tris],
-                   [out], self._device)
-            self._bary = out.numpy().reshape(hh, ww, 2)
-            self._clip = self._tris = None
+            if bottom > top:
+                launch(_barycentrics_kernel, (bottom - top, ww), [top, ids.reshape((hh, ww)), self._clip, self._tris],
+                       [out], self._device)
+            bary = out.numpy().reshape(hh, ww, 2)
+            bary[:top] = 0.0  # background rows
+            bary[bottom:] = 0.0
+            self._bary = bary
+            self._clip = self._tris = self._ids = None
         return self._bary
 
     def __iter__(self):
@@ -781,15 +812,59 @@ def _check_size(width: object, height: object) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
-                    device: str) -> Fragments:
-    npx = width * height
+# Depth|id key buffers, all empty, by (device, pixels): the resolve sets every key it reads back to empty, so a
+# buffer is handed back clear and the next frame of that size skips clearing it (a frame-sized fill per frame).
+# A rasterize that fails part-way does not hand its buffer back.
+_KEYS: dict[tuple[str, int], list[wp.array]] = {}
+_KEYS_LOCK = threading.Lock()
+_KEYS_KEPT = 2  # buffers kept per (device, size)
+
+
+def _take_keys(npx: int, device: str) -> wp.array:
+    with _KEYS_LOCK:
+        free = _KEYS.get((str(wp.get_device(device)), npx))
+        if free:
+            return free.pop()
     if wp.get_device(device).is_cpu:
         key_np = np.empty(npx, np.uint64)  # numpy's large allocations ask for huge pages (parallel.empty)
         key_np.view(np.uint8).fill(255)  # all ones: the empty key (a byte fill is faster than wp.full)
-        key = wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
-    else:
-        key = wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
+        return wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
+    return wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
+
+
+def _give_keys(key: wp.array, npx: int, device: str) -> None:
+    with _KEYS_LOCK:
+        free = _KEYS.setdefault((str(wp.get_device(device)), npx), [])
+        if len(free) < _KEYS_KEPT:
+            free.append(key)
+
+
+def _resolve(key: wp.array, c: np.ndarray, width: int, height: int, device: str):
+    """Ids and depth images from the keys, decoding only the band of rows drawn (``c``: the summed
+    counter rows' band columns); -> (ids (H, W), depth (H, W), device ids, (top, bottom))."""
+    npx = width * height
+    top, bottom = height - int(c[:, 8].max()), int(c[:, 9].max())
+    if bottom <= top:
+        top = bottom = 0
+    out_id = empty(npx, wp.int32, device)
+    out_depth = empty(npx, wp.float32, device)
+    if bottom > top:
+        launch(_resolve_ids_kernel, (bottom - top) * width, [top * width], [key, out_id, out_depth], device,
+               min_items=_MIN_PIXELS)
+    ids = out_id.numpy().reshape(height, width)
+    depth = out_depth.numpy().reshape(height, width)
+    for a, b in ((0, top), (bottom, height)):  # background rows, written on the host (a fill)
+        ids[a:b] = -1
+        depth[a:b] = 1.0
+    if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
+        out_id = None
+    return ids, depth, out_id, (top, bottom)
+
+
+def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
+                    device: str) -> Fragments:
+    npx = width * height
+    key = _take_keys(npx, device)
     stats = wp.zeros((max_parts(_OVERSPLIT), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
     m = int(tri.shape[0])
     tri_wp = wp.array(tri if m else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
@@ -814,16 +889,15 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                    [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
                    [key, stats], device, parts=True, min_items=_MIN_TILES,
                    oversplit=_OVERSPLIT)
-    out_id = empty(npx, wp.int32, device)
-    out_depth = empty(npx, wp.float32, device)
-    launch(_resolve_ids_kernel, npx, [key], [out_id, out_depth], device, min_items=_MIN_PIXELS)
-    ids = out_id.numpy().reshape(height, width)
-    c = stats.numpy().sum(axis=0)  # integer sums: the same whatever the chunks
+    rows = stats.numpy()
+    ids, depth, ids_wp, (top, bottom) = _resolve(key, rows, width, height, device)
+    _give_keys(key, npx, device)
+    c = rows[:, :8].sum(axis=0)  # integer sums: the same whatever the chunks
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
-               "pixels_written": int(c[3]), "pixels_covered": int(np.count_nonzero(ids >= 0))}
-    return Fragments(ids, out_depth.numpy().reshape(height, width), None, stats_d, clip=clip, tris=tri_wp,
-                     device=device)
+               "pixels_written": int(c[3]), "pixels_covered": int(np.count_nonzero(ids[top:bottom] >= 0))}
+    return Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp,
+                     rows=(top, bottom))
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
