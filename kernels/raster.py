@@ -405,8 +405,9 @@ def _note_rows(out_stats: wp.array2d(dtype=wp.int64), part: int, height: int, py
     a = wp.clamp(py0, 0, height - 1)
     b = wp.clamp(py1, 0, height - 1)
     if a <= b:
-        out_stats[part, 8] = wp.max(out_stats[part, 8], wp.int64(b + 1))  # height - top row, top = height-1-b
-        out_stats[part, 9] = wp.max(out_stats[part, 9], wp.int64(height - a))  # bottom row + 1
+        # one writer per row on the CPU (a chunk), every thread of the launch on CUDA: Warp's atomic max
+        wp.atomic_max(out_stats, part, 8, wp.int64(b + 1))  # height - top row (top = height - 1 - b)
+        wp.atomic_max(out_stats, part, 9, wp.int64(height - a))  # bottom row + 1
 
 
 @wp.func
