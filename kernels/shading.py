@@ -2,9 +2,16 @@
 
 Hillshade (the default mode; :func:`hillshade` is :func:`shade` in that mode): Lambert's law with a
 directional light (:func:`light_direction`: azimuth/elevation as in GIS hillshading) plus an ambient term,
-on a hypsometric tint (colour by height, a fixed 5-stop ramp from low to high over the heightmap's height
-range). Background pixels take a sky colour. :func:`srgb8` encodes the linear colour as the 8-bit sRGB
-image a frame saves.
+on a hypsometric tint (colour by height, a fixed 5-stop ramp from low to high over a height range).
+Background pixels take a sky colour. :func:`srgb8` encodes the linear colour as the 8-bit sRGB image a
+frame saves.
+
+The tint's height range is ``height_range`` when given (the pipeline passes the heightmap's finite height
+range, so grid, LOD and every other mesh of the same terrain get the same colour at the same height, and a
+flyover's colours do not shift as patches are culled), else the finite heights of the vertices the
+triangles use (:func:`height_span`): a vertex no triangle draws (a no-data hole's) never stretches it.
+
+Every frame-sized launch goes through the parallel-launch helper (:mod:`terrainwarp.kernels.parallel`).
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ import numpy as np
 import warp as wp
 
 from .noise import hash_u32
+from .parallel import empty, launch
 
 
 @wp.func
@@ -49,9 +57,22 @@ def light_direction(azimuth_deg: float, elevation_deg: float) -> tuple[float, fl
     return (float(np.cos(el) * np.sin(az)), float(np.sin(el)), float(-np.cos(el) * np.cos(az)))
 
 
-def _height_span(heights: np.ndarray) -> tuple[float, float]:
-    """(lowest finite height, span > 0) of the hypsometric tint's ramp."""
-    fin = heights[np.isfinite(heights)]
+def height_span(heights: np.ndarray, triangles: np.ndarray | None = None,
+                height_range: tuple[float, float] | None = None) -> tuple[float, float]:
+    """(lowest height, span > 0) of the hypsometric tint's ramp: ``height_range`` (lo, hi) when given, else
+    the finite values of ``heights`` ((n,) per vertex, or (H, W) samples) that ``triangles`` ((m, 3)
+    indices, when given) use."""
+    if height_range is not None:
+        lo, hi = (float(v) for v in height_range)
+        if not (np.isfinite(lo) and np.isfinite(hi) and hi >= lo):
+            raise ValueError(f"height_range: expected finite (lo, hi) with lo <= hi, got {height_range!r}")
+        return lo, max(hi - lo, 1e-6)
+    h = np.asarray(heights).reshape(-1)
+    if triangles is not None:  # only the vertices drawn
+        used = np.zeros(h.size, bool)
+        used[np.asarray(triangles).reshape(-1)] = True
+        h = h[used]
+    fin = h[np.isfinite(h)]
     lo = float(fin.min()) if fin.size else 0.0
     span = max(float(fin.max()) - lo, 1e-6) if fin.size else 1.0
     return lo, span
@@ -67,7 +88,7 @@ def srgb8(rgb: np.ndarray) -> np.ndarray:
 def hillshade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarray, normals: np.ndarray,
               heights: np.ndarray, *, azimuth_deg: float = 315.0, elevation_deg: float = 45.0,
               ambient: float = 0.25, sky: tuple[float, float, float] = (0.62, 0.75, 0.90),
-              device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+              height_range: tuple[float, float] | None = None, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
     """Shade a frame: :func:`shade` in its ``"hillshade"`` mode (one kernel for every mode).
 
     Args:
@@ -75,13 +96,15 @@ def hillshade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.n
         triangles: (m, 3) int32; normals: (n, 3) float32 unit vertex normals; heights: (n,) float32
             world heights per vertex (for the tint).
         azimuth_deg: light azimuth clockwise from north (-z); elevation_deg: above the horizon.
+        height_range: (lo, hi) metres the tint's ramp spans; None: the drawn vertices' finite heights
+            (:func:`height_span`).
 
     Returns:
         rgb (H, W, 3) float32 linear in [0, 1], and per-pixel normals (H, W, 3) float32 (0 on background).
     """
     rgb, nrm, _ = shade(triangle_id, barycentrics, triangles, normals, heights, mode="hillshade",
                         azimuth_deg=azimuth_deg, elevation_deg=elevation_deg, ambient=ambient, sky=sky,
-                        device=device)
+                        height_range=height_range, device=device)
     return rgb, nrm
 
 
@@ -163,6 +186,7 @@ def _value_noise(x: float, z: float, seed: int) -> float:
 
 @wp.kernel(enable_backward=False)
 def _splat_map_kernel(
+    offset: int,
     heights: wp.array2d(dtype=wp.float32),
     normals: wp.array2d(dtype=wp.vec3),
     rules: wp.array2d(dtype=wp.float32),
@@ -176,6 +200,7 @@ def _splat_map_kernel(
     """Per heightmap sample: the weight of every texture, texture k in atlas cell k // 4 (row-major in a
     grid x grid atlas), channel k % 4 (deaconu2021 figure 9)."""
     i, j = wp.tid()
+    i += offset
     hh = heights.shape[0]
     ww = heights.shape[1]
     h = (heights[i, j] - h_lo) / h_span
@@ -236,6 +261,7 @@ def _edge_distance_px(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, px: float, py: floa
 
 @wp.kernel(enable_backward=False)
 def _shade_kernel(
+    offset: int,
     tri_id: wp.array2d(dtype=wp.int32),
     bary: wp.array2d(dtype=wp.vec2),
     tris: wp.array2d(dtype=wp.int32),
@@ -267,6 +293,7 @@ def _shade_kernel(
 ):
     """mode: 0 hillshade, 1 level, 2 patch, 3 wireframe (hillshade + edges), 4 splat."""
     i, j = wp.tid()
+    i += offset
     t = tri_id[i, j]
     if t < 0:
         out_rgb[i, j] = sky
@@ -314,6 +341,7 @@ def _shade_kernel(
 
 @wp.kernel(enable_backward=False)
 def _cracks_kernel(
+    offset: int,
     tri_id: wp.array2d(dtype=wp.int32),
     reach: int,
     # outputs
@@ -322,6 +350,7 @@ def _cracks_kernel(
     """A background pixel is a crack when terrain lies within ``reach`` pixels on both sides of it,
     left and right or above and below: background seen through the surface, not around it."""
     i, j = wp.tid()
+    i += offset
     out_crack[i, j] = 0
     if tri_id[i, j] >= 0:
         return
@@ -369,13 +398,13 @@ def splat_map(heights: np.ndarray, normals: np.ndarray, rules=DEFAULT_SPLAT_RULE
     grid = 1
     while 4 * grid * grid < len(rules):
         grid *= 2
-    lo, span = _height_span(h)
+    lo, span = height_span(h)
     atlas = wp.zeros((grid * h.shape[0], grid * h.shape[1], 4), dtype=wp.float32, device=device)
-    wp.launch(_splat_map_kernel, dim=h.shape, inputs=[
+    launch(_splat_map_kernel, h.shape, [
         wp.array(np.nan_to_num(h, nan=lo), dtype=wp.float32, device=device),
         wp.array(np.nan_to_num(nrm), dtype=wp.vec3, device=device),
         wp.array(_rules_table(rules), dtype=wp.float32, device=device), len(rules), grid, lo, span],
-        outputs=[atlas], device=device)
+        [atlas], device)
     return atlas.numpy(), grid
 
 
@@ -389,9 +418,8 @@ def find_cracks(triangle_id: np.ndarray, reach: int = 3, *, device: str = "cpu")
     ids = np.ascontiguousarray(triangle_id, dtype=np.int32)
     if ids.ndim != 2:
         raise ValueError(f"triangle_id: expected shape (H, W), got {ids.shape}")
-    out = wp.empty(ids.shape, dtype=wp.int32, device=device)
-    wp.launch(_cracks_kernel, dim=ids.shape, inputs=[wp.array(ids, dtype=wp.int32, device=device), int(reach)],
-              outputs=[out], device=device)
+    out = empty(ids.shape, wp.int32, device)
+    launch(_cracks_kernel, ids.shape, [wp.array(ids, dtype=wp.int32, device=device), int(reach)], [out], device)
     return out.numpy().astype(bool)
 
 
@@ -401,7 +429,7 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
           clip: np.ndarray | None = None, splat: tuple[np.ndarray, int] | None = None,
           rules=DEFAULT_SPLAT_RULES, wire_px: float = 0.6, crack_reach: int = 3,
           azimuth_deg: float = 315.0, elevation_deg: float = 45.0, ambient: float = 0.25,
-          sky: tuple[float, float, float] = (0.62, 0.75, 0.90),
+          sky: tuple[float, float, float] = (0.62, 0.75, 0.90), height_range: tuple[float, float] | None = None,
           device: str = "cpu") -> tuple[np.ndarray, np.ndarray, dict]:
     """Shade a frame in one of :data:`SHADING_MODES`.
 
@@ -415,6 +443,9 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
             in [0, 1], ``world_xz`` (n, 2) and ``splat`` = :func:`splat_map`'s (atlas, grid) built with
             the same ``rules``), ``"cracks"`` (hillshade; background pixels seen through the terrain in
             magenta, :data:`CRACK_COLOUR`).
+        height_range: (lo, hi) metres the hypsometric tint spans (the pipeline gives the heightmap's finite
+            height range); None: the finite heights of the vertices ``triangles`` use (:func:`height_span`),
+            so a vertex no triangle draws (a no-data hole's) never moves the colours.
 
     Returns:
         rgb (H, W, 3) float32 linear in [0, 1], per-pixel normals (H, W, 3) float32, and counters
@@ -440,7 +471,7 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         return wp.array(a, dtype=wdt, device=device)
 
     light = light_direction(azimuth_deg, elevation_deg)
-    lo, span = _height_span(np.asarray(heights))
+    lo, span = height_span(heights, triangles, height_range)
     if splat is not None:
         atlas, grid = splat
         atlas = np.ascontiguousarray(atlas, np.float32)
@@ -449,12 +480,12 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         atlas, grid, hm_h, hm_w = np.zeros((2, 2, 4), np.float32), 1, 2, 2
     rtab = _rules_table([r if isinstance(r, SplatRule) else SplatRule(*r) for r in rules])
     code = {"hillshade": 0, "cracks": 0, "level": 1, "patch": 2, "wireframe": 3, "splat": 4}[mode]
-    rgb = wp.empty((hh, ww), dtype=wp.vec3, device=device)
-    nrm = wp.empty((hh, ww), dtype=wp.vec3, device=device)
+    rgb = empty((hh, ww), wp.vec3, device)
+    nrm = empty((hh, ww), wp.vec3, device)
     m = max(len(triangles), 1)
     tri = np.zeros((m, 3), np.int32)
     tri[: len(triangles)] = triangles
-    wp.launch(_shade_kernel, dim=(hh, ww), inputs=[
+    launch(_shade_kernel, (hh, ww), [
         wp.array(ids, dtype=wp.int32, device=device),
         wp.array(np.ascontiguousarray(barycentrics, np.float32), dtype=wp.vec2, device=device),
         wp.array(tri, dtype=wp.int32, device=device),
@@ -464,7 +495,7 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         varr(clip, (4,), np.float32, wp.vec4), wp.array(_LEVEL_COLOURS, dtype=wp.vec3, device=device),
         wp.array(atlas, dtype=wp.float32, device=device), wp.array(rtab, dtype=wp.float32, device=device),
         len(rtab), int(grid), int(hm_h), int(hm_w), code, float(wire_px), lo, span, wp.vec3(*light),
-        float(ambient), wp.vec3(*sky), wp.vec3(*WIRE_COLOUR)], outputs=[rgb, nrm], device=device)
+        float(ambient), wp.vec3(*sky), wp.vec3(*WIRE_COLOUR)], [rgb, nrm], device)
     out = rgb.numpy()
     counters: dict = {"mode": mode}
     if mode == "cracks":
