@@ -2,7 +2,14 @@
 the full-resolution reference, and draw the Pareto front.
 
 A sweep is a list of settings (policy, parameter) crossed with the scene's cameras. Every frame is
-measured by :mod:`terrainwarp.measure.error` against the full-resolution grid rendered once per camera.
+measured by ``render``'s error stage, with the full-resolution grid rendered once per camera: the primary
+error ``p99_px``/``max_px``/``mean_px`` at the heightmap's samples (:mod:`terrainwarp.measure.sample_error`;
+0 for every family's full-detail mesh), the per-pixel grid-image error as the secondary
+``image_err_p99_px``/``image_err_max_px``/``image_err_mean_px`` (it carries a triangulation floor), cracks,
+coverage and PSNR/SSIM; and popping for the pair (frame - 1, frame): ``pop_p99_px``, ``pop_max_px``,
+``popped_samples`` (samples moving by more than 0.5 px; NaN for frame 0), the selection of camera frame - 1
+(held) against that of camera frame, both drawn for camera frame (:func:`terrainwarp.rendering.pipeline.pop_stats`;
+stateless, as the frames are: no hysteresis).
 Policies: ``grid`` (the full-resolution mesh), ``sse`` (screen-space-error tolerance, px), ``distance``
 (k node sizes), ``continuous`` (target pixels per edge, fractional_odd), the peers ``martini`` and
 ``delatin`` (max error in metres; their view-independent meshing time is reported apart from render
@@ -37,13 +44,13 @@ from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
 from ..lod.quadtree import Terrain
-from ..rendering.pipeline import Frame, MeshSource, Report, render
+from ..rendering.pipeline import Frame, MeshSource, Report, pop_stats, render
 from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import LOD_POLICIES, Scene
 from .runner import Job, Runner, SweepResult, pending_jobs
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
-           "TIMING_COLUMNS"]
+           "TIMING_COLUMNS", "image_floor"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
 _BUILT = (*_PEERS, "polytree", "bintree")  # meshes built once, apart from frames: drawn as mesh sources
@@ -194,30 +201,42 @@ def _frame_job(ctx: SweepContext, refs: dict, setting: Setting, k: int) -> dict:
     tri, depth, image = refs[k]
     ref = Frame(scene.with_(camera=cam, mesh="grid"), Report(), image=image, depth=depth, triangle_id=tri)
     sc = scene.with_(camera=cam, outputs=_outputs(ctx))
-    built_ms, peer_err = 0.0, math.nan
+    built_ms, peer_err, src, terrain = 0.0, math.nan, None, None
     if setting.policy in _BUILT:
         src = _source(ctx, refs, setting)
         f = render(sc, reference=ref, device=device, source=src)
         built_ms, peer_err = src.build_ms, src.error_m
     elif setting.policy == "grid":
-        f = render(sc.with_(mesh="grid"), reference=ref, device=device)
+        sc = sc.with_(mesh="grid")
+        f = render(sc, reference=ref, device=device)
     else:
-        lod = scene.lod.with_policy(setting.policy, setting.param)
-        f = render(sc.with_(mesh="lod", lod=lod), terrain=st_["terrain"], reference=ref, device=device)
+        sc, terrain = sc.with_(mesh="lod", lod=scene.lod.with_policy(setting.policy, setting.param)), st_["terrain"]
+        f = render(sc, terrain=terrain, reference=ref, device=device)
     rep, err = f.report, f.error
+    pop = {"pop_p99_px": math.nan, "pop_max_px": math.nan, "popped_samples": math.nan}
+    if k > 0:
+        p = pop_stats(sc, ctx.cameras[k - 1], f, ref, terrain=terrain, source=src, device=device)
+        pop = {"pop_p99_px": p.p99_px, "pop_max_px": p.max_px, "popped_samples": p.popped}
     return dict(select_ms=rep.stage_ms("select"), mesh_ms=rep.stage_ms("mesh"), raster_ms=rep.stage_ms("raster"),
                 frame_ms=rep.frame_ms, patches=rep.stage("mesh").counters["patches"], vertices=f.mesh.n_vertices,
                 triangles=f.mesh.n_triangles, peer_mesh_ms=built_ms, peer_error_m=peer_err,
-                max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, approx_p99_px=err.approx_p99_px,
+                max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, samples_visible=err.samples_visible,
+                samples_hidden=err.samples_hidden, samples_missing=err.samples_missing,
+                image_err_p99_px=err.image_err_p99_px, image_err_max_px=err.image_err_max_px,
+                image_err_mean_px=err.image_err_mean_px, approx_p99_px=err.approx_p99_px,
                 cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
                 psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
-                ssim=err.ssim if err.ssim is not None else math.nan, prepare_ms=st_["prepare_ms"])
+                ssim=err.ssim if err.ssim is not None else math.nan, **pop, prepare_ms=st_["prepare_ms"])
 
 
-#: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``).
+#: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``). ``p99_px``,
+#: ``max_px``, ``mean_px``: the primary error (at the samples); ``image_err_*``: the grid-image error
+#: (secondary, with its triangulation floor); ``pop_*``, ``popped_samples``: popping from the frame before.
 COLUMNS = ("policy", "param", "setting", "frame", "select_ms", "mesh_ms", "raster_ms", "frame_ms", "patches",
-           "vertices", "triangles", "peer_mesh_ms", "peer_error_m", "max_px", "p99_px", "mean_px", "approx_p99_px",
-           "cracks", "mismatched", "silhouette", "psnr_db", "ssim", "prepare_ms")
+           "vertices", "triangles", "peer_mesh_ms", "peer_error_m", "max_px", "p99_px", "mean_px", "samples_visible",
+           "samples_hidden", "samples_missing", "image_err_p99_px", "image_err_max_px", "image_err_mean_px",
+           "approx_p99_px", "cracks", "mismatched", "silhouette", "psnr_db", "ssim", "pop_p99_px", "pop_max_px",
+           "popped_samples", "prepare_ms")
 
 
 def _scene_token(scene: Scene, device: str) -> str:
@@ -295,13 +314,23 @@ def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progr
                      scheduler=scheduler, workers=workers, out=out).rows
 
 
+def _worst(rs: list[dict], key: str) -> float:
+    """The largest finite-or-inf value of ``key`` over rows (NaN where none has one: frame 0's popping)."""
+    v = [float(r[key]) for r in rs if key in r and not math.isnan(float(r[key]))]
+    return max(v) if v else math.nan
+
+
 def summarise(rows: list[dict]) -> list[dict]:
-    """One row per setting: worst-frame p99 and max error, mean frame time and triangles."""
+    """One row per setting: worst-frame p99 and max error (primary, and the image error's p99), worst pair's
+    pop p99 and max and the popped samples over the path, mean frame time and triangles."""
     out = []
     for label in dict.fromkeys(r["setting"] for r in rows):
         rs = [r for r in rows if r["setting"] == label]
+        popped = [float(r["popped_samples"]) for r in rs if not math.isnan(float(r.get("popped_samples", math.nan)))]
         out.append({"policy": rs[0]["policy"], "param": rs[0]["param"], "setting": label,
                     "p99_px": max(r["p99_px"] for r in rs), "max_px": max(r["max_px"] for r in rs),
+                    "image_err_p99_px": _worst(rs, "image_err_p99_px"), "pop_p99_px": _worst(rs, "pop_p99_px"),
+                    "pop_max_px": _worst(rs, "pop_max_px"), "popped_samples": sum(popped) if popped else math.nan,
                     "mean_px": float(np.mean([r["mean_px"] for r in rs])),
                     "frame_ms": float(np.mean([r["frame_ms"] for r in rs])),
                     "select_ms": float(np.mean([r["select_ms"] for r in rs])),
@@ -326,18 +355,33 @@ def pareto(summary: list[dict], cost: str = "frame_ms") -> list[dict]:
 
 
 def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0)) -> list[list]:
-    """For each budget and policy: the cheapest setting (by triangles) whose worst-frame p99 meets it."""
+    """For each budget and policy: the cheapest setting (by triangles) whose worst-frame p99 (primary error)
+    meets it: [budget, policy, setting, p99_px, triangles, frame_ms, peer_mesh_ms, image_err_p99_px (the
+    old yardstick at that setting), pop_p99_px]."""
     rows = []
     for b in budgets:
         for pol in dict.fromkeys(r["policy"] for r in summary):
             ok = [r for r in summary if r["policy"] == pol and r["p99_px"] <= b]
             if not ok:
-                rows.append([b, pol, "-", "-", "-", "-", "-"])
+                rows.append([b, pol, "-", "-", "-", "-", "-", "-", "-"])
                 continue
             r = min(ok, key=lambda r: r["triangles"])
             rows.append([b, pol, r["setting"], round(r["p99_px"], 3), int(r["triangles"]), round(r["frame_ms"], 2),
-                         round(r["peer_mesh_ms"], 1) if r["policy"] in _BUILT else "-"])
+                         round(r["peer_mesh_ms"], 1) if r["policy"] in _BUILT else "-",
+                         round(r.get("image_err_p99_px", math.nan), 3), round(r.get("pop_p99_px", math.nan), 3)])
     return rows
+
+
+def image_floor(summary: list[dict]) -> dict[str, float]:
+    """The old yardstick's floor in a sweep: per policy (not the grid), the smallest worst-frame grid-image
+    p99 over its settings (its finest setting's, as a rule): what the per-pixel error against the
+    fixed-diagonal grid cannot go below, whatever the threshold."""
+    out: dict[str, float] = {}
+    for r in summary:
+        v = r.get("image_err_p99_px", math.nan)
+        if r["policy"] != "grid" and not math.isnan(v):
+            out[r["policy"]] = min(out.get(r["policy"], math.inf), v)
+    return out
 
 
 def rows_to_csv(rows: list[dict]) -> str:
@@ -361,6 +405,7 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
              "polytree": "P:", "bintree": "X:"}
     others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]
     floor = 0.5 * min(others) if others else 1e-3  # the exact grid (0 px) is drawn on this floor
+    old = image_floor(summary)
 
     def y(r):
         return max(r["p99_px"], floor)
@@ -372,11 +417,14 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
                     label=pol if pol != "grid" else "grid (exact: drawn at the bottom)", ms=6)
         front = pareto(summary, cost)
         ax.plot([r[cost] for r in front], [y(r) for r in front], color="red", lw=3, alpha=0.3, label="Pareto front")
+        if old:
+            ax.axhline(min(old.values()), color="gray", ls="--", lw=1,
+                       label=f"old yardstick's floor: grid-image p99 {min(old.values()):.2f} px (finest settings)")
         ax.set_ylim(bottom=0.8 * floor)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel(lab)
-        ax.set_ylabel("p99 screen error (px), worst frame")
+        ax.set_ylabel("p99 screen error at the samples (px), worst frame")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle(title)
@@ -384,25 +432,28 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
     return save_figure(fig, path, dpi=100)
 
 
-def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path) -> list[Path]:
-    """frames.csv, pareto.png and report.md for a sweep."""
+def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path, *,
+                 path: dict | None = None) -> list[Path]:
+    """frames.csv, pareto.png and report.md for a sweep. ``path``: :meth:`Scene.path_info` of the cameras
+    (its ``text`` is stated in report.md), None when the cameras are the caller's own."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     summ = summarise(rows)
+    hm = scene.heightmap
     paths = [write_text(out / "frames.csv", rows_to_csv(rows)),
-             plot_pareto(summ, out / "pareto.png", f"{scene.heightmap.name}: error against cost, "
+             plot_pareto(summ, out / "pareto.png", f"{hm.name}: error against cost, "
                                                    f"{len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}")]
-    md = [f"# Error against run time: {scene.heightmap.name}", "",
-          f"Heightmap {scene.heightmap.shape[0]}x{scene.heightmap.shape[1]}, dx={scene.heightmap.dx:.4g} m, "
-          f"dz={scene.heightmap.dz:.4g} m; {len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}; "
-          f"LOD: {scene.lod.roots} roots, tess {scene.lod.tess}. Errors are per-frame p99 of the exact per-pixel "
-          "reprojection error (worst frame); frame_ms = select + mesh + raster (LOD), mesh + raster (grid, peers).",
-          "", _jobs_line(rows),
-          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "frame_ms", "triangles", "cracks", "psnr_db",
+    md = [f"# Error against run time: {hm.name}", "",
+          f"Heightmap {hm.shape[0]}x{hm.shape[1]}, dx={hm.dx:.4g} m, dz={hm.dz:.4g} m; {len(cameras)} cameras at "
+          f"{cameras[0].width}x{cameras[0].height}; LOD: {scene.lod.roots} roots, tess {scene.lod.tess}.", "",
+          f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", "",
+          *_yardstick_lines(summ), "", _jobs_line(rows),
+          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px",
+                                      "popped_samples", "frame_ms", "triangles", "cracks", "psnr_db",
                                       "peer_mesh_ms", "peer_error_m"], summ),
-          "", "## Cheapest setting per budget (triangles)", "",
-          "| budget_px | policy | setting | p99_px | triangles | frame_ms | peer_mesh_ms |",
-          "|---|---|---|---|---|---|---|"]
+          "", "## Cheapest setting per budget (triangles; budgets on the primary p99)", "",
+          "| budget_px | policy | setting | p99_px | triangles | frame_ms | peer_mesh_ms | image_err_p99_px | "
+          "pop_p99_px |", "|---|---|---|---|---|---|---|---|---|"]
     md += ["| " + " | ".join(str(v) for v in r) + " |" for r in budget_table(summ)]
     md += ["", "## Pareto front (time)", "", ", ".join(r["setting"] for r in pareto(summ, "frame_ms")),
            "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]
@@ -411,6 +462,30 @@ def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir:
     md += ["", "![pareto](pareto.png)", ""]
     paths.append(write_text(out / "report.md", "\n".join(md)))
     return paths
+
+
+def _yardstick_lines(summ: list[dict]) -> list[str]:
+    """What the report's errors are: the primary error, the old yardstick's floor in this sweep, popping."""
+    floor = image_floor(summ)
+    pops = [r for r in summ if not math.isnan(r["pop_p99_px"])]
+    lines = ["Error (`p99_px`, `max_px`): the primary error, per visible heightmap sample the pixel distance "
+             "between the sample and the drawn surface at its (x, z), worst frame (every family's full-detail "
+             "mesh scores 0). `image_err_p99_px`: the per-pixel reprojection error against the fixed-diagonal "
+             "grid (secondary; the old yardstick). frame_ms = select + mesh + raster (LOD), mesh + raster "
+             "(grid, peers)."]
+    if floor:
+        lines += ["", "Old yardstick's floor here (grid-image p99 of each family's finest setting, which the "
+                  "primary error scores near 0): " + ", ".join(f"{k} {v:.3g} px" for k, v in floor.items()) + "."]
+    if pops:
+        worst = max(pops, key=lambda r: r["pop_p99_px"])
+        lines += ["", "Popping (frame t drawn with the LOD selected at t-1 against the LOD selected at t, per "
+                  "visible sample; stateless selection): worst pair's pop p99 over the settings "
+                  f"{worst['pop_p99_px']:.3g} px ({worst['setting']}); pop max up to "
+                  f"{max(r['pop_max_px'] for r in pops):.3g} px; samples moving > 0.5 px over the path: up to "
+                  f"{max(r['popped_samples'] for r in pops):.0f}."]
+    else:
+        lines += ["", "Popping: one camera, no frame pair."]
+    return lines
 
 
 def _jobs_line(rows: list[dict]) -> str:

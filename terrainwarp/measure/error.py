@@ -19,7 +19,16 @@ are *silhouette* pixels.
 It runs in float64 (one Warp launch over pixels, :mod:`terrainwarp.kernels.metrics`): it measures the
 float32 pipeline, it is not part of it. :func:`pixel_positions` and :func:`reference_height` are the
 same maths in numpy, for tests and for users.
+
+**This is the secondary error.** The fixed-diagonal grid is not every family's full-detail surface: the GPU
+tessellator mirrors its diagonals about each patch's centre lines, and Martini, Delatin, the bintree and
+the polytree triangulate their own way, so even a family's finest mesh differs from the grid per pixel.
+On the bundled DEM at 1920x1080 that floor is a p99 of 0.69-0.94 px (max 2.7-2.8 px) at 10% clearance
+and 2.4-5.7 px at 2% (``benchmarks/results/yardstick.md``). The primary error,
+:func:`terrainwarp.measure.sample_error.sample_error`, is measured at the heightmap's samples and has no
+such floor; :class:`FrameError` (``Frame.error``) carries both, this one as the ``image_err_*`` fields.
 """
+
 
 from __future__ import annotations
 
@@ -30,8 +39,9 @@ import numpy as np
 from ..camera import Camera
 from ..heightmap import Heightmap
 from ..kernels.metrics import pixel_error
+from .sample_error import SampleError
 
-__all__ = ["ErrorStats", "pixel_positions", "reference_height", "frame_error"]
+__all__ = ["ErrorStats", "FrameError", "pixel_positions", "reference_height", "frame_error"]
 
 
 def pixel_positions(positions: np.ndarray, triangles: np.ndarray, triangle_id: np.ndarray,
@@ -90,6 +100,71 @@ class ErrorStats:
 
     def row(self) -> dict[str, float | int | None]:
         return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "crack_mask")}
+
+
+@dataclass
+class FrameError:
+    """A frame's error (``Frame.error``): the primary error at the heightmap's samples, and the per-pixel
+    grid-image error beside it as secondary, named fields.
+
+    Attributes:
+        p99_px, max_px, mean_px: the primary error (:func:`terrainwarp.measure.sample_error.sample_error`):
+            per visible heightmap sample, the pixel distance between the sample and the drawn surface at
+            its (x, z); every family's full-detail mesh scores 0.
+        samples_visible, samples_outside, samples_hidden, samples_missing, samples_no_data: what the
+            primary error counted (:class:`terrainwarp.measure.sample_error.SampleError`).
+        image_err_p99_px, image_err_max_px, image_err_mean_px: the per-pixel reprojection error against
+            the fixed-diagonal full-resolution grid (:func:`frame_error`). Secondary: it carries a
+            triangulation floor (p99 0.69-0.94 px at 10% clearance, 2.4-5.7 px at 2%, on the bundled DEM
+            at 1080p, for the finest quadtree frame).
+        approx_max_px, approx_p99_px: the classic ``|dy| * focal / distance`` estimate of the image error.
+        covered, mismatched, silhouette, cracks, max_depth_diff: coverage against the grid frame (pixels;
+            window depth).
+        psnr_db, ssim: of the hillshaded image against the grid's (None when not shaded).
+        error_map: (rows, cols) float32 per-sample primary error, NaN where not measured.
+        image_error_map: (H, W) float32 per-pixel image error, NaN on background.
+        crack_mask: (H, W) bool crack pixels.
+    """
+
+    p99_px: float
+    max_px: float
+    mean_px: float
+    samples_visible: int
+    samples_outside: int
+    samples_hidden: int
+    samples_missing: int
+    samples_no_data: int
+    image_err_p99_px: float
+    image_err_max_px: float
+    image_err_mean_px: float
+    approx_max_px: float
+    approx_p99_px: float
+    covered: int
+    mismatched: int
+    silhouette: int
+    cracks: int
+    max_depth_diff: float
+    psnr_db: float | None = None
+    ssim: float | None = None
+    error_map: np.ndarray | None = field(default=None, repr=False)
+    image_error_map: np.ndarray | None = field(default=None, repr=False)
+    crack_mask: np.ndarray | None = field(default=None, repr=False)
+
+    @classmethod
+    def combine(cls, samples: SampleError, image: ErrorStats) -> FrameError:
+        """The primary error ``samples`` and the image error ``image`` of one frame, as one record."""
+        return cls(p99_px=samples.p99_px, max_px=samples.max_px, mean_px=samples.mean_px,
+                   samples_visible=samples.visible, samples_outside=samples.outside, samples_hidden=samples.hidden,
+                   samples_missing=samples.missing, samples_no_data=samples.no_data,
+                   image_err_p99_px=image.p99_px, image_err_max_px=image.max_px, image_err_mean_px=image.mean_px,
+                   approx_max_px=image.approx_max_px, approx_p99_px=image.approx_p99_px, covered=image.covered,
+                   mismatched=image.mismatched, silhouette=image.silhouette, cracks=image.cracks,
+                   max_depth_diff=image.max_depth_diff, psnr_db=image.psnr_db, ssim=image.ssim,
+                   error_map=samples.error_map, image_error_map=image.error_map, crack_mask=image.crack_mask)
+
+    def row(self) -> dict[str, float | int | None]:
+        """The numbers (no maps), for tables and report.json."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "image_error_map", "crack_mask")}
 
 
 def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye: tuple[float, float, float],

@@ -18,7 +18,10 @@ mesh           the full-resolution grid, the patches tessellated and displaced i
 raster         the visibility pass (triangle id, depth, barycentrics per pixel)
 shade          resolve + hillshade (image, per-pixel normals)
 reference      the full-resolution grid rasterized from the same camera (only for ``error``)
-error          per-pixel screen-space error against the reference (terrainwarp.measure.error)
+error          the primary error at the heightmap's samples (terrainwarp.measure.sample_error, visibility
+               from the reference's depth), and the per-pixel grid-image error as secondary fields
+               (terrainwarp.measure.error; it carries a triangulation floor): ``Frame.error``, a
+               :class:`terrainwarp.measure.error.FrameError`
 =============  =============================================================================
 
 Which run, by output (LOD scenes add ``prepare`` and ``select`` wherever ``mesh`` runs; a source adds
@@ -38,6 +41,11 @@ report     (none: the report of whatever ran)
 =========  ==================================================
 
 Frame cost (:attr:`Report.frame_ms`) is select + mesh + raster, for every kind of mesh.
+
+A held selection: ``render(scene, terrain, patches=held)`` skips ``select`` (and ``prepare``) and tessellates
+the given :class:`terrainwarp.lod.PatchList` (its levels and edge factors as they were selected) for
+``scene.camera``. That is the "held" frame of popping: :func:`pop_stats` measures the pop between the
+selection of the previous camera and the current one, both drawn for the current camera.
 """
 
 from __future__ import annotations
@@ -60,12 +68,13 @@ from ..kernels.shading import shade, splat_map, srgb8
 from ..kernels.tessellator import tessellate_patches
 from ..lod.policies import make_policy
 from ..lod.quadtree import LodState, PatchList, Terrain, select
-from ..measure.error import ErrorStats, frame_error
+from ..measure.error import FrameError, frame_error
+from ..measure.sample_error import PopStats, popping, sample_error
 from ..mesh import Mesh
 from ..scene import Scene
 from ..surface.differential import compute_curvature
 
-__all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource"]
+__all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource", "pop_stats"]
 
 STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
 _NEEDS = {
@@ -80,16 +89,20 @@ _NEEDS = {
 }
 
 
-def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool = False) -> list[str]:
+def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool = False,
+               have_patches: bool = False) -> list[str]:
     """The stages that the given outputs need, in pipeline order.
 
-    ``mesh``: ``"grid"``, ``"lod"`` or ``"source"`` (a prebuilt :class:`MeshSource`)."""
+    ``mesh``: ``"grid"``, ``"lod"`` or ``"source"`` (a prebuilt :class:`MeshSource`); ``have_patches``: a LOD
+    scene drawn from a given (held) PatchList, which needs no ``select`` and no ``prepare``."""
     need: set[str] = set()
     for o in outputs:
         need |= _NEEDS[o]
     if mesh in ("lod", "source"):
         if "mesh" in need:
             need.add("select")
+        if mesh == "lod" and have_patches:
+            need.discard("select")
         if mesh == "lod" and "select" in need and not have_terrain:
             need.add("prepare")
     else:
@@ -179,8 +192,11 @@ class Frame:
         curvature: (H, W, 4) float32 curvature of the heightmap (not the image) in the directions x, z,
             diagonal (+x,+z), diagonal (+x,-z) (:func:`terrainwarp.compute_curvature`, three-normal), 1/m;
             only when the scene asks for ``"curvature"``.
-        patches: the :class:`terrainwarp.lod.PatchList` of a LOD frame.
-        error: :class:`terrainwarp.measure.error.ErrorStats` against the full-resolution reference, when asked.
+        patches: the :class:`terrainwarp.lod.PatchList` of a LOD frame (the held one when given).
+        error: :class:`terrainwarp.measure.error.FrameError`, when asked: ``p99_px``, ``max_px``, ``mean_px``
+            the primary error at the heightmap's samples (0 for every family's full-detail mesh);
+            ``image_err_*`` the per-pixel error against the fixed-diagonal grid (secondary: it carries a
+            triangulation floor); cracks, coverage, PSNR/SSIM.
         report: the :class:`Report`.
     """
 
@@ -193,12 +209,15 @@ class Frame:
     barycentrics: np.ndarray | None = None
     mesh: Mesh | None = None
     patches: PatchList | None = None
-    error: ErrorStats | None = None
+    error: FrameError | None = None
     curvature: np.ndarray | None = None
 
     def save(self, out_dir: str | Path) -> list[Path]:
-        """Write what the frame has: ``frame.png``, ``depth.exr``, ``normals.exr``, ``mesh.vtp`` and
-        ``report.json`` (each written to a temporary name and renamed)."""
+        """Write what the frame has: ``frame.png``, ``depth.exr``, ``normals.exr``, ``curvature.exr``,
+        ``mesh.vtp``, ``patches.csv``, with the error ``error_px.exr`` (the primary error per heightmap
+        sample, rows x cols, NaN where not measured) and ``image_error_px.exr`` (the per-pixel grid-image
+        error, H x W, NaN on background), and ``report.json`` (each written to a temporary name and
+        renamed)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         written = []
@@ -220,6 +239,8 @@ class Frame:
         if self.error is not None:
             if self.error.error_map is not None:
                 written.append(write_image(out / "error_px.exr", self.error.error_map))
+            if self.error.image_error_map is not None:
+                written.append(write_image(out / "image_error_px.exr", self.error.image_error_map))
             self.report.info["error"] = self.error.row()
         written.append(write_json(out / "report.json", self.report.to_dict()))
         return written
@@ -261,7 +282,7 @@ class _Run:
 
 
 def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, reference: Frame | None,
-           source: MeshSource | None, device: str) -> _Run:
+           source: MeshSource | None, patches: PatchList | None, device: str) -> _Run:
     """Validate the arguments and open the frame's report."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene: expected a Scene, got {type(scene).__name__}")
@@ -274,7 +295,12 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
     if source is not None and not callable(getattr(source, "mesh_for", None)):
         raise TypeError(f"source: expected a MeshSource (with mesh_for(camera)), got {type(source).__name__}")
     kind = "source" if source is not None else scene.mesh
-    stages = stages_for(scene.outputs, kind, have_terrain=terrain is not None)
+    if patches is not None:
+        if not isinstance(patches, PatchList):
+            raise TypeError(f"patches: expected a PatchList, got {type(patches).__name__}")
+        if kind != "lod":
+            raise ValueError(f"patches: a held PatchList is drawn by a LOD scene (mesh='lod'), got {kind!r}")
+    stages = stages_for(scene.outputs, kind, have_terrain=terrain is not None, have_patches=patches is not None)
     report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
                           "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
                           "mesh_policy": kind, "outputs": list(scene.outputs), "stages_run": stages,
@@ -283,7 +309,10 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         report.info["lod"] = dict(scene.lod.__dict__)
     if kind == "source":
         report.info["source"] = type(source).__name__
-    return _Run(scene, Frame(scene=scene, report=report), stages, device, terrain, state, reference, source)
+    if patches is not None:
+        report.info["held_patches"] = len(patches)
+    return _Run(scene, Frame(scene=scene, report=report, patches=patches), stages, device, terrain, state,
+                reference, source)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -394,11 +423,13 @@ def _stage_error(run: _Run, rec: StageRecord) -> None:
         ref_img = run.reference.image
     else:
         ref_img = frame.image if run.kind == "grid" else None
-    frame.error = e = frame_error(run.hm, run.cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
-                                  frame.barycentrics, frame.depth, run.ref_tri, run.ref_depth,
-                                  image=frame.image if ref_img is not None else None, ref_image=ref_img,
-                                  keep_maps=True)
-    rec.counters.update(max_px=round(e.max_px, 4), p99_px=round(e.p99_px, 4), cracks=e.cracks)
+    primary = sample_error(run.hm, run.cam, mesh, run.ref_depth, keep_map=True, device=run.device)
+    image = frame_error(run.hm, run.cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
+                        frame.barycentrics, frame.depth, run.ref_tri, run.ref_depth,
+                        image=frame.image if ref_img is not None else None, ref_image=ref_img, keep_maps=True)
+    frame.error = e = FrameError.combine(primary, image)
+    rec.counters.update(max_px=round(e.max_px, 4), p99_px=round(e.p99_px, 4),
+                        image_err_p99_px=round(e.image_err_p99_px, 4), cracks=e.cracks)
 
 
 _STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {
@@ -411,7 +442,8 @@ _STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {
 # render
 # ------------------------------------------------------------------------------------------------
 def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None = None,
-           reference: Frame | None = None, device: str = "cpu", *, source: MeshSource | None = None) -> Frame:
+           reference: Frame | None = None, device: str = "cpu", *, source: MeshSource | None = None,
+           patches: PatchList | None = None) -> Frame:
     """Render a scene, running only the stages its outputs need (see the module docstring).
 
     Args:
@@ -424,11 +456,13 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
             the error against, so a sweep renders each camera's reference once; None renders it here.
         source: a prebuilt :class:`MeshSource` to draw instead of the scene's ``mesh`` policy (the peers,
             polytree and bintree of :mod:`terrainwarp.rendering.sources`).
+        patches: a held :class:`terrainwarp.lod.PatchList` (e.g. ``frame_t.patches``) to tessellate for
+            ``scene.camera`` as it is, instead of selecting (LOD scenes only; ``select`` does not run).
 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
     """
-    run = _start(scene, terrain, state, reference, source, device)
+    run = _start(scene, terrain, state, reference, source, patches, device)
     for name in run.stages:
         rec = StageRecord(name, 0.0)
         t0 = time.perf_counter()
@@ -438,6 +472,41 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
     if "depth" not in scene.outputs:
         run.frame.depth = None
     return run.frame
+
+
+def pop_stats(scene: Scene, previous: Camera, current: Frame, reference: Frame, *, terrain: Terrain | None = None,
+              source: MeshSource | None = None, held: PatchList | None = None, threshold_px: float = 0.5,
+              device: str = "cpu") -> PopStats:
+    """The pop from camera ``previous`` to ``scene.camera``: the LOD selected at ``previous`` (held) and the
+    LOD of ``current``, both drawn for ``scene.camera`` (:func:`terrainwarp.measure.sample_error.popping`).
+
+    Args:
+        scene: the scene of the current frame (its camera is camera t+1).
+        previous: camera t.
+        current: the frame of ``scene`` (its ``mesh``), from :func:`render`.
+        reference: the full-resolution grid frame of ``scene.camera`` with ``depth`` (visibility).
+        terrain: the caller's Terrain (LOD scenes).
+        source: the :class:`MeshSource` ``current`` was drawn from; its held mesh is its
+            ``mesh_for(previous)`` (a static mesh does not pop).
+        held: the PatchList selected at ``previous`` (e.g. with hysteresis state); None re-selects it
+            here, statelessly.
+
+    Returns:
+        :class:`terrainwarp.measure.sample_error.PopStats`; exactly 0 when the selection did not change.
+        A grid scene does not pop (its pop is measured against its own mesh: 0).
+    """
+    if current.mesh is None or reference.depth is None:
+        raise ValueError("current, reference: expected a frame with a mesh and a reference frame with depth")
+    if source is not None:
+        held_mesh = source.mesh_for(previous)[0]
+    elif scene.mesh == "lod":
+        if held is None:
+            held = render(scene.with_(camera=previous, outputs=("patches",)), terrain, device=device).patches
+        held_mesh = render(scene.with_(outputs=("mesh",)), terrain, device=device, patches=held).mesh
+    else:
+        held_mesh = current.mesh
+    return popping(scene.heightmap, scene.camera, held_mesh, current.mesh, reference.depth,
+                   threshold_px=threshold_px, device=device)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -61,3 +61,42 @@ def test_report_files_and_tables(small, tmp_path):
     tab = budget_table(summ, budgets=(1e9,))
     assert {r[1] for r in tab} == {"grid", "delatin", "martini"}
     assert "Cheapest setting per budget" in (tmp_path / "report.md").read_text()
+
+
+def _frames_csv(path) -> list[dict]:
+    return list(csv.DictReader(io.StringIO((path / "frames.csv").read_text())))
+
+
+def test_frames_csv_has_the_primary_image_and_popping_columns(small, tmp_path):
+    sc, cams = small
+    rows = sweep(sc, cams, [Setting("grid", 0.0), Setting("sse", 8.0), Setting("delatin", 2.0)], progress=False,
+                 images=False)
+    write_report(sc, cams, rows, tmp_path, path=sc.path_info(2))
+    got = _frames_csv(tmp_path)
+    for col in ("p99_px", "max_px", "image_err_p99_px", "image_err_max_px", "cracks", "pop_p99_px", "pop_max_px",
+                "popped_samples"):
+        assert col in got[0], col
+    for r in got:
+        assert (r["pop_p99_px"] == "nan") == (r["frame"] == "0")  # no pair before the first frame
+    grid = [r for r in got if r["policy"] == "grid"]
+    assert all(float(r["p99_px"]) == 0.0 and float(r["pop_max_px"] if r["frame"] != "0" else 0) == 0.0
+               for r in grid)
+    assert all(float(r["image_err_p99_px"]) < 1e-2 for r in grid)
+    md = (tmp_path / "report.md").read_text()
+    assert "Camera path: flyover of 2 cameras at" in md and "2.0% of the" in md and "'ground'" in md
+    assert "Popping" in md and "Old yardstick's floor here" in md and "image_err_p99_px" in md
+
+
+def test_popping_is_zero_for_a_static_camera_and_an_unchanged_selection(small):
+    sc, cams = small
+    still = [cams[1], cams[1]]  # two identical cameras
+    nudged = [cams[1], cams[1].with_(position=tuple(p + d for p, d in zip(cams[1].position, (0.5, 0.0, 0.5))))]
+    settings = [Setting("sse", 64.0), Setting("sse", 2.0), Setting("bintree", 15.0), Setting("delatin", 2.0)]
+    for path in (still, nudged):
+        rows = sweep(sc, path, settings, progress=False, images=False)
+        for r in rows:
+            if r["frame"] == 1 and (path is still or r["setting"] == "sse=64"):
+                assert (r["pop_p99_px"], r["pop_max_px"], r["popped_samples"]) == (0.0, 0.0, 0), r
+    # the coarse selection is the same from both cameras: the held frame is the current one
+    rows = sweep(sc, cams, [Setting("sse", 0.5)], progress=False, images=False)
+    assert rows[1]["pop_max_px"] > 0  # a real move changes a fine selection

@@ -123,11 +123,12 @@ def test_frame_forward_is_the_exact_pipeline(hm, cam, terrain):
     err, ok = np.asarray(err), np.asarray(ok)
     assert ok.sum() == (fr.triangle_id >= 0).sum() > 1000
     # float32 JAX against the float64 metric
-    assert np.abs(err[ok] - ex.error.error_map[ok]).max() < 1e-3
+    # (the differentiable path is the per-pixel grid-image error: Frame.error's image_err_* fields)
+    assert np.abs(err[ok] - ex.error.image_error_map[ok]).max() < 1e-3
     smax, mean, tail = dp.loss_and_grads(fr, math.log(t))[0]
-    assert mean == pytest.approx(ex.error.mean_px, rel=1e-4)
-    assert ex.error.mean_px < smax < ex.error.max_px
-    assert ex.error.p99_px <= tail * (1 + 1e-4) and tail <= ex.error.max_px * (1 + 1e-4)
+    assert mean == pytest.approx(ex.error.image_err_mean_px, rel=1e-4)
+    assert ex.error.image_err_mean_px < smax < ex.error.image_err_max_px
+    assert ex.error.image_err_p99_px <= tail * (1 + 1e-4) and tail <= ex.error.image_err_max_px * (1 + 1e-4)
 
 
 @pytest.mark.parametrize("target", [3.0, 2.7])
@@ -156,7 +157,7 @@ def test_gradient_matches_the_exact_pipeline_where_topology_holds(hm, cam, terra
     h = 0.003
 
     def exact_mean(t):
-        return _exact(hm, cam, t, terrain).error.mean_px
+        return _exact(hm, cam, t, terrain).error.image_err_mean_px
 
     def key(frame):
         return tuple(getattr(frame.coords, k).tobytes() for k in ("slot", "fl", "a", "b"))

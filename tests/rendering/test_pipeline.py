@@ -17,7 +17,7 @@ from terrainwarp import (
 )
 from terrainwarp.lod.peers import delatin_mesh
 from terrainwarp.lod.polytree import default_tolerances
-from terrainwarp.rendering.pipeline import stages_for
+from terrainwarp.rendering.pipeline import pop_stats, stages_for
 from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource
 
 
@@ -162,6 +162,13 @@ def test_error_output_of_the_grid_is_zero(tmp_path):
     assert f.report.stage("reference").counters["reused"] is True
     names = {p.name for p in f.save(tmp_path)}
     assert "error_px.exr" in names and "report.json" in names
+    assert "image_error_px.exr" in names
+    # the primary error per heightmap sample, the image error per pixel
+    import OpenImageIO as oiio  # the maps hold NaN where not measured: read them as images
+
+    assert oiio.ImageBuf(str(tmp_path / "error_px.exr")).get_pixels().shape[:2] == hm.shape
+    assert oiio.ImageBuf(str(tmp_path / "image_error_px.exr")).get_pixels().shape[:2] == (72, 96)
+    assert f.error.max_px == 0.0 and f.error.samples_visible > 500  # the grid passes through every sample
 
 
 def test_lod_config_refuses_settings_that_crack():
@@ -230,3 +237,70 @@ def test_render_draws_prebuilt_mesh_sources():
     with pytest.raises(TypeError, match="source"):
         render(sc, source=object())
     assert stages_for(("depth",), "source") == ["select", "mesh", "raster"]
+
+
+def test_frame_error_is_the_primary_error_with_the_image_error_beside_it():
+    """Frame.error.p99_px is the error at the heightmap's samples (terrainwarp.measure.sample_error against the
+    grid frame's depth); the per-pixel grid-image error is kept as image_err_* fields."""
+    from terrainwarp.measure.error import frame_error
+    from terrainwarp.measure.sample_error import sample_error
+
+    hm = Heightmap.fbm(65, seed=6, dx=5.0, max_height=150.0)
+    cam = Camera.default_for(hm, 96, 72)
+    sc = Scene(hm, camera=cam, mesh="lod", lod=LodConfig(tolerance_px=4.0, roots=4, tess=4), outputs=("error",))
+    f = render(sc)
+    ref = render(sc.with_(mesh="grid", outputs=("depth",)))
+    s = sample_error(hm, cam, f.mesh, ref.depth)
+    assert (f.error.p99_px, f.error.max_px, f.error.mean_px) == (s.p99_px, s.max_px, s.mean_px)
+    assert f.error.samples_visible == s.visible > 0 and f.error.samples_hidden == s.hidden
+    i = frame_error(hm, cam, f.mesh.positions, f.mesh.eye, f.mesh.triangles, f.triangle_id, f.barycentrics,
+                    f.depth, ref.triangle_id, ref.depth)
+    assert (f.error.image_err_p99_px, f.error.image_err_max_px, f.error.cracks) == (i.p99_px, i.max_px, i.cracks)
+    row = f.error.row()
+    assert {"p99_px", "image_err_p99_px", "image_err_max_px", "cracks", "psnr_db"} <= set(row)
+    assert f.report.stage("error").counters["image_err_p99_px"] == round(i.p99_px, 4)
+
+
+def test_render_draws_a_held_selection_for_another_camera():
+    """render(scene, terrain, patches=held) skips select and tessellates the held PatchList for scene.camera:
+    the frame popping measures."""
+    hm = Heightmap.fbm(65, seed=6, dx=5.0, max_height=150.0)
+    sc = Scene(hm, camera=Camera.default_for(hm, 64, 48), mesh="lod", lod=LodConfig(tolerance_px=2.0, roots=4,
+               tess=4), outputs=("mesh", "patches"))
+    cams = sc.camera_path(3)
+    terrain = Terrain.prepare(hm, roots=4, tess=4)
+    f0 = render(sc.with_(camera=cams[0]), terrain)
+    f1 = render(sc.with_(camera=cams[1]), terrain)
+    held = render(sc.with_(camera=cams[1]), terrain, patches=f0.patches)
+    assert [s.name for s in held.report.stages] == ["mesh"] and held.patches is f0.patches
+    assert held.mesh.eye == cams[1].position and held.mesh.n_triangles == f0.mesh.n_triangles
+    same = render(sc.with_(camera=cams[1]), terrain, patches=f1.patches)  # its own selection: the same frame
+    assert np.array_equal(same.mesh.positions, f1.mesh.positions)
+    assert np.array_equal(same.mesh.triangles, f1.mesh.triangles)
+    assert stages_for(("error",), "lod", have_patches=True) == ["mesh", "raster", "reference", "error"]
+    with pytest.raises(ValueError, match="^patches: "):
+        render(sc.with_(mesh="grid"), patches=f0.patches)
+    with pytest.raises(TypeError, match="^patches: expected a PatchList"):
+        render(sc, terrain, patches=[1, 2])
+
+
+def test_pop_stats_is_zero_for_a_static_camera_and_measured_when_the_selection_changes():
+    hm = Heightmap.example()
+    base = Scene(hm, camera=Camera.default_for(hm, 96, 72), mesh="lod", lod=LodConfig(tolerance_px=2.0),
+                 outputs=("error",))
+    cams = base.camera_path(3)
+    terrain = Terrain.prepare(hm, roots=16, tess=16)
+    sc = base.with_(camera=cams[2])
+    ref = render(sc.with_(mesh="grid", outputs=("depth",)))
+    f = render(sc, terrain, reference=ref)
+    still = pop_stats(sc, cams[2], f, ref, terrain=terrain)
+    assert (still.p99_px, still.max_px, still.popped) == (0.0, 0.0, 0) and still.visible > 0
+    moved = pop_stats(sc, cams[0], f, ref, terrain=terrain)  # a long jump: the selection changes
+    assert moved.max_px > 0.5 and moved.popped > 0
+    held = render(base.with_(camera=cams[0], outputs=("patches",)), terrain).patches
+    assert pop_stats(sc, cams[0], f, ref, terrain=terrain, held=held) == moved
+    grid = render(sc.with_(mesh="grid"), reference=ref)
+    assert pop_stats(sc.with_(mesh="grid"), cams[0], grid, ref).max_px == 0.0
+    src = PeerSource(delatin_mesh(hm, 5.0), hm)
+    fs = render(sc, source=src, reference=ref)
+    assert pop_stats(sc, cams[0], fs, ref, source=src).popped == 0  # a static mesh does not pop
