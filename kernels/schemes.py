@@ -1,0 +1,584 @@
+"""The vertex stages of the LOD schemes engines ship (CDLOD, Chunked LOD with skirts, geometry clipmaps), as
+Warp launches over every vertex / quad of a frame. The host side (selection, parameters, what each
+publication prescribes) lives in ``terrainwarp.lod.cdlod``, ``terrainwarp.lod.chunked`` and
+``terrainwarp.lod.clipmaps``.
+
+Coordinates: heightmap cell units (column ``cx`` along +x, row ``cz`` along +z), as in
+:mod:`.displacement`; a lattice point is placed like :func:`.displacement.grid_mesh` places sample
+(i, j): ``rel_origin.x + cx * dx`` in float32, height minus the eye height. Integer cells therefore give
+the grid mesh's vertices bit for bit, and every scheme's full-detail mesh passes through every sample.
+Cells outside the grid are clamped to its border (degenerate triangles there), as the tessellator does.
+
+Grids of items (CDLOD quadrants, chunks) are triangulated like the grid mesh: per quad
+``(v00, v10, v01), (v01, v10, v11)`` (v01 one step along +x, v10 one step along +z), counter-clockwise
+seen from +y. Every launch goes through :func:`.parallel.launch` (one launch per stage per frame).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .parallel import empty, launch
+from .sampling import sample_bilinear
+
+# ------------------------------------------------------------------------------------------------
+# functions
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.func
+def _place(h: wp.array2d(dtype=wp.float32), cx: float, cz: float, rel: wp.vec3, dx: float, dz: float) -> wp.vec3:
+    """Camera-relative surface point at cell coordinates (cx, cz), clamped to the grid, bilinear height."""
+    x = wp.clamp(cx, 0.0, float(h.shape[1] - 1))
+    z = wp.clamp(cz, 0.0, float(h.shape[0] - 1))
+    return wp.vec3(rel[0] + x * dx, sample_bilinear(h, x, z) - rel[1], rel[2] + z * dz)
+
+
+@wp.func
+def _uv(h: wp.array2d(dtype=wp.float32), cx: float, cz: float) -> wp.vec2:
+    x = wp.clamp(cx, 0.0, float(h.shape[1] - 1))
+    z = wp.clamp(cz, 0.0, float(h.shape[0] - 1))
+    return wp.vec2(x / float(wp.max(h.shape[1] - 1, 1)), z / float(wp.max(h.shape[0] - 1, 1)))
+
+
+@wp.func
+def _box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> int:
+    """1 when the box [lo, hi] lies outside one of the six frustum planes (p-vertex test)."""
+    out = int(0)
+    for p in range(6):
+        pl = planes[p]
+        vx = wp.where(pl[0] >= 0.0, hi[0], lo[0])
+        vy = wp.where(pl[1] >= 0.0, hi[1], lo[1])
+        vz = wp.where(pl[2] >= 0.0, hi[2], lo[2])
+        if pl[0] * vx + pl[1] * vy + pl[2] * vz + pl[3] < 0.0:
+            out = 1
+    return out
+
+
+@wp.func
+def _write_quad(out_tri: wp.array2d(dtype=wp.int32), t: int, v00: int, v01: int, v10: int, v11: int):
+    out_tri[t, 0] = v00
+    out_tri[t, 1] = v10
+    out_tri[t, 2] = v01
+    out_tri[t + 1, 0] = v01
+    out_tri[t + 1, 1] = v10
+    out_tri[t + 1, 2] = v11
+
+
+@wp.func
+def _coarse_surface(h: wp.array2d(dtype=wp.float32), cx: float, cz: float, s2: float) -> float:
+    """Height at grid point (cx, cz) (inside the grid) of the coarser clipmap level's surface: its lattice has
+    spacing ``s2`` cells, its quads clamped to the grid like any quad, split along the grid's diagonal."""
+    w1 = float(h.shape[1] - 1)
+    h1 = float(h.shape[0] - 1)
+    ncx = wp.max(int(wp.ceil(w1 / s2)), 1)
+    ncz = wp.max(int(wp.ceil(h1 / s2)), 1)
+    kx = wp.min(int(wp.floor(cx / s2)), ncx - 1)
+    kz = wp.min(int(wp.floor(cz / s2)), ncz - 1)
+    x0 = float(kx) * s2
+    z0 = float(kz) * s2
+    x1 = wp.min(x0 + s2, w1)
+    z1 = wp.min(z0 + s2, h1)
+    tx = wp.where(x1 > x0, (cx - x0) / (x1 - x0), 0.0)
+    tz = wp.where(z1 > z0, (cz - z0) / (z1 - z0), 0.0)
+    h00 = sample_bilinear(h, x0, z0)
+    h01 = sample_bilinear(h, x1, z0)
+    h10 = sample_bilinear(h, x0, z1)
+    h11 = sample_bilinear(h, x1, z1)
+    if tx + tz <= 1.0:  # triangle (v00, v10, v01)
+        return h00 + tx * (h01 - h00) + tz * (h10 - h00)
+    return h11 + (1.0 - tx) * (h10 - h11) + (1.0 - tz) * (h01 - h11)
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels: grids of items (CDLOD quadrants, chunks)
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.kernel(enable_backward=False)
+def _cdlod_vertices_kernel(
+    offset: int,
+    h: wp.array2d(dtype=wp.float32),
+    item_origin: wp.array(dtype=wp.vec2),
+    item_step: wp.array(dtype=wp.float32),
+    item_lod: wp.array(dtype=wp.int32),
+    n: int,
+    morph_start: wp.array(dtype=wp.float32),
+    morph_inv: wp.array(dtype=wp.float32),
+    rel: wp.vec3,
+    dx: float,
+    dz: float,
+    # outputs
+    out_pos: wp.array(dtype=wp.vec3),
+    out_uv: wp.array(dtype=wp.vec2),
+    out_level: wp.array(dtype=wp.int32),
+    out_item: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    per = (n + 1) * (n + 1)
+    item = k / per
+    r = k - item * per
+    a = r % (n + 1)
+    b = r / (n + 1)
+    step = item_step[item]
+    o = item_origin[item]
+    cx = o[0] + float(a) * step
+    cz = o[1] + float(b) * step
+    lod = item_lod[item]
+    # the morph factor from the eye distance of the unmorphed vertex (Strugar's vertex shader)
+    p = _place(h, cx, cz, rel, dx, dz)
+    km = wp.clamp((wp.length(p) - morph_start[lod]) * morph_inv[lod], 0.0, 1.0)
+    # odd vertices of the level's lattice slide toward their even (parent-lattice) neighbour
+    ga = int(wp.round(o[0] / step)) + a
+    gb = int(wp.round(o[1] / step)) + b
+    mx = cx - float(ga % 2) * step * km
+    mz = cz - float(gb % 2) * step * km
+    out_pos[k] = _place(h, mx, mz, rel, dx, dz)
+    out_uv[k] = _uv(h, mx, mz)
+    out_level[k] = lod
+    out_item[k] = item
+
+
+@wp.kernel(enable_backward=False)
+def _item_triangles_kernel(
+    offset: int,
+    n: int,
+    stride: int,
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+):
+    k = wp.tid() + offset  # quad k of the frame: item, then row b, then column a
+    per = n * n
+    item = k / per
+    r = k - item * per
+    a = r % n
+    b = r / n
+    v00 = item * stride + b * (n + 1) + a
+    _write_quad(out_tri, 2 * k, v00, v00 + 1, v00 + n + 1, v00 + n + 2)
+
+
+@wp.func
+def _edge_vertex(n: int, e: int, t: int) -> int:
+    """Local index of vertex t (0..n) along edge e (0: u=0, 1: v=0, 2: u=1, 3: v=1) of an (n+1)^2 grid."""
+    if e == 0:
+        return t * (n + 1)
+    if e == 1:
+        return t
+    if e == 2:
+        return t * (n + 1) + n
+    return n * (n + 1) + t
+
+
+@wp.kernel(enable_backward=False)
+def _chunk_vertices_kernel(
+    offset: int,
+    h: wp.array2d(dtype=wp.float32),
+    item_origin: wp.array(dtype=wp.vec2),
+    item_step: wp.array(dtype=wp.float32),
+    item_level: wp.array(dtype=wp.int32),
+    item_skirt: wp.array(dtype=wp.float32),
+    n: int,
+    rel: wp.vec3,
+    dx: float,
+    dz: float,
+    # outputs
+    out_pos: wp.array(dtype=wp.vec3),
+    out_uv: wp.array(dtype=wp.vec2),
+    out_level: wp.array(dtype=wp.int32),
+    out_item: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    grid = (n + 1) * (n + 1)
+    stride = grid + 4 * (n + 1)
+    item = k / stride
+    r = k - item * stride
+    drop = float(0.0)
+    if r >= grid:  # a skirt vertex: below vertex t of edge e
+        e = (r - grid) / (n + 1)
+        r = _edge_vertex(n, e, (r - grid) - e * (n + 1))
+        drop = item_skirt[item]
+    step = item_step[item]
+    o = item_origin[item]
+    cx = o[0] + float(r % (n + 1)) * step
+    cz = o[1] + float(r / (n + 1)) * step
+    p = _place(h, cx, cz, rel, dx, dz)
+    out_pos[k] = wp.vec3(p[0], p[1] - drop, p[2])
+    out_uv[k] = _uv(h, cx, cz)
+    out_level[k] = item_level[item]
+    out_item[k] = item
+
+
+@wp.kernel(enable_backward=False)
+def _chunk_triangles_kernel(
+    offset: int,
+    n: int,
+    item_mask: wp.array(dtype=wp.int32),
+    item_start: wp.array(dtype=wp.int32),
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+):
+    c, t = wp.tid()
+    c += offset
+    grid = (n + 1) * (n + 1)
+    base = c * (grid + 4 * (n + 1))
+    start = item_start[c]
+    if t < 2 * n * n:  # the chunk's grid
+        if t % 2 == 0:
+            q = t / 2
+            v00 = base + (q / n) * (n + 1) + q % n
+            _write_quad(out_tri, start + t, v00, v00 + 1, v00 + n + 1, v00 + n + 2)
+        return
+    s = t - 2 * n * n
+    e = s / (2 * n)
+    mask = item_mask[c]
+    if ((mask >> e) & 1) == 0 or s % 2 == 1:
+        return
+    below = int(0)  # skirted edges before e: their triangles come first
+    for f in range(4):
+        if f < e:
+            below += (mask >> f) & 1
+    seg = (s - e * 2 * n) / 2
+    top0 = base + _edge_vertex(n, e, seg)
+    top1 = base + _edge_vertex(n, e, seg + 1)
+    bot0 = base + grid + e * (n + 1) + seg
+    o = start + 2 * n * n + below * 2 * n + 2 * seg
+    out_tri[o, 0] = top0
+    out_tri[o, 1] = top1
+    out_tri[o, 2] = bot0
+    out_tri[o + 1, 0] = top1
+    out_tri[o + 1, 1] = bot0 + 1
+    out_tri[o + 1, 2] = bot0
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels: clipmap levels
+# ------------------------------------------------------------------------------------------------
+
+
+@wp.kernel(enable_backward=False)
+def _clipmap_vertices_kernel(
+    offset: int,
+    h: wp.array2d(dtype=wp.float32),
+    lv_origin: wp.array(dtype=wp.vec2),
+    lv_spacing: wp.array(dtype=wp.float32),
+    lv_coarser: wp.array(dtype=wp.int32),
+    lv_level: wp.array(dtype=wp.int32),
+    n: int,
+    viewer: wp.vec2,
+    alpha_offset: float,
+    width: float,
+    rel: wp.vec3,
+    dx: float,
+    dz: float,
+    # outputs
+    out_pos: wp.array(dtype=wp.vec3),
+    out_uv: wp.array(dtype=wp.vec2),
+    out_level: wp.array(dtype=wp.int32),
+    out_item: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    li = k / (n * n)
+    r = k - li * n * n
+    a = r % n
+    b = r / n
+    s = lv_spacing[li]
+    o = lv_origin[li]
+    cx = o[0] + float(a) * s
+    cz = o[1] + float(b) * s
+    x = wp.clamp(cx, 0.0, float(h.shape[1] - 1))
+    z = wp.clamp(cz, 0.0, float(h.shape[0] - 1))
+    zf = sample_bilinear(h, x, z)
+    y = zf
+    if lv_coarser[li] != 0:
+        # GPU Gems 2 ch. 2: alpha from the viewer's distance, per axis, in this level's grid units
+        ax = wp.clamp((wp.abs(cx - viewer[0]) / s - alpha_offset) / width, 0.0, 1.0)
+        az = wp.clamp((wp.abs(cz - viewer[1]) / s - alpha_offset) / width, 0.0, 1.0)
+        alpha = wp.max(ax, az)
+        if a == 0 or b == 0 or a == n - 1 or b == n - 1:
+            alpha = 1.0  # the outer border is the coarse level's surface exactly (not 1 - rounding)
+        zc = _coarse_surface(h, x, z, 2.0 * s)
+        y = zf * (1.0 - alpha) + zc * alpha
+    out_pos[k] = wp.vec3(rel[0] + x * dx, y - rel[1], rel[2] + z * dz)
+    out_uv[k] = _uv(h, cx, cz)
+    out_level[k] = lv_level[li]
+    out_item[k] = li
+
+
+@wp.func
+def _block_quads(li: int, bx: int, by: int, block: int, n: int, hole: wp.array(dtype=wp.vec4i),
+                 lv_origin: wp.array(dtype=wp.vec2), lv_spacing: wp.array(dtype=wp.float32), cols: int, rows: int,
+                 q: int) -> int:
+    """Quad q of block (bx, by) of level li: its index a + b * (n - 1) in the level, or -1 when it is not drawn
+    (past the block, in the finer level's hole, or wholly outside the grid)."""
+    a = bx * block + q % block
+    b = by * block + q / block
+    if a >= n - 1 or b >= n - 1 or q >= block * block:
+        return -1
+    hr = hole[li]
+    if a >= hr[0] and a < hr[1] and b >= hr[2] and b < hr[3]:
+        return -1
+    s = lv_spacing[li]
+    x0 = lv_origin[li][0] + float(a) * s
+    z0 = lv_origin[li][1] + float(b) * s
+    if x0 >= float(cols - 1) or z0 >= float(rows - 1) or x0 + s <= 0.0 or z0 + s <= 0.0:
+        return -1
+    return a + b * (n - 1)
+
+
+@wp.kernel(enable_backward=False)
+def _clipmap_count_kernel(
+    offset: int,
+    pos: wp.array(dtype=wp.vec3),
+    hole: wp.array(dtype=wp.vec4i),
+    lv_origin: wp.array(dtype=wp.vec2),
+    lv_spacing: wp.array(dtype=wp.float32),
+    planes: wp.array(dtype=wp.vec4),
+    n: int,
+    block: int,
+    blocks: int,
+    cols: int,
+    rows: int,
+    # outputs
+    out_count: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset  # block k: level, then block row, then block column
+    li = k / (blocks * blocks)
+    r = k - li * blocks * blocks
+    bx = r % blocks
+    by = r / blocks
+    # the block's box: its vertices' bounds (GPU Gems 2 ch. 2 culls per block)
+    lo = wp.vec3(3.0e38, 3.0e38, 3.0e38)
+    hi = wp.vec3(-3.0e38, -3.0e38, -3.0e38)
+    for j in range(block + 1):
+        for i in range(block + 1):
+            a = wp.min(bx * block + i, n - 1)
+            b = wp.min(by * block + j, n - 1)
+            p = pos[li * n * n + b * n + a]
+            lo = wp.min(lo, p)
+            hi = wp.max(hi, p)
+    cnt = int(0)
+    if _box_outside(planes, lo, hi) == 0:
+        for q in range(block * block):
+            if _block_quads(li, bx, by, block, n, hole, lv_origin, lv_spacing, cols, rows, q) >= 0:
+                cnt += 2
+    out_count[k] = cnt
+
+
+@wp.kernel(enable_backward=False)
+def _clipmap_emit_kernel(
+    offset: int,
+    count: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int32),
+    hole: wp.array(dtype=wp.vec4i),
+    lv_origin: wp.array(dtype=wp.vec2),
+    lv_spacing: wp.array(dtype=wp.float32),
+    n: int,
+    block: int,
+    blocks: int,
+    cols: int,
+    rows: int,
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    if count[k] == 0:
+        return
+    li = k / (blocks * blocks)
+    r = k - li * blocks * blocks
+    bx = r % blocks
+    by = r / blocks
+    t = start[k]
+    for q in range(block * block):
+        idx = _block_quads(li, bx, by, block, n, hole, lv_origin, lv_spacing, cols, rows, q)
+        if idx >= 0:
+            v00 = li * n * n + (idx / (n - 1)) * n + idx % (n - 1)
+            _write_quad(out_tri, t, v00, v00 + 1, v00 + n, v00 + n + 1)
+            t += 2
+
+
+@wp.kernel(enable_backward=False)
+def _clipmap_stitch_kernel(
+    offset: int,
+    n: int,
+    first: int,
+    # outputs
+    out_tri: wp.array2d(dtype=wp.int32),
+):
+    k = wp.tid() + offset  # stitch k: level, side, segment
+    half = (n - 1) / 2
+    li = k / (4 * half)
+    r = k - li * 4 * half
+    side = r / half
+    seg = r - side * half
+    t = 2 * seg  # the even lattice vertices t and t + 2 of the side, the odd one between
+    v0 = int(0)
+    v1 = int(0)
+    v2 = int(0)
+    if side == 0:  # b = 0
+        v0 = t
+        v1 = t + 1
+        v2 = t + 2
+    elif side == 1:  # a = n - 1
+        v0 = t * n + n - 1
+        v1 = (t + 1) * n + n - 1
+        v2 = (t + 2) * n + n - 1
+    elif side == 2:  # b = n - 1
+        v0 = (n - 1) * n + t
+        v1 = v0 + 1
+        v2 = v0 + 2
+    else:  # a = 0
+        v0 = t * n
+        v1 = (t + 1) * n
+        v2 = (t + 2) * n
+    base = li * n * n
+    out_tri[first + k, 0] = base + v0
+    out_tri[first + k, 1] = base + v1
+    out_tri[first + k, 2] = base + v2
+
+
+# ------------------------------------------------------------------------------------------------
+# host wrappers
+# ------------------------------------------------------------------------------------------------
+MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _heights(heights: np.ndarray | wp.array, device: str) -> wp.array:
+    if isinstance(heights, wp.array):
+        return heights
+    return wp.array(np.ascontiguousarray(heights, dtype=np.float32), dtype=wp.float32, device=device)
+
+
+def _vertex_outputs(nv: int, device: str) -> list[wp.array]:
+    return [empty(max(nv, 1), wp.vec3, device), empty(max(nv, 1), wp.vec2, device),
+            empty(max(nv, 1), wp.int32, device), empty(max(nv, 1), wp.int32, device)]
+
+
+def _to_numpy(verts: list[wp.array], nv: int, tri: wp.array, nt: int) -> MeshArrays:
+    pos, uv, lev, item = (a.numpy()[:nv] for a in verts)
+    return (pos.reshape(-1, 3), uv.reshape(-1, 2), lev, item, tri.numpy()[:nt].reshape(-1, 3))
+
+
+def cdlod_mesh(heights: np.ndarray | wp.array, origin: np.ndarray, step: np.ndarray, lod: np.ndarray, n: int,
+               morph_start: np.ndarray, morph_inv: np.ndarray, rel_origin: tuple[float, float, float], dx: float,
+               dz: float, device: str = "cpu") -> MeshArrays:
+    """The CDLOD vertex stage over every selected quadrant (each an ``(n+1)^2`` grid), one launch, and its
+    triangles (another).
+
+    Args:
+        heights: (H, W) float32 (or a Warp array of it).
+        origin: (Q, 2) float32 quadrant corner in cells; step: (Q,) float32 vertex spacing in cells (a power of
+            two); lod: (Q,) int32 CDLOD level (0 finest).
+        n: quads per quadrant side (half the node's grid resolution).
+        morph_start: (levels,) float32 eye distance (m) where each level's morph begins; morph_inv: (levels,)
+            float32 ``1 / (morph_end - morph_start)`` (0: never morphs).
+        rel_origin: :func:`terrainwarp.camera.relative_origin` of the heightmap.
+
+    Returns:
+        positions (Q (n+1)^2, 3) float32 camera-relative, uv (., 2) float32, level (.,) int32, quadrant index
+        (.,) int32, triangles (2 Q n^2, 3) int32.
+    """
+    q = len(step)
+    nv, nt = q * (n + 1) ** 2, 2 * q * n * n
+    h = _heights(heights, device)
+    verts = _vertex_outputs(nv, device)
+    tri = empty((max(nt, 1), 3), wp.int32, device)
+    if q:
+        launch(_cdlod_vertices_kernel, dim=nv, inputs=[
+            h, wp.array(np.ascontiguousarray(origin, np.float32), dtype=wp.vec2, device=device),
+            wp.array(np.ascontiguousarray(step, np.float32), dtype=wp.float32, device=device),
+            wp.array(np.ascontiguousarray(lod, np.int32), dtype=wp.int32, device=device), int(n),
+            wp.array(np.ascontiguousarray(morph_start, np.float32), dtype=wp.float32, device=device),
+            wp.array(np.ascontiguousarray(morph_inv, np.float32), dtype=wp.float32, device=device),
+            wp.vec3(*rel_origin), float(dx), float(dz)], outputs=verts, device=device)
+        launch(_item_triangles_kernel, dim=nt // 2, inputs=[int(n), (n + 1) ** 2], outputs=[tri], device=device)
+    return _to_numpy(verts, nv, tri, nt)
+
+
+def chunk_mesh(heights: np.ndarray | wp.array, origin: np.ndarray, step: np.ndarray, level: np.ndarray,
+               skirt_m: np.ndarray, skirt_mask: np.ndarray, n: int, rel_origin: tuple[float, float, float],
+               dx: float, dz: float, device: str = "cpu") -> MeshArrays:
+    """Chunks (each an ``(n+1)^2`` grid) with vertical skirts hanging ``skirt_m`` metres below the edges set in
+    ``skirt_mask`` (bit e: edge e, OpenGL order u=0, v=0, u=1, v=1).
+
+    Args:
+        origin: (C, 2) float32 chunk corner in cells; step: (C,) float32 vertex spacing in cells; level: (C,)
+            int32; skirt_m: (C,) float32 skirt depth (m); skirt_mask: (C,) int32.
+
+    Returns:
+        positions (C ((n+1)^2 + 4 (n+1)), 3) float32 camera-relative (each chunk's grid, then its four edges'
+        skirt-bottom vertices, used or not), uv, level, chunk index, triangles (sum over chunks of
+        ``2 n^2 + 2 n * popcount(mask)``, 3) int32: each chunk's grid, then its skirts.
+    """
+    c = len(step)
+    stride = (n + 1) ** 2 + 4 * (n + 1)
+    per = 2 * n * n + 2 * n * np.array([bin(int(m)).count("1") for m in np.asarray(skirt_mask)], np.int64)
+    start = np.concatenate([[0], np.cumsum(per)[:-1]]).astype(np.int32) if c else np.zeros(0, np.int32)
+    nv, nt = c * stride, int(per.sum())
+    h = _heights(heights, device)
+    verts = _vertex_outputs(nv, device)
+    tri = empty((max(nt, 1), 3), wp.int32, device)
+    if c:
+        launch(_chunk_vertices_kernel, dim=nv, inputs=[
+            h, wp.array(np.ascontiguousarray(origin, np.float32), dtype=wp.vec2, device=device),
+            wp.array(np.ascontiguousarray(step, np.float32), dtype=wp.float32, device=device),
+            wp.array(np.ascontiguousarray(level, np.int32), dtype=wp.int32, device=device),
+            wp.array(np.ascontiguousarray(skirt_m, np.float32), dtype=wp.float32, device=device), int(n),
+            wp.vec3(*rel_origin), float(dx), float(dz)], outputs=verts, device=device)
+        launch(_chunk_triangles_kernel, dim=(c, 2 * n * n + 8 * n), inputs=[
+            int(n), wp.array(np.ascontiguousarray(skirt_mask, np.int32), dtype=wp.int32, device=device),
+            wp.array(start, dtype=wp.int32, device=device)], outputs=[tri], device=device, min_items=1024)
+    return _to_numpy(verts, nv, tri, nt)
+
+
+def clipmap_mesh(heights: np.ndarray | wp.array, origin: np.ndarray, spacing: np.ndarray, coarser: np.ndarray,
+                 level: np.ndarray, hole: np.ndarray, n: int, viewer: tuple[float, float], alpha_offset: float,
+                 width: float, planes: np.ndarray, rel_origin: tuple[float, float, float], dx: float, dz: float,
+                 block: int, device: str = "cpu") -> MeshArrays:
+    """The clipmap levels' vertices (each an n x n lattice, transition-blended toward the next coarser level),
+    their drawn quads (count per block with frustum culling -> scan -> emit), and zero-area stitch triangles
+    along the outer border of every level that has a coarser one.
+
+    Args:
+        origin: (L, 2) float32 each level's lattice corner in cells; spacing: (L,) float32 cells (2^level);
+            coarser: (L,) int32 1 when a coarser level is drawn around it; level: (L,) int32 clipmap level;
+            hole: (L, 4) int32 ``[a0, a1) x [b0, b1)`` quads covered by the finer level (empty: a0 = a1 = 0).
+        n: lattice vertices per side (odd); viewer: the viewer's (x, z) in cells; alpha_offset, width: the
+            transition (GPU Gems 2 ch. 2: ``(n - 1) / 2 - w - 1`` and ``w``, level grid units).
+        planes: (6, 4) float32 camera-relative frustum planes; block: quads per culling block side.
+
+    Returns:
+        positions (L n^2, 3) float32 camera-relative, uv, level, level index, triangles (m, 3) int32.
+    """
+    nl = len(spacing)
+    hh, ww = np.shape(heights)
+    nv = nl * n * n
+    blocks = -(-(n - 1) // block)
+    nb = nl * blocks * blocks
+    n_stitch = int(np.asarray(coarser).sum()) * 2 * (n - 1)
+    h = _heights(heights, device)
+    verts = _vertex_outputs(nv, device)
+    lv = [wp.array(np.ascontiguousarray(origin, np.float32), dtype=wp.vec2, device=device),
+          wp.array(np.ascontiguousarray(spacing, np.float32), dtype=wp.float32, device=device)]
+    launch(_clipmap_vertices_kernel, dim=nv, inputs=[
+        h, *lv, wp.array(np.ascontiguousarray(coarser, np.int32), dtype=wp.int32, device=device),
+        wp.array(np.ascontiguousarray(level, np.int32), dtype=wp.int32, device=device), int(n),
+        wp.vec2(*viewer), float(alpha_offset), float(width), wp.vec3(*rel_origin), float(dx), float(dz)],
+        outputs=verts, device=device)
+    holes = wp.array(np.ascontiguousarray(hole, np.int32), dtype=wp.vec4i, device=device)
+    grid = [int(n), int(block), int(blocks), int(ww), int(hh)]
+    cnt = wp.empty(nb, dtype=wp.int32, device=device)
+    launch(_clipmap_count_kernel, dim=nb, inputs=[
+        verts[0], holes, *lv, wp.array(np.ascontiguousarray(planes, np.float32), dtype=wp.vec4, device=device),
+        *grid], outputs=[cnt], device=device, min_items=1)
+    start = wp.empty_like(cnt)
+    wp.utils.array_scan(cnt, start, inclusive=False)
+    n_quad_tri = int(start.numpy()[-1] + cnt.numpy()[-1])
+    # stitches of the levels with a coarser one: they come first among the levels (finest first)
+    nt = n_quad_tri + n_stitch
+    tri = empty((max(nt, 1), 3), wp.int32, device)
+    launch(_clipmap_emit_kernel, dim=nb, inputs=[cnt, start, holes, *lv, *grid], outputs=[tri], device=device,
+           min_items=1)
+    if n_stitch:
+        launch(_clipmap_stitch_kernel, dim=n_stitch, inputs=[int(n), n_quad_tri], outputs=[tri], device=device)
+    return _to_numpy(verts, nv, tri, nt)

@@ -1,0 +1,313 @@
+"""CDLOD: Continuous Distance-Dependent Level of Detail (Strugar 2010), and the NVIDIA DX11 terrain sample's
+per-edge factor compared with the ``continuous`` policy.
+
+**What the publication prescribes** (the paper, and its reference implementation ``fstrugar/CDLOD``,
+``CDLODQuadTree.cpp`` and ``CDLODTerrain.vsh``, read for this):
+
+* A quadtree over the heightmap with per-node min/max heights (the node's box). LOD level 0 is the finest.
+* Selection by distance ranges: a node of LOD ``i`` is drawn where its box intersects the sphere of radius
+  ``range[i]`` around the eye; it is split where its box also intersects ``range[i-1]``, and a child whose
+  box does not intersect ``range[i-1]`` is drawn as that quadrant of the parent (the parent's grid, a
+  quarter of it). Nodes outside the frustum are dropped. The ranges are built from a "LOD distance ratio"
+  (the demo's ``detailBalance`` = 2): the band of each level is ``ratio`` times the band of the level
+  below it, ``range[i] = first_range * (1 + ratio + ... + ratio**i)``.
+* Every node is drawn with the same grid mesh (``grid`` x ``grid`` quads); no stitching, no seams.
+* Morph in the vertex shader: ``k = clamp((d - morph_start[i]) / (morph_end[i] - morph_start[i]), 0, 1)``
+  with ``d`` the eye distance of the unmorphed vertex (height sampled there), and the vertices at odd grid
+  indices slide by ``k`` grid steps toward their even neighbour, so that at ``k = 1`` the node is exactly
+  its parent's grid; the height is sampled again at the morphed position. ``morph_end[i] = range[i]``,
+  ``morph_start[i] = prev + (range[i] - prev) * morph_start_ratio``, ``prev`` the previous level's morph
+  start (0 for level 0), and morph_end is pulled 1% toward morph_start (the reference's ``errorFudge``) so
+  that float rounding of the distance cannot leave a vertex unmorphed at a range border. The paper morphs
+  over the last 15-30% of a range.
+* The reference flags frames whose ranges are too small for the node sizes ("visibility distance too
+  small": a selected node's farthest point lies past the next coarser level's morph start, where the
+  coarser neighbour would already morph and a seam could open). We count those nodes in the selection's
+  ``too_small`` and give a first range that never triggers it (:attr:`Cdlod.min_first_range`).
+
+**Where we had to choose.**
+
+* The quadtree is :class:`terrainwarp.lod.Terrain` (its min/max pyramids, its node boxes and frustum test,
+  through :func:`terrainwarp.kernels.lod.select_level`), with ``tess = grid`` so the finest level draws one
+  vertex per sample. ``levels`` fixes the tree depth (roots are added to cover the grid).
+* The coarsest level has an infinite range (the reference stops at a visibility distance): the whole
+  terrain is drawn, as every other scheme here draws it, so coverage can be compared.
+* The fittable threshold is ``first_range`` (metres): larger is finer. Below :attr:`Cdlod.min_first_range`
+  seams may open (counted, not refused).
+* Heights are sampled bilinearly from the full-resolution heightmap at every level (the reference's
+  "precise" sampling, no mip maps), so a vertex on a sample takes the sample's height exactly.
+* Each drawn node is emitted as its four quadrants (``grid / 2`` quads each), so the parent's quadrants and
+  whole nodes are one item type and the vertex stage is one launch over the frame; ``grid`` must be even.
+
+**The NVIDIA DX11 terrain sample** (issue item 4) is not the same rule as our ``continuous`` policy; see
+:func:`dx11_edge_pixels` for the mapping.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Camera, relative_origin
+from ..heightmap import Heightmap
+from ..kernels.lod import frustum_planes, select_level
+from ..kernels.schemes import cdlod_mesh
+from ..mesh import Mesh
+from .policies import EDGES
+from .quadtree import Terrain, tile_key
+
+__all__ = ["Cdlod", "CdlodSelection", "cdlod_ranges", "dx11_edge_pixels"]
+
+MORPH_FUDGE = 0.01  # the reference's errorFudge: morph_end pulled 1% toward morph_start
+
+
+def cdlod_ranges(first_range: float, ratio: float, morph_start_ratio: float,
+                 levels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(range, morph_start, morph_end) float64 (levels,) of the LOD levels 0 (finest) .. levels-1, as the
+    reference builds them; the coarsest level's range is infinite and it never morphs."""
+    rng = first_range * np.cumsum(ratio ** np.arange(levels, dtype=np.float64))
+    rng[-1] = math.inf
+    start = np.empty(levels)
+    end = rng.copy()
+    prev = 0.0
+    for i in range(levels):
+        start[i] = prev + (rng[i] - prev) * morph_start_ratio if math.isfinite(rng[i]) else math.inf
+        prev = start[i]
+        if math.isfinite(end[i]):
+            end[i] = end[i] + (start[i] - end[i]) * MORPH_FUDGE
+    return rng, start, end
+
+
+@dataclass(frozen=True)
+class CdlodSelection:
+    """The drawn quadrants of one frame (structure of arrays, Q quadrants).
+
+    Attributes:
+        origin: (Q, 2) float32 corner in heightmap cells (column, row); size: (Q,) float32 side in cells.
+        step: (Q,) float32 vertex spacing in cells; lod: (Q,) int32 CDLOD level (0 finest).
+        stats: nodes visited, quadrants, culled, too_small (nodes whose farthest point lies past the next
+            coarser level's morph start), levels.
+    """
+
+    origin: np.ndarray
+    size: np.ndarray
+    step: np.ndarray
+    lod: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+@dataclass(eq=False)
+class Cdlod:
+    """CDLOD over a heightmap (see the module docstring).
+
+    Args:
+        heightmap: the terrain (no NaN).
+        first_range: metres, the range of LOD 0 (the fittable threshold; larger is finer).
+        ratio: LOD distance ratio (> 1): each level's band is ``ratio`` times the previous one.
+        morph_start_ratio: in (0, 1): where in its band a level starts morphing (0.7: over the last 30%).
+        grid: grid resolution of a node (quads per side; even, 2..64).
+        levels: number of LOD levels (default: one root covers the longer side, fewer roots for more levels).
+        device: Warp device.
+    """
+
+    heightmap: Heightmap
+    first_range: float
+    ratio: float = 2.0
+    morph_start_ratio: float = 0.7
+    grid: int = 32
+    levels: int | None = None
+    device: str = "cpu"
+    terrain: Terrain = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.heightmap, Heightmap):
+            raise TypeError(f"heightmap: expected a Heightmap, got {type(self.heightmap).__name__}")
+        if np.isnan(self.heightmap.heights).any():
+            raise ValueError("heightmap: CDLOD here expects no NaN (no-data) heights")
+        if not (math.isfinite(self.first_range) and self.first_range > 0):
+            raise ValueError(f"first_range: expected a positive finite distance in metres, got {self.first_range}")
+        if not (math.isfinite(self.ratio) and self.ratio > 1):
+            raise ValueError(f"ratio: expected a finite number > 1, got {self.ratio}")
+        if not 0 < self.morph_start_ratio < 1:
+            raise ValueError(f"morph_start_ratio: expected a number in (0, 1), got {self.morph_start_ratio}")
+        if isinstance(self.grid, bool) or not isinstance(self.grid, int) or self.grid % 2 or not 2 <= self.grid <= 64:
+            raise ValueError(f"grid: expected an even integer in 2..64, got {self.grid!r}")
+        hh, ww = self.heightmap.shape
+        longest = max(ww - 1, hh - 1, 1)
+        if self.levels is None:
+            self.levels = max(1, math.ceil(math.log2(max(longest / self.grid, 1.0)) - 1e-12) + 1)
+        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or not 1 <= self.levels <= 20:
+            raise ValueError(f"levels: expected an integer in 1..20, got {self.levels!r}")
+        root = self.grid * 2 ** (self.levels - 1)
+        roots = (max(1, math.ceil((ww - 1) / root)), max(1, math.ceil((hh - 1) / root)))
+        self.terrain = Terrain.prepare(self.heightmap, roots=roots, tess=self.grid, depth=self.levels - 1,
+                                       device=self.device)
+        self._h = None
+
+    # -- ranges ---------------------------------------------------------------------------------------
+    def ranges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(range, morph_start, morph_end) of LOD 0 .. levels-1 (:func:`cdlod_ranges`)."""
+        return cdlod_ranges(self.first_range, self.ratio, self.morph_start_ratio, self.levels)
+
+    @property
+    def min_first_range(self) -> float:
+        """The smallest ``first_range`` for which no selected node can reach past the next coarser level's
+        morph start (so no seam can open, and neighbours differ by at most one level), from the largest
+        node box of each level: a node of LOD i is drawn only when its box is within ``range[i]``, so its
+        points lie within ``range[i] + diagonal_i``, which must not pass ``morph_start[i+1]``."""
+        t = self.terrain
+        rng, start, _ = cdlod_ranges(1.0, self.ratio, self.morph_start_ratio, self.levels)
+        need = 0.0
+        for lod in range(self.levels - 1):
+            lvl = t.depth - lod
+            mn, mx, _ = t.stats[lvl]
+            sx, sz = t.node_size_world(lvl)
+            diag = math.sqrt(sx * sx + sz * sz + float((mx - mn).max()) ** 2)
+            if math.isfinite(start[lod + 1]):
+                need = max(need, diag / (start[lod + 1] - rng[lod]))
+        return need
+
+    # -- selection ------------------------------------------------------------------------------------
+    def select(self, camera: Camera) -> CdlodSelection:
+        """The quadrants to draw from ``camera`` (host selection, one select-level launch per tree level)."""
+        t = self.terrain
+        rng, start, _ = self.ranges()
+        rel = relative_origin(self.heightmap.origin, camera.position)
+        planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+        nx, nz = t.roots
+        yy, xx = np.meshgrid(np.arange(nz, dtype=np.int64), np.arange(nx, dtype=np.int64), indexing="ij")
+        x, y = xx.reshape(-1), yy.reshape(-1)
+        out: list[tuple[np.ndarray, np.ndarray, int, int]] = []  # (x, y, tree level, lod of the drawn grid)
+        visited = culled = too_small = 0
+        for lvl in range(t.depth + 1):
+            keep = t.inside(lvl, x, y)
+            x, y = x[keep], y[keep]
+            if not len(x):
+                break
+            lod = t.depth - lvl
+            visited += len(x)
+            size = t.node_size_world(lvl)
+            _, cu, dist, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.device_stats(lvl, self.device),
+                                          rel, size, planes, 0, 0.0, camera.focal_px, 0.0, False,
+                                          np.zeros(0, np.int64), device=self.device)
+            vis = cu == 0
+            culled += int((~vis).sum())
+            in_range = dist < rng[lod]
+            parent_quadrant = vis & ~in_range  # only below the roots: the parent draws this quadrant
+            if parent_quadrant.any():
+                out.append((x[parent_quadrant], y[parent_quadrant], lvl, lod + 1))
+            split = vis & in_range & (dist < rng[lod - 1]) if lod > 0 else np.zeros(len(x), bool)
+            whole = vis & in_range & ~split
+            if whole.any():
+                out.append((x[whole], y[whole], lvl, lod))
+                too_small += self._too_small(x[whole], y[whole], lvl, lod, rel, start)
+            x, y = np.concatenate([2 * x[split], 2 * x[split] + 1, 2 * x[split], 2 * x[split] + 1]), \
+                np.concatenate([2 * y[split], 2 * y[split], 2 * y[split] + 1, 2 * y[split] + 1])
+        return self._quadrants(out, {"nodes_visited": visited, "culled": culled, "too_small": too_small,
+                                     "levels": self.levels})
+
+    def _too_small(self, x: np.ndarray, y: np.ndarray, lvl: int, lod: int, rel: tuple[float, float, float],
+                   start: np.ndarray) -> int:
+        """Nodes whose farthest point lies past the next coarser level's morph start (the reference's check)."""
+        if lod + 1 >= self.levels:
+            return 0
+        t = self.terrain
+        sx, sz = t.node_size_world(lvl)
+        mn, mx, _ = t.stats[lvl]
+        x0 = rel[0] + x * sx
+        z0 = rel[2] + y * sz
+        fx = np.maximum(np.abs(x0), np.abs(x0 + sx))
+        fz = np.maximum(np.abs(z0), np.abs(z0 + sz))
+        fy = np.maximum(np.abs(mn[y, x] - rel[1]), np.abs(mx[y, x] - rel[1]))
+        return int((np.sqrt(fx * fx + fy * fy + fz * fz) > start[lod + 1]).sum())
+
+    def _quadrants(self, parts: list, stats: dict) -> CdlodSelection:
+        """Each drawn node as its four quadrants, each parent quadrant as itself (cells, float32)."""
+        t = self.terrain
+        org, size, step, lods = [], [], [], []
+        for x, y, lvl, lod in parts:
+            s = t.root_cells / 2.0 ** lvl
+            st = t.root_cells / 2.0 ** (t.depth - lod) / self.grid  # the drawn level's vertex spacing
+            if lod == t.depth - lvl:  # a whole node: its four quadrants
+                q = s / 2
+                for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+                    org.append(np.stack([x * s + dx * q, y * s + dy * q], 1))
+                    size.append(np.full(len(x), q))
+                    step.append(np.full(len(x), st))
+                    lods.append(np.full(len(x), lod))
+            else:  # a quadrant of the parent, drawn with the parent's grid
+                org.append(np.stack([x * s, y * s], 1))
+                size.append(np.full(len(x), s))
+                step.append(np.full(len(x), st))
+                lods.append(np.full(len(x), lod))
+        if not org:
+            z = np.zeros(0, np.float32)
+            return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
+        stats["quadrants"] = int(sum(len(a) for a in size))
+        return CdlodSelection(np.concatenate(org).astype(np.float32), np.concatenate(size).astype(np.float32),
+                              np.concatenate(step).astype(np.float32), np.concatenate(lods).astype(np.int32), stats)
+
+    # -- mesh -----------------------------------------------------------------------------------------
+    def mesh(self, camera: Camera, selection: CdlodSelection) -> Mesh:
+        """The selected quadrants' grids, morphed per vertex by the eye distance (one launch), as a Mesh."""
+        _, start, end = self.ranges()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv = np.where(np.isfinite(start), 1.0 / (end - start), 0.0)
+        ms = np.where(np.isfinite(start), start, 3e38)
+        hm = self.heightmap
+        if self._h is None:
+            self._h = np.ascontiguousarray(hm.heights, np.float32)
+        pos, uv, lev, item, tri = cdlod_mesh(self._h, selection.origin, selection.step, selection.lod, self.grid // 2,
+                                             ms, inv, relative_origin(hm.origin, camera.position), hm.dx, hm.dz,
+                                             device=self.device)
+        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
+
+    def frame(self, camera: Camera) -> tuple[Mesh, float, CdlodSelection]:
+        """Select and mesh; returns (mesh, selection ms, selection)."""
+        t0 = time.perf_counter()
+        sel = self.select(camera)
+        select_ms = (time.perf_counter() - t0) * 1e3
+        return self.mesh(camera, sel), select_ms, sel
+
+
+# ------------------------------------------------------------------------------------------------
+# issue item 4: the NVIDIA DX11 terrain sample's per-edge factor
+# ------------------------------------------------------------------------------------------------
+def dx11_edge_pixels(heightmap: Heightmap, camera: Camera, origin: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """(P, 4) float64 the NVIDIA DX11 terrain tessellation sample's per-edge screen size, in the same units
+    and edge order as :func:`terrainwarp.lod.policies.edge_pixels` (so both divide by a target in pixels).
+
+    The sample (``SphereToScreenSpaceTessellation``, hull shader) projects a sphere around each edge: the
+    view-space edge midpoint ``c`` and ``c + (D, 0, 0)`` (``D`` the tile's side, the sphere's diameter) are
+    projected, their NDC x difference is scaled by the screen size (skipping the NDC-to-pixel halving), and
+    the factor is ``clamp(that / g_tessellatedTriWidth, 0, 64)``. In pixels::
+
+        dx11 = 2 * D * focal_px / z_view        (z_view: the midpoint's depth along the view axis)
+        ours = L * focal_px / d                 (edge_pixels: L the 3-D edge length, d the eye distance)
+
+    so ``dx11 = ours * 2 * (D / L) * (d / z_view)``. **Not the same rule**: it equals ours exactly with
+    ``target_px = tri_width / 2`` only for a level edge (``L = D``) whose midpoint lies on the view axis
+    (``d = z_view``). Off axis it asks for more triangles by ``d / z_view = 1 / cos(angle off the view
+    axis)`` (up to 1.25 in the corners of a 60-degree 16:9 view), and on a slope fewer by ``D / L`` (the
+    sample's diameter is horizontal); both rules are symmetric in the edge's endpoints, so both are
+    crack-free. The sample then rounds factors at LOD neighbours up to powers of two, which ours does not
+    need (fractional spacing with matching edge factors).
+
+    Args:
+        origin: (P, 2) float64 world (x, z) of each patch's (u, v) = (0, 0) corner; size: (P, 2) its extent.
+    """
+    view = camera.view_matrix()
+    x0, z0 = origin[:, 0], origin[:, 1]
+    out = []
+    for (ua, va), (ub, vb) in EDGES:
+        xa, za = x0 + ua * size[:, 0], z0 + va * size[:, 1]
+        xb, zb = x0 + ub * size[:, 0], z0 + vb * size[:, 1]
+        ya, yb = heightmap.sample(xa, za).astype(np.float64), heightmap.sample(xb, zb).astype(np.float64)
+        mid = np.stack([0.5 * (xa + xb), 0.5 * (ya + yb), 0.5 * (za + zb), np.ones_like(xa)], 1)
+        z_view = -(mid @ view.T)[:, 2]
+        diam = np.hypot(xb - xa, zb - za)
+        out.append(np.where(z_view > 0, 2.0 * diam * camera.focal_px / np.where(z_view > 0, z_view, 1.0), np.inf))
+    return np.stack(out, 1)
