@@ -4,6 +4,10 @@
   selection (0 ms).
 * :class:`PolytreeSource`: level ``level`` of a taylor-barrett polytree; no selection (0 ms).
 * :class:`BintreeSource`: the mrbsp apparent-size selection of a bintree; the whole call is selection.
+* :class:`CdlodSource`, :class:`ClipmapSource`, :class:`ChunkedSource`: the schemes engines ship (CDLOD,
+  geometry clipmaps, Chunked LOD with skirts; :mod:`terrainwarp.lod.cdlod`, ``.clipmaps``, ``.chunked``),
+  selected per frame (select_ms: their selection) and meshed by their vertex stage. :data:`SCHEMES` names
+  each one's fittable parameter, its range and which way is finer; :func:`scheme_source` makes one.
 
 Each holds what it was built from, the time that took (``build_ms``, kept apart from frame cost), and a
 cache (the heightmap's normal map) that sources of the same heightmap may share::
@@ -19,16 +23,20 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 from ..camera import Camera
 from ..heightmap import Heightmap
 from ..lod.bintree import Bintree, select_bintree
+from ..lod.cdlod import Cdlod
+from ..lod.chunked import ChunkedLod
+from ..lod.clipmaps import Clipmap
 from ..lod.peers import PeerMesh
 from ..lod.polytree import Polytree
 from ..mesh import Mesh
 
-__all__ = ["SourceBase", "PeerSource", "PolytreeSource", "BintreeSource"]
+__all__ = ["SourceBase", "PeerSource", "PolytreeSource", "BintreeSource", "CdlodSource", "ClipmapSource",
+           "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source"]
 
 
 @dataclass(eq=False)
@@ -88,3 +96,83 @@ class BintreeSource(SourceBase):
         t0 = time.perf_counter()
         mesh = select_bintree(self.tree, camera).mesh
         return mesh, (time.perf_counter() - t0) * 1e3
+
+
+@dataclass(eq=False)
+class CdlodSource(SourceBase):
+    """CDLOD (:class:`terrainwarp.lod.cdlod.Cdlod`): distance-range quadtree selection, then one morphing vertex
+    launch; ``build_ms`` the pyramids' time."""
+
+    scheme: Cdlod
+
+    @property
+    def build_ms(self) -> float:
+        return self.scheme.terrain.time_ms
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        mesh, select_ms, _ = self.scheme.frame(camera)
+        return mesh, select_ms
+
+
+@dataclass(eq=False)
+class ClipmapSource(SourceBase):
+    """Geometry clipmaps (:class:`terrainwarp.lod.clipmaps.Clipmap`): the levels snapped to the viewer, then
+    the blended vertices and the culled ring quads; nothing is built ahead (``build_ms`` 0)."""
+
+    scheme: Clipmap
+    build_ms: float = 0.0
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        mesh, select_ms, _ = self.scheme.frame(camera)
+        return mesh, select_ms
+
+
+@dataclass(eq=False)
+class ChunkedSource(SourceBase):
+    """Chunked LOD with skirts (:class:`terrainwarp.lod.chunked.ChunkedLod`): screen-space-error selection of
+    chunks, then their grids and skirts; ``build_ms`` the pyramids' time."""
+
+    scheme: ChunkedLod
+
+    @property
+    def build_ms(self) -> float:
+        return self.scheme.terrain.time_ms
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        mesh, select_ms, _ = self.scheme.frame(camera)
+        return mesh, select_ms
+
+
+class SchemeSpec(NamedTuple):
+    """A scheme's fittable parameter: the keyword of its class, the range a fit searches, whether a larger value
+    is finer, and whether it is an integer (``n`` is odd besides)."""
+
+    scheme: type
+    source: type
+    parameter: str
+    lo: float
+    hi: float
+    larger_is_finer: bool
+    integer: bool
+
+
+SCHEMES: dict[str, SchemeSpec] = {
+    # first_range in metres; its lower end is the scheme's own min_first_range (seams below it), its upper end
+    # any distance past the farthest visible point (everything at full detail)
+    "cdlod": SchemeSpec(Cdlod, CdlodSource, "first_range", 0.0, math.inf, True, False),
+    "clipmaps": SchemeSpec(Clipmap, ClipmapSource, "n", 15, 4095, True, True),
+    "chunked": SchemeSpec(ChunkedLod, ChunkedSource, "max_sse_px", 0.0, 64.0, False, False),
+}
+
+
+def scheme_source(name: str, heightmap: Heightmap, value: float, *, cache: dict | None = None,
+                  **params: Any) -> CdlodSource | ClipmapSource | ChunkedSource:
+    """The source of scheme ``name`` (a :data:`SCHEMES` key) with its fittable parameter set to ``value``
+    (rounded to the next odd integer for clipmaps' ``n``) and the scheme's other keyword ``params``."""
+    if name not in SCHEMES:
+        raise ValueError(f"name: expected one of {sorted(SCHEMES)}, got {name!r}")
+    spec = SCHEMES[name]
+    if spec.integer:
+        value = int(math.ceil(value)) | 1
+    scheme = spec.scheme(heightmap, **{spec.parameter: value}, **params)
+    return spec.source(scheme=scheme, cache={} if cache is None else cache)
