@@ -172,3 +172,21 @@ def test_scene_rejects_an_unknown_shading():
     hm = tw.Heightmap.fbm(16, 16, seed=1)
     with pytest.raises(ValueError, match="shading"):
         tw.Scene(hm, shading="cel")
+
+
+def test_first_compile_prints_no_compiler_warning(tmp_path):
+    """Issue 20 item 11: the shading module (with the terrain noise's hash it shares, whose 32-bit constants
+    are written as their int32 values) compiles without a single compiler line on stderr (the first run
+    printed four -Wconstant-conversion warnings). A fresh WARP_CACHE_PATH forces the compile; the real
+    cache is not touched."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import warp as wp; wp.config.log_level = wp.LOG_WARNING; wp.init(); "
+            "import terrainwarp.kernels.shading as m; wp.load_module(m, device='cpu'); print('compiled')")
+    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "cache")}
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "compiled" in r.stdout, r.stderr
+    assert any((tmp_path / "cache").rglob("wp_terrainwarp.kernels.shading*.cpp"))  # it did compile here
+    assert "warning" not in r.stderr.lower().replace("warp cuda warning", ""), r.stderr
