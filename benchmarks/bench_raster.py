@@ -1,7 +1,8 @@
 """Rasterizer benchmark: terrain frames of 1e4..1e7 triangles at 640x480 and 1920x1080.
 
 For each frame, in the same process: our visibility pass (``rasterize``: vertex transform, clipping,
-coverage, depth, binning, id/depth/barycentric resolve; Warp CPU backend, one thread), Mesa's
+coverage, depth, binning, id/depth/barycentric resolve; Warp CPU backend on ``--threads`` threads,
+by default every core this process may use), Mesa's
 llvmpipe through raw moderngl (clip coordinates uploaded beforehand; the timed part is the draw and
 ``glFinish``) and pyvista/VTK off-screen (also llvmpipe here; mesh uploaded by a first render, then
 the timed re-renders with ``WaitForCompletion``). Ratios are "their time / our time" (> 1: we are
@@ -32,6 +33,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import terrainwarp as tw  # noqa: E402
 from terrainwarp.io.files import write_text  # noqa: E402
+from terrainwarp.kernels import parallel  # noqa: E402
 from terrainwarp.kernels.displacement import grid_mesh  # noqa: E402
 from terrainwarp.kernels.raster import clip_coordinates, rasterize  # noqa: E402
 
@@ -215,7 +217,8 @@ def run(sizes, reps_small=3, reps_big=2, out_md=None):
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; OpenGL: {glinfo}; "
         f"LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', 'unset (llvmpipe uses all cores)')}. "
-        "terrainwarp runs on one core (Warp CPU backend).",
+        f"terrainwarp runs on {parallel.threads()} thread(s) (Warp CPU backend, launches split by "
+        "kernels/parallel.py; `--threads`).",
         "",
         "Terrain: `Heightmap.fbm(s, s, seed=7, dx=10, max_height=800)` grid, 2 (s-1)^2 triangles, "
         "`Camera.default_for` (whole terrain in view). Times are the best of 2-3 runs. ours = full "
@@ -250,7 +253,9 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="1e4 and 1e5 triangles only")
     ap.add_argument("--no-1e7", action="store_true", help="skip the 1e7-triangle frames")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "raster.md"))
+    ap.add_argument("--threads", type=int, default=None, help="our CPU threads (default: every core we may use)")
     a = ap.parse_args(argv)
+    tw.set_threads(a.threads)
     sizes = ["1e4", "1e5"] if a.quick else ["1e4", "1e5", "1e6"] + ([] if a.no_1e7 else ["1e7"])
     run(sizes, out_md=a.out)
 
