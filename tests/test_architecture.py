@@ -39,7 +39,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("terrainwarp.lod", "terrainwarp.surface"),
     ("terrainwarp.measure",),
     ("terrainwarp.rendering",),
-    ("terrainwarp.fit",),
+    ("terrainwarp.fit", "terrainwarp.diff"),
     ("terrainwarp.experiments",),
     ("terrainwarp.cli",),
 )

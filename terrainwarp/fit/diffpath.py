@@ -69,12 +69,12 @@ import numpy as np
 from jax.scipy.special import logsumexp
 
 from ..camera import Camera
+from ..diff import clip_positions, interpolate
 from ..heightmap import Heightmap
 from ..kernels.raster import rasterize
 from ..kernels.tessellator import tessellate_patches
 from ..lod.policies import EDGE_PX_MAX, ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import PatchList, Terrain, select
-from ..rendering.interpolate import clip_positions, interpolate
 
 __all__ = ["DiffFrame", "prepare", "levels", "domain_points", "positions", "pixel_error", "soft_max_px",
            "frame_loss", "loss_and_grads", "log_slope", "place_fixed"]

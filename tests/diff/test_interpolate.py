@@ -9,9 +9,9 @@ import pytest
 import warp as wp
 
 import terrainwarp as tw
+from terrainwarp.diff import clip_positions
+from terrainwarp.diff import interpolate as jinterp
 from terrainwarp.kernels.raster import clip_coordinates, interpolate, interpolate_warp, rasterize, rasterize_clip
-from terrainwarp.rendering.interpolate import clip_positions
-from terrainwarp.rendering.interpolate import interpolate as jinterp
 
 
 def ref_interpolate(attr, ids, clip, tri):
