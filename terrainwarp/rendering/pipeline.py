@@ -388,6 +388,7 @@ def _stage_shade(run: _Run, rec: StageRecord) -> None:
     rgb, pix_n, counters = shade(frame.triangle_id, frame.barycentrics, mesh.triangles, normals, world_y,
                                  mode=scene.shading, level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv,
                                  azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
+                                 height_range=run.hm.height_range,  # one tint for every mesh of this terrain
                                  device=run.device, **_shade_inputs(run))
     if scene.shading != "hillshade":
         rec.counters.update(counters)

@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
 from terrainwarp.kernels.displacement import drop_nonfinite_triangles, grid_mesh, hole_height
-from terrainwarp.kernels.shading import height_span, shade
+from terrainwarp.kernels.shading import height_span, shade, srgb8
 
 N = 65
 LOD = LodConfig(policy="sse", tolerance_px=0.01, roots=4, tess=16)  # the finest level: every sample a vertex
@@ -151,3 +151,24 @@ def test_ramp_ignores_vertices_no_triangle_draws():
     assert not np.array_equal(shade(tri_id, bary, tri, nrm, h, height_range=(50.0, 250.0))[0], rgb)
     with pytest.raises(ValueError, match="height_range"):
         height_span(h, tri, (np.nan, 1.0))
+
+
+def test_every_mesh_of_a_terrain_gets_the_heightmaps_tint():
+    """The tint spans the heightmap's finite height range in every frame (render passes it to shade), not the
+    drawn vertices' range: a LOD frame that culls the highest patches, a grid frame and a frame with holes
+    colour the same height alike, and a flyover's colours do not shift as patches leave the view."""
+    hf, hn, _ = _pair()
+    for hm in (hf, hn):
+        # looking from a corner along the terrain: the far half (and its highest samples) partly out of view
+        cam = Camera(position=(2.0, float(np.nanmax(hm.heights)) + 5.0, 2.0), target=(20.0, 600.0, 10.0),
+                     width=96, height=72, near=0.5, far=5000.0)
+        for mesh in ("grid", "lod"):
+            f = render(Scene(hm, camera=cam, mesh=mesh, lod=LOD, outputs=("image", "mesh", "normals")))
+            m = f.mesh
+            y = (m.positions[:, 1] + m.eye[1]).astype(np.float32)
+            drawn = height_span(y, m.triangles)
+            lo, hi = hm.height_range
+            if mesh == "lod":
+                assert drawn != (lo, max(hi - lo, 1e-6))  # culling changed the drawn range: the test has teeth
+            rgb, _, _ = shade(f.triangle_id, f.barycentrics, m.triangles, m.normals, y, height_range=(lo, hi))
+            assert np.array_equal(srgb8(rgb), f.image), mesh
