@@ -159,12 +159,15 @@ class Clipmap:
 
     # -- mesh -----------------------------------------------------------------------------------------
     def mesh(self, camera: Camera, sel: ClipmapLevels) -> Mesh:
-        """Every drawn level's vertices (transition-blended), culled blocks of quads and stitches, as a Mesh."""
+        """Every drawn level's vertices (transition-blended by ``camera``'s viewer position, as the vertex shader
+        does each frame), culled blocks of quads and stitches, as a Mesh. ``sel`` may be another frame's
+        levels (held): the blend still follows this camera."""
         hm = self.heightmap
         m = (self.n - 1) // 2
         planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+        viewer = ((camera.position[0] - hm.origin[0]) / hm.dx, (camera.position[2] - hm.origin[1]) / hm.dz)
         pos, uv, lev, item, tri = clipmap_mesh(self._h, sel.origin, sel.spacing, sel.coarser, sel.level, sel.hole,
-                                               self.n, sel.viewer, m - self.transition - 1.0, self.transition,
+                                               self.n, viewer, m - self.transition - 1.0, self.transition,
                                                planes, relative_origin(hm.origin, camera.position), hm.dx, hm.dz,
                                                self.block, device=self.device)
         return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)

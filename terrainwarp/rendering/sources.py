@@ -113,6 +113,11 @@ class CdlodSource(SourceBase):
         mesh, select_ms, _ = self.scheme.frame(camera)
         return mesh, select_ms
 
+    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
+        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
+        held LOD that popping compares with ``mesh_for(camera)``."""
+        return self.scheme.mesh(camera, self.scheme.select(previous))
+
 
 @dataclass(eq=False)
 class ClipmapSource(SourceBase):
@@ -125,6 +130,11 @@ class ClipmapSource(SourceBase):
     def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
         mesh, select_ms, _ = self.scheme.frame(camera)
         return mesh, select_ms
+
+    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
+        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
+        held LOD that popping compares with ``mesh_for(camera)``."""
+        return self.scheme.mesh(camera, self.scheme.select(previous))
 
 
 @dataclass(eq=False)
@@ -141,6 +151,11 @@ class ChunkedSource(SourceBase):
     def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
         mesh, select_ms, _ = self.scheme.frame(camera)
         return mesh, select_ms
+
+    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
+        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
+        held LOD that popping compares with ``mesh_for(camera)``."""
+        return self.scheme.mesh(camera, self.scheme.select(previous))
 
 
 class SchemeSpec(NamedTuple):
