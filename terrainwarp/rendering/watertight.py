@@ -5,10 +5,17 @@ the contract of the tessellator: two patches produce a shared vertex bit-identic
 all), drops triangles that collapse after the merge (zero-area slivers of the fractional_odd
 picture frame), then counts
 
-* open edges: undirected edges used by exactly one triangle, other than those on the terrain's
-  border (both endpoints on the same side of the border rectangle in x, z) and those an ``allowed``
-  rule accepts (a LOD frame's surface also ends on the outline of the drawn patches and beside no-data
-  holes: :func:`lod_boundary`); each one is a crack;
+* open edges: undirected edges used by exactly one triangle, each one of four kinds (:data:`EDGE_KINDS`):
+
+  - heightmap border: the surface ends because the terrain does (both endpoints on the same side of the
+    border rectangle in x, z; for a frame, an edge with the outside of the heightmap on one side);
+  - culled-neighbour border (a frame of selected patches): the patch across the edge was not drawn
+    (frustum-culled), so the surface ends there by design;
+  - hole border: a no-data hole lies across the edge (its triangles were dropped);
+  - crack: anything else: the neighbour across the edge was drawn and does not share the edge.
+
+  Given a frame (or its mesh with ``patches=`` and ``heightmap=``), the kinds come from the frame's
+  patches and heightmap (:func:`lod_edge_kinds`); otherwise from ``border`` and an ``allowed`` rule;
 * non-manifold edges: used by three or more triangles;
 * T-junctions: a vertex of an open edge that lies strictly inside another open edge in the
   horizontal (x, z) projection (a terrain is a height field, so a vertex that the neighbouring patch
@@ -25,12 +32,20 @@ import numpy as np
 
 from ..heightmap import Heightmap
 from ..lod.quadtree import PatchList
+from .pipeline import Frame
 
-__all__ = ["check_watertight", "check_watertight_domain", "WatertightReport", "lod_boundary"]
+__all__ = ["check_watertight", "check_watertight_domain", "WatertightReport", "lod_boundary", "lod_edge_kinds",
+           "EDGE_KINDS"]
 
-#: ``allowed(a, b) -> mask``: which single edges, endpoints a and b (E, 3) float64 in the positions'
-#: frame, legitimately end the surface (besides the border rectangle).
+#: ``rule(a, b) -> (E,)``: for single edges with endpoints a and b (E, 3) float64 in the positions' frame,
+#: where the surface legitimately ends: a bool mask (True: a border edge), or each edge's kind (int8, an
+#: index into :data:`EDGE_KINDS`, as :func:`lod_edge_kinds` gives).
 EdgeRule = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+#: The kinds of open edge, in the order of their codes: 0 crack, 1 heightmap border, 2 culled-neighbour
+#: border, 3 hole border.
+EDGE_KINDS = ("crack", "heightmap_border", "culled_border", "hole_border")
+CRACK, HEIGHTMAP_BORDER, CULLED_BORDER, HOLE_BORDER = range(4)
 
 
 @dataclass(frozen=True)
@@ -41,9 +56,13 @@ class WatertightReport:
         n_vertices: vertices after merging bit-identical positions.
         n_triangles: non-degenerate triangles after merging.
         n_degenerate: triangles dropped because two of their corners merged.
-        n_border_edges: edges used once where the surface legitimately ends: the terrain border, or where
-            the ``allowed`` rule says so.
-        n_open_edges: edges used once away from the border (cracks).
+        n_border_edges: edges used once where the surface legitimately ends (the sum of the three kinds
+            below).
+        n_open_edges: edges used once where the surface should go on: cracks (also :attr:`n_cracks`).
+        n_heightmap_border_edges: open edges on the terrain's border (or beyond it, on a patch overhanging
+            the heightmap), or accepted by a bool ``allowed`` rule.
+        n_culled_border_edges: open edges beside a patch that was not drawn (frustum-culled neighbour).
+        n_hole_border_edges: open edges beside a no-data hole.
         n_nonmanifold_edges: edges used by three or more triangles.
         n_t_junctions: (vertex, edge) pairs where a vertex lies inside another open edge.
         open_edges: (n_open_edges, 2, 3) float64 endpoint positions of each crack edge.
@@ -59,10 +78,18 @@ class WatertightReport:
     n_t_junctions: int
     open_edges: np.ndarray = field(repr=False)
     t_junctions: np.ndarray = field(repr=False)
+    n_heightmap_border_edges: int = 0
+    n_culled_border_edges: int = 0
+    n_hole_border_edges: int = 0
+
+    @property
+    def n_cracks(self) -> int:
+        """Open edges whose neighbour across was drawn: :attr:`n_open_edges`."""
+        return self.n_open_edges
 
     @property
     def watertight(self) -> bool:
-        """No cracks, no T-junctions, no non-manifold edges."""
+        """No cracks (a T-junction is one), no non-manifold edges."""
         return self.n_open_edges == 0 and self.n_t_junctions == 0 and self.n_nonmanifold_edges == 0
 
     def to_dict(self, max_items: int = 100) -> dict:
@@ -70,6 +97,8 @@ class WatertightReport:
         return {
             "watertight": self.watertight, "n_vertices": self.n_vertices, "n_triangles": self.n_triangles,
             "n_degenerate": self.n_degenerate, "n_border_edges": self.n_border_edges,
+            "n_heightmap_border_edges": self.n_heightmap_border_edges,
+            "n_culled_border_edges": self.n_culled_border_edges, "n_hole_border_edges": self.n_hole_border_edges,
             "n_open_edges": self.n_open_edges, "n_nonmanifold_edges": self.n_nonmanifold_edges,
             "n_t_junctions": self.n_t_junctions,
             "open_edges": self.open_edges[:max_items].tolist(),
@@ -117,26 +146,40 @@ def _border_mask(merged: np.ndarray, once: np.ndarray, border: object) -> np.nda
     return on_border
 
 
-def check_watertight(mesh, triangles=None, border="auto", allowed: EdgeRule | None = None) -> WatertightReport:
-    """Count cracks (open edges away from the border), non-manifold edges and T-junctions.
+def check_watertight(mesh, triangles=None, border="auto", allowed: EdgeRule | None = None, *,
+                     patches: PatchList | None = None, heightmap: Heightmap | None = None) -> WatertightReport:
+    """Count cracks (open edges where the surface should go on), non-manifold edges and T-junctions, and
+    the open edges where it legitimately ends, by kind.
 
     Args:
-        mesh: a :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or
-            positions (n, 3) float32 with ``triangles`` given separately (a patch's domain:
+        mesh: a :class:`terrainwarp.Frame` (its mesh, classified by its patches and heightmap), a
+            :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or positions
+            (n, 3) float32 with ``triangles`` given separately (a patch's domain:
             :func:`check_watertight_domain`).
         triangles: (m, 3) int indices when ``mesh`` is a positions array.
-        border: ``"auto"``: the x, z bounding rectangle of the positions; ``None``: no border (every
-            edge used once is a crack); or ``(x_min, x_max, z_min, z_max)`` in the positions' frame.
-        allowed: a rule ``(a, b) -> (E,) bool`` for the single edges (endpoints (E, 3) float64 in the
-            positions' frame) where the surface may also end, e.g. :func:`lod_boundary`.
+        border: ``"auto"``: the x, z bounding rectangle of the positions (not used when a heightmap is known:
+            its own border is the terrain's); ``None``: no border; or ``(x_min, x_max, z_min, z_max)`` in the
+            positions' frame.
+        allowed: a rule (:data:`EdgeRule`) for the single edges where the surface may also end.
+        patches: the patches the mesh was tessellated from (a LOD frame's ``Frame.patches``); with
+            ``heightmap``, open edges are classified by :func:`lod_edge_kinds` (culled-neighbour borders,
+            hole borders, the heightmap's border, cracks). heightmap: the frame's heightmap (without
+            ``patches``: a grid mesh, the whole heightmap drawn). Positions are taken relative to the
+            mesh's ``eye`` (the origin when it has none).
 
     Returns:
         A :class:`WatertightReport` (locations in the positions' frame, float64).
     """
+    mesh, patches, heightmap = _frame_parts(mesh, patches, heightmap)
     pos, tri = _unpack(mesh, triangles)
     if isinstance(border, str) and border != "auto":
         raise ValueError(f"border: expected 'auto', None or (x_min, x_max, z_min, z_max), got {border!r}")
     pos, tri = _check_arrays(pos, tri)
+    if heightmap is not None:
+        kinds_of = lod_edge_kinds(patches, heightmap, getattr(mesh, "eye", (0.0, 0.0, 0.0)))
+        border = None if isinstance(border, str) else border
+    else:
+        kinds_of = None
 
     # merge bit-identical vertices (-0.0 and 0.0 are different bits, but equal positions: canonicalise)
     canon = pos + np.float32(0.0)
@@ -154,18 +197,49 @@ def check_watertight(mesh, triangles=None, border="auto", allowed: EdgeRule | No
     once = uniq[counts == 1]
     n_nonmanifold = int((counts > 2).sum())
 
-    on_border = _border_mask(merged, once, border)
-    if allowed is not None and once.shape[0]:
-        on_border |= np.asarray(allowed(merged[once[:, 0]], merged[once[:, 1]]), bool)
-    open_e = once[~on_border]
+    kind = _edge_kinds(merged, once, border, allowed, kinds_of)
+    n_kind = np.bincount(kind, minlength=len(EDGE_KINDS))
+    open_e = once[kind == CRACK]
     open_pos = merged[open_e] if open_e.size else np.zeros((0, 2, 3))
 
     tj = _t_junctions(merged, open_e)
     return WatertightReport(
         n_vertices=int(merged.shape[0]), n_triangles=int(t.shape[0]), n_degenerate=n_deg,
-        n_border_edges=int(on_border.sum()), n_open_edges=int(open_e.shape[0]),
+        n_border_edges=int(once.shape[0] - open_e.shape[0]), n_open_edges=int(open_e.shape[0]),
         n_nonmanifold_edges=n_nonmanifold, n_t_junctions=int(tj.shape[0]),
-        open_edges=open_pos.reshape(-1, 2, 3), t_junctions=tj.reshape(-1, 3, 3))
+        open_edges=open_pos.reshape(-1, 2, 3), t_junctions=tj.reshape(-1, 3, 3),
+        n_heightmap_border_edges=int(n_kind[HEIGHTMAP_BORDER]), n_culled_border_edges=int(n_kind[CULLED_BORDER]),
+        n_hole_border_edges=int(n_kind[HOLE_BORDER]))
+
+
+def _frame_parts(mesh, patches: PatchList | None, heightmap: Heightmap | None):
+    """(mesh, patches, heightmap): a Frame gives its own (arguments given explicitly win)."""
+    if isinstance(mesh, Frame):
+        if mesh.mesh is None:
+            raise ValueError("mesh: the frame has no mesh (render it with an output that makes one)")
+        patches = mesh.patches if patches is None else patches
+        heightmap = mesh.scene.heightmap if heightmap is None else heightmap
+        mesh = mesh.mesh
+    if patches is not None and heightmap is None:
+        raise ValueError("heightmap: required with patches (the frame's heightmap)")
+    return mesh, patches, heightmap
+
+
+def _edge_kinds(merged: np.ndarray, once: np.ndarray, border: object, allowed: EdgeRule | None,
+                kinds_of: EdgeRule | None) -> np.ndarray:
+    """(E,) int kind of each single edge (:data:`EDGE_KINDS`): the border rectangle, then the ``allowed``
+    rule, then the frame's classification; what none of them explains is a crack."""
+    kind = np.where(_border_mask(merged, once, border), HEIGHTMAP_BORDER, CRACK).astype(np.int64)
+    if once.shape[0] == 0:
+        return kind
+    a, b = merged[once[:, 0]], merged[once[:, 1]]
+    for rule in (allowed, kinds_of):
+        if rule is None:
+            continue
+        r = np.asarray(rule(a, b))
+        r = np.where(r, HEIGHTMAP_BORDER, CRACK) if r.dtype == bool else r.astype(np.int64)
+        kind = np.where(kind == CRACK, r, kind)
+    return kind
 
 
 def check_watertight_domain(uv: np.ndarray, triangles: np.ndarray) -> WatertightReport:
@@ -178,27 +252,34 @@ def check_watertight_domain(uv: np.ndarray, triangles: np.ndarray) -> Watertight
     return check_watertight(pos, triangles, border=(0.0, 1.0, 0.0, 1.0))
 
 
-def lod_boundary(patches: PatchList, heightmap: Heightmap, eye: tuple[float, float, float]) -> EdgeRule:
-    """Where a LOD frame's surface legitimately ends, as an ``allowed`` rule for :func:`check_watertight`:
-    on the heightmap's border, on the outline of the drawn patches (a culled neighbour), or beside a no-data
-    hole (a NaN sample within one vertex spacing of the drawn patches, whose triangles were dropped).
+def lod_edge_kinds(patches: PatchList | None, heightmap: Heightmap, eye: tuple[float, float, float]) -> EdgeRule:
+    """Where a frame's surface legitimately ends, and why: a rule for :func:`check_watertight` that gives each
+    single edge its kind (:data:`EDGE_KINDS`), from the points just either side of its midpoint (1e-3 of
+    the smallest patch, or of the sample spacing, away):
 
-    An edge is allowed unless the points just either side of its midpoint (1e-3 of the smallest patch
-    away) both lie strictly inside drawn patches, inside the heightmap and away from holes.
+    - heightmap border: one side lies outside the heightmap (on its border, or beyond it where a patch
+      overhangs it);
+    - culled-neighbour border: one side lies in no drawn patch (the patch there was culled);
+    - hole border: one side lies within reach of a no-data hole (a NaN sample within one vertex spacing plus
+      one sample spacing), whose triangles were dropped;
+    - crack: both sides inside drawn patches, inside the heightmap and away from holes.
 
     Args:
-        patches: the frame's :class:`terrainwarp.lod.PatchList`; heightmap: its heightmap; eye: the mesh's
-            ``eye`` (positions are relative to it).
+        patches: the frame's :class:`terrainwarp.lod.PatchList`, or None for a grid mesh (the whole
+            heightmap drawn); heightmap: its heightmap; eye: the mesh's ``eye`` (positions are relative to it).
     """
     (gx0, gz0), (gx1, gz1) = heightmap.bounds_xz
-    ox, oz = patches.origin[:, 0], patches.origin[:, 1]
-    sx, sz = patches.size[:, 0], patches.size[:, 1]
-    eps = 1e-3 * float(np.min(patches.size)) if len(patches) else 1e-3
+    spacing = max(heightmap.dx, heightmap.dz)
+    if patches is not None and len(patches):
+        ox, oz = patches.origin[:, 0], patches.origin[:, 1]
+        sx, sz = patches.size[:, 0], patches.size[:, 1]
+        eps = 1e-3 * float(np.min(patches.size))
+        reach = float(np.max(patches.size / np.maximum(patches.inner, 1.0))) + spacing
+    else:
+        eps, reach = 1e-3 * min(heightmap.dx, heightmap.dz), 2.0 * spacing
     hi, hj = np.nonzero(np.isnan(heightmap.heights))
     hole_x = heightmap.origin[0] + hj * heightmap.dx
     hole_z = heightmap.origin[1] + hi * heightmap.dz
-    reach = float(np.max(patches.size / np.maximum(patches.inner, 1.0))) + max(heightmap.dx, heightmap.dz) \
-        if len(patches) else 0.0
 
     def near_hole(x: np.ndarray, z: np.ndarray) -> np.ndarray:
         out = np.zeros(len(x), bool)
@@ -207,19 +288,36 @@ def lod_boundary(patches: PatchList, heightmap: Heightmap, eye: tuple[float, flo
                           & (np.abs(z[:, None] - hole_z[None, k:k + 4096]) <= reach), axis=1)
         return out
 
-    def inside(x: np.ndarray, z: np.ndarray) -> np.ndarray:
-        in_p = np.any((x[:, None] > ox) & (x[:, None] < ox + sx) & (z[:, None] > oz) & (z[:, None] < oz + sz), axis=1)
-        ok = in_p & (x > gx0) & (x < gx1) & (z > gz0) & (z < gz1)
-        return ok & ~near_hole(x, z) if len(hole_x) else ok
+    def drawn(x: np.ndarray, z: np.ndarray) -> np.ndarray:
+        if patches is None:
+            return np.ones(len(x), bool)
+        return np.any((x[:, None] > ox) & (x[:, None] < ox + sx) & (z[:, None] > oz) & (z[:, None] < oz + sz), axis=1)
 
-    def allowed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def kinds(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         a, b = a + np.asarray(eye, np.float64), b + np.asarray(eye, np.float64)
         mid, d = 0.5 * (a + b), b - a
         ln = np.maximum(np.hypot(d[:, 0], d[:, 2]), 1e-300)
         nx, nz = -d[:, 2] / ln * eps, d[:, 0] / ln * eps
-        return ~(inside(mid[:, 0] + nx, mid[:, 2] + nz) & inside(mid[:, 0] - nx, mid[:, 2] - nz))
+        sides = [(mid[:, 0] + nx, mid[:, 2] + nz), (mid[:, 0] - nx, mid[:, 2] - nz)]
+        out = np.full(len(a), CRACK, np.int8)
+        for x, z in sides:  # the first reason found on either side, in the order of EDGE_KINDS
+            outside = ~((x > gx0) & (x < gx1) & (z > gz0) & (z < gz1))
+            out = np.where((out == CRACK) & outside, HEIGHTMAP_BORDER, out)
+        for x, z in sides:
+            out = np.where((out == CRACK) & ~drawn(x, z), CULLED_BORDER, out)
+        if len(hole_x):
+            for x, z in sides:
+                out = np.where((out == CRACK) & near_hole(x, z), HOLE_BORDER, out)
+        return out.astype(np.int8)
 
-    return allowed
+    return kinds
+
+
+def lod_boundary(patches: PatchList, heightmap: Heightmap, eye: tuple[float, float, float]) -> EdgeRule:
+    """:func:`lod_edge_kinds` as a bool rule for ``check_watertight(..., allowed=...)``: True where a LOD
+    frame's surface legitimately ends (the heightmap's border, a culled neighbour, a no-data hole)."""
+    kinds = lod_edge_kinds(patches, heightmap, eye)
+    return lambda a, b: kinds(a, b) != CRACK
 
 
 def _t_junctions(merged: np.ndarray, open_e: np.ndarray, tol: float = 1e-6, chunk: int = 1024) -> np.ndarray:

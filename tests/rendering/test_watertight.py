@@ -8,7 +8,7 @@ import hashlib
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, check_watertight
+from terrainwarp import Camera, Heightmap, LodConfig, LodState, Mesh, Scene, check_watertight, render
 from terrainwarp.kernels.tessellator import tessellate_patches
 from terrainwarp.lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, Terrain, select
 
@@ -196,3 +196,75 @@ def test_shared_edge_vertices_are_bit_identical(spacing):
     for a, b, axis in ((0, 1, 0), (2, 3, 0), (0, 2, 1), (1, 3, 1)):
         ea, eb = edge(a, axis, 1.0), edge(b, axis, 0.0)
         assert len(ea) >= 2 and ea == eb
+
+
+# -- a frame's open edges, by kind (issue 20 item 6) ------------------------------------------------
+@pytest.fixture(scope="module")
+def flyover_frames():
+    """The README's flyover: the demo DEM, sse 1 px, 16 roots of level 16, eight cameras along the default
+    path (a smaller viewport than the README's 1280 x 720; the frames still cull patches)."""
+    hm = Heightmap.example()
+    lod = LodConfig(policy="sse", tolerance_px=1.0, roots=16, tess=16)
+    scene = Scene(hm, camera=Camera.default_for(hm, 640, 360), mesh="lod", lod=lod, outputs=("mesh", "patches"))
+    terrain, state = Terrain.prepare(hm, roots=16, tess=16), LodState()
+    return [render(scene.with_(camera=c), terrain=terrain, state=state) for c in scene.camera_path(8)]
+
+
+def test_flyover_has_no_cracks_and_reports_culled_neighbours_apart(flyover_frames):
+    culled = []
+    for f in flyover_frames:
+        rep = check_watertight(f)
+        assert rep.watertight and rep.n_cracks == 0 and rep.n_t_junctions == 0, rep
+        assert rep.n_border_edges == rep.n_heightmap_border_edges + rep.n_culled_border_edges + rep.n_hole_border_edges
+        assert rep.n_hole_border_edges == 0  # the demo DEM has no no-data
+        # the same from the mesh with the frame's patches and heightmap
+        same = check_watertight(f.mesh, patches=f.patches, heightmap=f.scene.heightmap)
+        assert same.to_dict() == rep.to_dict()
+        culled.append(rep.n_culled_border_edges)
+        # what the README used to promise: the plain mesh check counts culled neighbours' edges as open
+        if rep.n_culled_border_edges:
+            assert check_watertight(f.mesh).n_open_edges > 0
+    assert max(culled) > 0 and sum(c > 0 for c in culled) >= 4, culled
+
+
+def test_a_moved_shared_vertex_is_a_crack(flyover_frames):
+    f = flyover_frames[0]
+    m, hm = f.mesh, f.scene.heightmap
+    # a vertex two drawn patches share (bit-identical copies in both), away from the heightmap's border
+    world = m.world_positions()
+    (gx0, gz0), (gx1, gz1) = hm.bounds_xz
+    keys = m.positions.view(np.uint32).reshape(-1, 3)
+    _, first, inv, count = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    shared = np.flatnonzero((count[inv] == 2) & (np.arange(len(keys)) != first[inv])
+                            & (world[:, 0] > gx0 + 50) & (world[:, 0] < gx1 - 50)
+                            & (world[:, 2] > gz0 + 50) & (world[:, 2] < gz1 - 50))
+    assert len(shared) > 0
+    kinds_before = check_watertight(f)
+    pos = m.positions.copy()
+    pos[shared[len(shared) // 2], 1] += np.float32(0.5)  # one patch's copy only: the seam opens
+    broken = Mesh(positions=pos, eye=m.eye, triangles=m.triangles, uv=m.uv, level=m.level, patch_id=m.patch_id,
+                  normals=m.normals)
+    rep = check_watertight(broken, patches=f.patches, heightmap=hm)
+    assert not rep.watertight and rep.n_cracks >= 2
+    assert rep.n_culled_border_edges == kinds_before.n_culled_border_edges
+    # the crack is located at the moved vertex
+    moved = pos[shared[len(shared) // 2]].astype(np.float64)
+    assert np.any(np.all(np.isclose(rep.open_edges, moved, atol=1e-3), axis=-1))
+
+
+def test_hole_borders_and_heightmap_border_of_frames_with_no_data():
+    h = _heights(65)
+    h[20:23, 30:33] = np.nan
+    hm = Heightmap.from_array(h, 1.0, allow_nan=True)
+    cam = Camera(position=(32.0, 200.0, 32.001), target=(32.0, 0.0, 32.0), up=(0.0, 0.0, -1.0), width=96,
+                 height=96, near=1.0, far=1000.0)
+    for mesh in ("grid", "lod"):
+        f = render(Scene(hm, camera=cam, mesh=mesh, lod=LodConfig(roots=4, tess=16), outputs=("mesh",)))
+        rep = check_watertight(f)
+        assert rep.watertight and rep.n_hole_border_edges > 0 and rep.n_heightmap_border_edges > 0, (mesh, rep)
+        assert rep.n_culled_border_edges == 0  # the whole heightmap is in view
+        d = rep.to_dict()
+        assert d["n_hole_border_edges"] == rep.n_hole_border_edges and d["watertight"] is True
+    with pytest.raises(ValueError, match="heightmap"):
+        check_watertight(f.mesh, patches=f.patches)
