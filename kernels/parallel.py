@@ -34,7 +34,7 @@ THREADS_ENV = "TERRAINWARP_THREADS"
 MIN_ITEMS = 4096  # fewer items per chunk than this are not worth a thread hand-off (~20 us)
 
 _lock = threading.Lock()
-_state: dict = {"threads": None, "min_items": None, "pool": None, "pool_size": 0}
+_state: dict = {"threads": None, "default": None, "min_items": None, "pool": None, "pool_size": 0}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -119,9 +119,13 @@ def set_threads(n: int | None) -> None:
 
 
 def threads() -> int:
-    """The number of CPU threads a launch is split across now."""
+    """The number of CPU threads a launch is split across now (the default is worked out once)."""
     n = _state["threads"]
-    return default_threads() if n is None else n
+    if n is None:
+        n = _state["default"]
+        if n is None:
+            n = _state["default"] = default_threads()
+    return n
 
 
 def set_min_items(n: int | None) -> None:
@@ -142,9 +146,10 @@ def _pool(n: int) -> ThreadPoolExecutor:
         return _state["pool"]
 
 
-def _forget_pool() -> None:  # a forked child (a sweep worker) has no pool threads
+def _forget_pool() -> None:  # a forked child (a sweep worker) has no pool threads, maybe other cores
     _state["pool"] = None
     _state["pool_size"] = 0
+    _state["default"] = None
 
 
 os.register_at_fork(after_in_child=_forget_pool)
@@ -204,7 +209,7 @@ def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), o
     if shape[0] <= 0 or math.prod(shape) == 0:
         return
     head = (0, 0) if parts else (0,)
-    if not dev.is_cpu:
+    if not dev.is_cpu or threads() == 1:
         wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
         return
     ranges = chunks(shape[0], math.prod(shape[1:]), min_items, oversplit)
