@@ -24,11 +24,17 @@ Relaxation (documented, and biased where said):
 * The temperature anneals from 1 to 0.05 over the optimisation (optax Adam), so the relaxed selection
   approaches the exact one.
 
-Validation: after the relaxed fit, the exact pipeline (select + tessellate + rasterize + per-pixel error
-against the full-resolution reference) runs over the camera path, and the parameter is corrected by
+Validation: after the relaxed fit, the exact pipeline (select + tessellate + rasterize + the primary error
+at the heightmap's samples, :mod:`terrainwarp.measure.sample_error`, which has no triangulation floor, so
+small budgets are reachable) runs over the camera path, and the parameter is corrected by
 Newton steps in log space, ``log t <- log t + (log budget - log p99) / slope``, with the slope
 ``d log(error) / d log(t)`` from ``jax.grad`` of the relaxed model, then bisection once bracketed. A
 fit that misses the budget in validation is reported as missed, never as met.
+
+Popping as a constraint: ``fit_lod(..., max_pop_px=P)`` also measures, per consecutive camera pair, the pop
+between the previous camera's selection (held) and the current one, both drawn for the current camera
+(:func:`terrainwarp.rendering.pipeline.pop_stats`), and accepts a value only if the worst pair's pop p99 is
+within ``P`` as well. Coarser settings pop more, so the constraint moves the fit toward finer settings.
 
 Baseline: a grid search over the same parameter on the exact pipeline, in the same run.
 """
@@ -49,7 +55,7 @@ from ..camera import Camera
 from ..io.files import save_figure
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import Terrain, node_metrics, select
-from ..rendering.pipeline import Frame, render
+from ..rendering.pipeline import Frame, pop_stats, render
 from ..scene import LOD_POLICIES, POLICY_TABLE, LodConfig, Scene
 
 __all__ = ["LodParams", "FitResult", "Evaluation", "fit_lod", "evaluate", "grid_search", "evaluations_from_rows",
@@ -65,17 +71,33 @@ Evaluator = Callable[[list[float]], list["Evaluation"]]
 
 @dataclass
 class Evaluation:
-    """The exact pipeline at one parameter value over the camera path."""
+    """The exact pipeline at one parameter value over the camera path.
+
+    ``p99_px``, ``max_px``: the primary error per frame; ``image_p99_px``: the grid-image error per frame
+    (secondary); ``pop_p99_px``: per consecutive pair (frame k-1 -> k, so one fewer than the frames), only
+    when popping was measured (else empty)."""
 
     value: float
     p99_px: list[float]
     max_px: list[float]
     triangles: list[int]
     frame_ms: list[float]
+    image_p99_px: list[float] = field(default_factory=list)
+    pop_p99_px: list[float] = field(default_factory=list)
 
     @property
     def worst_p99(self) -> float:
         return max(self.p99_px)
+
+    @property
+    def worst_pop(self) -> float:
+        """The worst pair's pop p99 (px); NaN when popping was not measured, 0 for one camera."""
+        return max(self.pop_p99_px) if self.pop_p99_px else (math.nan if len(self.p99_px) > 1 else 0.0)
+
+    def meets(self, budget_px: float, max_pop_px: float | None = None) -> bool:
+        """Worst-frame p99 within ``budget_px`` and, when given, the worst pair's pop p99 within
+        ``max_pop_px`` (a value whose popping was not measured does not meet a pop bound)."""
+        return self.worst_p99 <= budget_px and (max_pop_px is None or self.worst_pop <= max_pop_px)
 
     @property
     def cost(self) -> float:
@@ -87,7 +109,8 @@ class FitResult:
     """What a fit found, validated by the exact pipeline.
 
     Attributes:
-        met: True only if the exact pipeline's worst-frame p99 error is within the budget.
+        met: True only if the exact pipeline's worst-frame p99 error is within the budget (and the worst
+            pair's pop p99 within ``max_pop_px`` when given).
         value: the fitted parameter (tolerance px, k, or target px); params: the LodParams pytree.
         validated: the exact evaluation at ``value`` (per-frame p99, max, triangles, ms).
         evaluations: exact pipeline frame evaluations the fit used (the grid search's are in ``grid``).
@@ -107,15 +130,20 @@ class FitResult:
     message: str = ""
     history: list[dict] = field(default_factory=list)
     grid: dict | None = None
+    max_pop_px: float | None = None
 
     def to_dict(self) -> dict:
         v = self.validated
-        return {"policy": self.policy, "budget_px": self.budget_px, "met": self.met, "value": self.value,
-                "params": self.params._asdict(), "message": self.message, "evaluations": self.evaluations,
-                "wall_s": self.wall_s,
+        return {"policy": self.policy, "budget_px": self.budget_px, "max_pop_px": self.max_pop_px,
+                "met": self.met, "value": self.value, "params": self.params._asdict(), "message": self.message,
+                "evaluations": self.evaluations, "wall_s": self.wall_s,
+                "error": "primary: per visible heightmap sample, px (terrainwarp.measure.sample_error); "
+                         "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor)",
                 "validated": None if v is None else {"p99_px": v.p99_px, "max_px": v.max_px,
+                                                     "image_p99_px": v.image_p99_px, "pop_p99_px": v.pop_p99_px,
                                                      "triangles": v.triangles, "frame_ms": v.frame_ms,
-                                                     "worst_p99_px": v.worst_p99, "mean_triangles": v.cost},
+                                                     "worst_p99_px": v.worst_p99, "worst_pop_p99_px": v.worst_pop,
+                                                     "mean_triangles": v.cost},
                 "history": self.history, "grid": self.grid}
 
 
@@ -123,18 +151,26 @@ class FitResult:
 # exact pipeline
 # ------------------------------------------------------------------------------------------------
 def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list[Frame],
-             device: str = "cpu", *, on_frame: Callable[[], None] | None = None) -> Evaluation:
+             device: str = "cpu", *, on_frame: Callable[[], None] | None = None, pops: bool = False) -> Evaluation:
     """Run the exact pipeline at one parameter value over all cameras (references given); the frame cost
-    is ``Report.frame_ms``. ``on_frame()`` is called after each frame (progress)."""
+    is ``Report.frame_ms``; the error is the primary error (``Frame.error.p99_px``), the image error kept
+    beside it. ``pops``: also the pop of each consecutive pair (the previous frame's selection held,
+    :func:`terrainwarp.rendering.pipeline.pop_stats`). ``on_frame()`` is called after each frame (progress)."""
     ev = Evaluation(float(value), [], [], [], [])
     cfg = scene.lod.with_policy(policy, value)
-    for cam, ref in zip(cameras, refs):
-        f = render(scene.with_(camera=cam, mesh="lod", lod=cfg, outputs=("error",)), terrain=terrain,
-                   reference=ref, device=device)
+    prev: Frame | None = None
+    for k, (cam, ref) in enumerate(zip(cameras, refs)):
+        sc = scene.with_(camera=cam, mesh="lod", lod=cfg, outputs=("error",))
+        f = render(sc, terrain=terrain, reference=ref, device=device)
         ev.p99_px.append(float(f.error.p99_px))
         ev.max_px.append(float(f.error.max_px))
+        ev.image_p99_px.append(float(f.error.image_err_p99_px))
         ev.triangles.append(int(f.mesh.n_triangles))
         ev.frame_ms.append(f.report.frame_ms)
+        if pops and prev is not None:
+            ev.pop_p99_px.append(pop_stats(sc, cameras[k - 1], f, ref, terrain=terrain, held=prev.patches,
+                                           device=device).p99_px)
+        prev = f
         if on_frame is not None:
             on_frame()
     return ev
@@ -150,16 +186,19 @@ def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) ->
         if any(r.get("error") for r in rs):
             raise RuntimeError(f"grid search: evaluating {POLICY_TABLE[policy].field} = {v:g} failed: "
                                f"{rs[0]['error']}")
+        pops = [float(r["pop_p99_px"]) for r in rs[1:] if "pop_p99_px" in r]
         evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
-                              [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs]))
+                              [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs],
+                              [float(r["image_err_p99_px"]) for r in rs if "image_err_p99_px" in r], pops))
     return evs
 
 
 def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float,
                 refs: list[Frame], points: int = 24, device: str = "cpu", evaluator: Evaluator | None = None, *,
-                on_frame: Callable[[], None] | None = None) -> dict:
+                on_frame: Callable[[], None] | None = None, max_pop_px: float | None = None) -> dict:
     """Evaluate ``points`` log-spaced values of the policy's ``POLICY_TABLE`` fit range on the exact pipeline;
-    the cheapest that meets the budget.
+    the cheapest that meets the budget (and ``max_pop_px``, the worst pair's pop p99, when given: then the
+    pops are measured too).
 
     ``evaluator(values) -> [Evaluation]`` runs the evaluations; default: here, one after another, on the
     caller's ``terrain`` and ``refs`` (:func:`evaluate`). The command line (``terrainwarp fit --workers N``)
@@ -173,17 +212,18 @@ def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: s
     t0 = time.perf_counter()
     values = [float(v) for v in np.geomspace(lo, hi, points)]
     if evaluator is None:
-        evs = [evaluate(scene, terrain, cameras, policy, v, refs, device, on_frame=on_frame) for v in values]
+        evs = [evaluate(scene, terrain, cameras, policy, v, refs, device, on_frame=on_frame,
+                        pops=max_pop_px is not None) for v in values]
     else:
         evs = evaluator(values)
         for _ in range(len(values) * len(cameras) if on_frame is not None else 0):
             on_frame()
-    ok = [e for e in evs if e.worst_p99 <= budget_px]
+    ok = [e for e in evs if e.meets(budget_px, max_pop_px)]
     best = min(ok, key=lambda e: e.cost) if ok else None
     return {"points": points, "evaluations": points * len(cameras), "wall_s": time.perf_counter() - t0,
             "value": None if best is None else best.value, "cost": None if best is None else best.cost,
             "worst_p99_px": None if best is None else best.worst_p99,
-            "table": [[e.value, e.worst_p99, e.cost] for e in evs]}
+            "table": [[e.value, e.worst_p99, e.cost] + ([e.worst_pop] if max_pop_px is not None else []) for e in evs]}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -259,7 +299,7 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
             grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu",
-            progress: bool = False) -> FitResult:
+            progress: bool = False, max_pop_px: float | None = None) -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
     within ``budget_px`` at the lowest cost (triangles).
 
@@ -280,8 +320,13 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             pipeline run per step, counted in ``evaluations``).
         progress: show a progress bar on stderr (tqdm): the reference frames, the relaxed fit's steps, the
             exact validations' frames and the grid search's frames.
+        max_pop_px: if given, also bound the worst consecutive pair's pop p99 (px) over the path
+            (:func:`terrainwarp.rendering.pipeline.pop_stats`; measured in every validation and grid point).
     """
     _check_fit_arguments(budget_px, policy, gradient, steps, max_validations, grid_points)
+    if max_pop_px is not None and (isinstance(max_pop_px, bool) or not isinstance(max_pop_px, int | float)
+                                   or not math.isfinite(max_pop_px) or max_pop_px < 0):
+        raise ValueError(f"max_pop_px: expected None or a finite number of pixels >= 0, got {max_pop_px!r}")
     t_start = time.perf_counter()
     cams = cameras if cameras is not None else scene.camera_path()
     if not cams:
@@ -292,7 +337,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
         refs = [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
                 for c in cams]
-        exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar)
+        exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar, budget_px=budget_px,
+                       max_pop_px=max_pop_px)
         if policy == "continuous":
             model = _continuous_model(terrain, cams, scene.lod.level)
         else:
@@ -303,7 +349,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         if grid_points:
             bar.expect(len(cams) * grid_points)  # the validations may have stopped early
             res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
-                                   evaluator=grid_evaluator, on_frame=bar)
+                                   evaluator=grid_evaluator, on_frame=bar, max_pop_px=max_pop_px)
     finally:
         bar.close()
     return res
@@ -370,16 +416,21 @@ class _Exact:
     n_eval: int = 0
     evals: dict[float, Evaluation] = field(default_factory=dict)
     on_frame: Callable[[], None] | None = None
+    budget_px: float = math.inf
+    max_pop_px: float | None = None
+
+    def meets(self, e: Evaluation) -> bool:
+        return e.meets(self.budget_px, self.max_pop_px)
 
     def __call__(self, v: float) -> Evaluation:
         lo, hi = POLICY_TABLE[self.policy].fit_range
         v = float(np.clip(v, lo, hi))
         if v not in self.evals:
-            self.evals[v] = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
-                                     on_frame=self.on_frame)
+            self.evals[v] = e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs,
+                                         self.device, on_frame=self.on_frame, pops=self.max_pop_px is not None)
             self.n_eval += len(self.cams)
-            self.history.append({"stage": "validate", "value": v, "worst_p99_px": self.evals[v].worst_p99,
-                                 "cost": self.evals[v].cost})
+            self.history.append({"stage": "validate", "value": v, "worst_p99_px": e.worst_p99, "cost": e.cost,
+                                 **({"worst_pop_p99_px": e.worst_pop} if self.max_pop_px is not None else {})})
         return self.evals[v]
 
 
@@ -439,7 +490,7 @@ def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_to
     bad: Evaluation | None = None  # infeasible, finest so far
     for _ in range(max_validations):
         e = exact(v)
-        if e.worst_p99 <= budget_px:
+        if exact.meets(e):
             if good is None or _coarser(exact.policy, e.value, good.value):
                 good = e
             if e.worst_p99 >= budget_px * (1 - rel_tol):
@@ -458,7 +509,7 @@ def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_to
             # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
             # finer after an infeasible one). The exact error is flat over wide ranges (whole levels,
             # the triangulation floor), where a calibrated step alone can stall.
-            coarser = (e.worst_p99 <= budget_px) == spec.coarser_up
+            coarser = exact.meets(e) == spec.coarser_up
             nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
         v = float(np.clip(nv, *spec.fit_range))
         exact.history.append({"stage": "correct", "next_value": v})
@@ -490,7 +541,7 @@ def _pixel_step(exact: _Exact, e: Evaluation, v: float, target: float, budget_px
     exact.n_eval += 1
     exact.history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
     step = (target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
-        (1.0 if (e.worst_p99 <= budget_px) == POLICY_TABLE[exact.policy].coarser_up else -1.0)
+        (1.0 if exact.meets(e) == POLICY_TABLE[exact.policy].coarser_up else -1.0)
     return v * math.exp(min(max(step, -1.0), 1.0))
 
 
@@ -517,21 +568,24 @@ def _solve_relaxed(log_model: Callable, fit_range: tuple[float, float], offset: 
 def _result(exact: _Exact, good: Evaluation | None, budget_px: float, t_start: float) -> FitResult:
     """The fit's result: the coarsest feasible value, or the finest setting when none met the budget (then
     reported as met only if even that is within it); wall time from ``t_start`` (``time.perf_counter``)."""
-    policy = exact.policy
+    policy, pop = exact.policy, exact.max_pop_px
     spec = POLICY_TABLE[policy]
+    pop_txt = "" if pop is None else f" and worst pair pop p99 <= {pop:g} px"
     if good is None:  # never met: is the budget reachable at all?
         finest = spec.fit_range[0] if spec.coarser_up else spec.fit_range[1]
         floor = exact(finest)
-        if floor.worst_p99 > budget_px:
-            msg = (f"budget {budget_px:g} px cannot be met: even the finest setting ({spec.field} = {finest:g}) "
-                   f"has a worst-frame p99 error of {floor.worst_p99:.3g} px")
+        if not exact.meets(floor):
+            msg = (f"budget {budget_px:g} px{pop_txt} cannot be met: even the finest setting ({spec.field} = "
+                   f"{finest:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px"
+                   + ("" if pop is None else f" and a worst pair pop p99 of {floor.worst_pop:.3g} px"))
             return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, exact.n_eval,
-                             time.perf_counter() - t_start, msg, exact.history)
+                             time.perf_counter() - t_start, msg, exact.history, max_pop_px=pop)
         good = floor
-    res = FitResult(policy, budget_px, good.worst_p99 <= budget_px, good.value, _params(policy, good.value), good,
-                    exact.n_eval, time.perf_counter() - t_start, "", exact.history)
-    res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px with {spec.field} = "
-                   f"{good.value:.4g}, {good.cost:.0f} triangles per frame")
+    res = FitResult(policy, budget_px, exact.meets(good), good.value, _params(policy, good.value), good,
+                    exact.n_eval, time.perf_counter() - t_start, "", exact.history, max_pop_px=pop)
+    res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px"
+                   + ("" if pop is None else f", worst pair pop p99 {good.worst_pop:.3g} px <= {pop:g} px")
+                   + f" with {spec.field} = {good.value:.4g}, {good.cost:.0f} triangles per frame")
     return res
 
 

@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 
 import jax
 import jax.numpy as jnp
@@ -57,11 +58,17 @@ def test_other_policies_meet_budget(scene, policy):
     assert res.met and res.validated.worst_p99 <= 2.0, res.message
 
 
-def test_impossible_and_bad_budgets(scene):
+def test_impossible_and_bad_budgets(scene, monkeypatch):
     sc, cams = scene
+    # the primary error has no triangulation floor: the finest settings draw every sample, so a tiny budget
+    # is met (issue 17); with a fit range that stops short of them it cannot be
+    tiny = fit_lod(sc, 1e-4, policy="sse", cameras=cams, steps=5, max_validations=2)
+    assert tiny.met and tiny.validated.worst_p99 <= 1e-4, tiny.message
+    monkeypatch.setitem(POLICY_TABLE, "sse", replace(POLICY_TABLE["sse"], fit_range=(8.0, 64.0)))
     res = fit_lod(sc, 1e-4, policy="sse", cameras=cams, steps=5, max_validations=2)
     assert not res.met
     assert "cannot be met" in res.message
+    monkeypatch.undo()
     for bad in (0.0, -1.0, float("nan"), float("inf"), "1"):
         with pytest.raises(ValueError, match="budget_px"):
             fit_lod(sc, bad, cameras=cams)
@@ -146,3 +153,26 @@ def test_fit_png_legends_clear_of_curves_and_chosen_try_marked(monkeypatch, tmp_
     val_ax = fig.axes[1]
     chosen = [ln for ln in val_ax.get_lines() if ln.get_label().startswith("chosen")]
     assert len(chosen) == 1 and list(chosen[0].get_xydata()[0]) == [2.0, 1.4]  # the third try, value 1.2
+
+
+def test_fit_with_a_popping_bound(scene):
+    """max_pop_px bounds the worst consecutive pair's pop p99: the fit lands on a setting that meets both, finer
+    than without the bound when the bound binds; the grid search applies it too."""
+    sc, cams = scene
+    free = fit_lod(sc, 4.0, policy="sse", cameras=cams, steps=20, grid_points=6)
+    assert free.max_pop_px is None and free.validated.pop_p99_px == []
+    terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
+    refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
+    at_free = evaluate(sc, terrain, cams, "sse", free.value, refs, pops=True)
+    assert len(at_free.pop_p99_px) == len(cams) - 1 and at_free.worst_pop > 0
+    bound = 0.5 * at_free.worst_pop
+    res = fit_lod(sc, 4.0, policy="sse", cameras=cams, steps=20, max_pop_px=bound, grid_points=6)
+    assert res.met, res.message
+    assert res.validated.worst_pop <= bound and res.validated.worst_p99 <= 4.0
+    assert res.value < free.value and res.validated.cost > free.validated.cost  # finer, dearer
+    assert "pop p99" in res.message and res.to_dict()["max_pop_px"] == bound
+    g = res.grid
+    assert all(len(row) == 4 for row in g["table"])
+    assert g["value"] is None or all(row[3] <= bound for row in g["table"] if row[0] == g["value"])
+    with pytest.raises(ValueError, match="^max_pop_px: "):
+        fit_lod(sc, 4.0, cameras=cams, max_pop_px=-1.0)
