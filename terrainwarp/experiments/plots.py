@@ -13,7 +13,12 @@ from ..kernels.normals import sobel_normals
 from ..kernels.shading import light_direction
 from ..lod.quadtree import PatchList
 
-__all__ = ["plot_patches"]
+__all__ = ["plot_patches", "patches_figure", "OVERHANG_NOTE"]
+
+#: The legend's word on patches that reach past the heightmap (the quadtree's power-of-two roots cover it):
+#: they are drawn whole, and the tessellator clamps their points beyond the border onto it, so no terrain
+#: lies there.
+OVERHANG_NOTE = "beyond the heightmap: clamped onto its border by displacement (no terrain there)"
 
 
 def _hillshade(heightmap: Heightmap) -> np.ndarray:
@@ -24,8 +29,16 @@ def _hillshade(heightmap: Heightmap) -> np.ndarray:
 
 def plot_patches(heightmap: Heightmap, patches: PatchList, camera: Camera | None, path: str | Path,
                  title: str = "") -> Path:
+    """Write :func:`patches_figure` to ``path`` (PNG)."""
+    return save_figure(patches_figure(heightmap, patches, camera, title), path, dpi=110)
+
+
+def patches_figure(heightmap: Heightmap, patches: PatchList, camera: Camera | None, title: str = ""):
     """Top-down map (north up: -z at the top) of the selected patches coloured by level over a hillshade,
-    with the camera and the horizontal footprint of its frustum."""
+    with the heightmap's outline, the camera and the horizontal footprint of its frustum.
+
+    Patches that overhang the heightmap are drawn whole; the part beyond its border is hatched and the
+    legend says what happens there (:data:`OVERHANG_NOTE`). Returns the matplotlib figure."""
     import matplotlib  # lazy: heavy optional dependency
 
     matplotlib.use("Agg")
@@ -42,30 +55,60 @@ def plot_patches(heightmap: Heightmap, patches: PatchList, camera: Camera | None
     rects = [Rectangle((o[0], o[1]), s[0], s[1]) for o, s in zip(patches.origin, patches.size)]
     pc = PatchCollection(rects, facecolor=[cmap(int(v)) for v in lv], edgecolor="k", linewidth=0.3, alpha=0.45)
     ax.add_collection(pc)
+    lim = _outline(ax, heightmap, patches, Rectangle)
     if camera is not None:
-        e = np.asarray(camera.position)
-        f = camera.forward
-        ax.plot([e[0]], [e[2]], "r^", ms=9)
-        half = np.arctan(np.tan(np.radians(camera.fov_y_deg) / 2) * camera.aspect)
-        fh = np.array([f[0], f[2]])
-        if np.linalg.norm(fh) > 1e-9:
-            fh /= np.linalg.norm(fh)
-            reach = 1.5 * max(x1 - x0, z1 - z0)
-            for sgn in (-1, 1):
-                c, s = np.cos(sgn * half), np.sin(sgn * half)
-                d = np.array([c * fh[0] - s * fh[1], s * fh[0] + c * fh[1]])
-                ax.plot([e[0], e[0] + reach * d[0]], [e[2], e[2] + reach * d[1]], "r-", lw=1.2)
-    lx0, lx1, lz0, lz1 = x0, x1, z0, z1
-    if camera is not None:  # keep the camera in view
-        m = 0.05 * max(x1 - x0, z1 - z0)
-        lx0, lx1 = min(lx0, camera.position[0] - m), max(lx1, camera.position[0] + m)
-        lz0, lz1 = min(lz0, camera.position[2] - m), max(lz1, camera.position[2] + m)
-    ax.set_xlim(lx0, lx1)
-    ax.set_ylim(lz1, lz0)
+        _camera(ax, camera, max(x1 - x0, z1 - z0))
+        m = 0.05 * max(x1 - x0, z1 - z0)  # keep the camera in view
+        lim = (min(lim[0], camera.position[0] - m), max(lim[1], camera.position[0] + m),
+               min(lim[2], camera.position[2] - m), max(lim[3], camera.position[2] + m))
+    ax.set_xlim(lim[0], lim[1])
+    ax.set_ylim(lim[3], lim[2])
     ax.set_xlabel("x (m, east)")
     ax.set_ylabel("z (m, south)")
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(-0.5, cmap.N - 0.5))
     fig.colorbar(sm, ax=ax, label="level", ticks=range(cmap.N), fraction=0.04)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), fontsize=8, frameon=False, ncol=1)
     ax.set_title(title or f"{len(lv)} patches")
     fig.tight_layout()
-    return save_figure(fig, path, dpi=110)
+    return fig
+
+
+def _outline(ax, heightmap: Heightmap, patches: PatchList, rectangle: type) -> tuple[float, float, float, float]:
+    """Draw the heightmap's border, and hatch the parts of the patches beyond it; the (x0, x1, z0, z1) to show."""
+    (x0, z0), (x1, z1) = heightmap.bounds_xz
+    ax.add_patch(rectangle((x0, z0), x1 - x0, z1 - z0, fill=False, edgecolor="k", linewidth=1.6, linestyle="--",
+                           label="heightmap border", zorder=3))
+    if not len(patches):
+        return x0, x1, z0, z1
+    o = np.asarray(patches.origin, np.float64)
+    e = o + np.asarray(patches.size, np.float64).reshape(len(patches), -1)
+    # each patch's parts beyond the border: its west and east bands, then north and south between them
+    cx0, cx1 = np.clip(o[:, 0], x0, x1), np.clip(e[:, 0], x0, x1)
+    bands = np.concatenate([
+        np.stack([o[:, 0], o[:, 1], np.minimum(e[:, 0], x0) - o[:, 0], e[:, 1] - o[:, 1]], 1),
+        np.stack([np.maximum(o[:, 0], x1), o[:, 1], e[:, 0] - np.maximum(o[:, 0], x1), e[:, 1] - o[:, 1]], 1),
+        np.stack([cx0, o[:, 1], cx1 - cx0, np.minimum(e[:, 1], z0) - o[:, 1]], 1),
+        np.stack([cx0, np.maximum(o[:, 1], z1), cx1 - cx0, e[:, 1] - np.maximum(o[:, 1], z1)], 1)])
+    label = OVERHANG_NOTE
+    for bx, bz, bw, bh in bands[(bands[:, 2] > 0) & (bands[:, 3] > 0)]:
+        ax.add_patch(rectangle((bx, bz), bw, bh, facecolor="none", edgecolor="0.3", hatch="///", linewidth=0,
+                               label=label, zorder=2))
+        label = None  # one legend entry
+    return min(x0, float(o[:, 0].min())), max(x1, float(e[:, 0].max())), min(z0, float(o[:, 1].min())), \
+        max(z1, float(e[:, 1].max()))
+
+
+def _camera(ax, camera: Camera, extent: float) -> None:
+    """The eye (a red triangle) and the horizontal footprint of the frustum's sides."""
+    e = np.asarray(camera.position)
+    f = camera.forward
+    ax.plot([e[0]], [e[2]], "r^", ms=9, label="camera and frustum")
+    half = np.arctan(np.tan(np.radians(camera.fov_y_deg) / 2) * camera.aspect)
+    fh = np.array([f[0], f[2]])
+    if np.linalg.norm(fh) > 1e-9:
+        fh /= np.linalg.norm(fh)
+        reach = 1.5 * extent
+        for sgn in (-1, 1):
+            c, s = np.cos(sgn * half), np.sin(sgn * half)
+            d = np.array([c * fh[0] - s * fh[1], s * fh[0] + c * fh[1]])
+            ax.plot([e[0], e[0] + reach * d[0]], [e[2], e[2] + reach * d[1]], "r-", lw=1.2)
