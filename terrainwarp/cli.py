@@ -23,14 +23,24 @@ from .camera import Camera
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
 from .experiments.plots import plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
-from .fit.lod_fit import Evaluation, evaluations_from_rows, fit_lod, plot_fit
+from .fit.lod_fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_fit
 from .heightmap import Heightmap
 from .io.files import write_json, write_text
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
-from .scene import LOD_POLICIES, MAX_TESS, POLICY_TABLE, QUADTREE_TESS, SPACINGS, LodConfig, Scene, check_tess
+from .scene import (
+    LOD_POLICIES,
+    MAX_TESS,
+    PATH_PRESETS,
+    POLICY_TABLE,
+    QUADTREE_TESS,
+    SPACINGS,
+    LodConfig,
+    Scene,
+    check_tess,
+)
 
 __all__ = ["main", "sweep_evaluator"]
 
@@ -136,7 +146,8 @@ def _cmd_lod(args: argparse.Namespace) -> int:
 
 def _cmd_report(args: argparse.Namespace) -> int:
     sc = _scene(args)
-    cams = sc.camera_path(args.frames)
+    cams = sc.camera_path(args.frames, preset=args.path)
+    path = sc.path_info(args.frames, preset=args.path)
     settings = default_settings(sc.heightmap, quick=args.quick)
     if args.policies:
         want = set(args.policies.split(","))
@@ -151,9 +162,11 @@ def _cmd_report(args: argparse.Namespace) -> int:
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
-    paths = write_report(sc, cams, rows, args.out)
+    paths = write_report(sc, cams, rows, args.out, path=path)
+    print(f"path: {path['text']}")
     for r in summarise(rows):
-        print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  {r['frame_ms']:9.2f} ms  {int(r['triangles']):>9} tris")
+        print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  image p99 {r['image_err_p99_px']:8.3f} px  "
+              f"pop p99 {r['pop_p99_px']:7.3f} px  {r['frame_ms']:9.2f} ms  {int(r['triangles']):>9} tris")
     print("wrote: " + ", ".join(str(p) for p in paths))
     return 0
 
@@ -174,25 +187,43 @@ def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: i
 
 def _cmd_fit(args: argparse.Namespace) -> int:
     sc = _scene(args)
-    cams = sc.camera_path(args.frames)
+    cams = sc.camera_path(args.frames, preset=args.path)
+    path = sc.path_info(args.frames, preset=args.path)
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers)
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points,
-                  grid_evaluator=grid_evaluator, progress=not args.no_progress)
+                  grid_evaluator=grid_evaluator, progress=not args.no_progress, max_pop_px=args.max_pop_px)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
     for b in args.curve_budgets:
-        r = fit_lod(sc, b, policy=args.policy, cameras=cams, progress=not args.no_progress)
+        r = fit_lod(sc, b, policy=args.policy, cameras=cams, progress=not args.no_progress,
+                    max_pop_px=args.max_pop_px)
         if r.met:
             curve.append((b, r.validated.cost))
-    write_json(out / "fit.json", res.to_dict())
+    write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"}})
     plot_fit(res, out / "fit.png", curve or None)
-    g = res.grid
-    lines = ["# Fit", "", f"policy {args.policy}, budget {args.budget_px:g} px, {len(cams)} cameras", "",
+    lines = _fit_report_lines(args, res, path, len(cams))
+    write_text(out / "report.md", "\n".join(lines))
+    print(f"path: {path['text']}")
+    print(res.message)
+    print(f"wrote: {out / 'fit.json'}, {out / 'fit.png'}, {out / 'report.md'}")
+    return 0 if res.met else 1
+
+
+def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_cams: int) -> list[str]:
+    """The fit's report.md: the path, the fit against the grid search, the primary, image and pop errors."""
+    v, g = res.validated, res.grid
+    pop = "" if args.max_pop_px is None else f", worst pair pop p99 <= {args.max_pop_px:g} px"
+    lines = ["# Fit", "", f"policy {args.policy}, budget {args.budget_px:g} px{pop}, {n_cams} cameras", "",
+             f"Camera path: {path['text']}.", "",
+             "Error: the primary error (per visible heightmap sample, px; no triangulation floor). Beside it, "
+             "the per-pixel grid-image error of the chosen setting (secondary; it carries a triangulation floor) "
+             f"worst frame {max(v.image_p99_px, default=float('nan')):.3g} px"
+             + ("" if not v.pop_p99_px else f"; popping: the worst consecutive pair's pop p99 {v.worst_pop:.3g} px, "
+                f"max over pairs of the pop p99 (the previous camera's selection held)") + ".", "",
              "| method | value | worst p99 px | triangles/frame | pipeline evaluations | wall s |",
              "|---|---|---|---|---|---|",
-             f"| fit | {res.value:.4g} | {res.validated.worst_p99:.3g} | {res.validated.cost:.0f} | {res.evaluations} "
-             f"| {res.wall_s:.1f} |"]
+             f"| fit | {res.value:.4g} | {v.worst_p99:.3g} | {v.cost:.0f} | {res.evaluations} | {res.wall_s:.1f} |"]
     if g:
         if g["value"] is None:
             lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} | "
@@ -201,10 +232,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
                          f"{g['cost']:.0f} | {g['evaluations']} | {g['wall_s']:.1f} |")
     lines += ["", res.message, ""]
-    write_text(out / "report.md", "\n".join(lines))
-    print(res.message)
-    print(f"wrote: {out / 'fit.json'}, {out / 'fit.png'}, {out / 'report.md'}")
-    return 0 if res.met else 1
+    return lines
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
@@ -330,6 +358,22 @@ def _add_demo_render_lod(sub) -> None:
                          f"quadtree policy, 1..{MAX_TESS} for continuous")
 
 
+def _add_path(c: argparse.ArgumentParser) -> None:
+    c.add_argument("--path", choices=list(PATH_PRESETS), default=None,
+                   help="camera path clearance: ground (2%% of the extent) or high (10%%) (default: the scene's "
+                        "[path] preset or clearance, else ground)")
+
+
+def _nonnegative_float(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
+    if not (v >= 0 and v < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {s}")
+    return v
+
+
 def _add_report_fit(sub) -> None:
     rp = _command(sub, "report", "sweep LOD settings and peers over the camera path: frames.csv, pareto.png, "
                   "report.md", _cmd_report)
@@ -339,6 +383,7 @@ def _add_report_fit(sub) -> None:
     rp.add_argument("--policies", default=None,
                     help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree "
                          "(default: all)")
+    _add_path(rp)
     rp.add_argument("--quick", action="store_true", help="two settings per policy")
     rp.add_argument("--no-images", action="store_true", help="skip shading (no PSNR/SSIM)")
     rp.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -353,6 +398,9 @@ def _add_report_fit(sub) -> None:
     ft.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy, help="LOD policy to fit")
     ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
+    _add_path(ft)
+    ft.add_argument("--max-pop-px", type=_nonnegative_float, default=None, metavar="PX",
+                    help="also bound the worst consecutive pair's pop p99, pixels (default: no bound)")
     ft.add_argument("--grid-points", type=_nonnegative_int, default=0,
                     help="also run a grid search baseline with N points (0: none)")
     ft.add_argument("--workers", type=_nonnegative_int, default=0,

@@ -171,3 +171,29 @@ def test_bench_lists_runs_all_or_named_and_refuses_unknown(monkeypatch, tmp_path
         assert main(argv) == 2
         err = capfd.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "no benchmarks" in err[0] and "source checkout" in err[0]
+
+
+def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp_path, capsys):
+    scene = tmp_path / "s.toml"
+    scene.write_text('[heightmap]\nfbm = { rows = 65, seed = 3, dx = 20.0, max_height = 400.0 }\n'
+                     '[camera]\nwidth = 64\nheight = 48\n[lod]\nroots = 4\ntess = 8\n')
+    rep = tmp_path / "rep"
+    assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse", "--workers", "0",
+                 "--no-images", "--no-progress", "--path", "high", "--out", str(rep)]) == 0
+    out = capsys.readouterr().out
+    assert "path: flyover of 2 cameras" in out and "10.0% of the" in out and "image p99" in out and "pop p99" in out
+    md = (rep / "report.md").read_text()
+    assert "'high'" in md and "Popping" in md
+    header = (rep / "frames.csv").read_text().splitlines()[0].split(",")
+    want = {"p99_px", "image_err_p99_px", "image_err_max_px", "pop_p99_px", "pop_max_px", "popped_samples"}
+    assert want <= set(header)
+    fit = tmp_path / "fit"
+    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress", "--max-pop-px", "50",
+                 "--out", str(fit)]) == 0
+    doc = json.loads((fit / "fit.json").read_text())
+    assert doc["path"]["preset"] == "ground" and doc["path"]["clearance_fraction"] == pytest.approx(0.02)
+    assert doc["max_pop_px"] == 50 and len(doc["validated"]["pop_p99_px"]) == 1
+    assert len(doc["validated"]["image_p99_px"]) == 2
+    md = (fit / "report.md").read_text()
+    assert "Camera path: flyover of 2 cameras" in md and "2.0% of the" in md and "grid-image error" in md
+    assert "pop p99" in md

@@ -112,7 +112,9 @@ class FitResult:
         met: True only if the exact pipeline's worst-frame p99 error is within the budget (and the worst
             pair's pop p99 within ``max_pop_px`` when given).
         value: the fitted parameter (tolerance px, k, or target px); params: the LodParams pytree.
-        validated: the exact evaluation at ``value`` (per-frame p99, max, triangles, ms).
+        validated: the exact evaluation at ``value`` (per-frame p99, max, image error p99, triangles, ms,
+            and the pop p99 of each consecutive pair: measured once more for the record when ``max_pop_px``
+            is None, not counted in ``evaluations``).
         evaluations: exact pipeline frame evaluations the fit used (the grid search's are in ``grid``).
         history: the relaxed optimisation (iteration, temperature, loss, cost, error proxy, value) and
             the validation steps.
@@ -346,6 +348,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         v = _relaxed_fit(model, POLICY_TABLE[policy].fit_range, budget_px, steps, exact.history, on_step=bar)
         good = _validate(exact, model, v, budget_px, rel_tol, max_validations, gradient)
         res = _result(exact, good, budget_px, t_start)
+        if max_pop_px is None and len(cams) > 1:  # the chosen setting's popping, for the record (not counted)
+            bar.expect(len(cams) * (1 + grid_points))
+            res.validated = evaluate(scene, terrain, cams, policy, res.value, refs, device, on_frame=bar, pops=True)
         if grid_points:
             bar.expect(len(cams) * grid_points)  # the validations may have stopped early
             res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,

@@ -160,11 +160,11 @@ def test_fit_with_a_popping_bound(scene):
     than without the bound when the bound binds; the grid search applies it too."""
     sc, cams = scene
     free = fit_lod(sc, 4.0, policy="sse", cameras=cams, steps=20, grid_points=6)
-    assert free.max_pop_px is None and free.validated.pop_p99_px == []
+    assert free.max_pop_px is None and len(free.validated.pop_p99_px) == len(cams) - 1  # measured for the record
     terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
     refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
     at_free = evaluate(sc, terrain, cams, "sse", free.value, refs, pops=True)
-    assert len(at_free.pop_p99_px) == len(cams) - 1 and at_free.worst_pop > 0
+    assert at_free.pop_p99_px == free.validated.pop_p99_px and at_free.worst_pop > 0
     bound = 0.5 * at_free.worst_pop
     res = fit_lod(sc, 4.0, policy="sse", cameras=cams, steps=20, max_pop_px=bound, grid_points=6)
     assert res.met, res.message
