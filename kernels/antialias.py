@@ -11,7 +11,10 @@ triangle ids:
    vertices, the homogeneous facing test, so edges of triangles crossing w = 0 are classed right too).
 3. The first silhouette edge of T (in edge order 0: v0-v1, 1: v1-v2, 2: v2-v0) whose segment crosses the
    segment between the two pixel centres, both edge vertices at w > 0, gives the crossing position alpha
-   in [0, 1] from A's centre to B's (pixel units).
+   in [0, 1] from A's centre to B's (pixel units). A horizontal pair takes only steep edges (|dx| <= |dy|
+   on screen) and a vertical pair only the others, so each edge is filtered once, along the axis it
+   crosses most: moving an edge by d pixels across it then changes the image by d per pixel row (or
+   column) it spans, as it changes the covered area.
 4. The pixel whose footprint (one pixel wide along the pair) holds the crossing is blended towards the
    other: ``out[A] += max(0.5 - alpha, 0) (c[B] - c[A])`` and ``out[B] += max(alpha - 0.5, 0) (c[A] -
    c[B])``. Whichever side T is on, this is the same formula. The image stays continuous when the edge
@@ -121,7 +124,8 @@ def _pair(ids: wp.array2d(dtype=wp.int32), clip: wp.array(dtype=wp.vec4), tris: 
             s = pb - pa
             g0 = _cross2(s, v0 - pa)
             g1 = _cross2(s, v1 - pa)
-            if fa * fb < 0.0 and g0 * g1 <= 0.0:
+            steep = wp.abs(e[0]) <= wp.abs(e[1])  # a horizontal pair takes steep edges, a vertical pair the others
+            if fa * fb < 0.0 and g0 * g1 <= 0.0 and steep == (ia == ib):
                 return wp.vec3(float(t), float(k), fa / (fa - fb))
     return none
 
