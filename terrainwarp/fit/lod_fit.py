@@ -509,7 +509,9 @@ def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_to
         elif gradient == "pixels":
             nv = _pixel_step(exact, e, v, target, budget_px)
         else:
-            offset = math.log(max(e.worst_p99, 1e-9)) - float(log_model(jnp.asarray(math.log(v))))
+            # an error far below the budget (the primary error is often exactly 0 at fine settings) says only
+            # "feasible": calibrating on it would throw the next try to the end of the range
+            offset = math.log(max(e.worst_p99, 0.25 * budget_px)) - float(log_model(jnp.asarray(math.log(v))))
             nv = _solve_relaxed(log_model, spec.fit_range, offset, target)
             # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
             # finer after an infeasible one). The exact error is flat over wide ranges (whole levels,
@@ -529,7 +531,10 @@ def _bracket_step(good: Evaluation, bad: Evaluation, target: float, rel_tol: flo
     lg, lb = math.log(good.value), math.log(bad.value)
     if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < 0.08:
         return None
-    eg, eb = math.log(max(good.worst_p99, 1e-9)), math.log(max(bad.worst_p99, 1e-9))
+    # errors far below the budget (0 at fine settings) are clamped to a quarter of it, so the step does not
+    # crawl from the feasible end of the bracket
+    floor = target - math.log(4.0)
+    eg, eb = max(math.log(max(good.worst_p99, 1e-12)), floor), max(math.log(max(bad.worst_p99, 1e-12)), floor)
     t = (target - eg) / (eb - eg) if eb > eg else 0.5
     t = min(max(t, 0.1), 0.9)  # keep clear of the ends: the curve is not straight
     return math.exp(lg + t * (lb - lg))
