@@ -23,3 +23,10 @@ def test_error_vs_time(tmp_path):
                                         "--quick"])
     assert {r["policy"] for r in summ} >= {"grid", "sse", "martini", "delatin"}
     assert (tmp_path / "pareto.png").exists()
+
+
+def test_inverse_rendering(tmp_path):
+    res = _load("inverse_rendering").main(["--out", str(tmp_path), "--size", "33", "--views", "8", "--width", "96",
+                                           "--height", "72", "--iters", "120"])
+    assert res["drop"] >= 10.0, res["rmse_m"][::10]  # RMSE in metres against the true heights, from flat
+    assert (tmp_path / "inverse_rendering.png").exists() and (tmp_path / "inverse_rendering.json").exists()
