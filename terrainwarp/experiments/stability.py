@@ -20,8 +20,9 @@ Stages: ``sampling``, ``select`` (:func:`terrainwarp.lod.select`), ``tessellate`
 ``terrainwarp.kernels.tessellator.tessellate_domains``; cases without a factor: a LOD frame, watertight by
 :func:`terrainwarp.rendering.watertight.check_watertight`), ``normals``, ``curvature``
 (:mod:`terrainwarp.surface.differential`), ``raster`` (:func:`terrainwarp.render`, grid mesh), ``error``
-(:mod:`terrainwarp.measure.error` through ``render``), ``fit`` (the relaxed JAX model of :mod:`terrainwarp.fit`:
-finite cost, error and gradients, gradient against a finite difference).
+(``render``'s error stage: the primary error at the heightmap's samples, :mod:`terrainwarp.measure.sample_error`,
+with the grid-image error of :mod:`terrainwarp.measure.error` beside it), ``fit`` (the relaxed JAX model of
+:mod:`terrainwarp.fit`: finite cost, error and gradients, gradient against a finite difference).
 
 Outcomes: ``pass``; ``raised``, a clear error (ValueError/TypeError whose message names the argument,
 "name: expected X, got Y"); ``FAIL``, a check that failed, or any other exception, recorded with its type
@@ -380,7 +381,8 @@ def _stage_error(case: ExtremeCase, scene) -> Row:
         # checks that with an eye at y = 32 m); with this eye (y = 27.47... m) every height rounds by up
         # to ulp/2 = 9.5e-7 m, which is all the reprojection error may be.
         _check(e.max_px <= 1e-4, f"flat plane: grid error {e.max_px} px, expected float32 rounding only")
-    note = f"grid vs its reference: max {e.max_px:.3g} px over {e.covered} px"
+    note = (f"grid vs its reference: max {e.max_px:.3g} px over {e.samples_visible} samples (image error max "
+            f"{e.image_err_max_px:.3g} px over {e.covered} px)")
     el = render(_lod_scene(scene, ("error",))).error
     _check(all(math.isfinite(x) and x >= 0 for x in (el.max_px, el.p99_px)), "LOD error: non-finite or < 0")
     note += f"; LOD (sse 1 px) max {el.max_px:.3g} px, p99 {el.p99_px:.3g} px, {el.cracks} crack px"
