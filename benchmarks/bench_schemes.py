@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from _common import md_table, write_result
+from _common import RESULTS, md_table, write_result
 
 from terrainwarp import Heightmap, LodConfig, Scene, Terrain, render
 from terrainwarp.camera import Camera, flyover
@@ -37,6 +37,7 @@ from terrainwarp.rendering.pipeline import Frame, pop_stats
 from terrainwarp.rendering.sources import CdlodSource, ChunkedSource, ClipmapSource
 
 BUDGETS = (1.0, 2.0, 16.0)
+NOTE_HEAD = "### Closing note"  # written by hand below the tables from their numbers; kept when rerun
 DENSE = 500  # frames of the dense path popping is measured on (consecutive frames 0.2% of the path apart)
 LOD = {"roots": 16, "tess": 16}  # the quadtree policies' layout (as bench_yardstick)
 CDLOD_GRID = 16
@@ -53,6 +54,7 @@ class Ctx:
     refs: list[Frame]
     terrain: Terrain
     cache: dict
+    clearance: float
 
 
 @dataclass
@@ -176,12 +178,19 @@ def cheapest(fam: Family, ctx: Ctx, budget: float, seen: dict, steps: int = 2) -
     return None
 
 
+def _clearance(ctx: Ctx) -> str:
+    return f"{ctx.clearance:.0%}"
+
+
 def _fmt_setting(fam: Family, v: float) -> str:
     s = str(int(v)) if not fam.geometric else f"{v:.3g}"
     return s + " (coarsest tried)" if v == fam.ladder[0] else s
 
 
-def budget_rows(fams: list[Family], ctx: Ctx, seen: dict[str, dict]) -> list[list[object]]:
+def budget_rows(fams: list[Family], ctx: Ctx, seen: dict[str, dict],
+                summary: list[list[object]]) -> list[list[object]]:
+    """One row per (budget, family) at the family's cheapest setting, winners starred; appends one row per
+    budget to ``summary`` (the winners, with their numbers)."""
     rows = []
     for budget in BUDGETS:
         found = []
@@ -189,14 +198,20 @@ def budget_rows(fams: list[Family], ctx: Ctx, seen: dict[str, dict]) -> list[lis
             r = cheapest(fam, ctx, budget, seen.setdefault(fam.name, {}))
             found.append((fam, r))
         ok = [r for _, r in found if r is not None]
-        best = {k: min((r[1][k] for r in ok), default=None) for k in ("tris", "ms", "pop99")}
+        best = {k: min((r[1][k] for r in ok), default=None) for k in ("tris", "ms")}
+        best["pop99"] = min(((r[1]["pop99"], r[1]["popmax"]) for r in ok), default=None)  # ties: the max
+        summary.append([ctx.hm.name, _clearance(ctx), f"{budget:g}"] + [
+            ", ".join(f"{fam.name.split()[0]} ({r[1][k]:.{d}f})" for fam, r in found if r is not None and
+                      ((r[1]["pop99"], r[1]["popmax"]) if k == "pop99" else r[1][k]) == best[k])
+            for k, d in (("tris", 0), ("ms", 1), ("pop99", 2))])
         for fam, r in found:
             if r is None:
                 finest = seen[fam.name][fam.ladder[-1]]
                 rows.append([f"{budget:g}", fam.name, "not met", f"{finest['p99']:.2f} (finest)", "", "", "", ""])
                 continue
             v, s = r
-            mark = {k: " ★" if s[k] == best[k] else "" for k in best}
+            mark = {k: " ★" if s[k] == best[k] else "" for k in ("tris", "ms")}
+            mark["pop99"] = " ★" if (s["pop99"], s["popmax"]) == best["pop99"] else ""
             rows.append([f"{budget:g}", fam.name, _fmt_setting(fam, v), f"{s['p99']:.2f} / {s['max']:.2f}",
                          f"{s['tris']:.0f}{mark['tris']}", f"{s['ms']:.1f}{mark['ms']}", f"{s['sel_ms']:.2f}",
                          f"{s['pop99']:.2f} / {s['popmax']:.2f}{mark['pop99']}"])
@@ -233,6 +248,14 @@ def cdlod_select_rows(ctx: Ctx, mults: tuple[float, ...] = (1, 4, 16)) -> list[l
     return rows
 
 
+def _closing_note() -> str:
+    """The hand-written closing note (from ``### Closing note`` to the end) of the previous result, kept."""
+    p = RESULTS / "schemes.md"
+    text = p.read_text() if p.exists() else ""
+    at = text.find(NOTE_HEAD)
+    return "\n\n" + text[at:].strip() if at >= 0 else ""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fbm", type=int, default=1025, help="fBm side in samples (the issue asks 4097)")
@@ -242,7 +265,7 @@ def main() -> None:
     args = ap.parse_args()
     terrains = [Heightmap.example(), Heightmap.fbm(args.fbm, seed=1, dx=10.0, max_height=1500.0)]
     fams = families()
-    sections, sel_rows = [], []
+    sections, sel_rows, summary = [], [], []
     header = ["budget px", "family (parameter)", "setting", "p99 / max px", "triangles", "frame ms", "select ms",
               "pop p99 / max px"]
     for hm in terrains:
@@ -252,10 +275,10 @@ def main() -> None:
             t0 = time.perf_counter()
             cams, before = _path(hm, clearance, args.frames, args.width, args.height)
             refs = [render(Scene(hm, camera=c, outputs=("depth",))) for c in cams]
-            ctx = Ctx(hm, cams, before, refs, terrain, cache)
+            ctx = Ctx(hm, cams, before, refs, terrain, cache, clearance)
             for fam in fams:  # compile and warm every family's kernels before anything is timed
-                fam.run(Ctx(hm, cams[:1], before[:1], refs[:1], terrain, cache), fam.ladder[0])
-            rows = budget_rows(fams, ctx, {})
+                fam.run(Ctx(hm, cams[:1], before[:1], refs[:1], terrain, cache, clearance), fam.ladder[0])
+            rows = budget_rows(fams, ctx, {}, summary)
             if clearance == 0.02:
                 sel_rows += cdlod_select_rows(ctx)
             sections.append(f"### {hm.name} {hm.shape[0]}x{hm.shape[1]}, {clearance:.0%} clearance "
@@ -267,11 +290,14 @@ def main() -> None:
             f"{LOD['tess']}; CDLOD grid {CDLOD_GRID} (setting: first range / its seam-free minimum); chunked tile "
             f"{CHUNK_TILE}, skirts at the least safe depth; clipmaps with Losasso & Hoppe's height rule. ★: the "
             "winner among the families that meet the budget (fewest triangles, least time, least popping).\n\n"
+            "### Winners per budget (each family at its cheapest setting meeting the budget; details below)\n\n"
+            + md_table(["heightmap", "clearance", "budget px", "fewest triangles", "least frame ms",
+                        "least popping (p99 px)"], summary) + "\n\n"
             + "\n\n".join(sections)
             + "\n\n### CDLOD selection time per frame (2% clearance)\n\n"
             + md_table(["heightmap", "first_range / min", "triangles", "nodes visited", "levels", "select ms",
                         "one select-level launch ms", "paper ms (3.16 GHz, 105k-446k tris)"], sel_rows))
-    write_result("schemes", "LOD schemes on the same frames (bench_schemes.py)", body)
+    write_result("schemes", "LOD schemes on the same frames (bench_schemes.py)", body + _closing_note())
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ def _uv(h: wp.array2d(dtype=wp.float32), cx: float, cz: float) -> wp.vec2:
 
 
 @wp.func
-def _box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> int:
+def box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> int:
     """1 when the box [lo, hi] lies outside one of the six frustum planes (p-vertex test)."""
     out = int(0)
     for p in range(6):
@@ -358,7 +358,7 @@ def _clipmap_count_kernel(
             lo = wp.min(lo, p)
             hi = wp.max(hi, p)
     cnt = int(0)
-    if _box_outside(planes, lo, hi) == 0:
+    if box_outside(planes, lo, hi) == 0:
         for q in range(block * block):
             if _block_quads(li, bx, by, block, n, hole, lv_origin, lv_spacing, cols, rows, q) >= 0:
                 cnt += 2
