@@ -47,7 +47,7 @@ MAX_TESS = 64  # the hardware's maximum tessellation level
 QUADTREE_TESS = tuple(2 ** i for i in range(MAX_TESS.bit_length() - 1))  # 1, 2, 4, ..., 32
 
 # The default camera path's clearance above the ground, as a fraction of the terrain's extent: "ground"
-# (2%: about 210 m over the bundled DEM, where users fly) is the default; "high" (10%) is the path the
+# (2%: about 630 m over the bundled DEM, where users fly) is the default; "high" (10%) is the path the
 # reports used while the grid-image error's triangulation floor made ground-level budgets unreachable.
 GROUND_CLEARANCE = 0.02
 HIGH_CLEARANCE = 0.10
