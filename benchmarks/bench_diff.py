@@ -24,8 +24,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 
-import terrainwarp as tw  # noqa: E402
 from _common import best_of, md_table, write_result  # noqa: E402
+
+import terrainwarp as tw  # noqa: E402
 from terrainwarp import diff  # noqa: E402
 from terrainwarp.kernels import parallel  # noqa: E402
 from terrainwarp.kernels.displacement import grid_mesh  # noqa: E402
@@ -82,7 +83,8 @@ def bench_size(size: int, width: int, height: int, repeat: int) -> list[list[obj
 
 
 def example(quick: bool) -> tuple[str, dict]:
-    spec = importlib.util.spec_from_file_location("inverse_rendering", ROOT.parent / "examples" / "inverse_rendering.py")
+    path = ROOT.parent / "examples" / "inverse_rendering.py"
+    spec = importlib.util.spec_from_file_location("inverse_rendering", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     args = ["--size", "33", "--width", "96", "--height", "72", "--iters", "120"] if quick else []
@@ -90,7 +92,8 @@ def example(quick: bool) -> tuple[str, dict]:
     r = res["rmse_m"]
     marks = sorted({0, 10, 25, 50, 100, len(r) // 2, len(r) - 1} & set(range(len(r))))
     table = md_table(["iteration", "RMSE (m)"], [[k, r[k]] for k in marks])
-    text = (f"Inverse rendering (`examples/inverse_rendering.py {' '.join(args)}`): {res['size']}² window of the "
+    cmd = " ".join(["examples/inverse_rendering.py", *args])
+    text = (f"Inverse rendering (`{cmd}`): {res['size']}² window of the "
             f"bundled DEM, {res['views']} views of {res['width']}x{res['height']} (depth + hillshade, antialiased), "
             f"flat start, optax Adam (lr {res['lr']:g} m, cosine decay), curvature prior {res['smooth']:g}: RMSE "
             f"**{r[0]:.1f} m -> {r[-1]:.2f} m ({res['drop']:.1f}x)** in {res['iters']} iterations, "
