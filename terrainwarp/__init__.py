@@ -7,7 +7,7 @@ Public API::
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
     rasterize_clip, clip_coordinates, build_polytree, Polytree, set_threads
 
-Differentiable resolve for JAX (imports JAX): ``terrainwarp.rendering.interpolate.interpolate``.
+Differentiable resolve for JAX (imports JAX): ``terrainwarp.diff`` (rasterize, interpolate, antialias, displace).
 """
 
 from __future__ import annotations

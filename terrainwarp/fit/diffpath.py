@@ -12,8 +12,8 @@ opposite edges. The chain, and what is differentiable in it::
           ──► positions p(uv)       JAX, bilinear height sampling, camera-relative float32
           ──► clip = MVP p          JAX
           ──► P = interpolate(p, triangle_id, clip, triangles)
-                  Warp kernel ``terrainwarp.kernels.raster.interpolate_kernel`` via
-                  ``warp.jax_kernel(..., enable_backward=True)`` (:mod:`terrainwarp.rendering.interpolate`)
+                  Warp kernels through ``warp.jax_callable`` with a deterministic backward
+                  (:func:`terrainwarp.diff.interpolate`)
           ──► e = |proj(P) - proj(R)| px, R the full-resolution surface point below/above P (JAX)
           ──► soft maximum / mean / mean above the p99 over pixels
 

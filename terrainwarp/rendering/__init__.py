@@ -1,7 +1,6 @@
 """Making frames: the pipeline (``render``, the one maker of every frame in the project), the prebuilt mesh
 sources it draws beside the LOD policies (:mod:`.sources`: peers, polytree, bintree), the reference
-tessellator, the watertightness check and the differentiable resolve (:mod:`.interpolate`, imports JAX:
-not imported here).
+tessellator and the watertightness check. The differentiable ops (JAX) are in :mod:`terrainwarp.diff`.
 
 The package is named ``rendering``, not ``render``, because ``terrainwarp.render`` is the public function."""
 
