@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ORDER = ["frame", "terrain_frame", "lod", "tessellate", "raster", "normals_curvature", "error_vs_time_jacksboro",
-         "error_vs_time_fbm4097", "fit", "stability", "sweep", "bintree", "polytree"]
+ORDER = ["frame", "terrain_frame", "threads", "lod", "tessellate", "raster", "normals_curvature", "yardstick",
+         "error_vs_time_jacksboro", "error_vs_time_fbm4097", "fit", "popping", "schemes", "stability", "sweep",
+         "bintree", "polytree", "diff"]
+# a link in a results file is relative to benchmarks/results/; at the root it needs that prefix
+_LINK = re.compile(r"\]\((?!https?:|/|#|benchmarks/)([^)]+)\)")
 
 
 def main() -> None:
@@ -17,7 +21,7 @@ def main() -> None:
              "clock on the machine named in the section; comparisons are ratios against a baseline run in the "
              "same process. Regenerate everything with `make bench` (or one file with the command shown), then "
              "`python benchmarks/collect.py`.\n"]
-    parts += [p.read_text().strip() + "\n" for p in files]
+    parts += [_LINK.sub(r"](benchmarks/results/\1)", p.read_text().strip()) + "\n" for p in files]
     (ROOT / "BENCHMARKS.md").write_text("\n".join(parts))
     print(f"BENCHMARKS.md: {len(files)} sections")
 
