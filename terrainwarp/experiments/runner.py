@@ -50,6 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from ..io.files import write_text
+from ..kernels.parallel import set_threads
 
 __all__ = ["Job", "Runner", "SweepResult", "SchedulerUnreachableError", "close_local_clusters", "pending_jobs",
            "RUN_COLUMNS", "pickled_nbytes"]
@@ -167,6 +168,13 @@ def _check_address(scheduler: str) -> str:
 # ------------------------------------------------------------------------------------------------
 # worker side
 # ------------------------------------------------------------------------------------------------
+def _remote_attempt(fn: Callable, n_shared: int, *args) -> tuple[str, Any]:
+    """A job on a worker process: one kernel thread there (a sweep's parallelism is its processes, one a
+    core, so thread-parallel launches would only oversubscribe the cores), then :func:`_attempt`."""
+    set_threads(1)
+    return _attempt(fn, n_shared, *args)
+
+
 def _attempt(fn: Callable, n_shared: int, *args) -> tuple[str, Any]:
     """Run one job; an exception becomes ("error", "Type: message") so the sweep goes on."""
     try:
@@ -356,7 +364,7 @@ class Runner:
         if self.client is None:
             res = [_attempt(fn, len(shared), *shared, it) for it in items]
         else:
-            futs = [self.client.submit(_attempt, fn, len(shared), *shared, it, pure=False) for it in items]
+            futs = [self.client.submit(_remote_attempt, fn, len(shared), *shared, it, pure=False) for it in items]
             res = []
             for f in futs:
                 try:
@@ -433,7 +441,7 @@ class Runner:
         try:
             for j in todo:
                 key = f"{prefix}{j.id}-{fingerprint[:12]}-{time.time_ns()}"
-                futures[self.client.submit(_attempt, fn, len(shared), *shared, *j.args, key=key, pure=False)] = j
+                futures[self.client.submit(_remote_attempt, fn, len(shared), *shared, *j.args, key=key, pure=False)] = j
             finished: list = []
             last = time.monotonic()
             for f in as_completed(futures, loop=self.client.loop):

@@ -22,6 +22,7 @@ from terrainwarp import Camera, Heightmap, Scene
 from terrainwarp.cli import main
 from terrainwarp.experiments.pareto import TIMING_COLUMNS, Setting, rows_to_csv, run_sweep
 from terrainwarp.experiments.runner import Job, Runner, SchedulerUnreachableError, close_local_clusters
+from terrainwarp.kernels.parallel import threads
 
 # the job functions below live in this test module, which the workers cannot import: send them by value
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
@@ -102,6 +103,19 @@ def test_any_job_order_gives_the_same_table():
     with Runner(scheduler=r.client.scheduler.address) as remote:
         assert remote.n_workers == 2
         assert remote.run(shuffled, _square, progress=False).rows == a.rows
+
+
+def _kernel_threads(i: int) -> dict:
+    return {"threads": threads()}
+
+
+def test_sweep_workers_run_one_kernel_thread_each():
+    # a sweep's parallelism is its worker processes: thread-parallel launches there would oversubscribe
+    r = Runner(workers=2)
+    rows = r.run(_jobs(4), _kernel_threads, progress=False).rows
+    assert [row["threads"] for row in rows] == [1] * 4
+    # in-process runs keep this process's setting
+    assert Runner(workers=0).run(_jobs(2), _kernel_threads, progress=False).rows[0]["threads"] == threads()
 
 
 def test_a_raising_job_is_recorded_and_the_sweep_goes_on(small, capsys):
