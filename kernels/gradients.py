@@ -25,6 +25,7 @@ from __future__ import annotations
 import warp as wp
 
 from .parallel import atomic_add_i32, atomic_min_i32, launch
+from .raster import clip_barycentrics, pixel_ndc
 from .sampling import sample_bilinear
 
 _BIG = 1 << 30  # an empty coverage box: every min stays here
@@ -35,22 +36,6 @@ _MIN_PIXELS = 32768
 # ------------------------------------------------------------------------------------------------
 # functions
 # ------------------------------------------------------------------------------------------------
-
-
-@wp.func
-def pixel_ndc(i: int, j: int, h: int, w: int) -> wp.vec2:
-    """NDC of the centre of image pixel (row i from the top, column j); the rule of ``raster._pixel_ndc``."""
-    return wp.vec2((float(j) + 0.5) / float(w) * 2.0 - 1.0, (float(h - 1 - i) + 0.5) / float(h) * 2.0 - 1.0)
-
-
-@wp.func
-def clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.vec3:
-    """Perspective-correct barycentrics at NDC p, as ``raster._clip_barycentrics``: with a_k = x_k - px w_k
-    and c_k = y_k - py w_k, b = cross(a, c) / sum(cross(a, c))."""
-    a = wp.vec3(c0[0] - p[0] * c0[3], c1[0] - p[0] * c1[3], c2[0] - p[0] * c2[3])
-    c = wp.vec3(c0[1] - p[1] * c0[3], c1[1] - p[1] * c1[3], c2[1] - p[1] * c2[3])
-    b = wp.cross(a, c)
-    return b * (1.0 / (b[0] + b[1] + b[2]))
 
 
 @wp.func

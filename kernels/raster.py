@@ -434,13 +434,13 @@ def _tile_rect(tx: int, ty: int, width: int, height: int) -> wp.vec4i:
 
 
 @wp.func
-def _pixel_ndc(i: int, j: int, h: int, w: int) -> wp.vec2:
+def pixel_ndc(i: int, j: int, h: int, w: int) -> wp.vec2:
     """NDC of the centre of image pixel (row i from the top, column j)."""
     return wp.vec2((float(j) + 0.5) / float(w) * 2.0 - 1.0, (float(h - 1 - i) + 0.5) / float(h) * 2.0 - 1.0)
 
 
 @wp.func
-def _clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.vec3:
+def clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.vec3:
     """Perspective-correct barycentrics of the point on the triangle (clip-space vertices) seen at NDC p:
     with a_k = x_k - px w_k and c_k = y_k - py w_k, b = cross(a, c) / sum(cross(a, c)). Differentiable."""
     a = wp.vec3(c0[0] - p[0] * c0[3], c1[0] - p[0] * c1[3], c2[0] - p[0] * c2[3])
@@ -686,8 +686,8 @@ def _barycentrics_kernel(
     if t < 0:
         out_bary[i, j] = wp.vec2(0.0, 0.0)
         return
-    b = _clip_barycentrics(clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]],
-                           _pixel_ndc(i, j, tri_id.shape[0], tri_id.shape[1]))
+    b = clip_barycentrics(clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]],
+                           pixel_ndc(i, j, tri_id.shape[0], tri_id.shape[1]))
     if wp.isfinite(b):
         out_bary[i, j] = wp.vec2(b[0], b[1])
     else:  # a triangle seen edge-on through this centre (not drawn by the coverage test in practice)
@@ -715,7 +715,7 @@ def interpolate_kernel(
         i0 = tris[t, 0]
         i1 = tris[t, 1]
         i2 = tris[t, 2]
-        b = _clip_barycentrics(clip[i0], clip[i1], clip[i2], _pixel_ndc(i, j, pix_id.shape[0], pix_id.shape[1]))
+        b = clip_barycentrics(clip[i0], clip[i1], clip[i2], pixel_ndc(i, j, pix_id.shape[0], pix_id.shape[1]))
         v = b[0] * attr[i0, ch] + b[1] * attr[i1, ch] + b[2] * attr[i2, ch]
     out[i, j, ch] = v
 
@@ -1009,7 +1009,7 @@ def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr
 def interpolate(attr: object, triangle_id: object, clip: object, triangles: object, *,
                 device: str = "cpu") -> np.ndarray:
     """Perspective-correct interpolation of vertex attributes at pixel centres (forward only; see
-    :func:`interpolate_warp` for the tape and ``terrainwarp.rendering.interpolate`` for JAX).
+    :func:`interpolate_warp` for the tape and ``terrainwarp.diff.interpolate`` for JAX).
 
     Args:
         attr: (n, C) or (n,) float32 per-vertex attributes (position, normal, uv, level, ...).
