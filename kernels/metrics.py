@@ -42,12 +42,15 @@ def _ref_height(h: wp.array2d(dtype=wp.float32), u: wp.float64, v: wp.float64) -
 
 
 @wp.func
-def _to_pixel(m: mat44d, p: vec3d, w: int, hgt: int) -> wp.vec3d:
+def to_window(m: mat44d, p: vec3d, w: int, hgt: int) -> wp.vec4d:
+    """Window (x, y) in pixels (origin bottom-left), clip z and clip w of camera-relative p under the
+    view-projection m, in float64: the one projection the measuring kernels use."""
     x = m[0, 0] * p[0] + m[0, 1] * p[1] + m[0, 2] * p[2] + m[0, 3]
     y = m[1, 0] * p[0] + m[1, 1] * p[1] + m[1, 2] * p[2] + m[1, 3]
+    cz = m[2, 0] * p[0] + m[2, 1] * p[1] + m[2, 2] * p[2] + m[2, 3]
     cw = m[3, 0] * p[0] + m[3, 1] * p[1] + m[3, 2] * p[2] + m[3, 3]
     half = wp.float64(0.5)
-    return wp.vec3d((x / cw * half + half) * wp.float64(w), (y / cw * half + half) * wp.float64(hgt), cw)
+    return wp.vec4d((x / cw * half + half) * wp.float64(w), (y / cw * half + half) * wp.float64(hgt), cz, cw)
 
 
 @wp.kernel(enable_backward=False)
@@ -89,9 +92,9 @@ def _pixel_error_kernel(
     v = (p[2] + eye[2] - origin_xz[1]) / spacing[1]
     ry = _ref_height(h, u, v) - eye[1]
     r = vec3d(p[0], ry, p[2])
-    pp = _to_pixel(mvp, p, width, height)
-    rp = _to_pixel(mvp, r, width, height)
-    if rp[2] > wp.float64(0.0):
+    pp = to_window(mvp, p, width, height)
+    rp = to_window(mvp, r, width, height)
+    if rp[3] > wp.float64(0.0):
         dx = pp[0] - rp[0]
         dy = pp[1] - rp[1]
         out_err[k] = wp.sqrt(dx * dx + dy * dy)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .metrics import to_window
 from .parallel import atomic_min_i32, launch
 
 NONE = 2147483647  # no triangle covers the sample (the cover map's initial value)
@@ -109,18 +110,6 @@ def _inside(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, p: wp.vec2d) -> wp.bool:
     l1 = wp.sqrt((a[0] - c[0]) * (a[0] - c[0]) + (a[2] - c[2]) * (a[2] - c[2]))
     l2 = wp.sqrt((b[0] - a[0]) * (b[0] - a[0]) + (b[2] - a[2]) * (b[2] - a[2]))
     return e0 >= -tol * l0 and e1 >= -tol * l1 and e2 >= -tol * l2
-
-
-@wp.func
-def _project(m: wp.mat44d, x: wp.float64, y: wp.float64, z: wp.float64, width: int, height: int) -> wp.vec4d:
-    """Window (x, y) in pixels (origin bottom-left), clip z and clip w of a camera-relative point."""
-    cx = m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]
-    cy = m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]
-    cz = m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]
-    cw = m[3, 0] * x + m[3, 1] * y + m[3, 2] * z + m[3, 3]
-    half = wp.float64(0.5)
-    return wp.vec4d((cx / cw * half + half) * wp.float64(width), (cy / cw * half + half) * wp.float64(height),
-                    cz, cw)
 
 
 @wp.func
@@ -262,7 +251,7 @@ def _displacement_kernel(
         return
     p = _sample_xz(rel_origin, dx, dz, i, j)
     py = wp.float64(hv - rel_origin[1])  # float32, as grid_mesh's vertex
-    s = _project(mvp, p[0], py, p[1], width, height)
+    s = to_window(mvp, wp.vec3d(p[0], py, p[1]), width, height)
     if not (s[3] > wp.float64(0.0) and s[2] >= -s[3] and s[2] <= s[3] and s[0] >= wp.float64(0.0)
             and s[1] >= wp.float64(0.0) and s[0] < wp.float64(width) and s[1] < wp.float64(height)):
         out_state[i, j] = OUTSIDE
@@ -284,8 +273,8 @@ def _displacement_kernel(
         out_state[i, j] = MISSING
         return
     out_state[i, j] = VISIBLE
-    pa = _project(mvp, p[0], a, p[1], width, height)
-    pb = _project(mvp, p[0], b, p[1], width, height)
+    pa = to_window(mvp, wp.vec3d(p[0], a, p[1]), width, height)
+    pb = to_window(mvp, wp.vec3d(p[0], b, p[1]), width, height)
     if pa[3] > wp.float64(0.0) and pb[3] > wp.float64(0.0):
         ex = pa[0] - pb[0]
         ey = pa[1] - pb[1]
