@@ -9,6 +9,7 @@ from scipy import ndimage
 from terrainwarp import Camera, Heightmap, Scene, render
 from terrainwarp.camera import flyover
 from terrainwarp.io.files import digest
+from terrainwarp.kernels.parallel import set_min_items, set_threads
 from terrainwarp.measure.sample_error import sample_error
 
 
@@ -74,3 +75,17 @@ def mesh_digest(source: object, cams: list[Camera]) -> str:
         mesh, _ = source.mesh_for(cam)
         out.append(digest(mesh.positions, mesh.triangles, mesh.uv, mesh.level, mesh.patch_id))
     return digest(np.array([int(d, 16) % (1 << 62) for d in out], np.int64))
+
+
+def digest_over_threads(make: object, cams: list[Camera], threads: tuple[int, ...] = (1, 3)) -> set[str]:
+    """The mesh digests of fresh sources (``make()``) with every launch split as finely as ``threads`` allow."""
+    out = set()
+    set_min_items(1)
+    try:
+        for t in threads:
+            set_threads(t)
+            out.add(mesh_digest(make(), cams))
+    finally:
+        set_threads(None)
+        set_min_items(None)
+    return out
