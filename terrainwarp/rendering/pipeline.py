@@ -487,8 +487,11 @@ def pop_stats(scene: Scene, previous: Camera, current: Frame, reference: Frame, 
         current: the frame of ``scene`` (its ``mesh``), from :func:`render`.
         reference: the full-resolution grid frame of ``scene.camera`` with ``depth`` (visibility).
         terrain: the caller's Terrain (LOD scenes).
-        source: the :class:`MeshSource` ``current`` was drawn from; its held mesh is its
-            ``mesh_for(previous)`` (a static mesh does not pop).
+        source: the :class:`MeshSource` ``current`` was drawn from; its held mesh is
+            ``source.held_mesh_for(previous, scene.camera)`` when it has one (the selection of ``previous``
+            drawn by the vertex stage of ``scene.camera``: a scheme's per-frame morph or snapping is not a
+            pop, as a held PatchList is tessellated for ``scene.camera``), else ``mesh_for(previous)``
+            (a static mesh does not pop).
         held: the PatchList selected at ``previous`` (e.g. with hysteresis state); None re-selects it
             here, statelessly.
 
@@ -498,7 +501,9 @@ def pop_stats(scene: Scene, previous: Camera, current: Frame, reference: Frame, 
     """
     if current.mesh is None or reference.depth is None:
         raise ValueError("current, reference: expected a frame with a mesh and a reference frame with depth")
-    if source is not None:
+    if source is not None and callable(getattr(source, "held_mesh_for", None)):
+        held_mesh = source.held_mesh_for(previous, scene.camera)
+    elif source is not None:
         held_mesh = source.mesh_for(previous)[0]
     elif scene.mesh == "lod":
         if held is None:

@@ -15,10 +15,13 @@ from terrainwarp import (
     rasterize,
     render,
 )
+from terrainwarp.camera import flyover
+from terrainwarp.lod.cdlod import Cdlod
 from terrainwarp.lod.peers import delatin_mesh
 from terrainwarp.lod.polytree import default_tolerances
+from terrainwarp.measure.sample_error import popping
 from terrainwarp.rendering.pipeline import pop_stats, stages_for
-from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource
+from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource, scheme_source
 
 
 @pytest.fixture(scope="module")
@@ -304,3 +307,25 @@ def test_pop_stats_is_zero_for_a_static_camera_and_measured_when_the_selection_c
     src = PeerSource(delatin_mesh(hm, 5.0), hm)
     fs = render(sc, source=src, reference=ref)
     assert pop_stats(sc, cams[0], fs, ref, source=src).popped == 0  # a static mesh does not pop
+
+
+@pytest.mark.parametrize("name", ["cdlod", "clipmaps", "chunked"])
+def test_pop_stats_of_a_scheme_source_holds_its_selection_and_draws_it_with_the_current_camera(name):
+    """A scheme's held mesh is its previous selection drawn by the current camera's vertex stage: a static
+    camera pops 0, and so does a small move that keeps the selection (CDLOD's morph, the clipmaps' blend
+    follow the camera every frame; that is not a pop)."""
+    hm = Heightmap.fbm(65, seed=3, dx=10.0, max_height=200.0)
+    (x0, z0), (x1, z1) = hm.bounds_xz
+    cams = flyover(hm, [(x0 + 0.2 * (x1 - x0), z0 + 0.3 * (z1 - z0)), (x0 + 0.8 * (x1 - x0), z0 + 0.7 * (z1 - z0))],
+                   0.05 * (x1 - x0), 200, width=64, height=48)
+    value = {"cdlod": 4 * Cdlod(hm, 1.0, grid=8).min_first_range, "clipmaps": 31, "chunked": 2.0}[name]
+    params = {"cdlod": {"grid": 8}, "clipmaps": {}, "chunked": {"tile": 8}}[name]
+    src = scheme_source(name, hm, value, **params)
+    sc = Scene(hm, camera=cams[1], outputs=("depth", "mesh"))
+    ref = render(sc.with_(outputs=("depth",)))
+    f = render(sc, source=src)
+    still = pop_stats(sc, cams[1], f, ref, source=src)
+    assert (still.p99_px, still.max_px, still.popped) == (0.0, 0.0, 0) and still.visible > 0
+    assert pop_stats(sc, cams[0], f, ref, source=src).max_px == 0.0  # a small move: the selection is kept
+    if name != "chunked":  # drawn with the previous camera's morph / blend it would count as a pop
+        assert popping(hm, cams[1], src.mesh_for(cams[0])[0], f.mesh, ref.depth).max_px > 0.0
