@@ -30,6 +30,7 @@ from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
+from .rendering.sources import SCHEMES
 from .scene import (
     LOD_POLICIES,
     MAX_TESS,
@@ -381,8 +382,8 @@ def _add_report_fit(sub) -> None:
     rp.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     rp.add_argument("--policies", default=None,
-                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree "
-                         "(default: all)")
+                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree,"
+                         + ",".join(SCHEMES) + " (default: all)")
     _add_path(rp)
     rp.add_argument("--quick", action="store_true", help="two settings per policy")
     rp.add_argument("--no-images", action="store_true", help="skip shading (no PSNR/SSIM)")

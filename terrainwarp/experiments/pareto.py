@@ -16,7 +16,10 @@ Policies: ``grid`` (the full-resolution mesh), ``sse`` (screen-space-error toler
 time, and their measured vertical error beside the setting), and the other mesh families of the source
 papers: ``polytree`` (taylor-barrett bottom-up merging; param = tolerance level of 64; built once) and
 ``bintree`` (mrbsp right-triangle bisection with the apparent-size LOD rule, hole fixing and forced
-splits; param = tree depth M; selected per frame).
+splits; param = tree depth M; selected per frame); and the schemes engines ship,
+:data:`terrainwarp.rendering.sources.SCHEMES` (``cdlod``: first range in metres; ``clipmaps``: ring size
+n; ``chunked``: Cesium's maximum screen-space error in px), selected per frame, their pyramids built once
+per worker (reported as ``peer_mesh_ms``).
 
 Every frame is made by :func:`terrainwarp.render`: the grid and the LOD policies from the scene, the
 peers, polytree and bintree as prebuilt mesh sources (:mod:`terrainwarp.rendering.sources`). Frame cost
@@ -45,7 +48,7 @@ from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
 from ..lod.quadtree import Terrain
 from ..rendering.pipeline import Frame, MeshSource, Report, pop_stats, render
-from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
+from ..rendering.sources import SCHEMES, BintreeSource, PeerSource, PolytreeSource, scheme_range, scheme_source
 from ..scene import LOD_POLICIES, Scene
 from .runner import Job, Runner, SweepResult, pending_jobs
 
@@ -53,7 +56,7 @@ __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", 
            "TIMING_COLUMNS", "image_floor"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
-_BUILT = (*_PEERS, "polytree", "bintree")  # meshes built once, apart from frames: drawn as mesh sources
+_BUILT = (*_PEERS, "polytree", "bintree", *SCHEMES)  # built once per worker, apart from frames: mesh sources
 TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
 
 
@@ -85,7 +88,25 @@ def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]
     m_full = 2 * max(1, math.ceil(math.log2(max(rows, cols, 2) - 1))) + 1
     if m_full <= 22:  # 2^(M+1) tree nodes
         s += [Setting("bintree", float(m)) for m in ((m_full, m_full + 2) if not quick else (m_full,))]
-    return s
+    return s + _scheme_settings(heightmap, quick)
+
+
+def _scheme_settings(heightmap: Heightmap, quick: bool) -> list[Setting]:
+    """A few settings of each scheme (:data:`SCHEMES`), fine to coarse, inside its range on ``heightmap``:
+    CDLOD's first range at 8, 4, 2, 1 times its seam-free minimum, clipmaps' n from 255 down to 31, chunked's
+    pixel threshold from 1 to 8 (Cesium's default 2 among them)."""
+    steps = (8.0, 4.0, 2.0, 1.0) if not quick else (4.0, 1.0)  # finer by each step's factor
+    out = []
+    for name, spec in SCHEMES.items():
+        lo, hi = scheme_range(name, heightmap)
+        if name == "cdlod":
+            vals = [min(lo * f, hi) for f in steps]
+        elif spec.integer:  # clipmaps' n: odd, 2^k - 1 as GPU Gems'
+            vals = [min(max(32 * f - 1, lo), hi) for f in steps]
+        else:
+            vals = [min(max(8.0 / f, lo), hi) for f in steps]
+        out += [Setting(name, round(float(v), 2)) for v in dict.fromkeys(vals)]
+    return out
 
 
 @dataclass(frozen=True)
@@ -165,9 +186,10 @@ def _timed_build(make):
 
 
 def _source(ctx: SweepContext, refs: dict, setting: Setting) -> MeshSource:
-    """The mesh source of a martini / delatin / polytree / bintree setting, built once per worker process
-    (a peer mesh by :func:`_peer_job` for the whole sweep when it could be; one polytree for every level;
-    one bintree per depth). The sources share one cache (the normal map)."""
+    """The mesh source of a martini / delatin / polytree / bintree / scheme setting, built once per worker
+    process (a peer mesh by :func:`_peer_job` for the whole sweep when it could be; one polytree for every
+    level; one bintree per depth; a scheme's pyramids once for all its settings). The sources share one cache
+    (the normal map, the schemes' pyramids)."""
     st_ = _STATE
     if setting in st_["sources"]:
         return st_["sources"][setting]
@@ -182,6 +204,8 @@ def _source(ctx: SweepContext, refs: dict, setting: Setting) -> MeshSource:
             st_["polytree"] = _timed_build(lambda: build_polytree(hm, default_tolerances(hm, 64), device=device))
         tree, ms = st_["polytree"]
         src = PolytreeSource(tree, int(setting.param), ms, cache=cache)
+    elif setting.policy in SCHEMES:  # selected per frame by the scheme's own rule
+        src = scheme_source(setting.policy, hm, setting.param, cache=cache, device=device)
     else:  # mrbsp bintree: the paper's apparent-size rule at tree depth M = param, per frame
         key = ("bintree", int(setting.param))
         if key not in st_:
@@ -205,7 +229,7 @@ def _frame_job(ctx: SweepContext, refs: dict, setting: Setting, k: int) -> dict:
     if setting.policy in _BUILT:
         src = _source(ctx, refs, setting)
         f = render(sc, reference=ref, device=device, source=src)
-        built_ms, peer_err = src.build_ms, src.error_m
+        built_ms, peer_err = src.build_ms, getattr(src, "error_m", math.nan)
     elif setting.policy == "grid":
         sc = sc.with_(mesh="grid")
         f = render(sc, reference=ref, device=device)
@@ -402,7 +426,7 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
-             "polytree": "P:", "bintree": "X:"}
+             "polytree": "P:", "bintree": "X:", "cdlod": "h-.", "clipmaps": "p-.", "chunked": "d-."}
     others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]
     floor = 0.5 * min(others) if others else 1e-3  # the exact grid (0 px) is drawn on this floor
     old = image_floor(summary)

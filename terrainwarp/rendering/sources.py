@@ -19,10 +19,11 @@ cache (the heightmap's normal map) that sources of the same heightmap may share:
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, NamedTuple
 
 from ..camera import Camera
@@ -36,7 +37,7 @@ from ..lod.polytree import Polytree
 from ..mesh import Mesh
 
 __all__ = ["SourceBase", "PeerSource", "PolytreeSource", "BintreeSource", "CdlodSource", "ClipmapSource",
-           "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source"]
+           "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source", "scheme_range"]
 
 
 @dataclass(eq=False)
@@ -180,14 +181,56 @@ SCHEMES: dict[str, SchemeSpec] = {
 }
 
 
+def _spec(name: str) -> SchemeSpec:
+    if name not in SCHEMES:
+        raise ValueError(f"name: expected one of {sorted(SCHEMES)}, got {name!r}")
+    return SCHEMES[name]
+
+
+def _base_scheme(name: str, heightmap: Heightmap, cache: dict, params: dict) -> Cdlod | ChunkedLod:
+    """The scheme ``name`` with ``params`` whose pyramids every value shares (kept in ``cache``)."""
+    spec = SCHEMES[name]
+    key = ("scheme", name, tuple(sorted(params.items())))
+    if key not in cache:
+        start = spec.hi if math.isfinite(spec.hi) else 1.0  # any valid value: it is replaced per source
+        cache[key] = spec.scheme(heightmap, **{spec.parameter: start}, **params)
+    return cache[key]
+
+
 def scheme_source(name: str, heightmap: Heightmap, value: float, *, cache: dict | None = None,
                   **params: Any) -> CdlodSource | ClipmapSource | ChunkedSource:
     """The source of scheme ``name`` (a :data:`SCHEMES` key) with its fittable parameter set to ``value``
-    (rounded to the next odd integer for clipmaps' ``n``) and the scheme's other keyword ``params``."""
-    if name not in SCHEMES:
-        raise ValueError(f"name: expected one of {sorted(SCHEMES)}, got {name!r}")
-    spec = SCHEMES[name]
+    (rounded to the next odd integer for clipmaps' ``n``) and the scheme's other keyword ``params``.
+
+    With a ``cache``, the schemes with pyramids (CDLOD and chunked: a :class:`terrainwarp.lod.Terrain`, which
+    does not depend on the parameter) are prepared once per (name, params) and kept there; each source holds
+    a copy of that scheme with its own ``value``, the pyramids shared. The clipmaps build nothing ahead."""
+    spec = _spec(name)
     if spec.integer:
         value = int(math.ceil(value)) | 1
-    scheme = spec.scheme(heightmap, **{spec.parameter: value}, **params)
-    return spec.source(scheme=scheme, cache={} if cache is None else cache)
+    if cache is None or "terrain" not in {f.name for f in fields(spec.scheme)}:
+        scheme = spec.scheme(heightmap, **{spec.parameter: value}, **params)
+        return spec.source(scheme=scheme, cache={} if cache is None else cache)
+    zero_ok = not spec.larger_is_finer  # a zero threshold is full detail; a zero range is no range
+    if not (math.isfinite(value) and spec.lo <= value <= spec.hi and (value > spec.lo or zero_ok)):
+        raise ValueError(f"value: expected a finite {spec.parameter} in the range of {name!r} "
+                         f"({spec.lo:g}..{spec.hi:g}), got {value}")
+    scheme = copy.copy(_base_scheme(name, heightmap, cache, params))
+    setattr(scheme, spec.parameter, value)
+    return spec.source(scheme=scheme, cache=cache)
+
+
+def scheme_range(name: str, heightmap: Heightmap, *, cache: dict | None = None,
+                 **params: Any) -> tuple[float, float]:
+    """The finite range a sweep or a fit searches for scheme ``name``'s parameter on ``heightmap``: the
+    :data:`SCHEMES` range, with CDLOD's ends made concrete: from its seam-free
+    :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range` (at least one sample spacing) to twice the diagonal of
+    the terrain's box (every point within the first range from any eye over the terrain: full detail)."""
+    spec = _spec(name)
+    if name != "cdlod":
+        return float(spec.lo), float(spec.hi)
+    base = _base_scheme(name, heightmap, {} if cache is None else cache, params)
+    (x0, z0), (x1, z1) = heightmap.bounds_xz
+    lo_h, hi_h = heightmap.height_range
+    lo = max(base.min_first_range, min(heightmap.dx, heightmap.dz))
+    return lo, max(2.0 * math.sqrt((x1 - x0) ** 2 + (z1 - z0) ** 2 + (hi_h - lo_h) ** 2), 2.0 * lo)

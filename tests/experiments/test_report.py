@@ -1,5 +1,6 @@
 import csv
 import io
+import math
 
 import pytest
 
@@ -8,12 +9,14 @@ from terrainwarp.experiments.pareto import (
     TIMING_COLUMNS,
     Setting,
     budget_table,
+    default_settings,
     pareto,
     rows_to_csv,
     summarise,
     sweep,
     write_report,
 )
+from terrainwarp.rendering.sources import SCHEMES, scheme_range
 
 
 @pytest.fixture(scope="module")
@@ -100,3 +103,25 @@ def test_popping_is_zero_for_a_static_camera_and_an_unchanged_selection(small):
     # the coarse selection is the same from both cameras: the held frame is the current one
     rows = sweep(sc, cams, [Setting("sse", 0.5)], progress=False, images=False)
     assert rows[1]["pop_max_px"] > 0  # a real move changes a fine selection
+
+
+def test_the_schemes_are_report_policies_with_error_popping_and_cost(small):
+    """CDLOD, clipmaps and chunked LOD (rendering.sources.SCHEMES) sweep beside the others: a few settings each
+    in the parameter's range, and every row has the primary and image error, popping, triangles and frame ms."""
+    sc, cams = small
+    settings = [s for s in default_settings(sc.heightmap, quick=True) if s.policy in SCHEMES]
+    assert [s.policy for s in settings] == [n for n in SCHEMES for _ in range(2)]
+    for s in settings:
+        lo, hi = scheme_range(s.policy, sc.heightmap)
+        assert lo <= s.param <= hi
+    rows = sweep(sc, cams, settings, progress=False, images=False, workers=0)
+    assert {r["policy"] for r in rows} == set(SCHEMES) and len(rows) == len(settings) * len(cams)
+    for r in rows:
+        assert not r["error"], r
+        for k in ("p99_px", "max_px", "image_err_p99_px", "triangles", "frame_ms", "select_ms", "mesh_ms",
+                  "raster_ms"):
+            assert math.isfinite(r[k]), (k, r)
+        assert r["triangles"] > 0 and r["frame_ms"] > 0
+        assert math.isfinite(r["pop_p99_px"]) == (r["frame"] == 1)
+    summ = {r["setting"]: r for r in summarise(rows)}
+    assert all(math.isfinite(summ[s.label]["pop_p99_px"]) for s in settings)
