@@ -396,7 +396,8 @@ def _add_report_fit(sub) -> None:
                   _cmd_fit)
     _add_scene(ft, "out/fit")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
-    ft.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy, help="LOD policy to fit")
+    ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=_LOD.policy,
+                    help="LOD policy or scheme to fit")
     ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     _add_path(ft)

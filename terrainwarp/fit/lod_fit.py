@@ -36,6 +36,13 @@ between the previous camera's selection (held) and the current one, both drawn f
 (:func:`terrainwarp.rendering.pipeline.pop_stats`), and accepts a value only if the worst pair's pop p99 is
 within ``P`` as well. Coarser settings pop more, so the constraint moves the fit toward finer settings.
 
+The schemes engines ship (:data:`terrainwarp.rendering.sources.SCHEMES`: ``cdlod``'s first range,
+``clipmaps``' ring size n, odd, ``chunked``'s pixel threshold) are fitted by the same exact validation, but
+with no relaxed model (it exists only for the quadtree policies): the budget is bracketed directly on the
+exact pipeline, by bisection in log space over the scheme's range
+(:func:`terrainwarp.rendering.sources.scheme_range`) until a feasible and an infeasible value are known, then
+by the same log-log interpolation; clipmaps' n is snapped to odd integers.
+
 Baseline: a grid search over the same parameter on the exact pipeline, in the same run.
 """
 
@@ -48,18 +55,21 @@ from collections import namedtuple
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from ..camera import Camera
+from ..heightmap import Heightmap
 from ..io.files import save_figure
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import Terrain, node_metrics, select
 from ..rendering.pipeline import Frame, pop_stats, render
+from ..rendering.sources import SCHEMES, scheme_range, scheme_source
 from ..scene import LOD_POLICIES, POLICY_TABLE, LodConfig, Scene
 
-__all__ = ["LodParams", "FitResult", "Evaluation", "fit_lod", "evaluate", "grid_search", "evaluations_from_rows",
-           "relaxed_model", "plot_fit"]
+__all__ = ["LodParams", "FitResult", "Evaluation", "Knob", "knob", "fit_lod", "evaluate", "grid_search",
+           "evaluations_from_rows", "relaxed_model", "plot_fit"]
 
 LodParams = namedtuple("LodParams", [f"log_{s.field}" for s in POLICY_TABLE.values()],
                        defaults=[math.log(getattr(LodConfig(), s.field)) for s in POLICY_TABLE.values()])
@@ -67,6 +77,38 @@ LodParams.__doc__ = ("Fitted parameters (a pytree), in log space: ``log_`` + eac
                      "(log_tolerance_px, log_k, log_target_px), defaults the logs of the LodConfig defaults.")
 # A grid search's evaluator: the parameter values -> their exact evaluations, in the same order.
 Evaluator = Callable[[list[float]], list["Evaluation"]]
+
+
+class Knob(NamedTuple):
+    """The one parameter a fit moves: its name, the range it searches, which way is coarser, and whether it
+    is an odd integer (clipmaps' n)."""
+
+    field: str
+    fit_range: tuple[float, float]
+    coarser_up: bool
+    odd_integer: bool = False
+
+    def snap(self, v: float) -> float:
+        """``v`` clipped to the range (and to the next odd integer inside it for an odd-integer knob)."""
+        lo, hi = self.fit_range
+        v = float(np.clip(v, lo, hi))
+        if self.odd_integer:
+            v = float(int(math.ceil(v)) | 1)
+            v = v if v <= hi else v - 2.0
+        return v
+
+
+def knob(policy: str, heightmap: Heightmap | None = None, cache: dict | None = None) -> Knob:
+    """The fitted parameter of ``policy``: a quadtree policy's ``POLICY_TABLE`` row, or a scheme's
+    :data:`SCHEMES` row with its range on ``heightmap`` (:func:`terrainwarp.rendering.sources.scheme_range`)."""
+    if policy in SCHEMES:
+        if heightmap is None:
+            raise ValueError(f"heightmap: the scheme {policy!r} has a range that depends on the heightmap")
+        spec = SCHEMES[policy]
+        return Knob(spec.parameter, scheme_range(policy, heightmap, cache=cache), not spec.larger_is_finer,
+                    spec.integer)
+    spec = POLICY_TABLE[policy]
+    return Knob(spec.field, spec.fit_range, spec.coarser_up)
 
 
 @dataclass
@@ -152,26 +194,31 @@ class FitResult:
 # ------------------------------------------------------------------------------------------------
 # exact pipeline
 # ------------------------------------------------------------------------------------------------
-def evaluate(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, value: float, refs: list[Frame],
-             device: str = "cpu", *, on_frame: Callable[[], None] | None = None, pops: bool = False) -> Evaluation:
+def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], policy: str, value: float,
+             refs: list[Frame], device: str = "cpu", *, on_frame: Callable[[], None] | None = None,
+             pops: bool = False, cache: dict | None = None) -> Evaluation:
     """Run the exact pipeline at one parameter value over all cameras (references given); the frame cost
     is ``Report.frame_ms``; the error is the primary error (``Frame.error.p99_px``), the image error kept
     beside it. ``pops``: also the pop of each consecutive pair (the previous frame's selection held,
-    :func:`terrainwarp.rendering.pipeline.pop_stats`). ``on_frame()`` is called after each frame (progress)."""
+    :func:`terrainwarp.rendering.pipeline.pop_stats`). ``on_frame()`` is called after each frame (progress).
+
+    A scheme (``policy`` in :data:`SCHEMES`; ``terrain`` unused) is drawn as its mesh source
+    (:func:`terrainwarp.rendering.sources.scheme_source`, its pyramids kept in ``cache`` across values)."""
     ev = Evaluation(float(value), [], [], [], [])
-    cfg = scene.lod.with_policy(policy, value)
+    src = scheme_source(policy, scene.heightmap, value, cache=cache, device=device) if policy in SCHEMES else None
+    cfg = scene.lod if src is not None else scene.lod.with_policy(policy, value)
     prev: Frame | None = None
     for k, (cam, ref) in enumerate(zip(cameras, refs)):
-        sc = scene.with_(camera=cam, mesh="lod", lod=cfg, outputs=("error",))
-        f = render(sc, terrain=terrain, reference=ref, device=device)
+        sc = scene.with_(camera=cam, mesh="lod" if src is None else "grid", lod=cfg, outputs=("error",))
+        f = render(sc, terrain=terrain, reference=ref, device=device, source=src)
         ev.p99_px.append(float(f.error.p99_px))
         ev.max_px.append(float(f.error.max_px))
         ev.image_p99_px.append(float(f.error.image_err_p99_px))
         ev.triangles.append(int(f.mesh.n_triangles))
         ev.frame_ms.append(f.report.frame_ms)
         if pops and prev is not None:
-            ev.pop_p99_px.append(pop_stats(sc, cameras[k - 1], f, ref, terrain=terrain, held=prev.patches,
-                                           device=device).p99_px)
+            ev.pop_p99_px.append(pop_stats(sc, cameras[k - 1], f, ref, terrain=terrain, source=src,
+                                           held=None if src is not None else prev.patches, device=device).p99_px)
         prev = f
         if on_frame is not None:
             on_frame()
@@ -186,7 +233,7 @@ def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) ->
     for v in values:
         rs = sorted((r for r in rows if r["policy"] == policy and r["param"] == v), key=lambda r: r["frame"])
         if any(r.get("error") for r in rs):
-            raise RuntimeError(f"grid search: evaluating {POLICY_TABLE[policy].field} = {v:g} failed: "
+            raise RuntimeError(f"grid search: evaluating {policy} = {v:g} failed: "
                                f"{rs[0]['error']}")
         pops = [float(r["pop_p99_px"]) for r in rs[1:] if "pop_p99_px" in r]
         evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
@@ -195,12 +242,13 @@ def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) ->
     return evs
 
 
-def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: str, budget_px: float,
+def grid_search(scene: Scene, terrain: Terrain | None, cameras: list[Camera], policy: str, budget_px: float,
                 refs: list[Frame], points: int = 24, device: str = "cpu", evaluator: Evaluator | None = None, *,
-                on_frame: Callable[[], None] | None = None, max_pop_px: float | None = None) -> dict:
-    """Evaluate ``points`` log-spaced values of the policy's ``POLICY_TABLE`` fit range on the exact pipeline;
-    the cheapest that meets the budget (and ``max_pop_px``, the worst pair's pop p99, when given: then the
-    pops are measured too).
+                on_frame: Callable[[], None] | None = None, max_pop_px: float | None = None,
+                cache: dict | None = None) -> dict:
+    """Evaluate ``points`` log-spaced values of the policy's fit range (:func:`knob`; a scheme's odd integers
+    snapped, repeats dropped) on the exact pipeline; the cheapest that meets the budget (and ``max_pop_px``,
+    the worst pair's pop p99, when given: then the pops are measured too).
 
     ``evaluator(values) -> [Evaluation]`` runs the evaluations; default: here, one after another, on the
     caller's ``terrain`` and ``refs`` (:func:`evaluate`). The command line (``terrainwarp fit --workers N``)
@@ -210,19 +258,19 @@ def grid_search(scene: Scene, terrain: Terrain, cameras: list[Camera], policy: s
     """
     if isinstance(points, bool) or not isinstance(points, int | np.integer) or points < 1:
         raise ValueError(f"points: expected an integer >= 1, got {points!r}")
-    lo, hi = POLICY_TABLE[policy].fit_range
+    kn = knob(policy, scene.heightmap, cache)
     t0 = time.perf_counter()
-    values = [float(v) for v in np.geomspace(lo, hi, points)]
+    values = list(dict.fromkeys(kn.snap(v) for v in np.geomspace(*kn.fit_range, points)))
     if evaluator is None:
         evs = [evaluate(scene, terrain, cameras, policy, v, refs, device, on_frame=on_frame,
-                        pops=max_pop_px is not None) for v in values]
+                        pops=max_pop_px is not None, cache=cache) for v in values]
     else:
         evs = evaluator(values)
         for _ in range(len(values) * len(cameras) if on_frame is not None else 0):
             on_frame()
     ok = [e for e in evs if e.meets(budget_px, max_pop_px)]
     best = min(ok, key=lambda e: e.cost) if ok else None
-    return {"points": points, "evaluations": points * len(cameras), "wall_s": time.perf_counter() - t0,
+    return {"points": len(values), "evaluations": len(values) * len(cameras), "wall_s": time.perf_counter() - t0,
             "value": None if best is None else best.value, "cost": None if best is None else best.cost,
             "worst_p99_px": None if best is None else best.worst_p99,
             "table": [[e.value, e.worst_p99, e.cost] + ([e.worst_pop] if max_pop_px is not None else []) for e in evs]}
@@ -308,8 +356,10 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     Args:
         scene: the scene (heightmap, LOD config: roots, tess); its camera path unless ``cameras``.
         budget_px: the screen-space error budget, pixels (> 0).
-        policy: ``"sse"``, ``"distance"`` or ``"continuous"`` (a row of ``terrainwarp.scene.POLICY_TABLE``).
-        steps: optax Adam steps of the relaxed fit.
+        policy: ``"sse"``, ``"distance"`` or ``"continuous"`` (a row of ``terrainwarp.scene.POLICY_TABLE``), or
+            a scheme, ``"cdlod"``, ``"clipmaps"`` or ``"chunked"`` (:data:`SCHEMES`, with the schemes' default
+            settings: no relaxed fit, the budget bracketed on the exact pipeline; see the module docstring).
+        steps: optax Adam steps of the relaxed fit (quadtree policies).
         max_validations: exact-pipeline validations (each runs every camera) for the correction.
         rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
         grid_points: if > 0, also run the grid-search baseline with that many points.
@@ -333,28 +383,33 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     cams = cameras if cameras is not None else scene.camera_path()
     if not cams:
         raise ValueError("cameras: expected at least one camera")
-    bar = _Progress(progress, len(cams) * (1 + max_validations + grid_points) + steps,
+    scheme = policy in SCHEMES
+    bar = _Progress(progress, len(cams) * (1 + max_validations + grid_points) + (0 if scheme else steps),
                     f"fit {policy} {budget_px:g} px")
     try:
-        terrain = Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess, device=device)
+        terrain = None if scheme else Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess,
+                                                      device=device)
         refs = [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
                 for c in cams]
+        cache: dict = {}
         exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar, budget_px=budget_px,
-                       max_pop_px=max_pop_px)
-        if policy == "continuous":
-            model = _continuous_model(terrain, cams, scene.lod.level)
+                       max_pop_px=max_pop_px, knob=knob(policy, scene.heightmap, cache), cache=cache)
+        if scheme:
+            good = _bracket(exact, budget_px, rel_tol, max_validations)
         else:
-            model = relaxed_model(terrain, cams, policy, device)
-        v = _relaxed_fit(model, POLICY_TABLE[policy].fit_range, budget_px, steps, exact.history, on_step=bar)
-        good = _validate(exact, model, v, budget_px, rel_tol, max_validations, gradient)
+            model = (_continuous_model(terrain, cams, scene.lod.level) if policy == "continuous"
+                     else relaxed_model(terrain, cams, policy, device))
+            v = _relaxed_fit(model, exact.knob.fit_range, budget_px, steps, exact.history, on_step=bar)
+            good = _validate(exact, model, v, budget_px, rel_tol, max_validations, gradient)
         res = _result(exact, good, budget_px, t_start)
         if max_pop_px is None and len(cams) > 1:  # the chosen setting's popping, for the record (not counted)
             bar.expect(len(cams) * (1 + grid_points))
-            res.validated = evaluate(scene, terrain, cams, policy, res.value, refs, device, on_frame=bar, pops=True)
+            res.validated = evaluate(scene, terrain, cams, policy, res.value, refs, device, on_frame=bar, pops=True,
+                                     cache=cache)
         if grid_points:
             bar.expect(len(cams) * grid_points)  # the validations may have stopped early
             res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
-                                   evaluator=grid_evaluator, on_frame=bar, max_pop_px=max_pop_px)
+                                   evaluator=grid_evaluator, on_frame=bar, max_pop_px=max_pop_px, cache=cache)
     finally:
         bar.close()
     return res
@@ -397,8 +452,8 @@ def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: in
                            ("grid_points", grid_points, 0)):
         if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < least:
             raise ValueError(f"{name}: expected an integer >= {least}, got {n!r}")
-    if policy not in LOD_POLICIES:
-        raise ValueError(f"policy: expected one of {list(LOD_POLICIES)}, got {policy!r}")
+    if policy not in LOD_POLICIES and policy not in SCHEMES:
+        raise ValueError(f"policy: expected one of {[*LOD_POLICIES, *SCHEMES]}, got {policy!r}")
     if gradient not in ("relaxed", "pixels") or (gradient == "pixels" and policy != "continuous"):
         raise ValueError(f"gradient: expected 'relaxed', or 'pixels' with the continuous policy, got {gradient!r}")
     if isinstance(budget_px, bool) or not isinstance(budget_px, int | float) or not math.isfinite(budget_px) \
@@ -408,11 +463,11 @@ def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: in
 
 @dataclass
 class _Exact:
-    """The exact pipeline over the camera path, one evaluation per value (clipped to the fit range), with
-    the count of frames it ran and the fit's history."""
+    """The exact pipeline over the camera path, one evaluation per value (snapped to the fit range,
+    :meth:`Knob.snap`), with the count of frames it ran and the fit's history."""
 
     scene: Scene
-    terrain: Terrain
+    terrain: Terrain | None
     cams: list[Camera]
     refs: list[Frame]
     policy: str
@@ -423,16 +478,18 @@ class _Exact:
     on_frame: Callable[[], None] | None = None
     budget_px: float = math.inf
     max_pop_px: float | None = None
+    knob: Knob | None = None
+    cache: dict = field(default_factory=dict)
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
 
     def __call__(self, v: float) -> Evaluation:
-        lo, hi = POLICY_TABLE[self.policy].fit_range
-        v = float(np.clip(v, lo, hi))
+        v = self.knob.snap(v)
         if v not in self.evals:
             self.evals[v] = e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs,
-                                         self.device, on_frame=self.on_frame, pops=self.max_pop_px is not None)
+                                         self.device, on_frame=self.on_frame, pops=self.max_pop_px is not None,
+                                         cache=self.cache)
             self.n_eval += len(self.cams)
             self.history.append({"stage": "validate", "value": v, "worst_p99_px": e.worst_p99, "cost": e.cost,
                                  **({"worst_pop_p99_px": e.worst_pop} if self.max_pop_px is not None else {})})
@@ -488,7 +545,7 @@ def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_to
     import jax  # lazy: heavy optional dependency
     import jax.numpy as jnp
 
-    spec = POLICY_TABLE[exact.policy]
+    spec = exact.knob
     log_model = jax.jit(lambda lv: model(lv, 0.05)[1])
     target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
     good: Evaluation | None = None  # feasible (met), coarsest so far
@@ -496,11 +553,11 @@ def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_to
     for _ in range(max_validations):
         e = exact(v)
         if exact.meets(e):
-            if good is None or _coarser(exact.policy, e.value, good.value):
+            if good is None or _coarser(exact.knob, e.value, good.value):
                 good = e
             if e.worst_p99 >= budget_px * (1 - rel_tol):
                 break
-        elif bad is None or _coarser(exact.policy, bad.value, e.value):
+        elif bad is None or _coarser(exact.knob, bad.value, e.value):
             bad = e
         if good is not None and bad is not None:
             nv = _bracket_step(good, bad, target, rel_tol)
@@ -519,6 +576,38 @@ def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_to
             coarser = exact.meets(e) == spec.coarser_up
             nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
         v = float(np.clip(nv, *spec.fit_range))
+        exact.history.append({"stage": "correct", "next_value": v})
+    return good
+
+
+def _bracket(exact: _Exact, budget_px: float, rel_tol: float, max_validations: int) -> Evaluation | None:
+    """A scheme's fit without a relaxed model: bisection in log space over the knob's range, the fine end
+    taken as feasible and the coarse end as not until evaluated, then, once a feasible and an infeasible
+    value are known, :func:`_bracket_step`. The coarsest value that met the budget (None: none)."""
+    kn = exact.knob
+    fine, coarse = (kn.fit_range[0], kn.fit_range[1]) if kn.coarser_up else (kn.fit_range[1], kn.fit_range[0])
+    target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
+    good: Evaluation | None = None
+    bad: Evaluation | None = None
+    v = kn.snap(math.sqrt(fine * coarse))
+    for _ in range(max_validations):
+        e = exact(v)
+        if exact.meets(e):
+            if good is None or _coarser(kn, e.value, good.value):
+                good = e
+            if e.worst_p99 >= budget_px * (1 - rel_tol):
+                break
+        elif bad is None or _coarser(kn, bad.value, e.value):
+            bad = e
+        if good is not None and bad is not None:
+            nv = _bracket_step(good, bad, target, rel_tol)
+        else:
+            a = good.value if good is not None else fine
+            b = bad.value if bad is not None else coarse
+            nv = math.sqrt(a * b) if abs(math.log(a / b)) >= 0.08 else None
+        if nv is None or kn.snap(nv) in exact.evals:  # nothing left to learn in the bracket
+            break
+        v = kn.snap(nv)
         exact.history.append({"stage": "correct", "next_value": v})
     return good
 
@@ -551,7 +640,7 @@ def _pixel_step(exact: _Exact, e: Evaluation, v: float, target: float, budget_px
     exact.n_eval += 1
     exact.history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
     step = (target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
-        (1.0 if exact.meets(e) == POLICY_TABLE[exact.policy].coarser_up else -1.0)
+        (1.0 if exact.meets(e) == exact.knob.coarser_up else -1.0)
     return v * math.exp(min(max(step, -1.0), 1.0))
 
 
@@ -579,7 +668,7 @@ def _result(exact: _Exact, good: Evaluation | None, budget_px: float, t_start: f
     """The fit's result: the coarsest feasible value, or the finest setting when none met the budget (then
     reported as met only if even that is within it); wall time from ``t_start`` (``time.perf_counter``)."""
     policy, pop = exact.policy, exact.max_pop_px
-    spec = POLICY_TABLE[policy]
+    spec = exact.knob
     pop_txt = "" if pop is None else f" and worst pair pop p99 <= {pop:g} px"
     if good is None:  # never met: is the budget reachable at all?
         finest = spec.fit_range[0] if spec.coarser_up else spec.fit_range[1]
@@ -599,11 +688,14 @@ def _result(exact: _Exact, good: Evaluation | None, budget_px: float, t_start: f
     return res
 
 
-def _coarser(policy: str, a: float, b: float) -> bool:
-    return a > b if POLICY_TABLE[policy].coarser_up else a < b
+def _coarser(kn: Knob, a: float, b: float) -> bool:
+    return a > b if kn.coarser_up else a < b
 
 
 def _params(policy: str, value: float) -> LodParams:
+    """The LodParams of a fitted quadtree policy; a scheme's parameter is not one of them (the defaults)."""
+    if policy in SCHEMES:
+        return LodParams()
     return LodParams()._replace(**{f"log_{POLICY_TABLE[policy].field}": math.log(value)})
 
 

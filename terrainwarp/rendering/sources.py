@@ -225,10 +225,12 @@ def scheme_range(name: str, heightmap: Heightmap, *, cache: dict | None = None,
     """The finite range a sweep or a fit searches for scheme ``name``'s parameter on ``heightmap``: the
     :data:`SCHEMES` range, with CDLOD's ends made concrete: from its seam-free
     :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range` (at least one sample spacing) to twice the diagonal of
-    the terrain's box (every point within the first range from any eye over the terrain: full detail)."""
+    the terrain's box (every point within the first range from any eye over the terrain: full detail), and a
+    zero lower end (chunked's 0 px: full detail) raised to ``hi / 4096``, so the range can be searched in log
+    space."""
     spec = _spec(name)
     if name != "cdlod":
-        return float(spec.lo), float(spec.hi)
+        return (float(spec.lo) if spec.lo > 0 else spec.hi / 4096.0), float(spec.hi)
     base = _base_scheme(name, heightmap, {} if cache is None else cache, params)
     (x0, z0), (x1, z1) = heightmap.bounds_xz
     lo_h, hi_h = heightmap.height_range

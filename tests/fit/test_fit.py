@@ -9,6 +9,7 @@ import pytest
 from terrainwarp import Camera, Heightmap, LodConfig, Scene
 from terrainwarp.cli import sweep_evaluator
 from terrainwarp.fit import LodParams, evaluate, fit_lod, grid_search, relaxed_model
+from terrainwarp.fit.lod_fit import knob
 from terrainwarp.lod import Terrain
 from terrainwarp.rendering.pipeline import render
 from terrainwarp.scene import POLICY_TABLE
@@ -176,3 +177,21 @@ def test_fit_with_a_popping_bound(scene):
     assert g["value"] is None or all(row[3] <= bound for row in g["table"] if row[0] == g["value"])
     with pytest.raises(ValueError, match="^max_pop_px: "):
         fit_lod(sc, 4.0, cameras=cams, max_pop_px=-1.0)
+
+
+@pytest.mark.parametrize("name", ["cdlod", "clipmaps", "chunked"])
+def test_fit_lod_fits_each_scheme_by_bracketing_on_the_exact_pipeline(name):
+    """A scheme's parameter (SCHEMES) is fitted with no relaxed model: bisection on the exact pipeline over
+    the scheme's range; a loose budget is met, the value lies in the range (clipmaps' n odd)."""
+    hm = Heightmap.fbm(65, seed=4, dx=10.0, max_height=300.0)
+    sc = Scene(hm, camera=Camera.default_for(hm, 64, 48))
+    cams = sc.camera_path(2)
+    res = fit_lod(sc, 4.0, policy=name, cameras=cams, max_validations=5, grid_points=3)
+    assert res.met and res.validated.worst_p99 <= 4.0, res.message
+    lo, hi = knob(name, hm).fit_range
+    assert lo <= res.value <= hi
+    if name == "clipmaps":
+        assert res.value == int(res.value) and int(res.value) % 2 == 1
+    assert not any(h["stage"] == "relaxed" for h in res.history)
+    assert len(res.validated.pop_p99_px) == 1 and res.grid["value"] is not None
+    assert all(lo <= row[0] <= hi for row in res.grid["table"])
