@@ -37,6 +37,20 @@ def _was_split(keys: wp.array(dtype=wp.int64), n: int, key: wp.int64) -> wp.bool
     return lo < n and keys[lo] == key
 
 
+@wp.func
+def box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> int:
+    """1 when the box [lo, hi] lies outside one of the six frustum planes (p-vertex test)."""
+    out = int(0)
+    for p in range(6):
+        pl = planes[p]
+        vx = wp.where(pl[0] >= 0.0, hi[0], lo[0])
+        vy = wp.where(pl[1] >= 0.0, hi[1], lo[1])
+        vz = wp.where(pl[2] >= 0.0, hi[2], lo[2])
+        if pl[0] * vx + pl[1] * vy + pl[2] * vz + pl[3] < 0.0:
+            out = 1
+    return out
+
+
 @wp.kernel(enable_backward=False)
 def _select_kernel(
     node_x: wp.array(dtype=wp.int32),
@@ -73,15 +87,7 @@ def _select_kernel(
     dz = wp.max(wp.max(lo[2], -hi[2]), 0.0)
     dist = wp.sqrt(dx * dx + dy * dy + dz * dz)
     out_dist[k] = dist
-    # frustum: culled when the box's most positive vertex is outside any plane
-    culled = int(0)
-    for p in range(6):
-        pl = planes[p]
-        vx = wp.where(pl[0] >= 0.0, hi[0], lo[0])
-        vy = wp.where(pl[1] >= 0.0, hi[1], lo[1])
-        vz = wp.where(pl[2] >= 0.0, hi[2], lo[2])
-        if pl[0] * vx + pl[1] * vy + pl[2] * vz + pl[3] < 0.0:
-            culled = 1
+    culled = box_outside(planes, lo, hi)
     out_culled[k] = culled
     prev = _was_split(prev_split, n_prev, node_key[k])
     split = int(0)

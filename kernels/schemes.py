@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .lod import box_outside
 from .parallel import empty, launch
 from .sampling import sample_bilinear
 
@@ -40,20 +41,6 @@ def _uv(h: wp.array2d(dtype=wp.float32), cx: float, cz: float) -> wp.vec2:
     x = wp.clamp(cx, 0.0, float(h.shape[1] - 1))
     z = wp.clamp(cz, 0.0, float(h.shape[0] - 1))
     return wp.vec2(x / float(wp.max(h.shape[1] - 1, 1)), z / float(wp.max(h.shape[0] - 1, 1)))
-
-
-@wp.func
-def box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> int:
-    """1 when the box [lo, hi] lies outside one of the six frustum planes (p-vertex test)."""
-    out = int(0)
-    for p in range(6):
-        pl = planes[p]
-        vx = wp.where(pl[0] >= 0.0, hi[0], lo[0])
-        vy = wp.where(pl[1] >= 0.0, hi[1], lo[1])
-        vz = wp.where(pl[2] >= 0.0, hi[2], lo[2])
-        if pl[0] * vx + pl[1] * vy + pl[2] * vz + pl[3] < 0.0:
-            out = 1
-    return out
 
 
 @wp.func
