@@ -100,7 +100,24 @@ class BintreeSource(SourceBase):
 
 
 @dataclass(eq=False)
-class CdlodSource(SourceBase):
+class _SchemeSource(SourceBase):
+    """A scheme selected per frame (``scheme.select(camera)``) and meshed by its vertex stage
+    (``scheme.mesh(camera, selection)``); ``scheme.frame(camera)`` times the selection."""
+
+    scheme: Cdlod | Clipmap | ChunkedLod
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        mesh, select_ms, _ = self.scheme.frame(camera)
+        return mesh, select_ms
+
+    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
+        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
+        held LOD that popping compares with ``mesh_for(camera)``."""
+        return self.scheme.mesh(camera, self.scheme.select(previous))
+
+
+@dataclass(eq=False)
+class CdlodSource(_SchemeSource):
     """CDLOD (:class:`terrainwarp.lod.cdlod.Cdlod`): distance-range quadtree selection, then one morphing vertex
     launch; ``build_ms`` the pyramids' time."""
 
@@ -110,36 +127,18 @@ class CdlodSource(SourceBase):
     def build_ms(self) -> float:
         return self.scheme.terrain.time_ms
 
-    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
-        mesh, select_ms, _ = self.scheme.frame(camera)
-        return mesh, select_ms
-
-    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
-        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
-        held LOD that popping compares with ``mesh_for(camera)``."""
-        return self.scheme.mesh(camera, self.scheme.select(previous))
-
 
 @dataclass(eq=False)
-class ClipmapSource(SourceBase):
+class ClipmapSource(_SchemeSource):
     """Geometry clipmaps (:class:`terrainwarp.lod.clipmaps.Clipmap`): the levels snapped to the viewer, then
     the blended vertices and the culled ring quads; nothing is built ahead (``build_ms`` 0)."""
 
     scheme: Clipmap
     build_ms: float = 0.0
 
-    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
-        mesh, select_ms, _ = self.scheme.frame(camera)
-        return mesh, select_ms
-
-    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
-        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
-        held LOD that popping compares with ``mesh_for(camera)``."""
-        return self.scheme.mesh(camera, self.scheme.select(previous))
-
 
 @dataclass(eq=False)
-class ChunkedSource(SourceBase):
+class ChunkedSource(_SchemeSource):
     """Chunked LOD with skirts (:class:`terrainwarp.lod.chunked.ChunkedLod`): screen-space-error selection of
     chunks, then their grids and skirts; ``build_ms`` the pyramids' time."""
 
@@ -148,15 +147,6 @@ class ChunkedSource(SourceBase):
     @property
     def build_ms(self) -> float:
         return self.scheme.terrain.time_ms
-
-    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
-        mesh, select_ms, _ = self.scheme.frame(camera)
-        return mesh, select_ms
-
-    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
-        """The selection made for ``previous`` drawn for ``camera`` (its vertex stage runs with ``camera``): the
-        held LOD that popping compares with ``mesh_for(camera)``."""
-        return self.scheme.mesh(camera, self.scheme.select(previous))
 
 
 class SchemeSpec(NamedTuple):
