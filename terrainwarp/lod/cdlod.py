@@ -40,7 +40,7 @@ per-edge factor compared with the ``continuous`` policy.
   whole nodes are one item type and the vertex stage is one launch over the frame; ``grid`` must be even.
 
 **The NVIDIA DX11 terrain sample** (issue item 4) is not the same rule as our ``continuous`` policy; see
-:func:`dx11_edge_pixels` for the mapping.
+:func:`terrainwarp.lod.policies.dx11_edge_pixels` (beside ``edge_pixels``) for the mapping.
 """
 
 from __future__ import annotations
@@ -56,10 +56,9 @@ from ..heightmap import Heightmap
 from ..kernels.lod import frustum_planes, select_level
 from ..kernels.schemes import cdlod_mesh
 from ..mesh import Mesh
-from .policies import EDGES
 from .quadtree import Terrain, tile_key
 
-__all__ = ["Cdlod", "CdlodSelection", "cdlod_ranges", "dx11_edge_pixels"]
+__all__ = ["Cdlod", "CdlodSelection", "cdlod_ranges"]
 
 MORPH_FUDGE = 0.01  # the reference's errorFudge: morph_end pulled 1% toward morph_start
 
@@ -271,43 +270,3 @@ class Cdlod:
         sel = self.select(camera)
         select_ms = (time.perf_counter() - t0) * 1e3
         return self.mesh(camera, sel), select_ms, sel
-
-
-# ------------------------------------------------------------------------------------------------
-# issue item 4: the NVIDIA DX11 terrain sample's per-edge factor
-# ------------------------------------------------------------------------------------------------
-def dx11_edge_pixels(heightmap: Heightmap, camera: Camera, origin: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """(P, 4) float64 the NVIDIA DX11 terrain tessellation sample's per-edge screen size, in the same units
-    and edge order as :func:`terrainwarp.lod.policies.edge_pixels` (so both divide by a target in pixels).
-
-    The sample (``SphereToScreenSpaceTessellation``, hull shader) projects a sphere around each edge: the
-    view-space edge midpoint ``c`` and ``c + (D, 0, 0)`` (``D`` the tile's side, the sphere's diameter) are
-    projected, their NDC x difference is scaled by the screen size (skipping the NDC-to-pixel halving), and
-    the factor is ``clamp(that / g_tessellatedTriWidth, 0, 64)``. In pixels::
-
-        dx11 = 2 * D * focal_px / z_view        (z_view: the midpoint's depth along the view axis)
-        ours = L * focal_px / d                 (edge_pixels: L the 3-D edge length, d the eye distance)
-
-    so ``dx11 = ours * 2 * (D / L) * (d / z_view)``. **Not the same rule**: it equals ours exactly with
-    ``target_px = tri_width / 2`` only for a level edge (``L = D``) whose midpoint lies on the view axis
-    (``d = z_view``). Off axis it asks for more triangles by ``d / z_view = 1 / cos(angle off the view
-    axis)`` (up to 1.25 in the corners of a 60-degree 16:9 view), and on a slope fewer by ``D / L`` (the
-    sample's diameter is horizontal); both rules are symmetric in the edge's endpoints, so both are
-    crack-free. The sample then rounds factors at LOD neighbours up to powers of two, which ours does not
-    need (fractional spacing with matching edge factors).
-
-    Args:
-        origin: (P, 2) float64 world (x, z) of each patch's (u, v) = (0, 0) corner; size: (P, 2) its extent.
-    """
-    view = camera.view_matrix()
-    x0, z0 = origin[:, 0], origin[:, 1]
-    out = []
-    for (ua, va), (ub, vb) in EDGES:
-        xa, za = x0 + ua * size[:, 0], z0 + va * size[:, 1]
-        xb, zb = x0 + ub * size[:, 0], z0 + vb * size[:, 1]
-        ya, yb = heightmap.sample(xa, za).astype(np.float64), heightmap.sample(xb, zb).astype(np.float64)
-        mid = np.stack([0.5 * (xa + xb), 0.5 * (ya + yb), 0.5 * (za + zb), np.ones_like(xa)], 1)
-        z_view = -(mid @ view.T)[:, 2]
-        diam = np.hypot(xb - xa, zb - za)
-        out.append(np.where(z_view > 0, 2.0 * diam * camera.focal_px / np.where(z_view > 0, z_view, 1.0), np.inf))
-    return np.stack(out, 1)

@@ -5,7 +5,8 @@ What a policy *is* (its name, the ``LodConfig`` field that holds its parameter, 
 way is coarser, how its numbers are validated) is the table ``terrainwarp.scene.POLICY_TABLE``; this module
 maps each row to a class. The continuous factor rule (:func:`edge_pixels`, :func:`continuous_factors`)
 is the one used by :func:`terrainwarp.lod.select`, the fit's relaxed model and the differentiable path
-(which evaluate the same function with ``jax.numpy``).
+(which evaluate the same function with ``jax.numpy``). Beside it, :func:`dx11_edge_pixels`: the NVIDIA DX11
+terrain sample's per-edge screen size, and how it maps onto ``edge_pixels`` (not the same rule).
 """
 
 from __future__ import annotations
@@ -16,11 +17,12 @@ from types import ModuleType
 
 import numpy as np
 
+from ..camera import Camera
 from ..heightmap import Heightmap
 from ..scene import MAX_TESS, POLICY_TABLE, LodConfig, check_policy_numbers
 
 __all__ = ["DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "Policy", "POLICY_CLASSES", "make_policy",
-           "check_policy", "edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES"]
+           "check_policy", "edge_pixels", "dx11_edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES"]
 
 # the projected length given to an edge whose midpoint is the eye (distance 0): any target gives MAX_TESS,
 # and it stays finite so that float32 derivatives through the rule stay finite (zero where clamped)
@@ -140,6 +142,43 @@ def edge_pixels(heightmap: Heightmap, eye: tuple[float, float, float], focal_px:
             px = np.where(d > 0, length * focal_px / np.where(d > 0, d, 1.0), EDGE_PX_MAX)
         out.append(np.minimum(px, EDGE_PX_MAX))
     return np.stack(out, axis=1)
+
+
+def dx11_edge_pixels(heightmap: Heightmap, camera: Camera, origin: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """(P, 4) float64 the NVIDIA DX11 terrain tessellation sample's per-edge screen size, in the same units
+    and edge order as :func:`terrainwarp.lod.policies.edge_pixels` (so both divide by a target in pixels).
+
+    The sample (``SphereToScreenSpaceTessellation``, hull shader) projects a sphere around each edge: the
+    view-space edge midpoint ``c`` and ``c + (D, 0, 0)`` (``D`` the tile's side, the sphere's diameter) are
+    projected, their NDC x difference is scaled by the screen size (skipping the NDC-to-pixel halving), and
+    the factor is ``clamp(that / g_tessellatedTriWidth, 0, 64)``. In pixels::
+
+        dx11 = 2 * D * focal_px / z_view        (z_view: the midpoint's depth along the view axis)
+        ours = L * focal_px / d                 (edge_pixels: L the 3-D edge length, d the eye distance)
+
+    so ``dx11 = ours * 2 * (D / L) * (d / z_view)``. **Not the same rule**: it equals ours exactly with
+    ``target_px = tri_width / 2`` only for a level edge (``L = D``) whose midpoint lies on the view axis
+    (``d = z_view``). Off axis it asks for more triangles by ``d / z_view = 1 / cos(angle off the view
+    axis)`` (up to 1.25 in the corners of a 60-degree 16:9 view), and on a slope fewer by ``D / L`` (the
+    sample's diameter is horizontal); both rules are symmetric in the edge's endpoints, so both are
+    crack-free. The sample then rounds factors at LOD neighbours up to powers of two, which ours does not
+    need (fractional spacing with matching edge factors).
+
+    Args:
+        origin: (P, 2) float64 world (x, z) of each patch's (u, v) = (0, 0) corner; size: (P, 2) its extent.
+    """
+    view = camera.view_matrix()
+    x0, z0 = origin[:, 0], origin[:, 1]
+    out = []
+    for (ua, va), (ub, vb) in EDGES:
+        xa, za = x0 + ua * size[:, 0], z0 + va * size[:, 1]
+        xb, zb = x0 + ub * size[:, 0], z0 + vb * size[:, 1]
+        ya, yb = heightmap.sample(xa, za).astype(np.float64), heightmap.sample(xb, zb).astype(np.float64)
+        mid = np.stack([0.5 * (xa + xb), 0.5 * (ya + yb), 0.5 * (za + zb), np.ones_like(xa)], 1)
+        z_view = -(mid @ view.T)[:, 2]
+        diam = np.hypot(xb - xa, zb - za)
+        out.append(np.where(z_view > 0, 2.0 * diam * camera.focal_px / np.where(z_view > 0, z_view, 1.0), np.inf))
+    return np.stack(out, 1)
 
 
 def continuous_factors(edge_px, target_px, xp: ModuleType = np, clamp: Callable | None = None):

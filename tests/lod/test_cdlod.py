@@ -17,8 +17,8 @@ from scheme_checks import (
 
 from terrainwarp import Heightmap
 from terrainwarp.camera import Camera
-from terrainwarp.lod.cdlod import Cdlod, cdlod_ranges, dx11_edge_pixels
-from terrainwarp.lod.policies import edge_pixels
+from terrainwarp.lod.cdlod import Cdlod, cdlod_ranges
+from terrainwarp.lod.policies import dx11_edge_pixels, edge_pixels
 from terrainwarp.measure.sample_error import surface_heights
 from terrainwarp.rendering.sources import CdlodSource
 
