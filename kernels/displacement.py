@@ -57,6 +57,18 @@ def _grid_vertices_kernel(
     out_uv[k] = wp.vec2(float(j) / float(wp.max(w - 1, 1)), float(i) / float(wp.max(h.shape[0] - 1, 1)))
 
 
+@wp.func
+def write_quad(out_tri: wp.array2d(dtype=wp.int32), t: int, v00: int, v01: int, v10: int, v11: int):
+    """Quad (v00, v01 one step along +x, v10 one step along +z, v11) as triangles t and t + 1 of the grid
+    mesh's split: (v00, v10, v01), (v01, v10, v11), counter-clockwise seen from +y."""
+    out_tri[t, 0] = v00
+    out_tri[t, 1] = v10
+    out_tri[t, 2] = v01
+    out_tri[t + 1, 0] = v01
+    out_tri[t + 1, 1] = v10
+    out_tri[t + 1, 2] = v11
+
+
 @wp.kernel(enable_backward=False)
 def _grid_triangles_kernel(
     offset: int,
@@ -71,13 +83,7 @@ def _grid_triangles_kernel(
     v00 = i * w + j
     v01 = v00 + 1
     v10 = v00 + w
-    v11 = v10 + 1
-    out_tri[t, 0] = v00
-    out_tri[t, 1] = v10
-    out_tri[t, 2] = v01
-    out_tri[t + 1, 0] = v01
-    out_tri[t + 1, 1] = v10
-    out_tri[t + 1, 2] = v11
+    write_quad(out_tri, t, v00, v01, v10, v10 + 1)
 
 
 @wp.func

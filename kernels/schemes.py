@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .displacement import write_quad
 from .lod import box_outside
 from .parallel import empty, launch
 from .sampling import sample_bilinear
@@ -41,16 +42,6 @@ def _uv(h: wp.array2d(dtype=wp.float32), cx: float, cz: float) -> wp.vec2:
     x = wp.clamp(cx, 0.0, float(h.shape[1] - 1))
     z = wp.clamp(cz, 0.0, float(h.shape[0] - 1))
     return wp.vec2(x / float(wp.max(h.shape[1] - 1, 1)), z / float(wp.max(h.shape[0] - 1, 1)))
-
-
-@wp.func
-def _write_quad(out_tri: wp.array2d(dtype=wp.int32), t: int, v00: int, v01: int, v10: int, v11: int):
-    out_tri[t, 0] = v00
-    out_tri[t, 1] = v10
-    out_tri[t, 2] = v01
-    out_tri[t + 1, 0] = v01
-    out_tri[t + 1, 1] = v10
-    out_tri[t + 1, 2] = v11
 
 
 @wp.func
@@ -142,7 +133,7 @@ def _item_triangles_kernel(
     a = r % n
     b = r / n
     v00 = item * stride + b * (n + 1) + a
-    _write_quad(out_tri, 2 * k, v00, v00 + 1, v00 + n + 1, v00 + n + 2)
+    write_quad(out_tri, 2 * k, v00, v00 + 1, v00 + n + 1, v00 + n + 2)
 
 
 @wp.func
@@ -214,7 +205,7 @@ def _chunk_triangles_kernel(
         if t % 2 == 0:
             q = t / 2
             v00 = base + (q / n) * (n + 1) + q % n
-            _write_quad(out_tri, start + t, v00, v00 + 1, v00 + n + 1, v00 + n + 2)
+            write_quad(out_tri, start + t, v00, v00 + 1, v00 + n + 1, v00 + n + 2)
         return
     s = t - 2 * n * n
     e = s / (2 * n)
@@ -380,7 +371,7 @@ def _clipmap_emit_kernel(
         idx = _block_quads(li, bx, by, block, n, hole, lv_origin, lv_spacing, cols, rows, q)
         if idx >= 0:
             v00 = li * n * n + (idx / (n - 1)) * n + idx % (n - 1)
-            _write_quad(out_tri, t, v00, v00 + 1, v00 + n, v00 + n + 1)
+            write_quad(out_tri, t, v00, v00 + 1, v00 + n, v00 + n + 1)
             t += 2
 
 
