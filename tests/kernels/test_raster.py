@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import hashlib
-
 import gl_raster_oracle as gl  # noqa: E402
 import numpy as np
 import pytest
+from conftest import digest
 
 import terrainwarp as tw
 from terrainwarp.kernels.raster import SUBPIXEL, clip_coordinates, rasterize, rasterize_clip
@@ -37,10 +36,7 @@ def coverage_counts(clip, tris, width, height):
 
 
 def frame_hash(f) -> str:
-    h = hashlib.sha256()
-    for a in (f.triangle_id, f.depth, f.barycentrics):
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
+    return digest(f.triangle_id, f.depth, f.barycentrics)
 
 
 def terrain_frame(rows=96, width=160, height=120):

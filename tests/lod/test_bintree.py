@@ -3,11 +3,11 @@ formula, the paper's hole fixing (and its counter-example), forced split propaga
 
 from __future__ import annotations
 
-import hashlib
 import math
 
 import numpy as np
 import pytest
+from conftest import digest
 
 import terrainwarp as tw
 from terrainwarp.lod.bintree import Bintree, lod_threshold, select_bintree
@@ -299,14 +299,11 @@ def test_frustum_culling_keeps_every_triangle_the_rasterizer_shows(fbm_tree):
 def test_deterministic(dem_tree):
     cam = _ground_path(dem_tree, 5)[3]
 
-    def digest() -> str:
+    def run() -> str:
         f = select_bintree(dem_tree, cam)
-        h = hashlib.sha256()
-        for a in (f.mesh.positions, f.mesh.triangles, f.node):
-            h.update(np.ascontiguousarray(a).tobytes())
-        return h.hexdigest()
+        return digest(f.mesh.positions, f.mesh.triangles, f.node)
 
-    assert digest() == digest()
+    assert run() == run()
     t2 = Bintree.build(tw.Heightmap.example(), 16)
     assert np.array_equal(t2.arrays["vertex_height"].numpy(), dem_tree.arrays["vertex_height"].numpy())
 

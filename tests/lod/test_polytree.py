@@ -3,11 +3,10 @@ sequential Python reference, multi-tolerance reuse, coverage, watertight triangu
 
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
 import pytest
 import warp as wp
+from conftest import digest
 
 from terrainwarp import Camera, Heightmap, check_watertight, rasterize
 from terrainwarp.kernels.polytree import FLAG_HIGH_J, FLAG_LOW_J
@@ -222,11 +221,8 @@ def test_deterministic_across_runs():
     for _ in range(2):
         pt = build_polytree(hm, tols)
         m = pt.mesh(5)
-        dg = hashlib.sha256()
-        for a in (pt.polygons.rects, pt.polygons.grads, pt.polygons.flags, pt.polygons.start, m.positions,
-                  m.triangles):
-            dg.update(np.ascontiguousarray(a).tobytes())
-        digests.append(dg.hexdigest())
+        digests.append(digest(pt.polygons.rects, pt.polygons.grads, pt.polygons.flags, pt.polygons.start,
+                              m.positions, m.triangles))
     assert digests[0] == digests[1]
 
 

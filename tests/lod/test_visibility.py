@@ -3,10 +3,9 @@ rasterizer from sampled ground viewpoints, toggling equals recomputing, storage 
 
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
 import pytest
+from conftest import digest
 
 import terrainwarp as tw
 from terrainwarp.lod.bintree import Bintree, select_bintree
@@ -175,14 +174,11 @@ def test_storage_is_the_changes(fbm_tree):
 
 
 def test_deterministic(fbm_tree):
-    def digest() -> str:
+    def run() -> str:
         t = precompute_visibility(fbm_tree, 4, 8)
-        h = hashlib.sha256()
-        for a in (t.base, t.right_ptr, t.right_ids, t.down_ptr, t.down_ids):
-            h.update(np.ascontiguousarray(a).tobytes())
-        return h.hexdigest()
+        return digest(t.base, t.right_ptr, t.right_ids, t.down_ptr, t.down_ids)
 
-    assert digest() == digest()
+    assert run() == run()
 
 
 def test_bad_input(fbm_tree):
