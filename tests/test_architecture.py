@@ -21,6 +21,7 @@ finding anything fails too.
 from __future__ import annotations
 
 import ast
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -502,3 +503,12 @@ def test_lazy_import_of_a_module_that_imports_a_heavy_library_is_allowed(tmp_pat
     assert heavy_modules(mods) == {"terrainwarp.fit.diffpath", "terrainwarp.fit.relaxed"}
     assert function_imports(mods, tmp_path) == ["terrainwarp/fit/lod_fit.py:4: terrainwarp.fit.typed (z)",
                                                 "terrainwarp/fit/lod_fit.py:5: terrainwarp.fit.typed (typed)"]
+
+
+def test_every_package_is_in_the_wheel():
+    # an editable install finds an unlisted subpackage on disk; a wheel built from pyproject.toml would not
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    on_disk = {"terrainwarp." + ".".join(p.parent.relative_to(ROOT / "terrainwarp").parts)
+               for p in (ROOT / "terrainwarp").rglob("__init__.py") if p.parent != ROOT / "terrainwarp"}
+    assert on_disk | {"terrainwarp", "terrainwarp.kernels"} == listed, sorted(on_disk ^ (listed - {"terrainwarp",
+                                                                                                 "terrainwarp.kernels"}))
