@@ -16,12 +16,21 @@ Hysteresis (malafeev2014: separate thresholds for going to a finer and to a coar
 threshold (``tolerance * (1 - h)`` for sse, ``threshold * (1 + h)`` for distance), and a node that was
 not split splits only past the *split* threshold (``tolerance * (1 + h)``, ``threshold * (1 - h)``).
 "Was split" is looked up by binary search in the sorted keys of the previous frame's split nodes.
+
+The tree map (:func:`tree_map`, :func:`mark_nodes`, :func:`neighbour_levels`): one int32 cell per node of
+every level of the complete tree (level L's ``(nz << L) x (nx << L)`` nodes row-major after the levels
+above it, like the terrain's per-level pyramids), holding ``leaf index + 1`` for a leaf, ``-1`` for a
+split node and 0 for a node inside a coarser leaf. The leaf containing any finest-level cell is then
+found by walking from a guessed level: down through split nodes, up through nodes that are not in the
+tree. Neighbour levels cost a few lookups per edge, linear in the number of leaves.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import warp as wp
+
+from .parallel import launch
 
 
 @wp.func
@@ -150,3 +159,107 @@ def select_level(node_x: np.ndarray, node_y: np.ndarray, node_key: np.ndarray, s
         wp.array(prev if len(prev) else np.zeros(1, np.int64), dtype=wp.int64, device=device), int(len(prev))],
         outputs=arrs, device=device)
     return tuple(a.numpy() for a in arrs)
+
+
+# ------------------------------------------------------------------------------------------------
+# the tree map: point location in a quadtree tiling, linear in the leaves
+# ------------------------------------------------------------------------------------------------
+@wp.func
+def _tree_cell(level: int, x: int, y: int, nx: int, n_roots: int) -> int:
+    """Index of node (level, x, y) in the tree map: the levels above, then row-major in the level."""
+    return n_roots * (((1 << (2 * level)) - 1) / 3) + y * (nx << level) + x
+
+
+@wp.func
+def _leaf_at(tree: wp.array(dtype=wp.int32), fx: int, fy: int, start: int, depth: int, nx: int, nz: int) -> int:
+    """Index of the leaf containing finest-level cell (fx, fy) (-1: outside the root grid), walking from
+    level ``start``: down through split nodes, up through nodes inside a coarser leaf."""
+    if fx < 0 or fy < 0 or fx >= (nx << depth) or fy >= (nz << depth):
+        return -1
+    m = int(start)
+    c = tree[_tree_cell(m, fx >> (depth - m), fy >> (depth - m), nx, nx * nz)]
+    while c <= 0:
+        if c < 0:
+            m = m + 1
+        else:
+            m = m - 1
+        c = tree[_tree_cell(m, fx >> (depth - m), fy >> (depth - m), nx, nx * nz)]
+    return c - 1
+
+
+@wp.kernel(enable_backward=False)
+def _mark_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.int32),
+                 y: wp.array(dtype=wp.int32), value: wp.array(dtype=wp.int32), nx: int, n_roots: int,
+                 tree: wp.array(dtype=wp.int32)):
+    i = wp.tid() + offset
+    tree[_tree_cell(level[i], x[i], y[i], nx, n_roots)] = value[i]
+
+
+@wp.func
+def _probe_level(tree: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32), fx: int, fy: int,
+                 start: int, depth: int, nx: int, nz: int) -> int:
+    j = _leaf_at(tree, fx, fy, start, depth, nx, nz)
+    if j < 0:
+        return -1
+    return level_of[j]
+
+
+@wp.kernel(enable_backward=False)
+def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.int32),
+                      y: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32),
+                      tree: wp.array(dtype=wp.int32), depth: int, nx: int, nz: int,
+                      out: wp.array2d(dtype=wp.int32)):
+    i = wp.tid() + offset
+    lv = level[i]
+    sh = depth - lv
+    s = 1 << sh
+    q1 = s / 4
+    q3 = (3 * s) / 4
+    x0 = x[i] << sh
+    y0 = y[i] << sh
+    # probes just outside each edge at 1/4 and 3/4 of its length: west, north, east, south
+    out[i, 0] = wp.max(_probe_level(tree, level_of, x0 - 1, y0 + q1, lv, depth, nx, nz),
+                       _probe_level(tree, level_of, x0 - 1, y0 + q3, lv, depth, nx, nz))
+    out[i, 1] = wp.max(_probe_level(tree, level_of, x0 + q1, y0 - 1, lv, depth, nx, nz),
+                       _probe_level(tree, level_of, x0 + q3, y0 - 1, lv, depth, nx, nz))
+    out[i, 2] = wp.max(_probe_level(tree, level_of, x0 + s, y0 + q1, lv, depth, nx, nz),
+                       _probe_level(tree, level_of, x0 + s, y0 + q3, lv, depth, nx, nz))
+    out[i, 3] = wp.max(_probe_level(tree, level_of, x0 + q1, y0 + s, lv, depth, nx, nz),
+                       _probe_level(tree, level_of, x0 + q3, y0 + s, lv, depth, nx, nz))
+
+
+def tree_map(roots: tuple[int, int], depth: int, device: str = "cpu") -> wp.array:
+    """An empty tree map (every cell 0) for ``roots`` = (nx, nz) root nodes and levels 0..depth."""
+    n = roots[0] * roots[1] * ((4 ** (depth + 1) - 1) // 3)
+    if wp.get_device(device).is_cpu:  # calloc'd: only the pages a frame touches are ever zeroed
+        return wp.array(np.zeros(n, np.int32), dtype=wp.int32, device=device, copy=False)
+    return wp.zeros(n, dtype=wp.int32, device=device)
+
+
+def _i32(a: np.ndarray, device: str) -> wp.array:
+    return wp.array(np.ascontiguousarray(a, np.int32), dtype=wp.int32, device=device)
+
+
+def mark_nodes(tree: wp.array, roots: tuple[int, int], level: np.ndarray, x: np.ndarray, y: np.ndarray,
+               value: np.ndarray | int) -> None:
+    """Write ``value`` (leaf index + 1, or -1 for a split node) into the cells of nodes (level, x, y)."""
+    n = len(level)
+    if n == 0:
+        return
+    dev = tree.device
+    v = np.broadcast_to(np.asarray(value, np.int32), (n,))
+    launch(_mark_kernel, n, inputs=[_i32(level, dev), _i32(x, dev), _i32(y, dev), _i32(v, dev), int(roots[0]),
+                                    int(roots[0] * roots[1])], outputs=[tree], device=dev)
+
+
+def neighbour_levels(tree: wp.array, roots: tuple[int, int], depth: int, level: np.ndarray, x: np.ndarray,
+                     y: np.ndarray, level_of: np.ndarray) -> np.ndarray:
+    """(n, 4) int32: for each node (level, x, y), the largest ``level_of[leaf]`` of the leaves just across
+    its west, north, east and south edges (probed at 1/4 and 3/4 of the edge, which finds any leaf finer
+    than level + 1); -1 beyond the root grid."""
+    n = len(level)
+    dev = tree.device
+    out = wp.empty((n, 4), dtype=wp.int32, device=dev)
+    launch(_neighbour_kernel, n, inputs=[_i32(level, dev), _i32(x, dev), _i32(y, dev), _i32(level_of, dev), tree,
+                                         int(depth), int(roots[0]), int(roots[1])], outputs=[out], device=dev)
+    return out.numpy()

@@ -45,7 +45,7 @@ import warp as wp
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..io.files import write_text
-from ..kernels.lod import frustum_planes, select_level
+from ..kernels.lod import frustum_planes, mark_nodes, neighbour_levels, select_level, tree_map
 from ..kernels.pyramid import node_stats
 from ..scene import check_roots, check_tess
 from .policies import (
@@ -261,76 +261,6 @@ class LodState:
 
 
 # ------------------------------------------------------------------------------------------------
-# Morton helpers (host, vectorised)
-# ------------------------------------------------------------------------------------------------
-def _part1by1(v: np.ndarray) -> np.ndarray:
-    v = v.astype(np.uint64) & np.uint64(0xFFFFFFFF)
-    v = (v | (v << np.uint64(16))) & np.uint64(0x0000FFFF0000FFFF)
-    v = (v | (v << np.uint64(8))) & np.uint64(0x00FF00FF00FF00FF)
-    v = (v | (v << np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
-    v = (v | (v << np.uint64(2))) & np.uint64(0x3333333333333333)
-    v = (v | (v << np.uint64(1))) & np.uint64(0x5555555555555555)
-    return v
-
-
-def _finest_code(fx: np.ndarray, fy: np.ndarray, depth: int, nx: int) -> np.ndarray:
-    """Global ordering key of finest-level cells: root index (row-major) then Morton code in the root."""
-    r = (fy >> depth).astype(np.uint64) * np.uint64(nx) + (fx >> depth).astype(np.uint64)
-    mask = (1 << depth) - 1
-    m = _part1by1(fx & mask) | (_part1by1(fy & mask) << np.uint64(1))
-    return (r << np.uint64(2 * depth)) | m
-
-
-class _Leaves:
-    """The leaves of the tree sorted by their first finest-level cell, for O(log n) point location."""
-
-    def __init__(self, level, x, y, depth, nx, nz):
-        shift = depth - level
-        self.fx0 = (x.astype(np.int64) << shift)
-        self.fy0 = (y.astype(np.int64) << shift)
-        self.size = (np.int64(1) << shift.astype(np.int64))
-        code = _finest_code(self.fx0, self.fy0, depth, nx)
-        order = np.argsort(code, kind="stable")
-        self.order = order
-        self.code = code[order]
-        self.level = level
-        self.depth, self.nx, self.nz = depth, nx, nz
-
-    def locate(self, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
-        """Index (into the unsorted leaf arrays) of the leaf containing each finest cell; -1 outside."""
-        n_fx, n_fy = self.nx << self.depth, self.nz << self.depth
-        ok = (fx >= 0) & (fy >= 0) & (fx < n_fx) & (fy < n_fy)
-        out = np.full(fx.shape, -1, np.int64)
-        if ok.any():
-            c = _finest_code(fx[ok], fy[ok], self.depth, self.nx)
-            pos = np.searchsorted(self.code, c, side="right") - 1
-            out[ok] = self.order[pos]
-        return out
-
-    def neighbour_levels(self, leaf_level: np.ndarray, level_of: np.ndarray) -> np.ndarray:
-        """(n, 4) max level of the leaves across each edge (west, north, east, south), probing just
-        outside the edge at 1/4 and 3/4 of its length (which finds any leaf finer than level + 1)."""
-        s = self.size
-        q1 = s // 4
-        q3 = (3 * s) // 4
-        x0, y0 = self.fx0, self.fy0
-        probes = [  # (fx, fy) pairs per edge: u=0 west, v=0 north, u=1 east, v=1 south
-            ((x0 - 1, y0 + q1), (x0 - 1, y0 + q3)),
-            ((x0 + q1, y0 - 1), (x0 + q3, y0 - 1)),
-            ((x0 + s, y0 + q1), (x0 + s, y0 + q3)),
-            ((x0 + q1, y0 + s), (x0 + q3, y0 + s)),
-        ]
-        out = np.empty((len(x0), 4), np.int32)
-        for e, ((ax, ay), (bx, by)) in enumerate(probes):
-            ia = self.locate(ax, ay)
-            ib = self.locate(bx, by)
-            la = np.where(ia >= 0, level_of[np.maximum(ia, 0)], -1)
-            lb = np.where(ib >= 0, level_of[np.maximum(ib, 0)], -1)
-            out[:, e] = np.maximum(la, lb)
-        return out
-
-
-# ------------------------------------------------------------------------------------------------
 # selection
 # ------------------------------------------------------------------------------------------------
 class _View(NamedTuple):
@@ -348,7 +278,8 @@ def _view(terrain: Terrain, camera: Camera) -> _View:
 
 class _Nodes(NamedTuple):
     """Leaves of the tiling being built (structure of arrays): level, x, y, eye distance, policy metric,
-    frustum-culled, and outside the sample grid (never drawn; they only complete the tiling)."""
+    frustum-culled, outside the sample grid (never drawn; they only complete the tiling), and alive (a
+    leaf the balance split stays in place, not alive, so that indices into the arrays never move)."""
 
     level: np.ndarray
     x: np.ndarray
@@ -357,11 +288,35 @@ class _Nodes(NamedTuple):
     metric: np.ndarray
     culled: np.ndarray
     outside: np.ndarray
+    alive: np.ndarray
 
-    def replace_split(self, split: np.ndarray, children: _Nodes) -> _Nodes:
-        """These nodes without the ``split`` ones, followed by ``children``."""
-        keep = ~split
-        return _Nodes(*(np.concatenate([a[keep], b]) for a, b in zip(self, children)))
+    def split(self, split: np.ndarray, children: _Nodes) -> _Nodes:
+        """These nodes with the ``split`` ones no longer alive, followed by ``children``."""
+        kept = self._replace(alive=self.alive & ~split)
+        return _Nodes(*(np.concatenate([a, b]) for a, b in zip(kept, children)))
+
+
+class _Tree(NamedTuple):
+    """The leaves and the tree map (:func:`terrainwarp.kernels.lod.tree_map`) that locates them."""
+
+    nodes: _Nodes
+    map: wp.array
+    roots: tuple[int, int]
+    depth: int
+
+    def neighbour_levels(self, level_of: np.ndarray) -> np.ndarray:
+        """(n, 4) largest ``level_of`` of the leaves across each edge of every node (-1: beyond the roots)."""
+        n = self.nodes
+        return neighbour_levels(self.map, self.roots, self.depth, n.level, n.x, n.y, level_of)
+
+    def split(self, split: np.ndarray, children: _Nodes) -> _Tree:
+        """Split leaves ``split`` into ``children`` (appended), in the arrays and in the map."""
+        n = self.nodes
+        mark_nodes(self.map, self.roots, n.level[split], n.x[split], n.y[split], -1)
+        first = len(n.level) + 1
+        mark_nodes(self.map, self.roots, children.level, children.x, children.y,
+                   np.arange(first, first + len(children.level), dtype=np.int32))
+        return self._replace(nodes=n.split(split, children))
 
 
 def _children(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -398,31 +353,31 @@ def select(terrain: Terrain, camera: Camera, policy: Policy | None = None, state
     check_policy(policy)
     view = _view(terrain, camera)
     prev = state.split_keys if (state is not None and policy.hysteresis > 0) else np.zeros(0, np.int64)
-    nodes, split_keys, visited = _descend(terrain, view, policy, prev, device)
-    # Every node that was not split and lies outside the grid is also a (never drawn) leaf of the tiling:
-    # add them so point location works everywhere; they take part in no decision.
-    nodes = _complete_tiling(terrain, nodes)
-    nodes, forced = _balance(terrain, view, policy, nodes, split_keys, device)
+    tree, split_keys, visited = _descend(terrain, view, policy, prev, device)
+    tree, forced = _balance(terrain, view, policy, tree, split_keys, device)
     if state is not None:
         sk = np.concatenate(split_keys) if split_keys else np.zeros(0, np.int64)
         state.split_keys = np.unique(sk)
         state.frames += 1
-    return _patch_list(terrain, camera, policy, nodes, {"nodes_visited": visited, "forced_splits": forced})
+    return _patch_list(terrain, camera, policy, tree, {"nodes_visited": visited, "forced_splits": forced})
 
 
 def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
-             device: str) -> tuple[_Nodes, list[np.ndarray], int]:
+             device: str) -> tuple[_Tree, list[np.ndarray], int]:
     """Level by level from the roots: one launch evaluates every candidate node of a level (distance,
-    frustum, policy); children of split nodes are the next level's candidates.
+    frustum, policy); children of split nodes are the next level's candidates. Candidates outside the
+    grid are leaves too (never drawn, deciding nothing): with them the leaves tile the root grid, so
+    that point location works everywhere.
 
-    Returns the leaves (all inside the grid), the keys of the split nodes (one array per level) and the
-    number of nodes visited."""
+    Returns the tree (leaves and map), the keys of the split nodes (one array per level) and the number
+    of (inside) nodes visited."""
     depth = terrain.depth
     fixed_level = min(policy.level, depth) if isinstance(policy, ContinuousPolicy) else None
-    parts, split_keys, visited = [], [], 0
+    parts, outside, inner, split_keys, visited = [], [], [], [], 0
     x, y = _root_grid(terrain)
     for lvl in range(depth + 1):
         keep = terrain.inside(lvl, x, y)
+        outside.append((lvl, x[~keep], y[~keep]))
         x, y = x[keep], y[keep]
         if len(x) == 0:
             break
@@ -440,24 +395,33 @@ def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
             sp = np.ones_like(sp)  # a uniform grid: everything splits down to the level
         split = sp.astype(bool)
         split_keys.append(keys[split])
+        inner.append((lvl, x[split], y[split]))
         leaf = ~split
-        parts.append((np.full(int(leaf.sum()), lvl, np.int32), x[leaf], y[leaf], di[leaf], me[leaf],
-                      cu[leaf].astype(bool), np.zeros(int(leaf.sum()), bool)))
+        n = int(leaf.sum())
+        parts.append((np.full(n, lvl, np.int32), x[leaf], y[leaf], di[leaf], me[leaf], cu[leaf].astype(bool),
+                      np.zeros(n, bool)))
         x, y = _children(x[split], y[split])
-    return _Nodes(*(np.concatenate(a) for a in zip(*parts))), split_keys, visited
+    for lvl, ox, oy in outside:
+        parts.append((np.full(len(ox), lvl, np.int32), ox, oy, np.zeros(len(ox), np.float32),
+                      np.zeros(len(ox), np.float32), np.ones(len(ox), bool), np.ones(len(ox), bool)))
+    nodes = _Nodes(*(np.concatenate(a) for a in zip(*parts)), np.ones(sum(len(p[0]) for p in parts), bool))
+    tmap = tree_map(terrain.roots, depth, device)
+    mark_nodes(tmap, terrain.roots, nodes.level, nodes.x, nodes.y, np.arange(1, len(nodes.level) + 1, dtype=np.int32))
+    for lvl, sx, sy in inner:
+        mark_nodes(tmap, terrain.roots, np.full(len(sx), lvl, np.int32), sx, sy, -1)
+    return _Tree(nodes, tmap, terrain.roots, depth), split_keys, visited
 
 
-def _balance(terrain: Terrain, view: _View, policy: Policy, nodes: _Nodes, split_keys: list[np.ndarray],
-             device: str) -> tuple[_Nodes, int]:
+def _balance(terrain: Terrain, view: _View, policy: Policy, tree: _Tree, split_keys: list[np.ndarray],
+             device: str) -> tuple[_Tree, int]:
     """2:1 balance: split leaves that have a neighbour more than one level finer, until stable (appends
-    the keys of the nodes it splits to ``split_keys``). Returns the balanced leaves and the number of
+    the keys of the nodes it splits to ``split_keys``). Returns the balanced tree and the number of
     forced splits."""
-    depth = terrain.depth
-    nx, nz = terrain.roots
     forced = 0
-    for _ in range(4 * (depth + 1) + 8):  # terminates: each pass only splits, and depth is bounded
-        nbr = _Leaves(nodes.level, nodes.x, nodes.y, depth, nx, nz).neighbour_levels(nodes.level, nodes.level)
-        bad = (nbr.max(axis=1) > nodes.level + 1) & ~nodes.outside
+    for _ in range(4 * (terrain.depth + 1) + 8):  # terminates: each pass only splits, and depth is bounded
+        nodes = tree.nodes
+        nbr = tree.neighbour_levels(nodes.level)
+        bad = (nbr.max(axis=1) > nodes.level + 1) & ~nodes.outside & nodes.alive
         if not bad.any():
             break
         forced += int(bad.sum())
@@ -466,19 +430,21 @@ def _balance(terrain: Terrain, view: _View, policy: Policy, nodes: _Nodes, split
         nxs, nys = _children(bx, by)
         split_keys.append(tile_key(bl, bx, by))
         nd, nm, nc = _child_stats(terrain, view, nl, nxs, nys, policy, device)
-        nodes = nodes.replace_split(bad, _Nodes(nl, nxs, nys, nd, nm, nc, ~_inside_many(terrain, nl, nxs, nys)))
-    return nodes, forced
+        tree = tree.split(bad, _Nodes(nl, nxs, nys, nd, nm, nc, ~_inside_many(terrain, nl, nxs, nys),
+                                      np.ones(len(nl), bool)))
+    return tree, forced
 
 
-def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, nodes: _Nodes, counts: dict) -> PatchList:
+def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, counts: dict) -> PatchList:
     """The drawn leaves (inside the grid, not culled) in key order, with their neighbours' levels, world
     extents and edge factors; ``counts``: the descent's ``nodes_visited`` and the balance's ``forced_splits``."""
     hm = terrain.heightmap
     nx, nz = terrain.roots
-    leaves = _Leaves(nodes.level, nodes.x, nodes.y, terrain.depth, nx, nz)
-    nbr = leaves.neighbour_levels(nodes.level, np.where(nodes.outside, -1, nodes.level))
-    draw = ~nodes.outside & ~nodes.culled
-    n_culled = int((~nodes.outside & nodes.culled).sum())
+    nodes = tree.nodes
+    nbr = tree.neighbour_levels(np.where(nodes.outside, -1, nodes.level))
+    leaf = nodes.alive & ~nodes.outside
+    draw = leaf & ~nodes.culled
+    n_culled = int((leaf & nodes.culled).sum())
     level, lx, ly, nbr, dist, metric = (a[draw] for a in (nodes.level, nodes.x, nodes.y, nbr, nodes.dist,
                                                           nodes.metric))
     # deterministic order: by key
@@ -490,7 +456,7 @@ def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, nodes: _Nodes,
     origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
     size = np.stack([s_cells * hm.dx, s_cells * hm.dz], axis=1)
     outer, inner = _edge_factors(terrain, camera, policy, level, nbr, origin, size)
-    stats = {"nodes_visited": counts["nodes_visited"], "leaves": int((~nodes.outside).sum()), "culled": n_culled,
+    stats = {"nodes_visited": counts["nodes_visited"], "leaves": int(leaf.sum()), "culled": n_culled,
              "patches": int(len(level)), "forced_splits": counts["forced_splits"],
              "max_level": int(level.max()) if len(level) else -1, "roots": nx * nz, "depth": terrain.depth,
              "tess": terrain.tess}
@@ -527,35 +493,6 @@ def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
         m = level == lv
         out[m] = terrain.stats[int(lv)][2][ly[m], lx[m]]
     return out
-
-
-def _complete_tiling(terrain: Terrain, nodes: _Nodes) -> _Nodes:
-    """Add the outside-the-grid nodes that complete the tiling of the root grid (never drawn)."""
-    nx, nz = terrain.roots
-    level, lx, ly = nodes.level, nodes.x, nodes.y
-    covered = _Leaves(level, lx, ly, terrain.depth, nx, nz) if len(level) else None
-    add_l, add_x, add_y = [], [], []
-    # candidate outside nodes: children of split inside nodes, and roots, that are outside the grid
-    x, y = _root_grid(terrain)
-    for lvl in range(terrain.depth + 1):
-        ins = _inside_many(terrain, np.full(len(x), lvl), x, y)
-        ox, oy = x[~ins], y[~ins]
-        add_l.append(np.full(len(ox), lvl, np.int32))
-        add_x.append(ox)
-        add_y.append(oy)
-        x, y = x[ins], y[ins]
-        if covered is None or len(x) == 0:
-            break
-        # inside nodes that are leaves stop here; others (split) continue with their children
-        shift = terrain.depth - lvl
-        idx = covered.locate(x << shift, y << shift)
-        is_leaf = (level[idx] == lvl) & (lx[idx] == x) & (ly[idx] == y)
-        x, y = _children(x[~is_leaf], y[~is_leaf])
-    al = np.concatenate(add_l)
-    n = len(al)
-    added = _Nodes(al, np.concatenate(add_x), np.concatenate(add_y), np.zeros(n, np.float32),
-                   np.zeros(n, np.float32), np.ones(n, bool), np.ones(n, bool))
-    return nodes.replace_split(np.zeros(len(level), bool), added)
 
 
 def _child_stats(terrain: Terrain, view: _View, nl: np.ndarray, nxs: np.ndarray, nys: np.ndarray, policy: Policy,
