@@ -46,17 +46,17 @@ per-edge factor compared with the ``continuous`` policy.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
-from ..kernels.lod import frustum_planes, select_level
+from ..kernels.lod import select_level
 from ..kernels.schemes import cdlod_mesh
 from ..mesh import Mesh
 from .quadtree import Terrain, tile_key
+from .scheme import SelectThenMesh, root_nodes, view_of
 
 __all__ = ["Cdlod", "CdlodSelection", "cdlod_ranges"]
 
@@ -99,7 +99,7 @@ class CdlodSelection:
 
 
 @dataclass(eq=False)
-class Cdlod:
+class Cdlod(SelectThenMesh):
     """CDLOD over a heightmap (see the module docstring).
 
     Args:
@@ -174,11 +174,8 @@ class Cdlod:
         """The quadrants to draw from ``camera`` (host selection, one select-level launch per tree level)."""
         t = self.terrain
         rng, start, _ = self.ranges()
-        rel = relative_origin(self.heightmap.origin, camera.position)
-        planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
-        nx, nz = t.roots
-        yy, xx = np.meshgrid(np.arange(nz, dtype=np.int64), np.arange(nx, dtype=np.int64), indexing="ij")
-        x, y = xx.reshape(-1), yy.reshape(-1)
+        rel, planes = view_of(self.heightmap, camera)
+        x, y = root_nodes(t)
         out: list[tuple[np.ndarray, np.ndarray, int, int]] = []  # (x, y, tree level, lod of the drawn grid)
         visited = culled = too_small = 0
         for lvl in range(t.depth + 1):
@@ -264,9 +261,3 @@ class Cdlod:
                                              device=self.device)
         return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
 
-    def frame(self, camera: Camera) -> tuple[Mesh, float, CdlodSelection]:
-        """Select and mesh; returns (mesh, selection ms, selection)."""
-        t0 = time.perf_counter()
-        sel = self.select(camera)
-        select_ms = (time.perf_counter() - t0) * 1e3
-        return self.mesh(camera, sel), select_ms, sel

@@ -37,17 +37,17 @@ the way Cesium's quantized-mesh terrain hides cracks).
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
-from ..kernels.lod import frustum_planes, select_level
+from ..kernels.lod import select_level
 from ..kernels.schemes import chunk_mesh
 from ..mesh import Mesh
 from .quadtree import Terrain, tile_key
+from .scheme import SelectThenMesh, root_nodes, view_of
 
 __all__ = ["ChunkedLod", "ChunkSelection", "DEFAULT_MAX_SSE_PX"]
 
@@ -82,7 +82,7 @@ class ChunkSelection:
 
 
 @dataclass(eq=False)
-class ChunkedLod:
+class ChunkedLod(SelectThenMesh):
     """Chunked LOD with skirts over a heightmap (see the module docstring).
 
     Args:
@@ -120,11 +120,8 @@ class ChunkedLod:
     def select(self, camera: Camera) -> ChunkSelection:
         """Screen-space-error selection (one select-level launch per tree level), neighbours and skirts."""
         t = self.terrain
-        rel = relative_origin(self.heightmap.origin, camera.position)
-        planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
-        nx, nz = t.roots
-        yy, xx = np.meshgrid(np.arange(nz, dtype=np.int64), np.arange(nx, dtype=np.int64), indexing="ij")
-        x, y = xx.reshape(-1), yy.reshape(-1)
+        rel, planes = view_of(self.heightmap, camera)
+        x, y = root_nodes(t)
         leaves: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # level, x, y, culled
         visited = 0
         for lvl in range(t.depth + 1):
@@ -211,12 +208,6 @@ class ChunkedLod:
                                              device=self.device)
         return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
 
-    def frame(self, camera: Camera) -> tuple[Mesh, float, ChunkSelection]:
-        """Select and mesh; returns (mesh, selection ms, selection)."""
-        t0 = time.perf_counter()
-        sel = self.select(camera)
-        select_ms = (time.perf_counter() - t0) * 1e3
-        return self.mesh(camera, sel), select_ms, sel
 
     def skirt_triangles(self, selection: ChunkSelection) -> int:
         """Skirt triangles of a selection: 2 per edge segment (``tile`` per edge) of every skirted edge."""

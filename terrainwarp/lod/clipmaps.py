@@ -36,7 +36,6 @@ Asirvatham & Hoppe, GPU Gems 2 ch. 2, "Terrain Rendering Using GPU-Based Geometr
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +45,7 @@ from ..heightmap import Heightmap
 from ..kernels.lod import frustum_planes
 from ..kernels.schemes import clipmap_mesh
 from ..mesh import Mesh
+from .scheme import SelectThenMesh
 
 __all__ = ["Clipmap", "ClipmapLevels", "ACTIVE_HEIGHT_RATIO"]
 
@@ -74,7 +74,7 @@ class ClipmapLevels:
 
 
 @dataclass(eq=False)
-class Clipmap:
+class Clipmap(SelectThenMesh):
     """Geometry clipmaps over a heightmap (see the module docstring).
 
     Args:
@@ -172,9 +172,3 @@ class Clipmap:
                                                self.block, device=self.device)
         return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
 
-    def frame(self, camera: Camera) -> tuple[Mesh, float, ClipmapLevels]:
-        """Select and mesh; returns (mesh, selection ms, levels)."""
-        t0 = time.perf_counter()
-        sel = self.select(camera)
-        select_ms = (time.perf_counter() - t0) * 1e3
-        return self.mesh(camera, sel), select_ms, sel
