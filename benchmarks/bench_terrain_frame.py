@@ -5,8 +5,8 @@ Per frame, in the same process:
 
 * ours: ``render(Scene(mesh="lod", lod=..., outputs=("depth",)), terrain=...)``; the time is the sum of
   the report's ``select``, ``mesh`` (tessellate + displace) and ``raster`` stages of the fastest of 3
-  renders after a warm-up (Warp CPU backend: one thread). The terrain's pyramids are prepared once,
-  untimed, as an application holds them across frames.
+  renders after a warm-up (Warp CPU backend, launches split across every core: kernels/parallel.py).
+  The terrain's pyramids are prepared once, untimed, as an application holds them across frames.
 * gl: the frame's PatchList drawn by Mesa's llvmpipe with a tessellation control shader (levels from
   a storage buffer) and a ``layout(quads, <spacing>, ccw)`` evaluation shader that displaces by an
   ``R32F`` bilinear texture (``benchmarks/_gl_terrain.py``), in batches of < 60,000 generated vertices;
@@ -45,6 +45,7 @@ import numpy as np
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp.kernels.parallel import threads
 from terrainwarp.kernels.raster import rasterize
 from terrainwarp.kernels.tessellator import tessellate_patches
 from terrainwarp.lod import Terrain, select
@@ -195,7 +196,7 @@ def main(argv=None) -> None:
             rows.append(measure(f"fBm 1025x1025 (~{target // 1000}k)", hm, cam, terrain,
                                 LodConfig(tolerance_px=tol), kids, reps))
         # a low camera inside the terrain (the scene's default flyover, 10% of the extent above the ground)
-        fly = Scene(hm, camera=cam).camera_path(8)[3]
+        fly = Scene(hm, camera=cam).camera_path(8, preset="high")[3]
         tol, _ = tolerance_for(hm, fly, terrain, 340_000)
         rows.append(measure("fBm 1025x1025 flyover (~340k)", hm, fly, terrain, LodConfig(tolerance_px=tol), kids,
                             reps))
@@ -233,8 +234,8 @@ def main(argv=None) -> None:
         for r in ub)
     body = (
         f"A whole LOD frame at {WIDTH}x{HEIGHT}: ours = `select` + `mesh` (tessellate + displace) + `raster` from "
-        f"`render`'s report (Warp CPU backend, one thread; the fastest of {reps} renders after a warm-up; the "
-        "terrain's pyramids prepared once beforehand, untimed). gl = the same PatchList drawn by "
+        f"`render`'s report (Warp CPU backend, {threads()} kernel thread(s); the fastest of {reps} renders after a "
+        "warm-up; the terrain's pyramids prepared once beforehand, untimed). gl = the same PatchList drawn by "
         f"{renderer} through moderngl/EGL with real tessellation shaders (`benchmarks/_gl_terrain.py`: one "
         "4-vertex GL_PATCHES primitive per patch, TCS levels from a storage buffer, TES "
         "`layout(quads, equal_spacing, ccw)` sampling an R32F heightmap texture bilinearly at texel centres, "
@@ -251,8 +252,8 @@ def main(argv=None) -> None:
         "screen-space error (`LodConfig` defaults: 16 roots, T = 16, equal spacing) at the tolerance shown. "
         "Camera `Camera.default_for` (the whole terrain in view); the fBm "
         "(`Heightmap.fbm(1025, seed=7, dx=10, max_height=800)`) tolerances are bisected for about 50k, 340k and "
-        "1M triangles; the flyover row uses `Scene.camera_path()[3]` (60 degree fov, 10% of the extent above "
-        "the ground, looking along the path).\n\n" + wall
+        "1M triangles; the flyover row uses `Scene.camera_path(preset='high')[3]` (60 degree fov, 10% of the "
+        "extent above the ground, looking along the path).\n\n" + wall
         + "\n\nCPU time (`time.process_time`: every thread of the process, least of the runs) of ours = "
         "`select` + `tessellate_patches` + `rasterize` called directly, as `render` calls them (no barycentric "
         "image), and of gl = upload + draws + `glFinish`, the work done, which a loaded shared "
