@@ -62,6 +62,7 @@ def box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> in
 
 @wp.kernel(enable_backward=False)
 def _select_kernel(
+    offset: int,
     node_x: wp.array(dtype=wp.int32),
     node_y: wp.array(dtype=wp.int32),
     node_key: wp.array(dtype=wp.int64),
@@ -84,7 +85,7 @@ def _select_kernel(
     out_dist: wp.array(dtype=wp.float32),
     out_metric: wp.array(dtype=wp.float32),
 ):
-    k = wp.tid()
+    k = wp.tid() + offset
     x = node_x[k]
     y = node_y[k]
     lo = wp.vec3(rel_origin[0] + float(x) * node_size[0], hmin[y, x] - rel_origin[1],
@@ -148,7 +149,7 @@ def select_level(node_x: np.ndarray, node_y: np.ndarray, node_key: np.ndarray, s
             wp.empty(n, dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device)]
     if n == 0:
         return tuple(a.numpy() for a in arrs)
-    wp.launch(_select_kernel, dim=n, inputs=[
+    launch(_select_kernel, n, inputs=[
         wp.array(node_x.astype(np.int32), dtype=wp.int32, device=device),
         wp.array(node_y.astype(np.int32), dtype=wp.int32, device=device),
         wp.array(node_key.astype(np.int64), dtype=wp.int64, device=device),

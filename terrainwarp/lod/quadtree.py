@@ -304,10 +304,12 @@ class _Tree(NamedTuple):
     roots: tuple[int, int]
     depth: int
 
-    def neighbour_levels(self, level_of: np.ndarray) -> np.ndarray:
-        """(n, 4) largest ``level_of`` of the leaves across each edge of every node (-1: beyond the roots)."""
+    def neighbour_levels(self, level_of: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+        """(n, 4) largest ``level_of`` of the leaves across each edge of every node, or of nodes ``idx``
+        (-1: beyond the roots)."""
         n = self.nodes
-        return neighbour_levels(self.map, self.roots, self.depth, n.level, n.x, n.y, level_of)
+        lv, x, y = (n.level, n.x, n.y) if idx is None else (n.level[idx], n.x[idx], n.y[idx])
+        return neighbour_levels(self.map, self.roots, self.depth, lv, x, y, level_of)
 
     def split(self, split: np.ndarray, children: _Nodes) -> _Tree:
         """Split leaves ``split`` into ``children`` (appended), in the arrays and in the map."""
@@ -441,16 +443,15 @@ def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, c
     hm = terrain.heightmap
     nx, nz = terrain.roots
     nodes = tree.nodes
-    nbr = tree.neighbour_levels(np.where(nodes.outside, -1, nodes.level))
     leaf = nodes.alive & ~nodes.outside
-    draw = leaf & ~nodes.culled
+    draw = np.flatnonzero(leaf & ~nodes.culled)
     n_culled = int((leaf & nodes.culled).sum())
-    level, lx, ly, nbr, dist, metric = (a[draw] for a in (nodes.level, nodes.x, nodes.y, nbr, nodes.dist,
-                                                          nodes.metric))
     # deterministic order: by key
-    keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
+    keys = tile_key(nodes.level[draw], nodes.x[draw], nodes.y[draw]) if len(draw) else np.zeros(0, np.int64)
     order = np.argsort(keys, kind="stable")
-    level, lx, ly, nbr, dist, metric, keys = (a[order] for a in (level, lx, ly, nbr, dist, metric, keys))
+    keys, draw = keys[order], draw[order]
+    level, lx, ly, dist, metric = (a[draw] for a in (nodes.level, nodes.x, nodes.y, nodes.dist, nodes.metric))
+    nbr = tree.neighbour_levels(np.where(nodes.outside, -1, nodes.level), draw)
     s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
     origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
     origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
@@ -460,9 +461,10 @@ def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, c
              "patches": int(len(level)), "forced_splits": counts["forced_splits"],
              "max_level": int(level.max()) if len(level) else -1, "roots": nx * nz, "depth": terrain.depth,
              "tess": terrain.tess}
-    return PatchList(level.astype(np.int32), keys.astype(np.int64), origin, size, origin_cells.astype(np.float32),
-                     s_cells.astype(np.float32), outer.astype(np.float32), inner.astype(np.float32),
-                     nbr.astype(np.int32), dist.astype(np.float32), metric.astype(np.float32),
+    f32, i32 = {"dtype": np.float32, "copy": False}, {"dtype": np.int32, "copy": False}
+    return PatchList(level.astype(**i32), keys.astype(np.int64, copy=False), origin, size,
+                     origin_cells.astype(**f32), s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
+                     nbr.astype(**i32), dist.astype(**f32), metric.astype(**f32),
                      _gather_err(terrain, level, lx, ly), stats)
 
 
@@ -478,7 +480,8 @@ def _edge_factors(terrain: Terrain, camera: Camera, policy: Policy, level: np.nd
     if t * 2 > MAX_TESS and (nbr > level[:, None]).any():
         raise ValueError(f"tess: {terrain.tess} doubled toward a finer neighbour exceeds the hardware maximum "
                          f"{MAX_TESS}: use tess <= {MAX_TESS // 2} with a quadtree (deaconu2021)")
-    return np.where(nbr > level[:, None], 2.0 * t, t).astype(np.float32), np.full((len(level), 2), t, np.float32)
+    return (np.where(nbr > level[:, None], np.float32(2.0 * t), np.float32(t)),
+            np.full((len(level), 2), t, np.float32))
 
 
 def _inside_many(terrain: Terrain, lv, x, y) -> np.ndarray:
@@ -488,10 +491,13 @@ def _inside_many(terrain: Terrain, lv, x, y) -> np.ndarray:
 
 
 def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
+    """The geometric error of nodes (level, x, y), ``level`` ascending (as in key order)."""
     out = np.empty(len(level), np.float32)
-    for lv in np.unique(level):
-        m = level == lv
-        out[m] = terrain.stats[int(lv)][2][ly[m], lx[m]]
+    ends = np.searchsorted(level, np.arange(terrain.depth + 2))
+    for lv in range(terrain.depth + 1):
+        a, b = ends[lv], ends[lv + 1]
+        if a < b:
+            out[a:b] = terrain.stats[lv][2][ly[a:b], lx[a:b]]
     return out
 
 
