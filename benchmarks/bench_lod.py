@@ -1,19 +1,27 @@
 """LOD selection, reproducing the structure of Table 1 of deaconu2021 on a 4097x4097 fBm heightmap
 (4, 16, 32, 64 roots; LOD off and on; tessellation level 1 and 32), and the growth of selection time
-with the number of leaf nodes (10^3 .. 10^6).
+with the number of leaf nodes (10^3 .. 10^6), and the 1M-leaf selection at 1 and 2 threads against the
+selection before the tree map (``terrainwarp/lod/quadtree.py`` at ``--baseline-rev``, loaded from git into
+this process; the figure BENCHMARKS.md gave for it when git cannot supply it).
 
-    python benchmarks/bench_lod.py [--size 4097] [--quick]
+    python benchmarks/bench_lod.py [--size 4097] [--quick] [--baseline-rev REV]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import subprocess
+import sys
 import time
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 from _common import md_table, write_result
 
-from terrainwarp import Camera, Heightmap, flyover
+from terrainwarp import Camera, Heightmap, flyover, set_threads
+from terrainwarp.io.files import digest
 from terrainwarp.lod import DistancePolicy, LodState, ScreenErrorPolicy, Terrain, select
 
 PAPER = {  # deaconu2021 Table 1: processed vertices (CPU), frames per second on a GTX 1050
@@ -22,6 +30,73 @@ PAPER = {  # deaconu2021 Table 1: processed vertices (CPU), frames per second on
     (32, False, 1): (2048, 5246.13), (32, False, 32): (2048, 1369.6), (32, True, 32): (33554432, 254.93),
     (64, False, 1): (4096, 4450.53), (64, False, 32): (4096, 742.80), (64, True, 32): (67108864, 152.13),
 }
+
+
+BASELINE_REV = "6ad8d76"  # the last revision with the Morton-code + searchsorted neighbour search
+BASELINE_1M_MS = 4239.0  # BENCHMARKS.md's depth-7 (1,048,576 leaves) select_ms for that revision
+
+
+def baseline_quadtree(rev: str) -> ModuleType | None:
+    """``terrainwarp/lod/quadtree.py`` as it was at ``rev``, imported beside today's (None without git)."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        src = subprocess.run(["git", "show", f"{rev}:terrainwarp/lod/quadtree.py"], cwd=root, check=True,
+                             capture_output=True, text=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    spec = importlib.util.spec_from_loader("terrainwarp.lod._quadtree_baseline", loader=None)
+    mod = importlib.util.module_from_spec(spec)
+    mod.__package__ = "terrainwarp.lod"
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    exec(compile(src, f"{rev}:terrainwarp/lod/quadtree.py", "exec"), mod.__dict__)
+    return mod
+
+
+def patch_digest(pl) -> str:
+    return digest(pl.level, pl.key, pl.origin, pl.size, pl.origin_cells, pl.size_cells, pl.outer, pl.inner,
+                  pl.neighbour_level, pl.distance, pl.metric, pl.geometric_error,
+                  np.frombuffer(repr(sorted(pl.stats.items())).encode(), np.uint8))
+
+
+def million_leaves(hm: Heightmap, top: Camera, rev: str, reps: int) -> str:
+    """The 1M-leaf selection (64 roots, T = 4, depth 7, every node split) at 1 and 2 threads, and before."""
+    d = 7
+    terrain = Terrain.prepare(hm, roots=64, tess=4, depth=d)
+    pol = DistancePolicy(thresholds=(1e12,) * (d + 1))
+    old = baseline_quadtree(rev)
+    before_ms, same, src = BASELINE_1M_MS, "not checked", "BENCHMARKS.md (git unavailable)"
+    if old is not None:
+        set_threads(1)  # as it ran: one launch per level on one thread, the rest numpy
+        old_t = old.Terrain(terrain.heightmap, terrain.roots, terrain.tess, terrain.depth, terrain.root_cells,
+                            terrain.stats)
+        old.select(old_t, top, pol)  # warm-up
+        ts, ref = [], None
+        for _ in range(max(1, reps - 1)):
+            t0 = time.perf_counter()
+            ref = old.select(old_t, top, pol)
+            ts.append(time.perf_counter() - t0)
+        before_ms, src = 1e3 * min(ts), f"{rev}, this process"
+        same = None
+    rows, ms = [], {}
+    for n in (1, 2):
+        set_threads(n)
+        select(terrain, top, pol)  # warm-up
+        ts = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            pl = select(terrain, top, pol)
+            ts.append(time.perf_counter() - t0)
+        ms[n] = 1e3 * min(ts)
+        if old is not None:
+            same = (same is not False) and patch_digest(pl) == patch_digest(ref)
+        rows.append([n, len(pl), pl.stats["nodes_visited"], ms[n], before_ms, before_ms / ms[n], ms[1] / ms[n]])
+    set_threads(None)
+    same_txt = same if isinstance(same, str) else ("yes" if same else "NO")
+    return ("\n1M-leaf selection (64 roots, T = 4, depth 7, every node split: the depth-7 row above), best of "
+            f"{reps} after a warm-up; `before_ms`: the selection before the tree map ({src}); outputs identical "
+            f"to it (digest of every PatchList field and the stats): {same_txt}. Target: < 500 ms.\n\n"
+            + md_table(["threads", "leaves", "nodes_visited", "select_ms", "before_ms", "speed_up", "vs_1_thread"],
+                       rows))
 
 
 def domain_points(outer: np.ndarray, inner: np.ndarray) -> int:
@@ -35,6 +110,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=4097)
     ap.add_argument("--quick", action="store_true", help="fewer cameras and leaf counts")
+    ap.add_argument("--baseline-rev", default=BASELINE_REV, help="git revision of the selection to compare with")
+    ap.add_argument("--reps", type=int, default=3, help="timed runs of the 1M-leaf selection")
     a = ap.parse_args()
     t0 = time.perf_counter()
     hm = Heightmap.fbm(a.size, seed=2021, dx=1.0, max_height=600.0, feature_size=a.size / 4)
@@ -93,6 +170,8 @@ def main() -> None:
     body.append("\nSelection time against the number of leaves (64 roots, every node split, camera above the "
                 "middle seeing the whole terrain; best of 3):\n")
     body.append(md_table(["depth", "leaves", "nodes_visited", "select_ms", "us_per_leaf"], grow))
+    if not a.quick and a.size == 4097:
+        body.append(million_leaves(hm, top, a.baseline_rev, a.reps))
     # hysteresis (malafeev2014): level changes along a camera moving back and forth
     terrain = Terrain.prepare(hm, roots=16, tess=16)
     path = []
