@@ -35,6 +35,7 @@ the world origin, or large ones, keep their precision near the camera.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -184,8 +185,9 @@ def _half_points(fx: int, odd: int) -> int:
 
 
 @wp.func
-def _place(fx: int, odd: int, point_in: int) -> int:
-    """16.16 position of partition point ``point_in`` on an edge of level ``fx``."""
+def _edge(fx: int, odd: int) -> vec6i:
+    """The constants of an edge of level ``fx`` that place its points (:func:`_place_on`): points in
+    the half, split point, fraction, the two 16.16 reciprocals, parity. Worked out once per edge."""
     half = (fx + 1) / 2
     if odd == 1 or half == 32768:
         half += 32768
@@ -208,22 +210,42 @@ def _place(fx: int, odd: int, point_in: int) -> int:
     if odd == 1:
         nfs -= 1
         ncs -= 1
+    rf = int(0)
+    if nfs > 0:  # else no point reads it
+        rf = _reciprocal(nfs)
+    rc = int(0)
+    if ncs > 0:
+        rc = _reciprocal(ncs)
+    return vec6i(nhalf, split, frac, rf, rc, odd)
+
+
+@wp.func
+def _place_on(c: vec6i, point_in: int) -> int:
+    """16.16 position of partition point ``point_in`` on the edge with constants ``c`` (:func:`_edge`)."""
+    nhalf = c[0]
     point = point_in
     flip = int(0)
     if point >= nhalf:
-        point = 2 * nhalf - point - odd
+        point = 2 * nhalf - point - c[5]
         flip = 1
     if point == nhalf:
         return 32768
     idx_f = point
-    if point > split:
+    if point > c[1]:
         idx_f = point - 1
-    lf = wp.int64(idx_f * _reciprocal(nfs))
-    lc = wp.int64(point * _reciprocal(ncs))
+    frac = c[2]
+    lf = wp.int64(idx_f * c[3])
+    lc = wp.int64(point * c[4])
     loc = int((lf * wp.int64(65536 - frac) + lc * wp.int64(frac) + wp.int64(32768)) >> wp.int64(16))
     if flip == 1:
         return 65536 - loc
     return loc
+
+
+@wp.func
+def _place(fx: int, odd: int, point_in: int) -> int:
+    """16.16 position of partition point ``point_in`` on an edge of level ``fx``."""
+    return _place_on(_edge(fx, odd), point_in)
 
 
 @wp.func
@@ -325,18 +347,56 @@ def _num_triangles(g: vec6i, odd: vec6i) -> int:
 
 
 # ------------------------------------------------------------------------------------------------
+# what a launch writes (W_* flags) and what the domain shader reads
+# ------------------------------------------------------------------------------------------------
+
+# the per-point outputs a launch writes besides triangles (the flags of _Out.flags)
+W_DOMAIN = wp.constant(1)
+W_PATCH_ID = wp.constant(2)
+W_POSITION = wp.constant(4)
+W_UV = wp.constant(8)
+W_LEVEL = wp.constant(16)
+W_SWAP = wp.constant(32)  # store triangles counter-clockwise seen from +y
+OPTIONAL_FIELDS = {"uv": 8, "domain": 1, "patch_id": 2, "level": 16}  # Tessellation fields made on request
+
+
+@wp.struct
+class _Out:
+    """One emit launch's outputs (only those in ``flags`` are written) and the domain shader's inputs."""
+
+    flags: int
+    dom: wp.array(dtype=wp.vec2i)
+    pid: wp.array(dtype=wp.int32)
+    tri: wp.array(dtype=wp.vec3i)
+    pos: wp.array(dtype=wp.vec3)
+    uv: wp.array(dtype=wp.vec2)
+    lev: wp.array(dtype=wp.int32)
+    box: wp.array(dtype=vec4l)
+    level: wp.array(dtype=wp.int32)
+    h: wp.array2d(dtype=wp.float32)
+    eye_lx: wp.int64
+    eye_lz: wp.int64
+    eye_rem: wp.vec3
+    cell: wp.vec2
+    method: int
+
+
+# ------------------------------------------------------------------------------------------------
 # stitching (rule 9)
 # ------------------------------------------------------------------------------------------------
 
 
 @wp.func
-def _tri(out_tri: wp.array(dtype=wp.vec3i), t: int, vb: int, a: int, b: int, c: int) -> int:
-    out_tri[t] = wp.vec3i(vb + a, vb + b, vb + c)
+def _tri(o: _Out, t: int, vb: int, a: int, b: int, c: int) -> int:
+    if o.flags & W_SWAP:  # counter-clockwise seen from +y: GL's (a, b, c) stored as (a, c, b)
+        o.tri[t] = wp.vec3i(vb + a, vb + c, vb + b)
+    else:
+        o.tri[t] = wp.vec3i(vb + a, vb + b, vb + c)
     return t + 1
 
 
 @wp.func
-def _stitch_transition(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: vec6i, e: int,
+def _stitch_transition(out: _Out, t_in: int, vb: int, g: vec6i, e: int,
                        in_half_in: int, in_odd: int, out_half_in: int, out_odd: int) -> int:
     """Outer ring edge e -> first inner ring edge e, in ruler-function order (StitchTransition)."""
     t = t_in
@@ -345,43 +405,43 @@ def _stitch_transition(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g:
     o = int(0)
     i = int(0)
     if 0 < out_half:
-        t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+        t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
         o += 1
     for k in range(1, 33):
         f = _final_point_position(k)
         if f < in_half:
-            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
             i += 1
         if f < out_half:
-            t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+            t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
             o += 1
     if in_odd != out_odd or in_odd == 1:
         if in_odd == out_odd:  # quad in the middle
-            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
-            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i + 1), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
+            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _vidx(g, 1, e, i + 1), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
             i += 1
             o += 1
         elif in_odd == 0:  # triangle pointing inside
-            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
+            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
             o += 1
         else:  # triangle pointing outside
-            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
             i += 1
     for kk in range(32):
         f = _final_point_position(32 - kk)
         if f < out_half:
-            t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+            t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
             o += 1
         if f < in_half:
-            t = _tri(out_tri, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
             i += 1
     if 0 < out_half:
-        t = _tri(out_tri, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+        t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
     return t
 
 
 @wp.func
-def _stitch_regular(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: vec6i, trapezoid: int,
+def _stitch_regular(out: _Out, t_in: int, vb: int, g: vec6i, trapezoid: int,
                     diagonals: int, n_in: int, ro: int, eo: int, ri: int, ei: int, rev: int) -> int:
     """A strip between two rows (StitchRegular). diagonals: 0 mirrored, 1 inside-to-outside,
     2 inside-to-outside except the middle quad. The inner row may be read reversed (rev=1)."""
@@ -389,7 +449,7 @@ def _stitch_regular(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: ve
     o = int(0)
     i = int(0)
     if trapezoid == 1:
-        t = _tri(out_tri, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
+        t = _tri(out, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
         o += 1
     for p in range(n_in - 1):
         oi = int(0)
@@ -402,15 +462,15 @@ def _stitch_regular(out_tri: wp.array(dtype=wp.vec3i), t_in: int, vb: int, g: ve
         a_i = _row(g, ri, ei, i, rev, n_in)
         b_i = _row(g, ri, ei, i + 1, rev, n_in)
         if oi == 1:
-            t = _tri(out_tri, t, vb, a_o, b_i, a_i)
-            t = _tri(out_tri, t, vb, a_o, b_o, b_i)
+            t = _tri(out, t, vb, a_o, b_i, a_i)
+            t = _tri(out, t, vb, a_o, b_o, b_i)
         else:
-            t = _tri(out_tri, t, vb, a_i, a_o, b_o)
-            t = _tri(out_tri, t, vb, a_i, b_o, b_i)
+            t = _tri(out, t, vb, a_i, a_o, b_o)
+            t = _tri(out, t, vb, a_i, b_o, b_i)
         i += 1
         o += 1
     if trapezoid == 1:
-        t = _tri(out_tri, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
+        t = _tri(out, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
     return t
 
 
@@ -444,108 +504,6 @@ def _count_kernel(
 
 
 @wp.func
-def _point(out_dom: wp.array(dtype=wp.vec2i), out_pid: wp.array(dtype=wp.int32), k: int, p: int,
-           u: int, v: int) -> int:
-    out_dom[k] = wp.vec2i(u, v)
-    out_pid[k] = p
-    return k + 1
-
-
-@wp.kernel(enable_backward=False)
-def _emit_kernel(
-    offset: int,
-    outer: wp.array(dtype=wp.vec4),
-    inner: wp.array(dtype=wp.vec2),
-    spacing: int,
-    v_off: wp.array(dtype=wp.int32),
-    t_off: wp.array(dtype=wp.int32),
-    # outputs
-    out_dom: wp.array(dtype=wp.vec2i),
-    out_pid: wp.array(dtype=wp.int32),
-    out_tri: wp.array(dtype=wp.vec3i),
-):
-    p = wp.tid() + offset
-    status, fx, odd = _process(outer[p], inner[p], spacing)
-    vb = v_off[p]
-    t = t_off[p]
-    if status == 0:
-        return
-    if status == 1:
-        k = _point(out_dom, out_pid, vb, p, 0, 0)
-        k = _point(out_dom, out_pid, k, p, 65536, 0)
-        k = _point(out_dom, out_pid, k, p, 65536, 65536)
-        k = _point(out_dom, out_pid, k, p, 0, 65536)
-        t = _tri(out_tri, t, vb, 0, 1, 3)
-        t = _tri(out_tri, t, vb, 1, 2, 3)
-        return
-    g = _layout(fx, odd)
-    nu = g[4]
-    nv = g[5]
-    k = vb
-    # outer ring: down u=0, along v=0, up u=1, back along v=1
-    for e in range(4):
-        end = g[e] - 1
-        for q0 in range(end):
-            q = end - q0
-            if e == 1 or e == 2:
-                q = q0
-            s = _place(fx[e], odd[e], q)
-            if e == 0:
-                k = _point(out_dom, out_pid, k, p, 0, s)
-            elif e == 1:
-                k = _point(out_dom, out_pid, k, p, s, 0)
-            elif e == 2:
-                k = _point(out_dom, out_pid, k, p, 65536, s)
-            else:
-                k = _point(out_dom, out_pid, k, p, s, 65536)
-    # inner rings, spiralling inwards
-    n_rings = wp.min(nu, nv) >> 1
-    for ring in range(1, n_rings):
-        for e in range(4):
-            along = (e + 1) & 1
-            perp = e & 1
-            end_along = g[4 + along] - 1 - ring
-            perp_point = ring
-            if e >= 2:
-                perp_point = g[4 + perp] - 1 - ring
-            tp = _place(fx[4 + perp], odd[4 + perp], perp_point)
-            for pp in range(ring, end_along):
-                q = end_along - (pp - ring)
-                if e == 1 or e == 2:
-                    q = pp
-                s = _place(fx[4 + along], odd[4 + along], q)
-                if along == 1:
-                    k = _point(out_dom, out_pid, k, p, tp, s)
-                else:
-                    k = _point(out_dom, out_pid, k, p, s, tp)
-    # degenerate centre row / column of an even inner partition
-    if nu > nv and odd[5] == 0:
-        for pp in range(n_rings, nu - n_rings):
-            k = _point(out_dom, out_pid, k, p, _place(fx[4], odd[4], pp), 32768)
-    elif nv >= nu and odd[4] == 0:
-        for pp in range(n_rings, nv - n_rings):
-            k = _point(out_dom, out_pid, k, p, 32768, _place(fx[5], odd[5], nv - 1 - pp))
-    # connectivity, ring by ring, edge by edge
-    n_rings_c = wp.min((nu + 1) >> 1, (nv + 1) >> 1)
-    for ring in range(1, n_rings_c):
-        for e in range(4):
-            axis = (e + 1) & 1
-            if ring == 1:
-                t = _stitch_transition(out_tri, t, vb, g, e, _half_points(fx[4 + axis], odd[4 + axis]),
-                                       odd[4 + axis], _half_points(fx[e], odd[e]), odd[e])
-            else:
-                t = _stitch_regular(out_tri, t, vb, g, 1, 0, _ring_count(g, ring, e), ring - 1, e, ring, e, 0)
-    r = n_rings_c - 1
-    if nu > nv and odd[5] == 1:
-        t = _stitch_regular(out_tri, t, vb, g, 0, 1, _ring_count(g, r, 1), r, 1, r, 3, 1)
-    elif nv >= nu and odd[4] == 1:
-        diag = int(1)
-        if odd[5] == 1:
-            diag = 2
-        t = _stitch_regular(out_tri, t, vb, g, 0, diag, _ring_count(g, r, 0), r, 0, r, 2, 1)
-
-
-@wp.func
 def _lattice(a: wp.int64, b: wp.int64, s: int) -> wp.int64:
     """Lattice coordinate at 16.16 domain coordinate s of the range [a, b], mirror-symmetric."""
     if s <= 32768:
@@ -559,41 +517,139 @@ def _grid(n: wp.int64) -> float:
     return float(n >> wp.int64(16)) + float(n & wp.int64(65535)) * 1.52587890625e-05
 
 
-@wp.kernel(enable_backward=False)
-def _displace_kernel(
-    offset: int,
-    dom: wp.array(dtype=wp.vec2i),
-    pid: wp.array(dtype=wp.int32),
-    box: wp.array(dtype=vec4l),
-    level: wp.array(dtype=wp.int32),
-    h: wp.array2d(dtype=wp.float32),
-    eye_lx: wp.int64,
-    eye_lz: wp.int64,
-    eye_rem: wp.vec3,
-    cell: wp.vec2,
-    method: int,
-    # outputs
-    out_pos: wp.array(dtype=wp.vec3),
-    out_uv: wp.array(dtype=wp.vec2),
-    out_level: wp.array(dtype=wp.int32),
-):
-    k = wp.tid() + offset
-    d = dom[k]
-    p = pid[k]
-    b = box[p]
+@wp.func
+def _displace(out: _Out, k: int, b: vec4l, u: int, v: int):
+    """The domain shader: point k at 16.16 domain coordinate (u, v) of the patch with lattice range b."""
+    h = out.h
     # Patches may reach past the grid (the quadtree's roots cover it with power-of-two nodes): points
     # beyond it are clamped to the border, so the terrain ends there (the triangles that collapse
     # have zero area and are culled by the rasterizer).
-    nx = wp.clamp(_lattice(b[0], b[2], d[0]), wp.int64(0), wp.int64(h.shape[1] - 1) << wp.int64(16))
-    nz = wp.clamp(_lattice(b[1], b[3], d[1]), wp.int64(0), wp.int64(h.shape[0] - 1) << wp.int64(16))
+    nx = wp.clamp(_lattice(b[0], b[2], u), wp.int64(0), wp.int64(h.shape[1] - 1) << wp.int64(16))
+    nz = wp.clamp(_lattice(b[1], b[3], v), wp.int64(0), wp.int64(h.shape[0] - 1) << wp.int64(16))
     gx = _grid(nx)
     gz = _grid(nz)
-    hgt = sample_height(h, gx, gz, method)
-    px = float(nx - eye_lx) * cell[0] - eye_rem[0]
-    pz = float(nz - eye_lz) * cell[1] - eye_rem[2]
-    out_pos[k] = wp.vec3(px, hgt - eye_rem[1], pz)
-    out_uv[k] = wp.vec2(gx / float(wp.max(h.shape[1] - 1, 1)), gz / float(wp.max(h.shape[0] - 1, 1)))
-    out_level[k] = level[p]
+    if out.flags & W_POSITION:
+        hgt = sample_height(h, gx, gz, out.method)
+        px = float(nx - out.eye_lx) * out.cell[0] - out.eye_rem[0]
+        pz = float(nz - out.eye_lz) * out.cell[1] - out.eye_rem[2]
+        out.pos[k] = wp.vec3(px, hgt - out.eye_rem[1], pz)
+    if out.flags & W_UV:
+        out.uv[k] = wp.vec2(gx / float(wp.max(h.shape[1] - 1, 1)), gz / float(wp.max(h.shape[0] - 1, 1)))
+
+
+@wp.func
+def _point(out: _Out, k: int, p: int, b: vec4l, u: int, v: int) -> int:
+    """Point k of patch p at 16.16 domain coordinate (u, v): its domain and patch id, and (the domain
+    shader, fused so the domain never round-trips through memory) its displaced position, uv and level."""
+    f = out.flags
+    if f & W_DOMAIN:
+        out.dom[k] = wp.vec2i(u, v)
+    if f & W_PATCH_ID:
+        out.pid[k] = p
+    if f & W_LEVEL:
+        out.lev[k] = out.level[p]
+    if f & (W_POSITION | W_UV):
+        _displace(out, k, b, u, v)
+    return k + 1
+
+
+@wp.kernel(enable_backward=False)
+def _emit_kernel(
+    offset: int,
+    outer: wp.array(dtype=wp.vec4),
+    inner: wp.array(dtype=wp.vec2),
+    spacing: int,
+    v_off: wp.array(dtype=wp.int32),
+    t_off: wp.array(dtype=wp.int32),
+    # outputs (those in out.flags)
+    out: _Out,
+):
+    p = wp.tid() + offset
+    status, fx, odd = _process(outer[p], inner[p], spacing)
+    vb = v_off[p]
+    t = t_off[p]
+    if status == 0:
+        return
+    b = vec4l()
+    if out.flags & (W_POSITION | W_UV):
+        b = out.box[p]
+    if status == 1:
+        k = _point(out, vb, p, b, 0, 0)
+        k = _point(out, k, p, b, 65536, 0)
+        k = _point(out, k, p, b, 65536, 65536)
+        k = _point(out, k, p, b, 0, 65536)
+        t = _tri(out, t, vb, 0, 1, 3)
+        t = _tri(out, t, vb, 1, 2, 3)
+        return
+    g = _layout(fx, odd)
+    nu = g[4]
+    nv = g[5]
+    k = vb
+    # outer ring: down u=0, along v=0, up u=1, back along v=1
+    for e in range(4):
+        end = g[e] - 1
+        ce = _edge(fx[e], odd[e])
+        for q0 in range(end):
+            q = end - q0
+            if e == 1 or e == 2:
+                q = q0
+            s = _place_on(ce, q)
+            if e == 0:
+                k = _point(out, k, p, b, 0, s)
+            elif e == 1:
+                k = _point(out, k, p, b, s, 0)
+            elif e == 2:
+                k = _point(out, k, p, b, 65536, s)
+            else:
+                k = _point(out, k, p, b, s, 65536)
+    # inner rings, spiralling inwards
+    n_rings = wp.min(nu, nv) >> 1
+    for ring in range(1, n_rings):
+        for e in range(4):
+            along = (e + 1) & 1
+            perp = e & 1
+            end_along = g[4 + along] - 1 - ring
+            perp_point = ring
+            if e >= 2:
+                perp_point = g[4 + perp] - 1 - ring
+            tp = _place(fx[4 + perp], odd[4 + perp], perp_point)
+            ca = _edge(fx[4 + along], odd[4 + along])
+            for pp in range(ring, end_along):
+                q = end_along - (pp - ring)
+                if e == 1 or e == 2:
+                    q = pp
+                s = _place_on(ca, q)
+                if along == 1:
+                    k = _point(out, k, p, b, tp, s)
+                else:
+                    k = _point(out, k, p, b, s, tp)
+    # degenerate centre row / column of an even inner partition
+    if nu > nv and odd[5] == 0:
+        cu = _edge(fx[4], odd[4])
+        for pp in range(n_rings, nu - n_rings):
+            k = _point(out, k, p, b, _place_on(cu, pp), 32768)
+    elif nv >= nu and odd[4] == 0:
+        cv = _edge(fx[5], odd[5])
+        for pp in range(n_rings, nv - n_rings):
+            k = _point(out, k, p, b, 32768, _place_on(cv, nv - 1 - pp))
+    # connectivity, ring by ring, edge by edge
+    n_rings_c = wp.min((nu + 1) >> 1, (nv + 1) >> 1)
+    for ring in range(1, n_rings_c):
+        for e in range(4):
+            axis = (e + 1) & 1
+            if ring == 1:
+                t = _stitch_transition(out, t, vb, g, e, _half_points(fx[4 + axis], odd[4 + axis]),
+                                       odd[4 + axis], _half_points(fx[e], odd[e]), odd[e])
+            else:
+                t = _stitch_regular(out, t, vb, g, 1, 0, _ring_count(g, ring, e), ring - 1, e, ring, e, 0)
+    r = n_rings_c - 1
+    if nu > nv and odd[5] == 1:
+        t = _stitch_regular(out, t, vb, g, 0, 1, _ring_count(g, r, 1), r, 1, r, 3, 1)
+    elif nv >= nu and odd[4] == 1:
+        diag = int(1)
+        if odd[5] == 1:
+            diag = 2
+        t = _stitch_regular(out, t, vb, g, 0, diag, _ring_count(g, r, 0), r, 0, r, 2, 1)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -617,10 +673,8 @@ def _spacing_code(spacing: str) -> int:
     return SPACING_CODES[spacing]
 
 
-def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
-    """Count, scan and emit for P patches (levels (P, 4) and (P, 2) float32, a ``SPACING_CODES`` code), no
-    validation: -> (points n, triangles m, Warp arrays domain (16.16), patch id, triangles, vertex and
-    triangle offsets). The device part of :func:`tessellate_domains` (timed alone by the benchmarks)."""
+def _count_scan(o: np.ndarray, i: np.ndarray, code: int, device: str):
+    """Count and scan: -> (points n, triangles m, levels and offsets as Warp arrays)."""
     p = o.shape[0]
     wo = wp.array(o, dtype=wp.vec4, device=device)
     wi = wp.array(i, dtype=wp.vec2, device=device)
@@ -632,15 +686,27 @@ def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
     t_off = wp.empty(p + 1, dtype=wp.int32, device=device)
     wp.utils.array_scan(nv, v_off, inclusive=False)
     wp.utils.array_scan(nt, t_off, inclusive=False)
-    n = int(v_off.numpy()[p])
-    m = int(t_off.numpy()[p])
-    dom = empty(max(n, 1), wp.vec2i, device)
-    pid = empty(max(n, 1), wp.int32, device)
-    tri = empty(max(m, 1), wp.vec3i, device)
-    if p:
-        launch(_emit_kernel, p, [wo, wi, code, v_off, t_off], [dom, pid, tri], device, min_items=64,
+    return int(v_off.numpy()[p]), int(t_off.numpy()[p]), wo, wi, v_off, t_off
+
+
+def _emit(wo, wi, code: int, v_off, t_off, out: _Out, device: str) -> None:
+    if wo.shape[0]:
+        launch(_emit_kernel, wo.shape[0], [wo, wi, code, v_off, t_off], [out], device, min_items=64,
                oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ in size
-    return n, m, dom, pid, tri, v_off, t_off
+
+
+def tessellate_device(o: np.ndarray, i: np.ndarray, code: int, device: str):
+    """Count, scan and emit for P patches (levels (P, 4) and (P, 2) float32, a ``SPACING_CODES`` code), no
+    validation: -> (points n, triangles m, Warp arrays domain (16.16), patch id, triangles, vertex and
+    triangle offsets). The device part of :func:`tessellate_domains` (timed alone by the benchmarks)."""
+    n, m, wo, wi, v_off, t_off = _count_scan(o, i, code, device)
+    out = _Out()
+    out.flags = W_DOMAIN | W_PATCH_ID
+    out.dom = empty(max(n, 1), wp.vec2i, device)
+    out.pid = empty(max(n, 1), wp.int32, device)
+    out.tri = empty(max(m, 1), wp.vec3i, device)
+    _emit(wo, wi, code, v_off, t_off, out, device)
+    return n, m, out.dom, out.pid, out.tri, v_off, t_off
 
 
 def tessellate_domains(outer, inner, spacing: str, device: str = "cpu"):
@@ -672,6 +738,8 @@ def tessellate_domains(outer, inner, spacing: str, device: str = "cpu"):
 class Tessellation(NamedTuple):
     """A displaced, tessellated frame (one entry per domain point unless said otherwise).
 
+    ``uv``, ``domain``, ``patch_id`` and ``level`` are None unless asked for (``need``).
+
     Attributes:
         positions: (n, 3) float32 camera-relative world positions (world minus ``eye``).
         uv: (n, 2) float32 heightmap coordinates in [0, 1] (u along x, v along z).
@@ -686,10 +754,10 @@ class Tessellation(NamedTuple):
     """
 
     positions: np.ndarray
-    uv: np.ndarray
-    domain: np.ndarray
-    patch_id: np.ndarray
-    level: np.ndarray
+    uv: np.ndarray | None
+    domain: np.ndarray | None
+    patch_id: np.ndarray | None
+    level: np.ndarray | None
     triangles: np.ndarray
     vertex_offsets: np.ndarray
     triangle_offsets: np.ndarray
@@ -704,7 +772,8 @@ def _get(patches, name: str, required: bool = True):
 
 
 def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str = "equal",
-                       filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu") -> Tessellation:
+                       filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu",
+                       need: Iterable[str] | None = None) -> Tessellation:
     """Tessellate and displace all patches of a frame (one launch per stage).
 
     Args:
@@ -719,6 +788,9 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
         spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
         filter: ``"bilinear"`` or ``"bicubic"`` height sampling (outside the grid: clamped to the edge).
         origin: world (x, z) of sample (0, 0).
+        need: the per-point fields to make besides positions (and triangles), any of ``"uv"``,
+            ``"domain"``, ``"patch_id"``, ``"level"`` (None: all of them); the others are None. A
+            depth-only frame asks for none and stores 12 bytes per point and 12 per triangle.
 
     Returns:
         A :class:`Tessellation`. Not differentiable (discrete topology; heights are sampled with the
@@ -729,31 +801,57 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     lattice offset from the eye (relative error 2^-24 of the distance to the eye); the sampling
     coordinate is float32 (2^-12 cells at column 4,096).
     """
+    flags = _flags(need)
     args, e = prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
-    n, m, dom, pid, tri, v_off, t_off, pos, uv, lev = frame_device(*args, device)
-    tri_np = tri.numpy()[:m].reshape(-1, 3)
-    tri_np[:, [1, 2]] = tri_np[:, [2, 1]]  # GL ccw in (u, v) = (x, z) is clockwise seen from +y: swap, in place
+    n, m, v_off, t_off, out = frame_device(*args, device, flags=flags | W_SWAP)
+
+    def field(flag: int, arr: wp.array, cols: int) -> np.ndarray | None:
+        if not flags & flag:
+            return None
+        a = arr.numpy()[:n]
+        return a.reshape(-1, cols) if cols > 1 else a
+
+    dom = field(W_DOMAIN, out.dom, 2)
     return Tessellation(
-        positions=pos.numpy()[:n].reshape(-1, 3), uv=uv.numpy()[:n].reshape(-1, 2),
-        domain=dom.numpy()[:n].reshape(-1, 2).astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
-        patch_id=pid.numpy()[:n], level=lev.numpy()[:n], triangles=tri_np,
+        positions=out.pos.numpy()[:n].reshape(-1, 3), uv=field(W_UV, out.uv, 2),
+        domain=None if dom is None else dom.astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
+        patch_id=field(W_PATCH_ID, out.pid, 1), level=field(W_LEVEL, out.lev, 1),
+        triangles=out.tri.numpy()[:m].reshape(-1, 3),
         vertex_offsets=v_off.numpy().copy(), triangle_offsets=t_off.numpy().copy(),
         eye=(float(e[0]), float(e[1]), float(e[2])))
 
 
-def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device):
-    """Device stages of :func:`tessellate_patches` (count, scan, emit, displace); Warp arrays out."""
-    n, m, dom, pid, tri, v_off, t_off = tessellate_device(o, i, code, device)
-    pos = empty(max(n, 1), wp.vec3, device)
-    uv = empty(max(n, 1), wp.vec2, device)
-    lev = empty(max(n, 1), wp.int32, device)
-    if n:
-        launch(_displace_kernel, n,
-               [dom, pid, wp.array(box, dtype=vec4l, device=device), wp.array(lvl, dtype=wp.int32, device=device),
-                wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device),
-                int(el_int[0]), int(el_int[1]), wp.vec3(*eye_rem), wp.vec2(float(cell[0]), float(cell[1])), method],
-               [pos, uv, lev], device)
-    return n, m, dom, pid, tri, v_off, t_off, pos, uv, lev
+def _flags(need: Iterable[str] | None) -> int:
+    """``need`` (see :func:`tessellate_patches`) -> W_* flags, positions always."""
+    names = OPTIONAL_FIELDS if need is None else ([need] if isinstance(need, str) else list(need))
+    bad = [x for x in names if x not in OPTIONAL_FIELDS]
+    if bad:
+        raise ValueError(f"need: expected names among {list(OPTIONAL_FIELDS)}, got {bad!r}")
+    return int(W_POSITION) | sum({OPTIONAL_FIELDS[x] for x in names})
+
+
+def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device,
+                 flags: int = W_DOMAIN | W_PATCH_ID | W_POSITION | W_UV | W_LEVEL):
+    """Device stages of :func:`tessellate_patches` (count, scan, then emit and displace in one launch), writing
+    what ``flags`` (W_*) asks for -> (n, m, vertex and triangle offsets, the launch's :class:`_Out`, whose
+    arrays not asked for are None)."""
+    n, m, wo, wi, v_off, t_off = _count_scan(o, i, code, device)
+    out = _Out()
+    out.flags = flags
+    for flag, name, dtype in ((W_DOMAIN, "dom", wp.vec2i), (W_PATCH_ID, "pid", wp.int32), (W_POSITION, "pos", wp.vec3),
+                              (W_UV, "uv", wp.vec2), (W_LEVEL, "lev", wp.int32)):
+        if flags & flag:
+            setattr(out, name, empty(max(n, 1), dtype, device))
+    out.tri = empty(max(m, 1), wp.vec3i, device)
+    out.box = wp.array(box, dtype=vec4l, device=device)
+    out.level = wp.array(lvl, dtype=wp.int32, device=device)
+    out.h = wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device)
+    out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
+    out.eye_rem = wp.vec3(*eye_rem)
+    out.cell = wp.vec2(float(cell[0]), float(cell[1]))
+    out.method = method
+    _emit(wo, wi, code, v_off, t_off, out, device)
+    return n, m, v_off, t_off, out
 
 
 def prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin):

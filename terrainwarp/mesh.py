@@ -21,18 +21,21 @@ class Mesh:
         positions: (n, 3) float32, camera-relative (world minus ``eye``).
         eye: the float64 world point the positions are relative to.
         triangles: (m, 3) int32, counter-clockwise seen from above (+y).
-        uv: (n, 2) float32 heightmap coordinates in [0, 1] (u along x, v along z).
-        level: (n,) int32 LOD level of the patch each vertex came from (0 for the full grid).
-        patch_id: (n,) int32 index of the patch each vertex came from (0 for the full grid).
+        uv: (n, 2) float32 heightmap coordinates in [0, 1] (u along x, v along z), or None when
+            nothing asked for them (a tessellated depth-only frame).
+        level: (n,) int32 LOD level of the patch each vertex came from (0 for the full grid), or None
+            likewise.
+        patch_id: (n,) int32 index of the patch each vertex came from (0 for the full grid), or None
+            likewise.
         normals: (n, 3) float32 unit vertex normals, or None when nothing asked for them.
     """
 
     positions: np.ndarray
     eye: tuple[float, float, float]
     triangles: np.ndarray
-    uv: np.ndarray
-    level: np.ndarray
-    patch_id: np.ndarray
+    uv: np.ndarray | None
+    level: np.ndarray | None
+    patch_id: np.ndarray | None
     normals: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -56,13 +59,14 @@ class Mesh:
         return self.positions.astype(np.float64) + np.asarray(self.eye)
 
     def to_pyvista(self) -> pv.PolyData:
-        """A ``pyvista.PolyData`` in world coordinates with level, patch_id (and normals) as point data."""
+        """A ``pyvista.PolyData`` in world coordinates with level, patch_id and normals (those made) as point data."""
         import pyvista as pv  # lazy: heavy optional dependency
 
         faces = np.hstack([np.full((self.n_triangles, 1), 3, np.int64), self.triangles.astype(np.int64)])
         pd = pv.PolyData(self.world_positions(), faces.reshape(-1))
-        pd.point_data["level"] = self.level
-        pd.point_data["patch_id"] = self.patch_id
+        for name in ("level", "patch_id"):
+            if getattr(self, name) is not None:
+                pd.point_data[name] = getattr(self, name)
         if self.normals is not None:
             pd.point_data["Normals"] = self.normals
         return pd

@@ -553,10 +553,13 @@ def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, device:
     """Tessellate and displace the selected patches in one launch (the GPU's single draw call)."""
     hm = scene.heightmap
     cam = scene.camera
+    # depth and error frames read positions and triangles only: uv, level and patch id are made for shading,
+    # normals and the mesh output
+    rich = nmap is not None or any(o in ("image", "normals", "mesh") for o in scene.outputs)
     t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
                             "inner": patches.inner, "level": patches.level}, hm.heights, hm.dx, hm.dz,
                            cam.position, spacing=scene.lod.spacing, filter=scene.lod.filter, origin=hm.origin,
-                           device=device)
+                           device=device, need=("uv", "level", "patch_id") if rich else ())
     normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
     positions, triangles = t.positions, t.triangles
     if np.isnan(hm.heights).any():  # no-data holes: no triangle may touch a vertex that sampled NaN
