@@ -173,10 +173,8 @@ def _tree_cell(level: int, x: int, y: int, nx: int, n_roots: int) -> int:
 
 @wp.func
 def _leaf_at(tree: wp.array(dtype=wp.int32), fx: int, fy: int, start: int, depth: int, nx: int, nz: int) -> int:
-    """Index of the leaf containing finest-level cell (fx, fy) (-1: outside the root grid), walking from
-    level ``start``: down through split nodes, up through nodes inside a coarser leaf."""
-    if fx < 0 or fy < 0 or fx >= (nx << depth) or fy >= (nz << depth):
-        return -1
+    """Index of the leaf containing finest-level cell (fx, fy) of the root grid, walking from level
+    ``start``: down through split nodes, up through nodes inside a coarser leaf."""
     m = int(start)
     c = tree[_tree_cell(m, fx >> (depth - m), fy >> (depth - m), nx, nx * nz)]
     while c <= 0:
@@ -197,12 +195,20 @@ def _mark_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype
 
 
 @wp.func
-def _probe_level(tree: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32), fx: int, fy: int,
-                 start: int, depth: int, nx: int, nz: int) -> int:
-    j = _leaf_at(tree, fx, fy, start, depth, nx, nz)
-    if j < 0:
+def _edge_level(tree: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32), lv: int, nbx: int, nby: int,
+                ax: int, ay: int, bx: int, by: int, depth: int, nx: int, nz: int) -> int:
+    """The larger ``level_of`` of the leaves containing finest cells a and b, both inside node (lv, nbx,
+    nby), the neighbour across an edge (-1: beyond the root grid). Unless that node is split, one leaf
+    holds both: one lookup."""
+    if nbx < 0 or nby < 0 or nbx >= (nx << lv) or nby >= (nz << lv):
         return -1
-    return level_of[j]
+    c = tree[_tree_cell(lv, nbx, nby, nx, nx * nz)]
+    if c < 0:  # split: finer leaves, one walk down for each probe
+        return wp.max(level_of[_leaf_at(tree, ax, ay, lv + 1, depth, nx, nz)],
+                      level_of[_leaf_at(tree, bx, by, lv + 1, depth, nx, nz)])
+    if c == 0:  # inside a coarser leaf
+        return level_of[_leaf_at(tree, ax, ay, lv - 1, depth, nx, nz)]
+    return level_of[c - 1]
 
 
 @wp.kernel(enable_backward=False)
@@ -212,21 +218,19 @@ def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(
                       out: wp.array2d(dtype=wp.int32)):
     i = wp.tid() + offset
     lv = level[i]
+    xi = x[i]
+    yi = y[i]
     sh = depth - lv
     s = 1 << sh
     q1 = s / 4
     q3 = (3 * s) / 4
-    x0 = x[i] << sh
-    y0 = y[i] << sh
+    x0 = xi << sh
+    y0 = yi << sh
     # probes just outside each edge at 1/4 and 3/4 of its length: west, north, east, south
-    out[i, 0] = wp.max(_probe_level(tree, level_of, x0 - 1, y0 + q1, lv, depth, nx, nz),
-                       _probe_level(tree, level_of, x0 - 1, y0 + q3, lv, depth, nx, nz))
-    out[i, 1] = wp.max(_probe_level(tree, level_of, x0 + q1, y0 - 1, lv, depth, nx, nz),
-                       _probe_level(tree, level_of, x0 + q3, y0 - 1, lv, depth, nx, nz))
-    out[i, 2] = wp.max(_probe_level(tree, level_of, x0 + s, y0 + q1, lv, depth, nx, nz),
-                       _probe_level(tree, level_of, x0 + s, y0 + q3, lv, depth, nx, nz))
-    out[i, 3] = wp.max(_probe_level(tree, level_of, x0 + q1, y0 + s, lv, depth, nx, nz),
-                       _probe_level(tree, level_of, x0 + q3, y0 + s, lv, depth, nx, nz))
+    out[i, 0] = _edge_level(tree, level_of, lv, xi - 1, yi, x0 - 1, y0 + q1, x0 - 1, y0 + q3, depth, nx, nz)
+    out[i, 1] = _edge_level(tree, level_of, lv, xi, yi - 1, x0 + q1, y0 - 1, x0 + q3, y0 - 1, depth, nx, nz)
+    out[i, 2] = _edge_level(tree, level_of, lv, xi + 1, yi, x0 + s, y0 + q1, x0 + s, y0 + q3, depth, nx, nz)
+    out[i, 3] = _edge_level(tree, level_of, lv, xi, yi + 1, x0 + q1, y0 + s, x0 + q3, y0 + s, depth, nx, nz)
 
 
 def tree_map(roots: tuple[int, int], depth: int, device: str = "cpu") -> wp.array:
@@ -235,6 +239,19 @@ def tree_map(roots: tuple[int, int], depth: int, device: str = "cpu") -> wp.arra
     if wp.get_device(device).is_cpu:  # calloc'd: only the pages a frame touches are ever zeroed
         return wp.array(np.zeros(n, np.int32), dtype=wp.int32, device=device, copy=False)
     return wp.zeros(n, dtype=wp.int32, device=device)
+
+
+def tree_leaves(tree: wp.array, roots: tuple[int, int], depth: int) -> np.ndarray:
+    """The leaf indices of the map in key order (level by level, row-major (y, x) in a level): a scan of
+    the whole map, for when it is not much larger than the number of leaves."""
+    cells = tree.numpy()
+    parts, start = [], 0
+    for lv in range(depth + 1):
+        n = roots[0] * roots[1] << (2 * lv)  # the level's cells, as _tree_cell lays them out
+        level_cells = cells[start:start + n]
+        parts.append(level_cells[level_cells > 0] - 1)
+        start += n
+    return np.concatenate(parts)
 
 
 def _i32(a: np.ndarray, device: str) -> wp.array:

@@ -45,7 +45,7 @@ import warp as wp
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..io.files import write_text
-from ..kernels.lod import frustum_planes, mark_nodes, neighbour_levels, select_level, tree_map
+from ..kernels.lod import frustum_planes, mark_nodes, neighbour_levels, select_level, tree_leaves, tree_map
 from ..kernels.pyramid import node_stats
 from ..scene import check_roots, check_tess
 from .policies import (
@@ -311,6 +311,16 @@ class _Tree(NamedTuple):
         lv, x, y = (n.level, n.x, n.y) if idx is None else (n.level[idx], n.x[idx], n.y[idx])
         return neighbour_levels(self.map, self.roots, self.depth, lv, x, y, level_of)
 
+    def key_order(self, mask: np.ndarray) -> np.ndarray:
+        """Indices of the nodes in ``mask`` (leaves) sorted by key: read off the map when it is small
+        beside the leaves (level by level, row-major), else sorted."""
+        n = self.nodes
+        if len(self.map) <= 8 * len(n.level):
+            order = tree_leaves(self.map, self.roots, self.depth)
+            return order[mask[order]]
+        idx = np.flatnonzero(mask)
+        return idx[np.argsort(tile_key(n.level[idx], n.x[idx], n.y[idx]), kind="stable")]
+
     def split(self, split: np.ndarray, children: _Nodes) -> _Tree:
         """Split leaves ``split`` into ``children`` (appended), in the arrays and in the map."""
         n = self.nodes
@@ -329,7 +339,7 @@ def _children(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _root_grid(terrain: Terrain) -> tuple[np.ndarray, np.ndarray]:
     nx, nz = terrain.roots
-    x, y = np.meshgrid(np.arange(nx, dtype=np.int64), np.arange(nz, dtype=np.int64))
+    x, y = np.meshgrid(np.arange(nx, dtype=np.int32), np.arange(nz, dtype=np.int32))
     return x.reshape(-1), y.reshape(-1)
 
 
@@ -444,13 +454,11 @@ def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, c
     nx, nz = terrain.roots
     nodes = tree.nodes
     leaf = nodes.alive & ~nodes.outside
-    draw = np.flatnonzero(leaf & ~nodes.culled)
+    drawn = leaf & ~nodes.culled
     n_culled = int((leaf & nodes.culled).sum())
-    # deterministic order: by key
-    keys = tile_key(nodes.level[draw], nodes.x[draw], nodes.y[draw]) if len(draw) else np.zeros(0, np.int64)
-    order = np.argsort(keys, kind="stable")
-    keys, draw = keys[order], draw[order]
+    draw = tree.key_order(drawn)  # deterministic order: by key
     level, lx, ly, dist, metric = (a[draw] for a in (nodes.level, nodes.x, nodes.y, nodes.dist, nodes.metric))
+    keys = tile_key(level, lx, ly) if len(draw) else np.zeros(0, np.int64)
     nbr = tree.neighbour_levels(np.where(nodes.outside, -1, nodes.level), draw)
     s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
     origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
