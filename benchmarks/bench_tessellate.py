@@ -31,6 +31,8 @@ from terrainwarp import set_threads
 from terrainwarp.kernels.parallel import threads
 from terrainwarp.kernels.tessellator import (
     SPACING_CODES,
+    W_POSITION,
+    W_SWAP,
     frame_device,
     prepare_frame,
     tessellate_device,
@@ -88,9 +90,17 @@ def numpy_frame(pt: dict, h: np.ndarray, eye):
     return pos, tri, pid
 
 
-def device_frame(pt: dict, h: np.ndarray, eye):
+def device_frame(pt: dict, h: np.ndarray, eye, depth_only: bool = False):
+    """The device stages: every per-point output, or (depth_only) positions and triangles alone."""
     args, _ = prepare_frame(pt, h, DX, DX, eye, "equal", "bilinear", (0.0, 0.0))
+    if depth_only:
+        return frame_device(*args, "cpu", flags=W_POSITION | W_SWAP)
     return frame_device(*args, "cpu")
+
+
+def output_bytes(res) -> int:
+    out = res[4]
+    return sum(a.capacity for a in (out.pos, out.tri, out.uv, out.dom, out.pid, out.lev) if a is not None)
 
 
 def main() -> None:
@@ -113,7 +123,10 @@ def main() -> None:
         nv, nt = res[0], res[1]
         del res
         t_dev, res = best_of(lambda pt=pt: device_frame(pt, h, eye), args.repeat)
-        nbytes = sum(a.capacity for a in res[2:5] + res[7:10])
+        nbytes = output_bytes(res)
+        del res
+        t_depth, res = best_of(lambda pt=pt: device_frame(pt, h, eye, True), args.repeat)
+        depth_bytes = output_bytes(res)
         del res
         t_frame, tess = best_of(lambda pt=pt: tessellate_patches(pt, h, DX, DX, eye), args.repeat)
         assert tess.positions.shape[0] == nv == p * (LEVEL + 1) ** 2 and tess.triangles.shape[0] == nt
@@ -122,26 +135,32 @@ def main() -> None:
         t_np_frame, _ = best_of(lambda pt=pt: numpy_frame(pt, h, eye), args.repeat)
         rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
         rows.append([p, nv, nt, t_dom * 1e3, nv / t_dom / 1e6, t_dev * 1e3, nv / t_dev / 1e6, t_frame * 1e3,
-                     t_np_dom / t_dom, t_np_frame / t_dev, t_np_frame / t_frame, nbytes / nv * 1e6 / 2**20, rss_gb])
+                     t_np_dom / t_dom, t_np_frame / t_dev, t_np_frame / t_frame, nbytes / nv * 1e6 / 2**20,
+                     t_depth * 1e3, nv / t_depth / 1e6 / threads(), depth_bytes / nv * 1e6 / 2**20, rss_gb])
         print(f"k={k}: {p} patches, {nv:,} vertices, domain {t_dom:.3f} s, device frame {t_dev:.3f} s, "
               f"with numpy copies {t_frame:.3f} s", flush=True)
     header = ["patches", "vertices", "triangles", "domain ms", "domain Mpts/s", "displaced ms", "displaced Mvtx/s",
               "+ to numpy ms", "numpy/warp domain", "numpy/warp displaced", "numpy/warp + to numpy",
-              "MiB per M vertices", "peak RSS GiB"]
+              "MiB per M vertices", "depth-only ms", "depth-only Mvtx/s per thread", "depth-only MiB per M vertices",
+              "peak RSS GiB"]
     body = md_table(header, rows)
     full_p = 64 * 32 * 32
     full_nv = full_p * (LEVEL + 1) ** 2
     body += (
         f"\n\nAll patches at level {LEVEL} (equal spacing): (L+1)^2 = {(LEVEL + 1) ** 2} domain points and "
         f"2 L^2 = {2 * LEVEL ** 2} triangles each. 'domain' is count -> scan -> emit; 'displaced' adds the "
-        "domain shader (bilinear height, camera-relative float32 positions, uv, level) and is the pipeline "
-        "stage; '+ to numpy' is the whole public call including the host-side arrays. 'numpy/warp' > 1 "
+        "domain shader (bilinear height, camera-relative float32 positions, uv, level; fused into the emit "
+        "launch) and is the pipeline stage of a shaded frame; 'depth-only' makes positions and triangles alone "
+        "(what a depth or error frame asks for: `need=()`); "
+        "'+ to numpy' is the whole public call including the host-side arrays. 'numpy/warp' > 1 "
         "means the Warp kernels beat the vectorised numpy grid of the same size in the same run (numpy "
         "builds the plain grid; the kernels run the real tessellator: ring order, transition stitching, "
         f"fixed-point placement). Warp CPU launches split across {threads()} thread(s) (`--threads`; per core: "
         "divide the Mvtx/s by that); numpy runs on one; timings on this shared 2-core "
         "machine vary by about 2x between runs. Memory: output bytes "
-        "(positions 12, uv 8, domain 8, patch id 4, level 4, triangles 2 x 12 per vertex).\n")
+        "(positions 12, uv 8, domain 8, patch id 4, level 4, triangles 2 x 12 per vertex; depth-only: positions "
+        "and triangles, 12 + 12 x 2048/1089 bytes per vertex = 32.97 MiB per million vertices, the floor for float32 "
+        "positions and int32 index triples).\n")
     if args.full:
         pt = frame(32)
         t0 = time.perf_counter()
@@ -153,17 +172,23 @@ def main() -> None:
         t_dev = time.perf_counter() - t0
         assert res[0] == full_nv
         del res
+        t0 = time.perf_counter()
+        res = device_frame(pt, h, eye, True)
+        t_depth = time.perf_counter() - t0
+        del res
         rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
         body += (f"\ndeaconu2021's 64-root, level-32 frame, measured (one run, device stages only): "
                  f"{full_p:,} leaf patches, {full_nv:,} domain points, {full_p * 2 * LEVEL ** 2:,} triangles "
                  f"(their 67,108,864 counts 32 x 32 per patch): domain {t_dom:.2f} s ({full_nv / t_dom / 1e6:.1f} "
-                 f"Mpts/s), displaced {t_dev:.2f} s ({full_nv / t_dev / 1e6:.1f} Mvtx/s), peak RSS {rss_gb:.1f} GiB.\n")
+                 f"Mpts/s), displaced {t_dev:.2f} s ({full_nv / t_dev / 1e6:.1f} Mvtx/s), depth-only {t_depth:.2f} s, "
+                 f"peak RSS {rss_gb:.1f} GiB.\n")
     else:
         p, nv = rows[-1][0], rows[-1][1]
         scale = full_p / p
         body += (f"\ndeaconu2021's 64-root, level-32 frame ({full_p:,} leaf patches, {full_nv:,} domain points, "
                  f"{full_p * 2 * LEVEL ** 2:,} triangles; their 67,108,864 counts 32 x 32 per patch) not run "
-                 f"(pass --full; about {rows[-1][11] * full_nv / 1e6 / 1024:.1f} GiB of outputs). Extrapolated "
+                 f"(pass --full; about {rows[-1][11] * full_nv / 1e6 / 1024:.1f} GiB of outputs, "
+                 f"{rows[-1][14] * full_nv / 1e6 / 1024:.1f} depth-only). Extrapolated "
                  f"linearly from {p:,} patches: domain about {rows[-1][3] * scale / 1e3:.1f} s, displaced about "
                  f"{rows[-1][5] * scale / 1e3:.1f} s.\n")
     write_result("tessellate", "Tessellator throughput (bench_tessellate.py)", body)

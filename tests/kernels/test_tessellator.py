@@ -303,6 +303,22 @@ def test_tessellate_patches_is_deterministic():
     assert run() == run()
 
 
+@pytest.mark.parametrize("need", [(), ("uv",), ("level", "patch_id"), ("domain",)])
+def test_tessellate_patches_need_makes_only_what_is_asked_and_the_same_bits(need):
+    """A depth-only frame (need=()) stores positions and triangles alone; whatever is made equals the full frame."""
+    h = np.random.default_rng(2).normal(0, 10, (65, 65)).astype(np.float32)
+    pt = _patches(n=3, size=16.0, level=11.3)
+    args = (pt, h, 0.5, 0.5, (3.0, 40.0, -2.0))
+    full = tessellate_patches(*args, spacing="fractional_odd", filter="bicubic")
+    t = tessellate_patches(*args, spacing="fractional_odd", filter="bicubic", need=need)
+    for name in ("positions", "triangles", "vertex_offsets", "triangle_offsets", *need):
+        assert digest(getattr(t, name)) == digest(getattr(full, name)), name
+    for name in {"uv", "domain", "patch_id", "level"} - set(need):
+        assert getattr(t, name) is None, name
+    with pytest.raises(ValueError, match="need"):
+        tessellate_patches(*args, need=("normals",))
+
+
 def test_cli_tessellate(tmp_path, capsys):
     import json
 
