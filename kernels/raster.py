@@ -649,23 +649,33 @@ def _tile_kernel(
 @wp.kernel(enable_backward=False)
 def _resolve_ids_kernel(
     offset: int,
-    first: int,
+    part: int,
+    row0: int,
+    width: int,
     # outputs
     out_key: wp.array(dtype=wp.uint64),
     out_id: wp.array(dtype=wp.int32),
     out_depth: wp.array(dtype=wp.float32),
+    out_covered: wp.array(dtype=wp.int64),
 ):
-    """Decode the depth|id keys from pixel ``first`` on: triangle id (-1 background) and window depth (1
-    background); each key is set back to empty, so the buffer is clear for the next frame."""
-    p = wp.tid() + offset + first
-    k = out_key[p]
-    out_key[p] = wp.uint64(0xFFFFFFFFFFFFFFFF)
-    if k == wp.uint64(0xFFFFFFFFFFFFFFFF):
-        out_id[p] = -1
-        out_depth[p] = 1.0
-        return
-    out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
-    out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
+    """Decode the depth|id keys of one image row (from row ``row0`` on): triangle id (-1 background) and
+    window depth (1 background); each drawn key is set back to empty (the others are), so the buffer is
+    clear for the next frame. A thread per row (a 2-D launch costs ~5 ns a pixel in index arithmetic on
+    the CPU); covered pixels are counted into ``out_covered[part]``."""
+    p0 = (wp.tid() + offset + row0) * width
+    covered = wp.int64(0)
+    for q in range(width):
+        p = p0 + q
+        k = out_key[p]
+        if k == wp.uint64(0xFFFFFFFFFFFFFFFF):
+            out_id[p] = -1
+            out_depth[p] = 1.0
+        else:
+            out_key[p] = wp.uint64(0xFFFFFFFFFFFFFFFF)
+            out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
+            out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
+            covered += wp.int64(1)
+    wp.atomic_add(out_covered, part, covered)  # one writer per part on the CPU; a true atomic on CUDA
 
 
 @wp.kernel(enable_backward=False)
@@ -678,20 +688,29 @@ def _barycentrics_kernel(
     # outputs
     out_bary: wp.array2d(dtype=wp.vec2),
 ):
-    """Perspective-correct barycentrics (b0, b1) of each pixel centre on its visible triangle, from image
-    row ``row0`` on."""
-    i, j = wp.tid()
-    i += offset + row0
-    t = tri_id[i, j]
-    if t < 0:
-        out_bary[i, j] = wp.vec2(0.0, 0.0)
-        return
-    b = clip_barycentrics(clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]],
-                           pixel_ndc(i, j, tri_id.shape[0], tri_id.shape[1]))
-    if wp.isfinite(b):
-        out_bary[i, j] = wp.vec2(b[0], b[1])
-    else:  # a triangle seen edge-on through this centre (not drawn by the coverage test in practice)
-        out_bary[i, j] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
+    """Perspective-correct barycentrics (b0, b1) of each covered pixel centre on its visible triangle, a
+    thread per image row from row ``row0`` on; background pixels are not written (the output starts as
+    zeros). The triangle's clip vertices are fetched again only when the id changes along the row."""
+    i = wp.tid() + offset + row0
+    hh = tri_id.shape[0]
+    ww = tri_id.shape[1]
+    last = int(-1)  # noqa: UP018 -- a mutable Warp int
+    c0 = wp.vec4()
+    c1 = wp.vec4()
+    c2 = wp.vec4()
+    for j in range(ww):
+        t = tri_id[i, j]
+        if t >= 0:
+            if t != last:
+                c0 = clip[tris[t, 0]]
+                c1 = clip[tris[t, 1]]
+                c2 = clip[tris[t, 2]]
+                last = t
+            b = clip_barycentrics(c0, c1, c2, pixel_ndc(i, j, hh, ww))
+            if wp.isfinite(b):
+                out_bary[i, j] = wp.vec2(b[0], b[1])
+            else:  # a triangle seen edge-on through this centre (not drawn by the coverage test in practice)
+                out_bary[i, j] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
 
 
 @wp.kernel
@@ -766,14 +785,14 @@ class Fragments:
             ids = self._ids
             if ids is None or ids.device.is_cuda:  # the host image, as the caller may have changed it
                 ids = wp.array(self.triangle_id, dtype=wp.int32, device=self._device)
-            out = empty((hh, ww), wp.vec2, self._device)
+            # zeros (the background), written only where covered: on the CPU numpy's calloc, whose pages
+            # the kernel never touches stay the kernel's zero pages
+            out = wp.zeros((hh, ww), dtype=wp.vec2, device=self._device) if wp.get_device(self._device).is_cuda \
+                else wp.array(np.zeros((hh, ww, 2), np.float32), dtype=wp.vec2, device=self._device, copy=False)
             if bottom > top:
-                launch(_barycentrics_kernel, (bottom - top, ww), [top, ids.reshape((hh, ww)), self._clip, self._tris],
-                       [out], self._device)
-            bary = out.numpy().reshape(hh, ww, 2)
-            bary[:top] = 0.0  # background rows
-            bary[bottom:] = 0.0
-            self._bary = bary
+                launch(_barycentrics_kernel, bottom - top, [top, ids.reshape((hh, ww)), self._clip, self._tris],
+                       [out], self._device, min_items=_MIN_PIXELS // ww + 1)
+            self._bary = out.numpy().reshape(hh, ww, 2)
             self._clip = self._tris = self._ids = None
         return self._bary
 
@@ -842,16 +861,17 @@ def _give_keys(key: wp.array, npx: int, device: str) -> None:
 
 def _resolve(key: wp.array, c: np.ndarray, width: int, height: int, device: str):
     """Ids and depth images from the keys, decoding only the band of rows drawn (``c``: the summed
-    counter rows' band columns); -> (ids (H, W), depth (H, W), device ids, (top, bottom))."""
+    counter rows' band columns); -> (ids (H, W), depth (H, W), device ids, (top, bottom), pixels covered)."""
     npx = width * height
     top, bottom = height - int(c[:, 8].max()), int(c[:, 9].max())
     if bottom <= top:
         top = bottom = 0
     out_id = empty(npx, wp.int32, device)
     out_depth = empty(npx, wp.float32, device)
+    covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
     if bottom > top:
-        launch(_resolve_ids_kernel, (bottom - top) * width, [top * width], [key, out_id, out_depth], device,
-               min_items=_MIN_PIXELS)
+        launch(_resolve_ids_kernel, bottom - top, [top, width], [key, out_id, out_depth, covered], device,
+               parts=True, min_items=_MIN_PIXELS // width + 1)
     ids = out_id.numpy().reshape(height, width)
     depth = out_depth.numpy().reshape(height, width)
     for a, b in ((0, top), (bottom, height)):  # background rows, written on the host (a fill)
@@ -859,7 +879,7 @@ def _resolve(key: wp.array, c: np.ndarray, width: int, height: int, device: str)
         depth[a:b] = 1.0
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
-    return ids, depth, out_id, (top, bottom)
+    return ids, depth, out_id, (top, bottom), int(covered.numpy().sum())
 
 
 def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
@@ -891,12 +911,12 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                    [key, stats], device, parts=True, min_items=_MIN_TILES,
                    oversplit=_OVERSPLIT)
     rows = stats.numpy()
-    ids, depth, ids_wp, (top, bottom) = _resolve(key, rows, width, height, device)
+    ids, depth, ids_wp, (top, bottom), covered = _resolve(key, rows, width, height, device)
     _give_keys(key, npx, device)
     c = rows[:, :8].sum(axis=0)  # integer sums: the same whatever the chunks
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
-               "pixels_written": int(c[3]), "pixels_covered": int(np.count_nonzero(ids[top:bottom] >= 0))}
+               "pixels_written": int(c[3]), "pixels_covered": covered}
     return Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp,
                      rows=(top, bottom))
 
