@@ -99,7 +99,9 @@ def _select_kernel(
     out_dist[k] = dist
     culled = box_outside(planes, lo, hi)
     out_culled[k] = culled
-    prev = _was_split(prev_split, n_prev, node_key[k])
+    prev = False
+    if n_prev > 0:  # keys are read only with a previous frame to look them up in
+        prev = _was_split(prev_split, n_prev, node_key[k])
     split = int(0)
     if policy == 0:
         thr = threshold * wp.where(prev, 1.0 + hysteresis, 1.0 - hysteresis)
@@ -138,20 +140,22 @@ def _dev(a, device: str) -> wp.array:
                                                       device=device)
 
 
-def select_level(node_x: np.ndarray, node_y: np.ndarray, node_key: np.ndarray, stats: tuple, rel_origin,
+def select_level(node_x: np.ndarray, node_y: np.ndarray, node_key: np.ndarray | None, stats: tuple, rel_origin,
                  node_size_world, planes: np.ndarray, policy: int, threshold: float, focal_px: float,
                  hysteresis: float, can_split: bool, prev_split: np.ndarray, device: str = "cpu"):
-    """Evaluate one level's candidate nodes. Returns (split, culled, dist, metric) numpy arrays."""
+    """Evaluate one level's candidate nodes. Returns (split, culled, dist, metric) numpy arrays.
+    ``node_key`` may be None when ``prev_split`` is empty (nothing to look the keys up in)."""
     n = len(node_x)
     hmin, hmax, gerr = stats
     prev = np.ascontiguousarray(prev_split, dtype=np.int64)
+    if node_key is None or len(prev) == 0:
+        node_key = np.zeros(1, np.int64)
     arrs = [wp.empty(n, dtype=wp.int32, device=device), wp.empty(n, dtype=wp.int32, device=device),
             wp.empty(n, dtype=wp.float32, device=device), wp.empty(n, dtype=wp.float32, device=device)]
     if n == 0:
         return tuple(a.numpy() for a in arrs)
     launch(_select_kernel, n, inputs=[
-        wp.array(node_x.astype(np.int32), dtype=wp.int32, device=device),
-        wp.array(node_y.astype(np.int32), dtype=wp.int32, device=device),
+        _i32(node_x, device), _i32(node_y, device),
         wp.array(node_key.astype(np.int64), dtype=wp.int64, device=device),
         _dev(hmin, device), _dev(hmax, device), _dev(gerr, device),
         wp.vec3(*[float(v) for v in rel_origin]), wp.vec2(*[float(v) for v in node_size_world]),
@@ -254,8 +258,10 @@ def tree_leaves(tree: wp.array, roots: tuple[int, int], depth: int) -> np.ndarra
     return np.concatenate(parts)
 
 
-def _i32(a: np.ndarray, device: str) -> wp.array:
-    return wp.array(np.ascontiguousarray(a, np.int32), dtype=wp.int32, device=device)
+def _i32(a: np.ndarray, device: str | wp.Device) -> wp.array:
+    """An int32 Warp array of ``a`` (sharing its memory on the CPU when it is int32 already)."""
+    return wp.array(np.ascontiguousarray(a, np.int32), dtype=wp.int32, device=device,
+                    copy=not wp.get_device(device).is_cpu)
 
 
 def mark_nodes(tree: wp.array, roots: tuple[int, int], level: np.ndarray, x: np.ndarray, y: np.ndarray,

@@ -194,7 +194,7 @@ class Terrain:
 
     def inside(self, level: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """True for nodes whose origin lies inside the sample grid (others are never drawn)."""
-        return _inside_many(self, np.full(len(x), level), x, y)
+        return _inside_many(self, int(level), x, y)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -394,19 +394,19 @@ def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
         if len(x) == 0:
             break
         visited += len(x)
-        keys = tile_key(np.full(len(x), lvl), x, y)
         size = terrain.node_size_world(lvl)
         if fixed_level is not None:
             can, thr, code = lvl < fixed_level, 0.0, 0
         else:
             can, thr, code = lvl < depth, policy.threshold(lvl, max(size)), policy.code
+        keys = tile_key(np.full(len(x), lvl), x, y) if len(prev) else None
         sp, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), view.rel_origin, size,
                                       view.planes, code, thr, view.focal_px, policy.hysteresis, can, prev,
                                       device=device)
         if fixed_level is not None and lvl < fixed_level:
             sp = np.ones_like(sp)  # a uniform grid: everything splits down to the level
         split = sp.astype(bool)
-        split_keys.append(keys[split])
+        split_keys.append(tile_key(np.full(int(split.sum()), lvl), x[split], y[split]))
         inner.append((lvl, x[split], y[split]))
         leaf = ~split
         n = int(leaf.sum())
@@ -492,10 +492,28 @@ def _edge_factors(terrain: Terrain, camera: Camera, policy: Policy, level: np.nd
             np.full((len(level), 2), t, np.float32))
 
 
-def _inside_many(terrain: Terrain, lv, x, y) -> np.ndarray:
-    s = terrain.root_cells / np.exp2(lv.astype(np.float64))
+def _inside_counts(terrain: Terrain) -> np.ndarray:
+    """(depth + 1, 2): per level, how many columns and rows of nodes have their origin inside the grid,
+    ``x * s < w - 1`` with ``s`` the node side in cells (float64, monotone in x: the first x that fails)."""
     hh, ww = terrain.heightmap.shape
-    return (x * s < ww - 1) & (y * s < hh - 1) | ((x == 0) & (y == 0))
+    out = np.zeros((terrain.depth + 1, 2), np.int64)
+    for lv in range(terrain.depth + 1):
+        s = terrain.root_cells / 2.0 ** lv
+        for k, lim in enumerate((ww - 1, hh - 1)):
+            c = max(0, math.ceil(lim / s))
+            while c > 0 and (c - 1) * s >= lim:
+                c -= 1
+            while c * s < lim:
+                c += 1
+            out[lv, k] = c
+    return out
+
+
+def _inside_many(terrain: Terrain, lv: int | np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """True for nodes (lv, x, y) whose origin lies inside the sample grid (and the first root always)."""
+    counts = terrain.cached("inside_counts", lambda: _inside_counts(terrain))
+    c = counts[lv]
+    return (x < c[..., 0]) & (y < c[..., 1]) | ((x == 0) & (y == 0))
 
 
 def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
@@ -564,7 +582,7 @@ def node_metrics(terrain: Terrain, camera: Camera, device: str = "cpu") -> NodeM
                                      np.zeros(0, np.int64), device=device)
         out.x.append(x)
         out.y.append(y)
-        out.inside.append(_inside_many(terrain, np.full(len(x), lvl), x, y))
+        out.inside.append(_inside_many(terrain, lvl, x, y))
         out.culled.append(cu.astype(bool))
         out.dist.append(di.astype(np.float64))
         out.sse.append(me.astype(np.float64))
