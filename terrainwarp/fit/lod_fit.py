@@ -28,11 +28,8 @@ Validation: after the relaxed fit, the exact pipeline (select + tessellate + ras
 at the heightmap's samples, :mod:`terrainwarp.measure.sample_error`, which has no triangulation floor, so
 small budgets are reachable) runs over the camera path, and the parameter is corrected by
 Newton steps in log space, ``log t <- log t + (log budget - log p99) / slope``, with the slope
-``d log(error) / d log(t)`` from ``jax.grad`` of the relaxed model, then bisection once bracketed. Only the
-relaxed value is evaluated on every camera; the correction probes the path's worst frames there (a quarter
-of them: a subset that misses the budget proves a value infeasible), and the value chosen is confirmed on
-the remaining frames (a frame that misses there joins the probed ones). Every frame rendered counts in
-``FitResult.evaluations``. A fit that misses the budget in validation is reported as missed, never as met.
+``d log(error) / d log(t)`` from ``jax.grad`` of the relaxed model, then bisection once bracketed. A
+fit that misses the budget in validation is reported as missed, never as met.
 
 Popping as a constraint: ``fit_lod(..., max_pop_px=P)`` also measures, per consecutive camera pair, the pop
 between the previous camera's selection (held) and the current one, both drawn for the current camera
@@ -363,11 +360,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             a scheme, ``"cdlod"``, ``"clipmaps"`` or ``"chunked"`` (:data:`SCHEMES`, with the schemes' default
             settings: no relaxed fit, the budget bracketed on the exact pipeline; see the module docstring).
         steps: optax Adam steps of the relaxed fit (quadtree policies).
-        max_validations: the correction's exact-pipeline frames, in whole paths: at most
-            ``max_validations * len(cameras)`` frames are rendered (the quadtree policies probe subsets).
-        rel_tol: a scheme's bracketing stops when the validated p99 lies within
-            ``[budget * (1 - rel_tol), budget]`` or the cost gap of the bracket is within ``rel_tol``; a
-            quadtree policy's correction stops when the bracket's cost gap is within ``min(rel_tol, 1.5%)``.
+        max_validations: exact-pipeline validations (each runs every camera) for the correction.
+        rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
         grid_points: if > 0, also run the grid-search baseline with that many points.
         grid_evaluator: how the grid search runs its evaluations (None: in this process; see
             :func:`grid_search`).
@@ -470,13 +464,7 @@ def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: in
 @dataclass
 class _Exact:
     """The exact pipeline over the camera path, one evaluation per value (snapped to the fit range,
-    :meth:`Knob.snap`), with the count of frames it ran and the fit's history.
-
-    Frames are evaluated, cached and counted one by one: ``exact(v, frames)`` runs only the listed cameras
-    (a :class:`_Partial` evaluation; its worst p99 is a lower bound on the whole path's, so a subset that
-    misses the budget proves the value infeasible), and a later ``exact(v)`` renders only the frames still
-    missing. ``n_eval`` counts every frame rendered, once. With a pop bound the pairs need every frame, so
-    every evaluation covers the whole path."""
+    :meth:`Knob.snap`), with the count of frames it ran and the fit's history."""
 
     scene: Scene
     terrain: Terrain | None
@@ -492,86 +480,20 @@ class _Exact:
     max_pop_px: float | None = None
     knob: Knob | None = None
     cache: dict = field(default_factory=dict)
-    frames: dict[float, dict[int, Evaluation]] = field(default_factory=dict)  # value -> frame -> one-frame eval
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
 
-    def __call__(self, v: float, frames: list[int] | None = None) -> Evaluation:
+    def __call__(self, v: float) -> Evaluation:
         v = self.knob.snap(v)
-        if v in self.evals:
-            return self.evals[v] if frames is None else _subset(self.evals[v], frames)
-        if frames is None or self.max_pop_px is not None or len(set(frames)) == len(self.cams):
-            frames = None
-        done = self.frames.setdefault(v, {})
-        todo = [k for k in (range(len(self.cams)) if frames is None else sorted(set(frames))) if k not in done]
-        if todo:
-            e = evaluate(self.scene, self.terrain, [self.cams[k] for k in todo], self.policy, v,
-                         [self.refs[k] for k in todo], self.device, on_frame=self.on_frame,
-                         pops=self.max_pop_px is not None, cache=self.cache)
-            self.n_eval += len(todo)
-            if self.max_pop_px is not None:  # a whole path (pairs): kept whole
-                self.evals[v] = e
-            else:
-                for i, k in enumerate(todo):
-                    done[k] = _subset(e, [i])
-                    done[k].frames = [k]
         if v not in self.evals:
-            ks = sorted(done) if frames is None else sorted(set(frames))
-            e = _merge(v, [done[k] for k in ks], ks)
-            if frames is None:
-                self.evals[v] = e = Evaluation(**{f: getattr(e, f) for f in _FIELDS})
-        else:
-            e = self.evals[v]
-        if todo:
-            self.history.append({"stage": "validate" if frames is None else "validate_subset", "value": v,
-                                 "worst_p99_px": e.worst_p99, "cost": e.cost,
-                                 **({} if frames is None else {"frames": list(e.frames)}),
+            self.evals[v] = e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs,
+                                         self.device, on_frame=self.on_frame, pops=self.max_pop_px is not None,
+                                         cache=self.cache)
+            self.n_eval += len(self.cams)
+            self.history.append({"stage": "validate", "value": v, "worst_p99_px": e.worst_p99, "cost": e.cost,
                                  **({"worst_pop_p99_px": e.worst_pop} if self.max_pop_px is not None else {})})
-        return e
-
-    def has(self, v: float, frames: list[int]) -> bool:
-        """Whether ``frames`` of the value ``v`` have been evaluated already."""
-        v = self.knob.snap(v)
-        return v in self.evals or all(k in self.frames.get(v, ()) for k in frames)
-
-    def worst_frames(self, e: Evaluation, k: int) -> list[int]:
-        """The ``k`` frames of ``e`` (a whole-path evaluation) with the largest p99 (ties: max, image p99)."""
-        key = [(e.p99_px[i], e.max_px[i], e.image_p99_px[i] if e.image_p99_px else 0.0) for i in range(len(e.p99_px))]
-        return sorted(sorted(range(len(key)), key=lambda i: key[i], reverse=True)[:k])
-
-
-_FIELDS = ("value", "p99_px", "max_px", "triangles", "frame_ms", "image_p99_px", "pop_p99_px")
-
-
-@dataclass
-class _Partial(Evaluation):
-    """An evaluation of some of the path's frames (``frames``: their indices in the path)."""
-
-    frames: list[int] = field(default_factory=list)
-
-
-def _subset(e: Evaluation, idx: list[int]) -> _Partial:
-    """The frames ``idx`` of ``e`` (indices into e's lists; for a whole-path ``e``, the path's frames)."""
-    pick = (lambda xs: [xs[i] for i in idx] if xs else [])  # noqa: E731
-    src = getattr(e, "frames", None) or list(range(len(e.p99_px)))
-    return _Partial(e.value, pick(e.p99_px), pick(e.max_px), pick(e.triangles), pick(e.frame_ms),
-                    pick(e.image_p99_px), [], [src[i] for i in idx])
-
-
-def _merge(v: float, parts: list[Evaluation], frames: list[int]) -> _Partial:
-    """One-frame evaluations of the value ``v`` joined, in the order of ``frames``."""
-    return _Partial(v, *[[x for p in parts for x in getattr(p, f)] for f in _FIELDS[1:6]], [], list(frames))
-
-
-def _common_costs(exact: _Exact, a: Evaluation, b: Evaluation) -> tuple[float, float]:
-    """The mean triangles of ``a`` and ``b`` over the frames both were evaluated on (a subset's cost is
-    comparable only with the same frames' cost at another value)."""
-    fa, fb = exact.frames.get(a.value, {}), exact.frames.get(b.value, {})
-    ks = sorted(set(fa) & set(fb))
-    if not ks:
-        return a.cost, b.cost
-    return (float(np.mean([fa[k].triangles[0] for k in ks])), float(np.mean([fb[k].triangles[0] for k in ks])))
+        return self.evals[v]
 
 
 # -- relaxed fit -----------------------------------------------------------------------------------
@@ -614,81 +536,48 @@ def _relaxed_fit(model: Callable, fit_range: tuple[float, float], budget_px: flo
 # -- exact validation ------------------------------------------------------------------------------
 def _validate(exact: _Exact, model: Callable, v: float, budget_px: float, rel_tol: float, max_validations: int,
               gradient: str) -> Evaluation | None:
-    """Correct the relaxed value on the exact pipeline; the coarsest value that met the budget on the whole
-    path (None: none).
+    """Correct the relaxed value on the exact pipeline; the coarsest value that met the budget (None: none).
 
-    The relaxed error is an estimate: calibrate it on the exact pipeline. The relaxed value is evaluated on
-    every camera; the search then probes only the path's worst frames there (a quarter of them, at least
-    one: the frames that decide the worst-frame p99), each probe setting the offset between exact and
-    relaxed log error and solving the relaxed model (monotone in the parameter) for the budget with that
-    offset; once a feasible and an infeasible value bracket the budget, it interpolates in log-log between
-    them (regula falsi) until the cost gap is within ``min(rel_tol, 1.5%)``. The chosen value is then
-    confirmed on the remaining frames; a frame that misses there joins the probed ones and the search goes
-    on. At most ``max_validations`` times the path's frames are rendered, a confirmation always kept
-    affordable."""
+    The relaxed error is an estimate: calibrate it on the exact pipeline. Each round evaluates the exact
+    pipeline once, sets the offset between exact and relaxed log error there, and solves the relaxed
+    model (monotone in the parameter) for the budget with that offset; once a feasible and an
+    infeasible value bracket the budget, interpolate in log-log between them (regula falsi)."""
     import jax  # lazy: heavy optional dependency
-
-    log_model = jax.jit(lambda lv: model(lv, 0.05)[1])
-    n, limit = len(exact.cams), max_validations * len(exact.cams)
-    target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
-    e = exact(v)
-    sure = e if exact.meets(e) else None  # met on the whole path, coarsest so far
-    good, bad = sure, (None if sure is not None else e)  # good: met on the frames probed (maybe a subset)
-    probe = exact.worst_frames(e, max(1, n // 4))
-    while True:
-        # no stop on an error close to the budget: the error is a step function of the parameter, and a
-        # coarser value can still meet it (sse at 1 px: p99 0.96 px at 1.55, and 1.66 meets it, 4% cheaper)
-        nv = _next_value(exact, log_model, e, good, bad, target, budget_px, rel_tol, gradient)
-        if nv is not None and exact.has(nv, probe):
-            nv = None  # probed already: nothing left to learn in the bracket
-        if nv is None:
-            if good is None or good is sure or exact.n_eval + n - len(good.p99_px) > limit:
-                break
-            e = exact(good.value)  # confirm on the whole path
-            if exact.meets(e):
-                sure = good = e
-                break
-            bad = e if bad is None or _coarser(exact.knob, bad.value, e.value) else bad
-            good = sure
-            probe = sorted(set(probe) | set(exact.worst_frames(e, 1)))
-            continue
-        if exact.n_eval + n > limit:  # the probe and its confirmation
-            break
-        e = exact(nv, probe)
-        exact.history.append({"stage": "correct", "next_value": e.value})
-        if exact.meets(e):
-            good = e if good is None or _coarser(exact.knob, e.value, good.value) else good
-            sure = good if not isinstance(good, _Partial) else sure  # a probe of the whole path
-        elif bad is None or _coarser(exact.knob, bad.value, e.value):
-            bad = e
-    return sure
-
-
-def _next_value(exact: _Exact, log_model: Callable, e: Evaluation, good: Evaluation | None,
-                bad: Evaluation | None, target: float, budget_px: float, rel_tol: float, gradient: str
-                ) -> float | None:
-    """The next value to probe after ``e`` (None: the bracket is narrow enough): between ``good`` and ``bad``
-    once both are known (:func:`_bracket_step`, costs on their common frames), else a calibrated step of
-    the relaxed model (or, ``gradient="pixels"``, of the pixel-error slope)."""
-    import jax.numpy as jnp  # lazy: heavy optional dependency
+    import jax.numpy as jnp
 
     spec = exact.knob
-    if good is not None and bad is not None:
-        return _bracket_step(good, bad, target, min(rel_tol, 0.015), 0.01, _common_costs(exact, good, bad))
-    v = e.value
-    if gradient == "pixels":
-        nv = _pixel_step(exact, e, v, target, budget_px)
-    else:
-        # an error far below the budget (the primary error is often exactly 0 at fine settings) says only
-        # "feasible": calibrating on it would throw the next try to the end of the range
-        offset = math.log(max(e.worst_p99, 0.25 * budget_px)) - float(log_model(jnp.asarray(math.log(v))))
-        nv = _solve_relaxed(log_model, spec.fit_range, offset, target)
-        # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
-        # finer after an infeasible one). The exact error is flat over wide ranges (whole levels),
-        # where a calibrated step alone can stall.
-        coarser = exact.meets(e) == spec.coarser_up
-        nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
-    return float(np.clip(nv, *spec.fit_range))
+    log_model = jax.jit(lambda lv: model(lv, 0.05)[1])
+    target = math.log(budget_px * (1.0 - 0.5 * rel_tol))
+    good: Evaluation | None = None  # feasible (met), coarsest so far
+    bad: Evaluation | None = None  # infeasible, finest so far
+    for _ in range(max_validations):
+        e = exact(v)
+        if exact.meets(e):
+            if good is None or _coarser(exact.knob, e.value, good.value):
+                good = e
+            if e.worst_p99 >= budget_px * (1 - rel_tol):
+                break
+        elif bad is None or _coarser(exact.knob, bad.value, e.value):
+            bad = e
+        if good is not None and bad is not None:
+            nv = _bracket_step(good, bad, target, rel_tol)
+            if nv is None:
+                break
+        elif gradient == "pixels":
+            nv = _pixel_step(exact, e, v, target, budget_px)
+        else:
+            # an error far below the budget (the primary error is often exactly 0 at fine settings) says only
+            # "feasible": calibrating on it would throw the next try to the end of the range
+            offset = math.log(max(e.worst_p99, 0.25 * budget_px)) - float(log_model(jnp.asarray(math.log(v))))
+            nv = _solve_relaxed(log_model, spec.fit_range, offset, target)
+            # Not bracketed yet: move at least a factor e the right way (coarser after a feasible value,
+            # finer after an infeasible one). The exact error is flat over wide ranges (whole levels,
+            # the triangulation floor), where a calibrated step alone can stall.
+            coarser = exact.meets(e) == spec.coarser_up
+            nv = max(nv, v * math.e) if coarser else min(nv, v / math.e)
+        v = float(np.clip(nv, *spec.fit_range))
+        exact.history.append({"stage": "correct", "next_value": v})
+    return good
 
 
 def _bracket(exact: _Exact, budget_px: float, rel_tol: float, max_validations: int) -> Evaluation | None:
@@ -711,7 +600,7 @@ def _bracket(exact: _Exact, budget_px: float, rel_tol: float, max_validations: i
         elif bad is None or _coarser(kn, bad.value, e.value):
             bad = e
         if good is not None and bad is not None:
-            nv = _bracket_step(good, bad, target, rel_tol, 0.08)
+            nv = _bracket_step(good, bad, target, rel_tol)
         else:
             a = good.value if good is not None else fine
             b = bad.value if bad is not None else coarse
@@ -723,16 +612,13 @@ def _bracket(exact: _Exact, budget_px: float, rel_tol: float, max_validations: i
     return good
 
 
-def _bracket_step(good: Evaluation, bad: Evaluation, target: float, cost_tol: float, min_log_gap: float,
-                  costs: tuple[float, float] | None = None) -> float | None:
+def _bracket_step(good: Evaluation, bad: Evaluation, target: float, rel_tol: float) -> float | None:
     """The next value between a feasible and an infeasible one (log-log interpolation), or None when
     refining cannot pay: cost is monotone in the parameter, so nothing in the bracket is cheaper than
-    bad's cost and the remaining gain is at most the cost gap (``costs``: good's and bad's, on the same
-    frames; default their own) within ``cost_tol``; the exact error is a step function of the parameter
-    (discrete levels), so a bracket narrower than ``min_log_gap`` (in log value) is as far as refining goes."""
+    bad.cost and the remaining gain is at most the cost gap; the exact error is a step function of the
+    parameter (discrete levels), so a narrow bracket is as far as refining can go."""
     lg, lb = math.log(good.value), math.log(bad.value)
-    gc, bc = costs if costs is not None else (good.cost, bad.cost)
-    if gc - bc <= cost_tol * gc or abs(lg - lb) < min_log_gap:
+    if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < 0.08:
         return None
     # errors far below the budget (0 at fine settings) are clamped to a quarter of it, so the step does not
     # crawl from the feasible end of the bracket
@@ -749,7 +635,6 @@ def _pixel_step(exact: _Exact, e: Evaluation, v: float, target: float, budget_px
 
     sc = exact.scene
     w = int(np.argmax(e.p99_px))
-    w = e.frames[w] if isinstance(e, _Partial) else w  # the path's frame
     _, slope = log_slope(sc.heightmap, exact.cams[w], v, sc.lod.level, exact.terrain, cull_back=sc.cull_back,
                          device=exact.device)
     exact.n_eval += 1
