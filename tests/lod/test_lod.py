@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, render, set_threads
+from terrainwarp.io.files import digest
+from terrainwarp.kernels import parallel
 from terrainwarp.kernels.tessellator import SPACING_CODES
 from terrainwarp.lod import (
     POLICY_CLASSES,
@@ -327,3 +329,59 @@ def test_one_tess_rule_for_config_terrain_and_render():
         Terrain.prepare(hm, roots=(0, 2))
     with pytest.raises(TypeError, match="roots"):
         Terrain.prepare(hm, roots=2.5)
+
+
+def _neighbour_levels_brute(pl, terrain):
+    """Neighbour levels by painting every drawn leaf's finest cells with its level (-1 elsewhere)."""
+    nx, nz = terrain.roots
+    d = terrain.depth
+    grid = np.full((nz << d, nx << d), -1, np.int64)
+    _, x, y = tile_from_key(pl.key)
+    for lv, xi, yi in zip(pl.level, x, y):
+        s = 1 << (d - int(lv))
+        grid[yi * s:(yi + 1) * s, xi * s:(xi + 1) * s] = lv
+    out = np.empty((len(pl), 4), np.int64)
+    for i, (lv, xi, yi) in enumerate(zip(pl.level, x, y)):
+        s = 1 << (d - int(lv))
+        x0, y0, q1, q3 = xi * s, yi * s, s // 4, (3 * s) // 4
+        probes = (((x0 - 1, y0 + q1), (x0 - 1, y0 + q3)), ((x0 + q1, y0 - 1), (x0 + q3, y0 - 1)),
+                  ((x0 + s, y0 + q1), (x0 + s, y0 + q3)), ((x0 + q1, y0 + s), (x0 + q3, y0 + s)))
+        for e, pair in enumerate(probes):
+            out[i, e] = max(grid[py, px] if 0 <= px < grid.shape[1] and 0 <= py < grid.shape[0] else -1
+                            for px, py in pair)
+    return out
+
+
+def test_tree_map_neighbour_levels_match_painted_grid():
+    """The tree map's walk finds the same neighbour levels as a painted finest-level grid: every leaf drawn
+    (a wide camera looking down), levels 1..5 with forced balance splits, roots beyond the grid (-1)."""
+    hm = Heightmap.fbm(257, seed=3, dx=1.0, max_height=60.0)
+    t = Terrain.prepare(hm, roots=(3, 2), tess=4)
+    cam = Camera(position=(40.0, 70.0, 60.0), target=(40.0, 0.0, 60.0), up=(0, 0, -1), fov_y_deg=170.0,
+                 width=64, height=64, near=0.1, far=5000.0)
+    pl = select(t, cam, DistancePolicy(thresholds=(1e9, 40.0, 40.0, 40.0, 40.0)))
+    assert pl.stats["forced_splits"] > 0 and pl.stats["culled"] == 0 and len(np.unique(pl.level)) == 5
+    nbr = _neighbour_levels_brute(pl, t)
+    assert (nbr == -1).any() and np.array_equal(pl.neighbour_level, nbr)
+
+
+@pytest.mark.parametrize("policy", [ScreenErrorPolicy(0.5, hysteresis=0.25), DistancePolicy(k=1.5),
+                                    ContinuousPolicy(4.0, level=2)])
+def test_select_is_identical_for_any_thread_count(policy):
+    hm = Heightmap.fbm(257, seed=5, dx=2.0, max_height=80.0)
+    t = Terrain.prepare(hm, roots=4, tess=8)
+    cams = [Camera.default_for(hm), Camera(position=(100.0, 40.0, 400.0), target=(256.0, 0.0, 256.0))]
+    seen = set()
+    parallel.set_min_items(1)  # split even the smallest launch
+    try:
+        for n in (1, 2, 3, 8):
+            set_threads(n)
+            st, d = LodState(), []
+            for cam in cams:
+                pl = select(t, cam, policy, st)
+                d.append(digest(*pl[:-1], st.split_keys) + repr(sorted(pl.stats.items())))
+            seen.add("".join(d))
+    finally:
+        parallel.set_min_items(None)
+        set_threads(None)
+    assert len(seen) == 1
