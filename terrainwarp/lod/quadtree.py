@@ -17,9 +17,10 @@ frustum, policy), children of split nodes become the next level's candidates. Th
 until stable. We chose the restricted tree over the unrestricted O(log n) parent/child search of
 deaconu2021 ("Finding edges at the border") because the edge-factor rule (double the factor toward a
 finer neighbour) is only crack-free when neighbours differ by at most one level. Neighbour levels are
-then found by an O(log n) search all the same: leaves are sorted by the Morton code of their first
-finest-level cell (a quadtree node covers a contiguous Morton range), and the leaf containing a probe
-cell just across an edge is found with one binary search.
+found in a tree map (:func:`terrainwarp.kernels.lod.tree_map`: one cell per node of every level, laid out
+like the terrain's pyramids, holding leaf / split / not in the tree): the node just across an edge at the
+leaf's own level is one lookup, and the leaf containing a probe cell is a short walk down or up from
+there, so a balance pass and the neighbour levels are linear in the leaves (a kernel launch each).
 
 Edge factors: with a constant tessellation level T, every edge gets T, and an edge whose neighbour is
 finer gets 2T (deaconu2021, "Finding edges at the border", figure 7), so both sides place the same
