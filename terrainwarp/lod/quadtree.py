@@ -418,10 +418,14 @@ def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
         parts.append((np.full(len(ox), lvl, np.int32), ox, oy, np.zeros(len(ox), np.float32),
                       np.zeros(len(ox), np.float32), np.ones(len(ox), bool), np.ones(len(ox), bool)))
     nodes = _Nodes(*(np.concatenate(a) for a in zip(*parts)), np.ones(sum(len(p[0]) for p in parts), bool))
+    # one launch marks every node: the leaves with their index + 1, the split nodes with -1
+    sl = [np.full(len(sx), lv, np.int32) for lv, sx, _ in inner]
     tmap = tree_map(terrain.roots, depth, device)
-    mark_nodes(tmap, terrain.roots, nodes.level, nodes.x, nodes.y, np.arange(1, len(nodes.level) + 1, dtype=np.int32))
-    for lvl, sx, sy in inner:
-        mark_nodes(tmap, terrain.roots, np.full(len(sx), lvl, np.int32), sx, sy, -1)
+    mark_nodes(tmap, terrain.roots, np.concatenate([nodes.level, *sl]),
+               np.concatenate([nodes.x, *(sx for _, sx, _ in inner)]),
+               np.concatenate([nodes.y, *(sy for _, _, sy in inner)]),
+               np.concatenate([np.arange(1, len(nodes.level) + 1, dtype=np.int32),
+                               np.full(sum(len(a) for a in sl), -1, np.int32)]))
     return _Tree(nodes, tmap, terrain.roots, depth), split_keys, visited
 
 
