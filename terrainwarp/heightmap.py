@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -261,10 +262,11 @@ class Heightmap:
         x0, z0 = self.origin
         return ((x0, z0), (x0 + (self.shape[1] - 1) * self.dx, z0 + (self.shape[0] - 1) * self.dz))
 
-    @property
+    @cached_property
     def height_range(self) -> tuple[float, float]:
-        f = self.heights[np.isfinite(self.heights)]
-        return (float(f.min()), float(f.max()))
+        """(min, max) of the finite heights, metres. Worked out once: the heights are read-only, and every
+        frame's tint asks for it (a masked copy of the whole grid per call cost tens of ms at 4097^2)."""
+        return (float(np.nanmin(self.heights)), float(np.nanmax(self.heights)))
 
     def __repr__(self) -> str:
         lo, hi = self.height_range
