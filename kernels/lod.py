@@ -66,9 +66,9 @@ def _select_kernel(
     node_x: wp.array(dtype=wp.int32),
     node_y: wp.array(dtype=wp.int32),
     node_key: wp.array(dtype=wp.int64),
-    hmin: wp.array2d(dtype=wp.float32),
-    hmax: wp.array2d(dtype=wp.float32),
-    gerr: wp.array2d(dtype=wp.float32),
+    hmin: wp.array(dtype=wp.float32),
+    hmax: wp.array(dtype=wp.float32),
+    gerr: wp.array(dtype=wp.float32),
     rel_origin: wp.vec3,
     node_size: wp.vec2,
     planes: wp.array(dtype=wp.vec4),
@@ -88,9 +88,9 @@ def _select_kernel(
     k = wp.tid() + offset
     x = node_x[k]
     y = node_y[k]
-    lo = wp.vec3(rel_origin[0] + float(x) * node_size[0], hmin[y, x] - rel_origin[1],
+    lo = wp.vec3(rel_origin[0] + float(x) * node_size[0], hmin[k] - rel_origin[1],
                  rel_origin[2] + float(y) * node_size[1])
-    hi = wp.vec3(lo[0] + node_size[0], hmax[y, x] - rel_origin[1], lo[2] + node_size[1])
+    hi = wp.vec3(lo[0] + node_size[0], hmax[k] - rel_origin[1], lo[2] + node_size[1])
     # distance from the eye (the origin) to the box
     dx = wp.max(wp.max(lo[0], -hi[0]), 0.0)
     dy = wp.max(wp.max(lo[1], -hi[1]), 0.0)
@@ -109,7 +109,7 @@ def _select_kernel(
         if dist < thr:
             split = 1
     else:
-        e = gerr[y, x]
+        e = gerr[k]
         sse = float(0.0)
         if e > 0.0:
             if dist > 0.0:
@@ -144,9 +144,15 @@ def select_level(node_x: np.ndarray, node_y: np.ndarray, node_key: np.ndarray | 
                  node_size_world, planes: np.ndarray, policy: int, threshold: float, focal_px: float,
                  hysteresis: float, can_split: bool, prev_split: np.ndarray, device: str = "cpu"):
     """Evaluate one level's candidate nodes. Returns (split, culled, dist, metric) numpy arrays.
+
+    ``stats``: the candidates' (min, max, geometric error), each (N,) float32 in candidate order (a Terrain's
+    ``stats_at``: gathered from its pyramids, or worked out on demand for a streamed heightmap).
     ``node_key`` may be None when ``prev_split`` is empty (nothing to look the keys up in)."""
     n = len(node_x)
-    hmin, hmax, gerr = stats
+    hmin, hmax, gerr = (np.ascontiguousarray(a, dtype=np.float32).reshape(-1) for a in stats)
+    if not len(hmin) == len(hmax) == len(gerr) == n:
+        raise ValueError(f"stats: expected 3 arrays of {n} per-candidate values, got {len(hmin)}, {len(hmax)}, "
+                         f"{len(gerr)}")
     prev = np.ascontiguousarray(prev_split, dtype=np.int64)
     if node_key is None or len(prev) == 0:
         node_key = np.zeros(1, np.int64)

@@ -186,7 +186,7 @@ class Cdlod(SelectThenMesh):
             lod = t.depth - lvl
             visited += len(x)
             size = t.node_size_world(lvl)
-            _, cu, dist, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.device_stats(lvl, self.device),
+            _, cu, dist, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.stats_at(lvl, x, y),
                                           rel, size, planes, 0, 0.0, camera.focal_px, 0.0, False,
                                           np.zeros(0, np.int64), device=self.device)
             vis = cu == 0

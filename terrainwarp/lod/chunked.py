@@ -130,7 +130,7 @@ class ChunkedLod(SelectThenMesh):
             if not len(x):
                 break
             visited += len(x)
-            sp, cu, _, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.device_stats(lvl, self.device),
+            sp, cu, _, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.stats_at(lvl, x, y),
                                         rel, t.node_size_world(lvl), planes, 1, float(self.max_sse_px),
                                         camera.focal_px, 0.0, lvl < t.depth, np.zeros(0, np.int64),
                                         device=self.device)
