@@ -91,6 +91,7 @@ def _fbm_kernel(
     offset: int,
     row0: int,
     col0: int,
+    step: int,
     base_frequency: float,
     octaves: int,
     lacunarity: float,
@@ -102,8 +103,8 @@ def _fbm_kernel(
 ):
     i, j = wp.tid()
     i += offset
-    x = float(col0 + j) * base_frequency
-    z = float(row0 + i) * base_frequency
+    x = float(col0 + j * step) * base_frequency  # integer sample index first: a strided window equals
+    z = float(row0 + i * step) * base_frequency  # those samples of the whole, bit for bit
     amp = float(1.0)
     total = float(0.0)
     norm = float(0.0)
@@ -122,11 +123,14 @@ def _fbm_kernel(
 
 def fbm(rows: int, cols: int, *, seed: int = 0, base_frequency: float = 1.0 / 256.0, octaves: int = 8,
         lacunarity: float = 2.0, gain: float = 0.5, ridged: bool = False, row0: int = 0, col0: int = 0,
-        device: str = "cpu") -> np.ndarray:
-    """fBm in [-1, 1], float32 (rows, cols), of the window starting at (row0, col0)."""
+        step: int = 1, device: str = "cpu") -> np.ndarray:
+    """fBm in [-1, 1], float32 (rows, cols), of the window starting at sample (row0, col0), every ``step``-th
+    sample (sample (row0 + i * step, col0 + j * step) of the whole: a point-sampled overview)."""
+    if int(step) < 1:
+        raise ValueError(f"step: expected a positive integer, got {step!r}")
     out = wp.empty((rows, cols), dtype=wp.float32, device=device)
     launch(_fbm_kernel, dim=(rows, cols),
-           inputs=[int(row0), int(col0), float(base_frequency), int(octaves), float(lacunarity),
+           inputs=[int(row0), int(col0), int(step), float(base_frequency), int(octaves), float(lacunarity),
                    float(gain), int(seed) & 0x7FFFFFFF, int(bool(ridged))],
            outputs=[out], device=device, min_items=1024)
     return out.numpy()

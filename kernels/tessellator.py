@@ -357,6 +357,7 @@ W_POSITION = wp.constant(4)
 W_UV = wp.constant(8)
 W_LEVEL = wp.constant(16)
 W_SWAP = wp.constant(32)  # store triangles counter-clockwise seen from +y
+W_CELLS = wp.constant(64)  # uv in grid cells (column, row), not normalised (a streamed heightmap's displacement)
 OPTIONAL_FIELDS = {"uv": 8, "domain": 1, "patch_id": 2, "level": 16}  # Tessellation fields made on request
 
 
@@ -534,7 +535,10 @@ def _displace(out: _Out, k: int, b: vec4l, u: int, v: int):
         pz = float(nz - out.eye_lz) * out.cell[1] - out.eye_rem[2]
         out.pos[k] = wp.vec3(px, hgt - out.eye_rem[1], pz)
     if out.flags & W_UV:
-        out.uv[k] = wp.vec2(gx / float(wp.max(h.shape[1] - 1, 1)), gz / float(wp.max(h.shape[0] - 1, 1)))
+        if out.flags & W_CELLS:
+            out.uv[k] = wp.vec2(gx, gz)
+        else:
+            out.uv[k] = wp.vec2(gx / float(wp.max(h.shape[1] - 1, 1)), gz / float(wp.max(h.shape[0] - 1, 1)))
 
 
 @wp.func
@@ -773,7 +777,7 @@ def _get(patches, name: str, required: bool = True):
 
 def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str = "equal",
                        filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu",
-                       need: Iterable[str] | None = None) -> Tessellation:
+                       need: Iterable[str] | None = None, uv_cells: bool = False) -> Tessellation:
     """Tessellate and displace all patches of a frame (one launch per stage).
 
     Args:
@@ -782,7 +786,8 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
             its (x, z) extent (a patch square in cells is a rectangle in metres when dx != dz), ``outer``
             (P, 4) and ``inner`` (P, 2) float32 levels, and optionally ``level`` (P,) int32. The
             domain's u runs along +x and v along +z.
-        heights: (H, W) float32 heightmap, row i along +z, column j along +x.
+        heights: (H, W) float32 heightmap, row i along +z, column j along +x; or a Warp array (used as it
+            is: a streamed heightmap passes a zero-strided stand-in of its shape and displaces afterwards).
         dx, dz: sample spacing in metres (> 0).
         eye: world (x, y, z) positions are made relative to (float64).
         spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
@@ -791,6 +796,7 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
         need: the per-point fields to make besides positions (and triangles), any of ``"uv"``,
             ``"domain"``, ``"patch_id"``, ``"level"`` (None: all of them); the others are None. A
             depth-only frame asks for none and stores 12 bytes per point and 12 per triangle.
+        uv_cells: ``uv`` in grid cells (column, row) instead of normalised to [0, 1].
 
     Returns:
         A :class:`Tessellation`. Not differentiable (discrete topology; heights are sampled with the
@@ -801,7 +807,7 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     lattice offset from the eye (relative error 2^-24 of the distance to the eye); the sampling
     coordinate is float32 (2^-12 cells at column 4,096).
     """
-    flags = _flags(need)
+    flags = _flags(need) | (W_CELLS if uv_cells else 0)
     args, e = prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
     n, m, v_off, t_off, out = frame_device(*args, device, flags=flags | W_SWAP)
 
@@ -845,7 +851,7 @@ def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device,
     out.tri = empty(max(m, 1), wp.vec3i, device)
     out.box = wp.array(box, dtype=vec4l, device=device)
     out.level = wp.array(lvl, dtype=wp.int32, device=device)
-    out.h = wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device)
+    out.h = h if isinstance(h, wp.array) else wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device)
     out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
     out.eye_rem = wp.vec3(*eye_rem)
     out.cell = wp.vec2(float(cell[0]), float(cell[1]))
@@ -873,7 +879,7 @@ def prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin):
     lvl = np.zeros(p, np.int32) if lvl is None else np.asarray(lvl, dtype=np.int32).reshape(-1)
     if lvl.shape != (p,):
         raise ValueError(f"patches.level: expected shape ({p},), got {lvl.shape}")
-    h = np.asarray(heights, dtype=np.float32)
+    h = heights if isinstance(heights, wp.array) else np.asarray(heights, dtype=np.float32)
     if h.ndim != 2 or min(h.shape) < 1:
         raise ValueError(f"heights: expected a 2-D (H, W) array, got shape {h.shape}")
     dx, dz = float(dx), float(dz)

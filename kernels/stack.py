@@ -1,0 +1,133 @@
+"""Displacement from a stack of point-sampled overview windows (a streamed heightmap's frame).
+
+A streamed frame holds no heightmap: it holds one window per overview step the frame's patches need,
+each the bounding box of those patches (plus a margin) in that overview's samples. A point at grid
+coordinate (gx, gz) (cells of the full-resolution grid) reads the finest window that holds its bilinear
+footprint and its central differences, so the height of a point depends on its position alone: two
+patches that share an edge vertex read the same window and the same height, and the mesh stays
+watertight across windows.
+
+Windows (``table`` rows, finest first): (c0, r0, cols, rows) in samples of their overview, the overview's
+``shift`` (step 2^shift), and ``start`` into the flat ``data``. A window that reaches its overview's last
+column or row clamps there (the grid's edge), as the in-memory sampler clamps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .parallel import launch
+
+__all__ = ["stack_displace"]
+
+
+@wp.func
+def _fetch(data: wp.array(dtype=wp.float32), start: int, cols: int, rows: int, i: int, j: int) -> float:
+    ii = wp.clamp(i, 0, rows - 1)
+    jj = wp.clamp(j, 0, cols - 1)
+    return data[start + ii * cols + jj]
+
+
+@wp.func
+def _bilinear(data: wp.array(dtype=wp.float32), start: int, cols: int, rows: int, u: float, v: float) -> float:
+    """As sampling.sample_bilinear, on one window of the flat stack."""
+    uc = wp.clamp(u, 0.0, float(cols - 1))
+    vc = wp.clamp(v, 0.0, float(rows - 1))
+    j0 = int(wp.floor(uc))
+    i0 = int(wp.floor(vc))
+    fu = uc - float(j0)
+    fv = vc - float(i0)
+    ref = _fetch(data, start, cols, rows, i0, j0)
+    b = _fetch(data, start, cols, rows, i0, j0 + 1) - ref
+    c = _fetch(data, start, cols, rows, i0 + 1, j0) - ref
+    d = _fetch(data, start, cols, rows, i0 + 1, j0 + 1) - ref
+    a = 0.0
+    top = a + (b - a) * fu  # sampling.sample_bilinear's operations, in its order: the same float32 answer
+    bot = c + (d - c) * fu
+    return ref + (top + (bot - top) * fv)
+
+
+@wp.func
+def _holds(lo: int, n: int, full: int, k: int) -> bool:
+    """Window [lo, lo + n) of an overview ``full`` samples long holds samples k - 1 .. k + 2 (or reaches the
+    grid's edge on the side it lacks)."""
+    return (k - 1 >= lo or lo == 0) and (k + 2 <= lo + n - 1 or lo + n == full)
+
+
+@wp.kernel(enable_backward=False)
+def _stack_kernel(
+    offset: int,
+    grid: wp.array(dtype=wp.vec2),
+    data: wp.array(dtype=wp.float32),
+    table: wp.array(dtype=wp.vec4i),
+    shift: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int64),
+    full: wp.array(dtype=wp.vec2i),
+    n_win: int,
+    eye_y: float,
+    dx: float,
+    dz: float,
+    # outputs
+    pos: wp.array(dtype=wp.vec3),
+    nrm: wp.array(dtype=wp.vec3),
+    win: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    g = grid[k]
+    w = n_win - 1
+    for m in range(n_win):  # the finest window that holds the point's footprint
+        t = table[m]
+        s = float(1 << shift[m])
+        u = g[0] / s
+        v = g[1] / s
+        if _holds(t[0], t[2], full[m][0], int(wp.floor(u))) and _holds(t[1], t[3], full[m][1], int(wp.floor(v))):
+            w = m
+            break
+    t = table[w]
+    s = float(1 << shift[w])
+    u = g[0] / s - float(t[0])  # exact: an integer shift of a float32 below 2^24
+    v = g[1] / s - float(t[1])
+    st = int(start[w])
+    h = _bilinear(data, st, t[2], t[3], u, v)
+    hx = _bilinear(data, st, t[2], t[3], u + 1.0, v) - _bilinear(data, st, t[2], t[3], u - 1.0, v)
+    hz = _bilinear(data, st, t[2], t[3], u, v + 1.0) - _bilinear(data, st, t[2], t[3], u, v - 1.0)
+    p = pos[k]
+    pos[k] = wp.vec3(p[0], h - eye_y, p[2])
+    nrm[k] = wp.normalize(wp.vec3(-hx / (2.0 * dx * s), 1.0, -hz / (2.0 * dz * s)))
+    win[k] = shift[w]
+
+
+def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tuple[int, int, int, np.ndarray]],
+                   full_shapes: list[tuple[int, int]], eye_y: float, dx: float, dz: float,
+                   device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Heights, normals and the overview each point read, from a stack of windows.
+
+    Args:
+        grid_uv: (N, 2) float32 grid coordinates (column, row) of the points, full-resolution cells.
+        positions: (N, 3) float32 camera-relative positions; y is replaced by height - eye_y.
+        windows: finest first, (shift, r0, c0, heights (rows, cols) float32) of the step-2^shift overview.
+        full_shapes: per window, (rows, cols) of its whole overview.
+        eye_y: the eye's world height (float32 camera-relative, as the tessellator's).
+
+    Returns:
+        (positions (N, 3), normals (N, 3), shift (N,) int32 of the window read).
+    """
+    n = len(grid_uv)
+    pos = wp.array(np.ascontiguousarray(positions, np.float32), dtype=wp.vec3, device=device)
+    nrm = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
+    win = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+    if n == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int32)
+    sizes = [int(w[3].size) for w in windows]
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    data = np.concatenate([np.ascontiguousarray(w[3], np.float32).reshape(-1) for w in windows])
+    table = np.array([(w[2], w[1], w[3].shape[1], w[3].shape[0]) for w in windows], np.int32)
+    full = np.array([(fc, fr) for fr, fc in full_shapes], np.int32)
+    launch(_stack_kernel, n, inputs=[
+        wp.array(np.ascontiguousarray(grid_uv, np.float32), dtype=wp.vec2, device=device),
+        wp.array(data, dtype=wp.float32, device=device), wp.array(table, dtype=wp.vec4i, device=device),
+        wp.array(np.array([w[0] for w in windows], np.int32), dtype=wp.int32, device=device),
+        wp.array(starts, dtype=wp.int64, device=device), wp.array(full, dtype=wp.vec2i, device=device),
+        len(windows), float(eye_y), float(dx), float(dz)], outputs=[pos, nrm, win], device=device)
+    return pos.numpy()[:n].reshape(-1, 3), nrm.numpy()[:n].reshape(-1, 3), win.numpy()[:n]
