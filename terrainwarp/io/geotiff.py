@@ -47,7 +47,8 @@ if TYPE_CHECKING:  # rasterio and affine are imported where used (heavy optional
     from rasterio.io import DatasetReader
     from rasterio.windows import Window
 
-__all__ = ["GDAL_EXTS", "GeoRaster", "HeightGrid", "describe", "is_gdal_raster", "is_georeferenced",
+__all__ = ["GDAL_EXTS", "GeoRaster", "HeightGrid", "RasterHeader", "describe", "is_gdal_raster", "is_georeferenced",
+           "open_raster", "read_header", "read_oriented",
            "read_geotiff", "write_geotiff"]
 
 # Extensions always read through GDAL; .tif/.tiff only when the file carries georeferencing (plain TIFFs
@@ -276,6 +277,17 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
     if n_holes == part.raw.size:
         raise ValueError(f"path: every cell of band {b} in the part read of {p} is no-data ({part.nodata})")
     h64, vf, notes = _decode(part)
+    h64, sdx, sdz, meta = _described(part, h64, p, file_meta, b, k, resampling, dx, dz, vf, notes)
+    meta["nodata_count"] = n_holes
+    r = GeoRaster(np.ascontiguousarray(h64.astype(np.float32)), sdx, sdz, p.stem, meta)
+    meta["summary"] = describe(r)
+    return r
+
+
+def _described(part: _Part, h64: np.ndarray, p: Path, file_meta: dict, b: int, k: int, resampling: str,
+               dx: float | None, dz: float | None, vf: float,
+               notes: list[str]) -> tuple[np.ndarray, float, float, dict[str, Any]]:
+    """(heights north-up, dx, dz, meta) of a part read: what :func:`read_geotiff` and :func:`read_header` say."""
     sdx, sdz, meta = _spacing(part, p, dx, dz)
     h64, flip_rows, flip_cols, s00 = _orient(h64, part)
     tw, (r0, c0, nk, mk) = part.transform, part.window
@@ -288,15 +300,83 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
         raster_shape=file_meta["raster_shape"],
         window=[r0, c0, nk, mk], decimate=k, resampling=resampling if k > 1 else None,
         source_dtype=str(part.dtype), nodata=None if part.nodata is None else float(part.nodata),
-        nodata_count=n_holes, scale=part.scale, offset=part.offset, vertical_unit=part.unit or None,
+        nodata_count=None, scale=part.scale, offset=part.offset, vertical_unit=part.unit or None,
         vertical_unit_m=vf, area_or_point=file_meta["area_or_point"], flipped_rows=bool(flip_rows),
         flipped_cols=bool(flip_cols), sample00_crs=[float(s00[0]), float(s00[1])],
         centre_crs=[float(tw.c + tw.a * m / 2.0), float(tw.f + tw.e * n / 2.0)],
         spacing_note=meta.pop("spacing_note"), notes=notes,
     )
-    r = GeoRaster(np.ascontiguousarray(h64.astype(np.float32)), sdx, sdz, p.stem, meta)
-    meta["summary"] = describe(r)
-    return r
+    return h64, sdx, sdz, meta
+
+
+# -- the whole raster read by windows (a streamed heightmap) -----------------------------------------
+class RasterHeader(NamedTuple):
+    """What :func:`read_geotiff` would say of the whole raster, read from the header only.
+
+    ``shape`` is (rows, cols) north-up; ``meta`` as :class:`GeoRaster`'s (without ``nodata_count`` and
+    ``summary``, which need every cell); ``flip`` the (rows, cols) flips of the file's orientation; ``tags``
+    the band's decoding (nodata, scale, offset, vertical unit's metres, dtype)."""
+
+    path: Path
+    band: int
+    shape: tuple[int, int]
+    dx: float
+    dz: float
+    meta: dict[str, Any]
+    flip: tuple[bool, bool]
+    tags: _Part
+
+
+def open_raster(path: str | os.PathLike) -> DatasetReader:
+    """An open rasterio dataset (the caller closes it), with :func:`read_geotiff`'s error for a bad file."""
+    return _open(Path(path))
+
+
+def read_header(path: str | os.PathLike, *, band: int = 1, dx: float | None = None,
+                dz: float | None = None) -> RasterHeader:
+    """The whole raster's shape, spacing, CRS, no-data and orientation as :func:`read_geotiff` finds them,
+    without reading a cell (windows are read with :func:`read_oriented`)."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"path: no such file: {p}")
+    if p.is_dir() or p.stat().st_size == 0:
+        raise ValueError(f"path: expected a non-empty raster file, got {p}")
+    with _open(p) as src:
+        b = _int_arg("band", band, 1)
+        if b > src.count:
+            raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
+        _check_transform(src, p)
+        h, w = int(src.height), int(src.width)
+        dtype = np.dtype(src.dtypes[b - 1])
+        probe = _read_part(src, b, (0, 0, 1, 1), 1, "nearest")  # the band's tags, from one cell
+        file_meta = dict(source=str(p), driver=src.driver, band=b, band_count=src.count, raster_shape=[h, w],
+                         area_or_point=src.tags().get("AREA_OR_POINT", "Area"))
+    # the whole raster's part, without its cells: a zero-strided stand-in carries the shape
+    part = probe._replace(raw=np.broadcast_to(np.zeros(1, dtype), (h, w)),
+                          holes=np.broadcast_to(np.zeros(1, bool), (h, w)), transform=probe.transform,
+                          window=(0, 0, h, w))
+    unit = part.unit
+    vf = _VERTICAL_UNITS.get(unit.lower(), 1.0)
+    notes = [f"unknown vertical unit {unit!r}: values taken as metres"] if unit and unit.lower() not in \
+        _VERTICAL_UNITS else []
+    _, sdx, sdz, meta = _described(part, part.raw, p, file_meta, b, 1, "nearest", dx, dz, vf, notes)
+    return RasterHeader(p, b, (h, w), sdx, sdz, meta, (meta["flipped_rows"], meta["flipped_cols"]), part)
+
+
+def read_oriented(header: RasterHeader, src: DatasetReader, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+    """(rows, cols) float32 heights (NaN at no-data) of the north-up window from sample (r0, c0), decoded as
+    :func:`read_geotiff` decodes the whole raster (bit for bit the same values)."""
+    h, w = header.shape
+    fr, fc = header.flip
+    fr0 = h - r0 - rows if fr else r0  # the window in file rows / columns
+    fc0 = w - c0 - cols if fc else c0
+    part = _read_part(src, header.band, (fr0, fc0, rows, cols), 1, "nearest")
+    h64, _, _ = _decode(part)
+    if fr:
+        h64 = h64[::-1]
+    if fc:
+        h64 = h64[:, ::-1]
+    return np.ascontiguousarray(h64.astype(np.float32))
 
 
 # -- window ------------------------------------------------------------------------------------------

@@ -1,0 +1,386 @@
+"""Heights read a tile at a time: tiled sources, point-sampled overviews and an LRU tile cache.
+
+A streamed heightmap (:class:`terrainwarp.heightmap.StreamedHeightmap`) never holds its grid: it asks its
+:class:`TileSource` for square tiles of ``TILE + 1`` samples a side (neighbours share a row or column, so
+a window that ends on a multiple of ``TILE`` needs no further tile), at a ``step`` of 1 (full resolution)
+or a power of two (an overview), and keeps the tiles it read in a :class:`TileCache` with a memory cap.
+
+Overviews are point-sampled: sample ``(i, j)`` of the step-``s`` overview is sample ``(i * s, j * s)`` of
+the grid, bit for bit. A vertex that falls on a grid point reads the same height from every overview
+that holds the point (so a frame drawn from overviews keeps the heightmap's values where it has them;
+an averaging overview would move every height). GDAL's own overviews of a GeoTIFF are area-sampled
+(a cell of a 2x overview is centred between grid points), so a :class:`GeoTiffSource` takes its
+overviews from the pyramid cache built beside the file (:mod:`terrainwarp.lod.streaming`), which
+writes them in the same pass as the min/max and error pyramids.
+
+Sources:
+
+* :class:`ArraySource`: an in-memory array (tests, and a heightmap that fits).
+* :class:`FbmSource`: the fBm of :meth:`terrainwarp.Heightmap.fbm`, generated window by window by the
+  same kernel (``kernels.noise.fbm`` with ``step``): any window, at any step, equals that part of
+  the whole grid bit for bit, and :meth:`FbmSource.detail_bound` bounds what an overview leaves out.
+* :class:`GeoTiffSource`: a GeoTIFF (or any GDAL raster) through rasterio windows; heights, no-data,
+  spacing, CRS and orientation decoded exactly as :func:`terrainwarp.io.geotiff.read_geotiff` does.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..kernels import noise
+from . import geotiff
+from .files import write_text
+
+__all__ = ["TILE", "DEFAULT_CACHE_MB", "TileSource", "ArraySource", "FbmSource", "GeoTiffSource", "TileCache",
+           "cache_mb_from_env", "cache_dir_for"]
+
+TILE = 256  # samples per tile side, at every step
+DEFAULT_CACHE_MB = 512.0  # the tile cache's cap when neither the argument nor TERRAINWARP_TILE_CACHE_MB says
+PERLIN_SLOPE = 2.5  # bound on |d noise / d input| per axis of the 2-D gradient noise (measured 2.00)
+PERLIN_CURVATURE = 12.0  # bound on |d2 noise / d input2| per axis (measured 8.15; quintic fade: smooth)
+
+
+def cache_mb_from_env(cache_mb: float | None) -> float:
+    """The tile cache's cap in MiB: ``cache_mb`` if given, else ``TERRAINWARP_TILE_CACHE_MB``, else 512."""
+    if cache_mb is None:
+        env = os.environ.get("TERRAINWARP_TILE_CACHE_MB")
+        if env is None or not env.strip():
+            return DEFAULT_CACHE_MB
+        try:
+            cache_mb = float(env)
+        except ValueError:
+            raise ValueError(f"TERRAINWARP_TILE_CACHE_MB: expected a number of MiB, got {env!r}") from None
+        name = "TERRAINWARP_TILE_CACHE_MB"
+    else:
+        name = "cache_mb"
+    if isinstance(cache_mb, bool) or not isinstance(cache_mb, int | float) or not math.isfinite(cache_mb) \
+            or cache_mb <= 0:
+        raise ValueError(f"{name}: expected a positive number of MiB, got {cache_mb!r}")
+    return float(cache_mb)
+
+
+def cache_dir_for(path: Path) -> Path:
+    """Where a file's caches live: ``<file>.twcache`` beside it when its folder is writable, else under
+    ``~/.cache/terrainwarp/tiles``."""
+    beside = path.with_name(path.name + ".twcache")
+    if os.access(path.parent, os.W_OK):
+        return beside
+    key = hashlib.sha256(str(path.resolve()).encode()).hexdigest()[:16]
+    return Path.home() / ".cache" / "terrainwarp" / "tiles" / f"{path.name}-{key}"
+
+
+# ------------------------------------------------------------------------------------------------
+# sources
+# ------------------------------------------------------------------------------------------------
+class TileSource:
+    """A grid of heights read by windows. Subclasses set the attributes and implement :meth:`read`.
+
+    Attributes:
+        shape: (rows, cols) of the full-resolution grid.
+        dx, dz: spacing in metres; origin: world (x, z) of sample (0, 0); name, meta: as a Heightmap's.
+        path: the file read, or None.
+    """
+
+    shape: tuple[int, int]
+    dx: float
+    dz: float
+    origin: tuple[float, float] = (0.0, 0.0)
+    name: str = "tiles"
+    meta: dict[str, Any]
+    path: Path | None = None
+
+    def level_shape(self, step: int) -> tuple[int, int]:
+        """(rows, cols) of the step-``step`` overview: samples ``0, step, 2 step, ...`` inside the grid."""
+        return ((self.shape[0] - 1) // step + 1, (self.shape[1] - 1) // step + 1)
+
+    def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+        """(rows, cols) float32 heights of the step-``step`` overview from its sample (r0, c0) (inside it),
+        NaN at no-data. Uncached: :class:`TileCache` calls this once per tile."""
+        raise NotImplementedError
+
+    def detail_bound(self, step: int) -> float:
+        """A bound on |height - bilinear interpolation of the step-``step`` overview| anywhere (metres): 0 at
+        step 1, inf where nothing bounds it (a file: its pyramids are exact instead)."""
+        return 0.0 if step == 1 else math.inf
+
+    def fingerprint(self) -> str:
+        """Changes whenever the heights may have changed (caches built from the source key on it)."""
+        raise NotImplementedError
+
+    def height_range(self, tiles: TileCache) -> tuple[float, float]:
+        """(min, max) of the finite heights: every tile read once (a file keeps the answer in its cache)."""
+        return _scan_range(self, tiles)
+
+    def where(self) -> str:
+        return str(self.path) if self.path is not None else self.name
+
+
+class ArraySource(TileSource):
+    """An in-memory (H, W) float32 array read by windows (as a file would be)."""
+
+    def __init__(self, heights: np.ndarray, dx: float = 1.0, dz: float = 1.0, origin=(0.0, 0.0),
+                 name: str = "array", meta: dict | None = None):
+        h = np.asarray(heights)
+        if h.dtype != np.float32 or h.ndim != 2 or min(h.shape) < 1:
+            raise TypeError(f"heights: expected a 2-D float32 array, got {h.dtype} {h.shape}")
+        self.h = h
+        self.shape = (int(h.shape[0]), int(h.shape[1]))
+        self.dx, self.dz, self.origin, self.name = float(dx), float(dz), tuple(origin), name
+        self.meta = dict(meta or {})
+
+    def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+        s = int(step)
+        return np.ascontiguousarray(self.h[r0 * s:(r0 + rows - 1) * s + 1:s, c0 * s:(c0 + cols - 1) * s + 1:s])
+
+    def fingerprint(self) -> str:
+        return "array:" + hashlib.sha256(np.ascontiguousarray(self.h).tobytes()).hexdigest()[:16]
+
+    def height_range(self, tiles: TileCache) -> tuple[float, float]:
+        return (float(np.nanmin(self.h)), float(np.nanmax(self.h)))
+
+
+class FbmSource(TileSource):
+    """The fBm terrain of :meth:`terrainwarp.Heightmap.fbm` (same parameters, same heights), never held:
+    windows are generated on demand by the noise kernel. Sizes beyond memory are fine (2^20 + 1 squared
+    is 1.1 T samples); sample indices must stay below 2^24 for the float32 noise coordinate."""
+
+    def __init__(self, rows: int, cols: int | None = None, *, seed: int = 0, max_height: float = 1000.0,
+                 dx: float = 10.0, dz: float | None = None, feature_size: float = 256.0, octaves: int = 8,
+                 gain: float = 0.5, lacunarity: float = 2.0, ridged: bool = False):
+        cols = rows if cols is None else cols
+        for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
+                raise ValueError(f"{nm}: expected a positive integer, got {v!r}")
+        if max(rows, cols) > 2**24:
+            raise ValueError(f"rows, cols: at most 2^24 samples per side (float32 noise coordinates), got "
+                             f"{rows} x {cols}")
+        for nm, v in (("max_height", max_height), ("dx", dx), ("feature_size", feature_size),
+                      ("gain", gain), ("lacunarity", lacunarity)) + ((("dz", dz),) if dz is not None else ()):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{nm}: expected a positive finite number, got {v!r}")
+        self.shape = (int(rows), int(cols))
+        self.dx, self.dz = float(dx), float(dz if dz is not None else dx)
+        self.max_height, self.feature_size = float(max_height), float(feature_size)
+        self.seed, self.octaves, self.gain, self.lacunarity, self.ridged = (
+            int(seed), int(octaves), float(gain), float(lacunarity), bool(ridged))
+        self.name = f"fbm{rows}x{cols}s{seed}"
+        self.meta = {"source": "fbm", "seed": self.seed, "feature_size": self.feature_size,
+                     "octaves": self.octaves, "gain": gain, "lacunarity": lacunarity, "ridged": ridged,
+                     "streamed": True}
+
+    def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+        a = noise.fbm(int(rows), int(cols), seed=self.seed, base_frequency=1.0 / self.feature_size,
+                      octaves=self.octaves, lacunarity=self.lacunarity, gain=self.gain, ridged=self.ridged,
+                      row0=int(r0) * int(step), col0=int(c0) * int(step), step=int(step))
+        return ((a + np.float32(1.0)) * np.float32(0.5 * self.max_height)).astype(np.float32)  # as Heightmap.fbm
+
+    def detail_bound(self, step: int) -> float:
+        """Octave by octave, the smallest of three bounds on bilinear interpolation over cells of side r =
+        ``step`` of an octave of frequency f (per sample): its curvature, (r^2 / 8)(|f_xx| + |f_zz|) <=
+        C2 (f r)^2 / 4; its slope, C1 f r; and its whole range. Ridged noise has kinks: slope and range
+        only. The constants bound the measured extremes of the noise with a 25-50% margin."""
+        if step <= 1:
+            return 0.0
+        amp, norm, total = 1.0, 0.0, 0.0
+        freq = 1.0 / self.feature_size
+        for _ in range(self.octaves):
+            fr = freq * step
+            b = min(PERLIN_SLOPE * fr * (2.0 if self.ridged else 1.0), 2.0 * 0.70710678)
+            if not self.ridged:
+                b = min(b, PERLIN_CURVATURE * fr * fr / 4.0)
+            total += amp * b
+            norm += amp
+            amp *= self.gain
+            freq *= self.lacunarity
+        return float(total / (0.70710678 * norm) * 0.5 * self.max_height * 1.0001)  # 1e-4: float32 rounding
+
+    def height_range(self, tiles: TileCache) -> tuple[float, float]:
+        """Of the overview at most 1024 samples a side, widened by :meth:`detail_bound` (never scanned: the
+        grid may hold 10^12 samples)."""
+        step = 1
+        while max(self.level_shape(step)) > 1024:
+            step *= 2
+        ov = tiles.window(step, 0, 0, *self.level_shape(step))
+        pad = self.detail_bound(step)
+        return (max(0.0, float(ov.min()) - pad), min(self.max_height, float(ov.max()) + pad))
+
+    def fingerprint(self) -> str:
+        return "fbm:" + repr((self.shape, self.seed, self.max_height, self.feature_size, self.octaves,
+                              self.gain, self.lacunarity, self.ridged))
+
+
+class GeoTiffSource(TileSource):
+    """A GeoTIFF (or any GDAL raster) read through rasterio windows: only the file's blocks under a window
+    are decoded. Heights, no-data (NaN), spacing, CRS and the north-up orientation are those of
+    :func:`terrainwarp.io.geotiff.read_geotiff` on the whole file. Overviews (step > 1) come from the
+    pyramid cache beside the file when one is attached (``levels``), else from full-resolution reads."""
+
+    def __init__(self, path: str | os.PathLike, *, band: int = 1, dx: float | None = None,
+                 dz: float | None = None):
+        self.path = Path(path)
+        self.header = geotiff.read_header(self.path, band=band, dx=dx, dz=dz)
+        self.band = self.header.band
+        self.shape = self.header.shape
+        self.dx, self.dz = self.header.dx, self.header.dz
+        self.name = self.path.stem
+        self.meta = dict(self.header.meta, streamed=True)
+        self.levels: dict[int, np.ndarray] = {}  # step -> memory-mapped point-sampled overview (the cache's)
+        self._local = threading.local()
+
+    def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+        if step > 1 and step in self.levels:
+            lv = self.levels[step]
+            return np.ascontiguousarray(lv[r0:r0 + rows, c0:c0 + cols], dtype=np.float32)
+        s = int(step)
+        full = geotiff.read_oriented(self.header, self._dataset(), r0 * s, c0 * s, (rows - 1) * s + 1,
+                                     (cols - 1) * s + 1)
+        return np.ascontiguousarray(full[::s, ::s])
+
+    def _dataset(self):
+        """One open dataset per thread (GDAL handles are not shared across threads)."""
+        ds = getattr(self._local, "ds", None)
+        if ds is None:
+            ds = self._local.ds = geotiff.open_raster(self.path)
+        return ds
+
+    def fingerprint(self) -> str:
+        """Path, size, modification time, band, and a hash of the first and last 64 KiB."""
+        st = self.path.stat()
+        h = hashlib.sha256()
+        with self.path.open("rb") as f:
+            h.update(f.read(65536))
+            f.seek(max(0, st.st_size - 65536))
+            h.update(f.read(65536))
+        return f"file:{self.path.resolve()}:{st.st_size}:{st.st_mtime_ns}:band{self.band}:{h.hexdigest()[:24]}"
+
+    def height_range(self, tiles: TileCache) -> tuple[float, float]:
+        """Scanned once, then kept in the cache folder beside the file (``range.json``, with the fingerprint)."""
+        f = cache_dir_for(self.path) / "range.json"
+        fp = self.fingerprint()
+        try:
+            got = json.loads(f.read_text())
+            if got.get("fingerprint") == fp:
+                return (float(got["min"]), float(got["max"]))
+        except (OSError, ValueError, KeyError):
+            pass
+        lo, hi = _scan_range(self, tiles)
+        try:
+            f.parent.mkdir(parents=True, exist_ok=True)
+            write_text(f, json.dumps({"fingerprint": fp, "min": lo, "max": hi}) + "\n")
+        except OSError:
+            pass  # a read-only place: scanned again next time
+        return lo, hi
+
+
+def _scan_range(src: TileSource, tiles: TileCache) -> tuple[float, float]:
+    lo, hi = math.inf, -math.inf
+    lr, lc = src.level_shape(1)
+    for ti in range(0, (lr - 1) // TILE + 1):
+        for tj in range(0, (lc - 1) // TILE + 1):
+            t = tiles.tile(1, ti, tj)
+            if np.isfinite(t).any():
+                lo, hi = min(lo, float(np.nanmin(t))), max(hi, float(np.nanmax(t)))
+    if not math.isfinite(lo):
+        raise ValueError(f"heights: every sample of {src.where()} is no-data")
+    return lo, hi
+
+
+# ------------------------------------------------------------------------------------------------
+# the cache
+# ------------------------------------------------------------------------------------------------
+class TileCache:
+    """Least-recently-used tiles of one source, at most ``cache_mb`` MiB of them.
+
+    Counters (:attr:`counters`): ``tiles_read`` and ``bytes_read`` (from the source), ``hits`` (served from
+    the cache), ``evicted``, ``resident_bytes`` and ``peak_bytes``. Thread-safe: concurrent readers of the
+    same missing tile may both read it (the counters say so); the cache keeps one."""
+
+    def __init__(self, source: TileSource, cache_mb: float | None = None):
+        self.source = source
+        self.cap = int(cache_mb_from_env(cache_mb) * 2**20)
+        self._tiles: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+        self.counters = {"tiles_read": 0, "bytes_read": 0, "hits": 0, "evicted": 0, "resident_bytes": 0,
+                         "peak_bytes": 0}
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.counters)
+
+    def tile(self, step: int, ti: int, tj: int) -> np.ndarray:
+        """Tile (ti, tj) of the step-``step`` overview: samples ti * TILE .. ti * TILE + TILE (TILE + 1 of them:
+        neighbouring tiles share a row or column; fewer at the grid's far edges)."""
+        key = (int(step), int(ti), int(tj))
+        with self._lock:
+            t = self._tiles.get(key)
+            if t is not None:
+                self._tiles.move_to_end(key)
+                self.counters["hits"] += 1
+                return t
+        t = self._read(key)
+        with self._lock:
+            if key not in self._tiles:
+                self._tiles[key] = t
+                self.counters["resident_bytes"] += t.nbytes
+                self.counters["peak_bytes"] = max(self.counters["peak_bytes"], self.counters["resident_bytes"])
+            while self.counters["resident_bytes"] > self.cap and len(self._tiles) > 1:
+                _, old = self._tiles.popitem(last=False)
+                self.counters["resident_bytes"] -= old.nbytes
+                self.counters["evicted"] += 1
+        return t
+
+    def _read(self, key: tuple[int, int, int]) -> np.ndarray:
+        step, ti, tj = key
+        lr, lc = self.source.level_shape(step)
+        r0, c0 = ti * TILE, tj * TILE
+        rows, cols = min(TILE + 1, lr - r0), min(TILE + 1, lc - c0)  # one shared row and column with the next
+        what = f"tile (step {step}, row {ti}, col {tj}: samples {r0 * step}..{(r0 + rows - 1) * step} x " \
+               f"{c0 * step}..{(c0 + cols - 1) * step}) of {self.source.where()}"
+        if rows < 1 or cols < 1:
+            raise ValueError(f"{what}: outside the {lr} x {lc} grid")
+        try:
+            t = self.source.read(step, r0, c0, rows, cols)
+        except (OSError, ValueError, RuntimeError) as e:  # rasterio's errors derive from these
+            msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+            raise ValueError(f"{what}: cannot be read: {msg}") from None
+        if t.shape != (rows, cols) or t.dtype != np.float32:
+            raise ValueError(f"{what}: the source returned {t.dtype} {t.shape}, expected float32 ({rows}, {cols})")
+        if np.isinf(t).any():
+            raise ValueError(f"{what}: holds infinite heights")
+        t.setflags(write=False)
+        with self._lock:
+            self.counters["tiles_read"] += 1
+            self.counters["bytes_read"] += t.nbytes
+        return t
+
+    def window(self, step: int, r0: int, c0: int, rows: int, cols: int,
+               progress: Callable[[int], None] | None = None) -> np.ndarray:
+        """(rows, cols) float32 of the step-``step`` overview from sample (r0, c0), assembled from tiles
+        (the window must lie inside the overview)."""
+        lr, lc = self.source.level_shape(step)
+        if r0 < 0 or c0 < 0 or rows < 1 or cols < 1 or r0 + rows > lr or c0 + cols > lc:
+            raise ValueError(f"window: rows {r0}..{r0 + rows - 1}, cols {c0}..{c0 + cols - 1} outside the step-"
+                             f"{step} overview ({lr} x {lc}) of {self.source.where()}")
+        out = np.empty((rows, cols), np.float32)
+        last_r, last_c = r0 + rows - 1, c0 + cols - 1
+        # tiles share their last row and column with the next: a window ending on a tile boundary (as
+        # power-of-two node windows do) needs no tile past it
+        for ti in range(r0 // TILE, max(r0, last_r - 1) // TILE + 1):
+            for tj in range(c0 // TILE, max(c0, last_c - 1) // TILE + 1):
+                t = self.tile(step, ti, tj)
+                a0, b0 = max(r0, ti * TILE), max(c0, tj * TILE)
+                a1, b1 = min(last_r + 1, ti * TILE + t.shape[0]), min(last_c + 1, tj * TILE + t.shape[1])
+                out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = t[a0 - ti * TILE:a1 - ti * TILE, b0 - tj * TILE:b1 - tj * TILE]
+                if progress is not None:
+                    progress(1)
+        return out
