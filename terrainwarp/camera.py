@@ -181,9 +181,9 @@ class Camera:
         fov_y_deg = _fov(fov_y_deg)  # before it divides the distance
         width, height = _pixels("width", width), _pixels("height", height)
         (x0, z0), (x1, z1) = heightmap.bounds_xz
-        finite = heightmap.heights[np.isfinite(heightmap.heights)]
-        hmin = float(finite.min()) if finite.size else 0.0
-        hmax = float(finite.max()) if finite.size else 0.0
+        hmin, hmax = heightmap.height_range  # of the finite heights (a streamed heightmap: its overview's)
+        if not (math.isfinite(hmin) and math.isfinite(hmax)):
+            hmin = hmax = 0.0
         cx, cz = 0.5 * (x0 + x1), 0.5 * (z0 + z1)
         size = max(x1 - x0, z1 - z0, hmax - hmin, heightmap.dx, heightmap.dz)  # a 1x1 grid still has a size
         target = (cx, hmin + 0.25 * (hmax - hmin), cz)

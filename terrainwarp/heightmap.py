@@ -23,9 +23,11 @@ from .io.files import atomic_path, write_image
 from .io.geodesy import metres_per_degree
 from .io.memory import check_heightmap_fits
 from .io.native import native_stderr_silenced
+from .io.tiles import TILE, ArraySource, FbmSource, GeoTiffSource, TileCache, TileSource
 from .kernels import noise, sampling
 
-__all__ = ["Heightmap", "metres_per_degree"]  # metres_per_degree lives in io.geodesy; re-exported as before
+# metres_per_degree lives in io.geodesy; re-exported as before
+__all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree"]
 
 EXAMPLES = ("jacksboro", "topobathy")
 
@@ -189,6 +191,19 @@ class Heightmap:
         arr = _read_image(p, channel)
         return cls.from_array(arr, dx, dz, max_height=max_height, allow_nan=allow_nan, name=p.stem,
                               meta={"source": str(p)})
+
+    @classmethod
+    def open(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *, band: int = 1,
+             cache_mb: float | None = None) -> StreamedHeightmap:
+        """Open a GeoTIFF (or any GDAL raster) without reading it: a :class:`StreamedHeightmap` that reads the
+        windows a frame needs. Spacing, CRS, no-data and orientation are those :meth:`load` finds.
+
+        Args:
+            dx, dz: spacing overriding the georeferencing's (as in :meth:`load`).
+            band: 1-based band.
+            cache_mb: the tile cache's cap in MiB (default ``TERRAINWARP_TILE_CACHE_MB``, else 512).
+        """
+        return StreamedHeightmap(GeoTiffSource(path, band=band, dx=dx, dz=dz), cache_mb=cache_mb)
 
     @classmethod
     def example(cls, name: str = "jacksboro") -> Heightmap:
@@ -398,3 +413,108 @@ def _npy_shape(p: Path) -> tuple[int, ...] | None:
         return tuple(int(v) for v in shape)
     except (ValueError, OSError, EOFError):
         return None
+
+
+# -- streamed ---------------------------------------------------------------------------------------
+class StreamedHeightmap:
+    """A heightmap read a tile at a time: a :class:`Heightmap`'s interface (shape, spacing, origin, name,
+    meta, bounds, height range, sampling) over a :class:`terrainwarp.io.tiles.TileSource`, with the grid
+    never held. Frames read the tiles under the patches they draw, at the step their level needs
+    (:mod:`terrainwarp.lod.streaming`); tiles live in an LRU cache with a memory cap (``cache_mb``,
+    default ``TERRAINWARP_TILE_CACHE_MB`` or 512 MiB) whose counters (:meth:`counters`) frames report.
+
+    Build one with :meth:`Heightmap.open` (a GeoTIFF), :meth:`fbm` (a procedural terrain of any size) or
+    :meth:`of` (an in-memory heightmap read as tiles). :meth:`load` reads the whole grid into a
+    :class:`Heightmap` (when it fits), bit for bit the heights the in-memory path reads.
+    """
+
+    def __init__(self, source: TileSource, *, cache_mb: float | None = None):
+        if not isinstance(source, TileSource):
+            raise TypeError(f"source: expected a TileSource, got {type(source).__name__}")
+        self.source = source
+        self.tiles = TileCache(source, cache_mb)
+        self.shape: tuple[int, int] = (int(source.shape[0]), int(source.shape[1]))
+        self.dx, self.dz = float(source.dx), float(source.dz)
+        self.origin: tuple[float, float] = (float(source.origin[0]), float(source.origin[1]))
+        self.name = source.name
+        self.meta = source.meta
+        self.held: dict = {}  # what frames keep between calls (pyramid providers), keyed by their settings
+
+    @classmethod
+    def fbm(cls, rows: int, cols: int | None = None, *, cache_mb: float | None = None, **fbm: Any) -> StreamedHeightmap:
+        """The terrain :meth:`Heightmap.fbm` makes with the same arguments, generated window by window (any
+        size up to 2^24 samples a side)."""
+        return cls(FbmSource(rows, cols, **fbm), cache_mb=cache_mb)
+
+    @classmethod
+    def of(cls, heightmap: Heightmap, *, cache_mb: float | None = None) -> StreamedHeightmap:
+        """An in-memory heightmap read through tiles (for comparing the streamed path with the in-memory one)."""
+        if not isinstance(heightmap, Heightmap):
+            raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
+        hm = heightmap
+        return cls(ArraySource(hm.heights, hm.dx, hm.dz, hm.origin, hm.name, hm.meta), cache_mb=cache_mb)
+
+    @property
+    def bounds_xz(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        x0, z0 = self.origin
+        return ((x0, z0), (x0 + (self.shape[1] - 1) * self.dx, z0 + (self.shape[0] - 1) * self.dz))
+
+    @cached_property
+    def height_range(self) -> tuple[float, float]:
+        """(min, max) of the finite heights, metres: exact for a file (scanned once tile by tile, then kept in
+        its cache folder) and an array; for a procedural source, of its coarse overview widened by what the
+        overview can miss (see the source's ``height_range``)."""
+        return self.source.height_range(self.tiles)
+
+    def __repr__(self) -> str:
+        return (f"StreamedHeightmap({self.name!r}, shape={self.shape}, dx={self.dx:.4g}, dz={self.dz:.4g}, "
+                f"{type(self.source).__name__})")
+
+    def counters(self) -> dict[str, int]:
+        """The tile cache's counters: tiles_read, bytes_read, hits, evicted, resident_bytes, peak_bytes."""
+        return self.tiles.snapshot()
+
+    def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+        """(rows, cols) float32 of the step-``step`` point-sampled overview from its sample (r0, c0)."""
+        return self.tiles.window(int(step), int(r0), int(c0), int(rows), int(cols))
+
+    def load(self) -> Heightmap:
+        """The whole grid as an in-memory :class:`Heightmap` (refused when it would not fit)."""
+        check_heightmap_fits("heightmap", *self.shape, what=f"streamed heightmap {self.name}")
+        h = self.window(1, 0, 0, *self.shape)
+        return Heightmap(heights=h, dx=self.dx, dz=self.dz, origin=self.origin, name=self.name, meta=dict(self.meta))
+
+    def sample(self, x: object, z: object, method: str = "bilinear") -> np.ndarray:
+        """Heights at world (x, z), float32, bit for bit :meth:`Heightmap.sample` (bilinear only): each point
+        reads the 2 x 2 samples around it from the tiles."""
+        if method != "bilinear":
+            raise ValueError(f"method: a streamed heightmap samples 'bilinear', got {method!r}")
+        xa, za = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64))
+        shape = xa.shape
+        hh, ww = self.shape
+        # the kernel's steps: float32 grid coordinates, clamped to the grid, then floor
+        u = np.clip(((xa.reshape(-1) - self.origin[0]) / self.dx).astype(np.float32), 0, np.float32(ww - 1))
+        v = np.clip(((za.reshape(-1) - self.origin[1]) / self.dz).astype(np.float32), 0, np.float32(hh - 1))
+        j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        h00 = self._values(i0, j0)
+        h01 = self._values(i0, np.minimum(j0 + 1, ww - 1))
+        h10 = self._values(np.minimum(i0 + 1, hh - 1), j0)
+        h11 = self._values(np.minimum(i0 + 1, hh - 1), np.minimum(j0 + 1, ww - 1))
+        fu, fv = u - j0.astype(np.float32), v - i0.astype(np.float32)
+        # sampling.sample_bilinear's float32 operations, in its order (the tests compare bit for bit)
+        b, c, d = h01 - h00, h10 - h00, h11 - h00
+        top = np.float32(0.0) + (b - np.float32(0.0)) * fu
+        bot = c + (d - c) * fu
+        out = h00 + (top + (bot - top) * fv)
+        return out.reshape(shape)
+
+    def _values(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """Full-resolution samples (i, j), gathered tile by tile."""
+        out = np.empty(len(i), np.float32)
+        tid = (i // TILE) * (self.shape[1] // TILE + 1) + j // TILE
+        for t in np.unique(tid):
+            m = tid == t
+            ti, tj = int(i[m][0] // TILE), int(j[m][0] // TILE)
+            out[m] = self.tiles.tile(1, ti, tj)[i[m] - ti * TILE, j[m] - tj * TILE]
+        return out
+

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .camera import Camera, flyover, orbit
-from .heightmap import EXAMPLES, Heightmap
+from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 
 __all__ = ["Scene", "LodConfig", "PolicySpec", "POLICY_TABLE", "OUTPUTS", "MESH_POLICIES", "LOD_POLICIES",
@@ -247,8 +247,9 @@ class Scene:
     source: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.heightmap, Heightmap):
-            raise TypeError(f"heightmap: expected a Heightmap, got {type(self.heightmap).__name__}")
+        if not isinstance(self.heightmap, Heightmap | StreamedHeightmap):
+            raise TypeError(f"heightmap: expected a Heightmap or StreamedHeightmap, got "
+                            f"{type(self.heightmap).__name__}")
         if self.camera is None:
             object.__setattr__(self, "camera", Camera.default_for(self.heightmap))
         elif not isinstance(self.camera, Camera):

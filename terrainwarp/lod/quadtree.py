@@ -38,13 +38,13 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
 
 from ..camera import Camera, relative_origin
-from ..heightmap import Heightmap
+from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import write_text
 from ..kernels.lod import frustum_planes, mark_nodes, neighbour_levels, select_level, tree_leaves, tree_map
 from ..kernels.pyramid import node_stats
@@ -59,6 +59,7 @@ from .policies import (
     continuous_factors,
     edge_pixels,
 )
+from .streaming import StreamedPyramid
 
 __all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "PatchList", "LodState",
            "NodeMetrics", "node_metrics",
@@ -114,6 +115,25 @@ def _roots_shape(roots: int | tuple[int, int], shape: tuple[int, int]) -> tuple[
     return best
 
 
+def layout(shape: tuple[int, int], roots: int | tuple[int, int], tess: int,
+           depth: int | None) -> tuple[tuple[int, int], int, float]:
+    """((nx, nz) roots, depth D, root side S_0 in cells) of a quadtree over a (rows, cols) grid (see
+    :meth:`Terrain.prepare`)."""
+    check_tess(tess)  # the one rule (terrainwarp.scene); a quadtree's doubled edges are checked in select
+    hh, ww = shape
+    nx, nz = _roots_shape(roots, (hh, ww))
+    need = max((ww - 1) / nx, (hh - 1) / nz, 1e-9)
+    if depth is None:
+        depth = max(0, math.ceil(math.log2(max(need / tess, 1.0)) - 1e-12))
+    if isinstance(depth, bool) or not isinstance(depth, int | np.integer) or not 0 <= int(depth) <= 20:
+        raise ValueError(f"depth: expected an integer in 0..20, got {depth!r}")
+    depth = int(depth)
+    root_cells = float(tess) * 2.0 ** depth
+    if root_cells < need:  # an explicit, too-small depth: grow the patches to cover the grid
+        root_cells = need
+    return (nx, nz), depth, root_cells
+
+
 @dataclass(frozen=True, eq=False)
 class Terrain:
     """A heightmap prepared for LOD selection: the quadtree layout and per-node pyramids.
@@ -136,6 +156,7 @@ class Terrain:
     stats: list = field(repr=False)
     time_ms: float = 0.0
     _dev: dict = field(default_factory=dict, repr=False)
+    provider: Any = field(default=None, repr=False)
 
     @classmethod
     def prepare(cls, heightmap: Heightmap, roots: int | tuple[int, int] = 16, tess: int = 32,
@@ -148,23 +169,35 @@ class Terrain:
             depth: deepest level; default: the smallest D with roots * T * 2**D cells covering the grid
                 (one vertex per sample at level D).
         """
+        if isinstance(heightmap, StreamedHeightmap):
+            return cls.prepare_streamed(heightmap, roots=roots, tess=tess, depth=depth, device=device)
         if not isinstance(heightmap, Heightmap):
             raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
-        check_tess(tess)  # the one rule (terrainwarp.scene); a quadtree's doubled edges are checked in select
-        hh, ww = heightmap.shape
-        nx, nz = _roots_shape(roots, (hh, ww))
-        need = max((ww - 1) / nx, (hh - 1) / nz, 1e-9)
-        if depth is None:
-            depth = max(0, math.ceil(math.log2(max(need / tess, 1.0)) - 1e-12))
-        if isinstance(depth, bool) or not isinstance(depth, int | np.integer) or not 0 <= int(depth) <= 20:
-            raise ValueError(f"depth: expected an integer in 0..20, got {depth!r}")
-        depth = int(depth)
-        root_cells = float(tess) * 2.0 ** depth
-        if root_cells < need:  # an explicit, too-small depth: grow the patches to cover the grid
-            root_cells = need
+        (nx, nz), depth, root_cells = layout(heightmap.shape, roots, tess, depth)
         t0 = time.perf_counter()
         stats = node_stats(heightmap.heights, (nx, nz), root_cells, depth, int(tess), device=device)
         return cls(heightmap, (nx, nz), int(tess), depth, root_cells, stats, (time.perf_counter() - t0) * 1e3)
+
+    @classmethod
+    def prepare_streamed(cls, heightmap: StreamedHeightmap, roots: int | tuple[int, int] = 16, tess: int = 32,
+                         depth: int | None = None, device: str = "cpu", *, exact: bool | None = None,
+                         progress: Callable[[int], None] | None = None) -> Terrain:
+        """A streamed heightmap's quadtree: its pyramids come from a :class:`.streaming.StreamedPyramid`
+        (exact and cached beside a file, or worked out on demand for the nodes a selection visits).
+
+        Args:
+            exact: force (True) or refuse (False) the exact pyramid built root by root; default: exact
+                when the source cannot bound its overviews (files), on demand otherwise (procedural).
+            progress: called with 1 per root while an exact pyramid is built.
+        """
+        if not isinstance(heightmap, StreamedHeightmap):
+            raise TypeError(f"heightmap: expected a StreamedHeightmap, got {type(heightmap).__name__}")
+        (nx, nz), depth, root_cells = layout(heightmap.shape, roots, tess, depth)
+        t0 = time.perf_counter()
+        pyr = StreamedPyramid(heightmap, (nx, nz), root_cells, depth, int(tess), exact=exact, device=device,
+                              progress=progress)
+        return cls(heightmap, (nx, nz), int(tess), depth, root_cells, [], (time.perf_counter() - t0) * 1e3,
+                   provider=pyr)
 
     @property
     def n_leaves_full(self) -> int:
@@ -186,12 +219,13 @@ class Terrain:
     def is_cached(self, key: object) -> bool:
         return key in self._dev
 
-    def device_stats(self, level: int, device: str = "cpu") -> tuple[wp.array, wp.array, wp.array]:
-        """The level's (min, max, geometric error) pyramids as Warp arrays on ``device`` (kept)."""
-        k = (level, device)
-        if k not in self._dev:
-            self._dev[k] = tuple(wp.array(a, dtype=wp.float32, device=device) for a in self.stats[level])
-        return self._dev[k]
+    def stats_at(self, level: int, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(min, max, geometric error) of nodes (level, x, y), each (N,) float32: gathered from the pyramids,
+        or, for a streamed heightmap, worked out for just these nodes by its provider (:mod:`.streaming`)."""
+        if self.provider is not None:
+            return self.provider.stats_at(int(level), np.asarray(x), np.asarray(y))
+        mn, mx, er = self.stats[int(level)]
+        return mn[y, x], mx[y, x], er[y, x]
 
     def inside(self, level: int, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """True for nodes whose origin lies inside the sample grid (others are never drawn)."""
@@ -401,9 +435,7 @@ def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
         else:
             can, thr, code = lvl < depth, policy.threshold(lvl, max(size)), policy.code
         keys = tile_key(np.full(len(x), lvl), x, y) if len(prev) else None
-        sp, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), view.rel_origin, size,
-                                      view.planes, code, thr, view.focal_px, policy.hysteresis, can, prev,
-                                      device=device)
+        sp, cu, di, me = _evaluate(terrain, lvl, x, y, keys, view, code, thr, policy.hysteresis, can, prev, device)
         if fixed_level is not None and lvl < fixed_level:
             sp = np.ones_like(sp)  # a uniform grid: everything splits down to the level
         split = sp.astype(bool)
@@ -521,6 +553,44 @@ def _inside_many(terrain: Terrain, lv: int | np.ndarray, x: np.ndarray, y: np.nd
     return (x < c[..., 0]) & (y < c[..., 1]) | ((x == 0) & (y == 0))
 
 
+def _evaluate(terrain: Terrain, lvl: int, x: np.ndarray, y: np.ndarray, keys: np.ndarray | None, view: _View,
+              code: int, thr: float, hysteresis: float, can: bool, prev: np.ndarray,
+              device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(split, culled, dist, metric) of candidates (lvl, x, y): one :func:`select_level` launch on the pyramid.
+
+    A streamed pyramid worked out on demand knows each node's stats only within bounds at an overview step
+    (measured values, and those widened by what the step can miss). The decision is monotone in the error
+    and the box, so a node is decided when the measured and the widened stats decide alike (the exact stats
+    lie between them: the same decision); the others are measured again at a finer step, down to step 1
+    (exact). The decisions are the exact pyramid's; distance and metric are the widened stats'."""
+    size = terrain.node_size_world(lvl)
+    prov = terrain.provider
+
+    def run(idx: np.ndarray, stats: tuple) -> tuple[np.ndarray, ...]:
+        k = keys[idx] if keys is not None else None
+        return select_level(x[idx], y[idx], k, stats, view.rel_origin, size, view.planes, code, thr, view.focal_px,
+                            hysteresis, can, prev, device=device)
+
+    if prov is None or prov.exact:
+        return run(np.arange(len(x)), terrain.stats_at(lvl, x, y))
+    out = [np.zeros(len(x), np.int32), np.zeros(len(x), np.int32), np.zeros(len(x), np.float32),
+           np.zeros(len(x), np.float32)]
+    todo = np.arange(len(x))
+    for step in prov.steps(lvl):
+        mn, mx, er, pad = prov.measured(lvl, x[todo], y[todo], step)
+        up = run(todo, (mn - pad, mx + pad, er + pad))
+        done = np.ones(len(todo), bool)
+        if pad > 0 and step > 1:
+            lo = run(todo, (mn, mx, er))
+            done = (up[0] == lo[0]) & (up[1] == lo[1])
+        for o, u in zip(out, up, strict=True):
+            o[todo[done]] = u[done]
+        todo = todo[~done]
+        if not len(todo):
+            break
+    return tuple(out)
+
+
 def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
     """The geometric error of nodes (level, x, y), ``level`` ascending (as in key order)."""
     out = np.empty(len(level), np.float32)
@@ -528,7 +598,7 @@ def _gather_err(terrain: Terrain, level, lx, ly) -> np.ndarray:
     for lv in range(terrain.depth + 1):
         a, b = ends[lv], ends[lv + 1]
         if a < b:
-            out[a:b] = terrain.stats[lv][2][ly[a:b], lx[a:b]]
+            out[a:b] = terrain.stats_at(lv, lx[a:b], ly[a:b])[2]
     return out
 
 
@@ -544,9 +614,8 @@ def _child_stats(terrain: Terrain, view: _View, nl: np.ndarray, nxs: np.ndarray,
         lvl = int(lv)
         keys = tile_key(np.full(int(m.sum()), lvl), nxs[m], nys[m])
         size = terrain.node_size_world(lvl)
-        _, cu, di, me = select_level(nxs[m], nys[m], keys, terrain.device_stats(lvl, device), view.rel_origin, size,
-                                     view.planes, code, policy.threshold(lvl, max(size)), view.focal_px, 0.0,
-                                     False, np.zeros(0, np.int64), device=device)
+        _, cu, di, me = _evaluate(terrain, lvl, nxs[m], nys[m], keys, view, code, policy.threshold(lvl, max(size)),
+                                  0.0, False, np.zeros(0, np.int64), device)
         nd[m], nm[m], nc[m] = di, me, cu.astype(bool)
     return nd, nm, nc
 
@@ -582,7 +651,7 @@ def node_metrics(terrain: Terrain, camera: Camera, device: str = "cpu") -> NodeM
                              indexing="ij")
         x, y = xx.reshape(-1), yy.reshape(-1)
         keys = tile_key(np.full(len(x), lvl), x, y)
-        _, cu, di, me = select_level(x, y, keys, terrain.device_stats(lvl, device), view.rel_origin,
+        _, cu, di, me = select_level(x, y, keys, terrain.stats_at(lvl, x, y), view.rel_origin,
                                      terrain.node_size_world(lvl), view.planes, 1, 1.0, view.focal_px, 0.0, False,
                                      np.zeros(0, np.int64), device=device)
         out.x.append(x)

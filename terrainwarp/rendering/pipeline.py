@@ -59,7 +59,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ..camera import Camera, relative_origin
-from ..heightmap import Heightmap
+from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import atomic_path, write_image, write_json
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
@@ -73,6 +73,7 @@ from ..measure.sample_error import PopStats, popping, sample_error
 from ..mesh import Mesh
 from ..scene import Scene
 from ..surface.differential import compute_curvature
+from .sources import StreamedSource
 
 __all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource", "pop_stats"]
 
@@ -274,7 +275,14 @@ class _Run:
 
     @property
     def hm(self) -> Heightmap:
-        return self.scene.heightmap
+        """The heightmap as a grid in memory: the scene's, or a streamed one's :meth:`load` (kept with it), for
+        the stages that read every sample (curvature, the reference and the error)."""
+        hm = self.scene.heightmap
+        if isinstance(hm, StreamedHeightmap):
+            if "loaded" not in hm.held:
+                hm.held["loaded"] = hm.load()
+            return hm.held["loaded"]
+        return hm
 
     @property
     def cam(self) -> Camera:
@@ -294,6 +302,8 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
             raise ValueError("terrain: prepared for another heightmap than the scene's")
     if source is not None and not callable(getattr(source, "mesh_for", None)):
         raise TypeError(f"source: expected a MeshSource (with mesh_for(camera)), got {type(source).__name__}")
+    if isinstance(hm, StreamedHeightmap):
+        source = _streamed_source(scene, terrain, source, patches, device)
     kind = "source" if source is not None else scene.mesh
     if patches is not None:
         if not isinstance(patches, PatchList):
@@ -301,6 +311,8 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         if kind != "lod":
             raise ValueError(f"patches: a held PatchList is drawn by a LOD scene (mesh='lod'), got {kind!r}")
     stages = stages_for(scene.outputs, kind, have_terrain=terrain is not None, have_patches=patches is not None)
+    if getattr(source, "provides_normals", False):  # the source's mesh carries its normals
+        stages = [st for st in stages if st != "normal_map"]
     report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
                           "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
                           "mesh_policy": kind, "outputs": list(scene.outputs), "stages_run": stages,
@@ -313,6 +325,27 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         report.info["held_patches"] = len(patches)
     return _Run(scene, Frame(scene=scene, report=report, patches=patches), stages, device, terrain, state,
                 reference, source)
+
+
+def _streamed_source(scene: Scene, terrain: Terrain | None, source: MeshSource | None, patches: PatchList | None,
+                     device: str) -> MeshSource:
+    """The source that draws a streamed heightmap's frames: the caller's, else the one the heightmap holds
+    for this LOD configuration and device (its pyramids and tile cache persist from frame to frame)."""
+    if source is not None:
+        return source
+    hm = scene.heightmap
+    if scene.mesh != "lod":
+        raise ValueError(f"mesh: a streamed heightmap is drawn with mesh='lod' (its LOD reads only the tiles "
+                         f"a frame needs), got {scene.mesh!r}; StreamedHeightmap.load() gives the whole grid")
+    if scene.shading == "splat":
+        raise ValueError("shading: 'splat' reads the whole heightmap's splat map; a streamed heightmap is "
+                         "shaded 'hillshade', 'level' or 'wireframe'")
+    if patches is not None:
+        raise ValueError("patches: a streamed heightmap selects its own patches (hold its StreamedSource)")
+    key = ("streamed_source", tuple(sorted(scene.lod.__dict__.items())), device)
+    if key not in hm.held:
+        hm.held[key] = StreamedSource(hm, scene.lod, device=device, terrain=terrain)
+    return hm.held[key]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -347,6 +380,10 @@ def _stage_select(run: _Run, rec: StageRecord) -> float | None:
         t0 = time.perf_counter()
         run.frame.mesh, select_ms = run.source.mesh_for(run.cam)
         run.source_mesh_ms = max((time.perf_counter() - t0) * 1e3 - select_ms, 0.0)
+        if isinstance(run.source, StreamedSource):  # what the frame read: tiles, bytes, cache hits
+            run.frame.patches = run.source.patches
+            rec.counters.update(run.source.last)
+            run.frame.report.info["tiles"] = {k: run.source.last[k] for k in ("tiles_read", "bytes_read", "hits")}
         return select_ms
     patches = select(run.terrain, run.cam, make_policy(run.scene.lod), run.state, device=run.device)
     run.frame.patches = patches
@@ -388,7 +425,7 @@ def _stage_shade(run: _Run, rec: StageRecord) -> None:
     rgb, pix_n, counters = shade(frame.triangle_id, frame.barycentrics, mesh.triangles, normals, world_y,
                                  mode=scene.shading, level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv,
                                  azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
-                                 height_range=run.hm.height_range,  # one tint for every mesh of this terrain
+                                 height_range=run.scene.heightmap.height_range,  # one tint for every mesh
                                  device=run.device, **_shade_inputs(run))
     if scene.shading != "hillshade":
         rec.counters.update(counters)

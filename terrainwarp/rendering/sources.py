@@ -1,5 +1,8 @@
 """Prebuilt meshes as :class:`terrainwarp.rendering.pipeline.MeshSource` s, so ``render`` draws them too.
 
+* :class:`StreamedSource`: a streamed heightmap's quadtree frames (``render`` makes one for a scene whose
+  heightmap is a :class:`terrainwarp.StreamedHeightmap`): selection on its pyramids, then the patches
+  tessellated and displaced from the overview windows they need (:mod:`terrainwarp.lod.streaming`).
 * :class:`PeerSource`: a Martini/Delatin mesh (:mod:`terrainwarp.lod.peers`) made camera-relative; no
   selection (0 ms).
 * :class:`PolytreeSource`: level ``level`` of a taylor-barrett polytree; no selection (0 ms).
@@ -26,18 +29,29 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from typing import Any, NamedTuple
 
+import numpy as np
+import warp as wp
+
 from ..camera import Camera
-from ..heightmap import Heightmap
+from ..heightmap import Heightmap, StreamedHeightmap
+from ..kernels.displacement import drop_nonfinite_triangles, sample_normal_map
+from ..kernels.normals import sobel_normals
+from ..kernels.stack import stack_displace
+from ..kernels.tessellator import tessellate_patches
 from ..lod.bintree import Bintree, select_bintree
 from ..lod.cdlod import Cdlod
 from ..lod.chunked import ChunkedLod
 from ..lod.clipmaps import Clipmap
 from ..lod.peers import PeerMesh
+from ..lod.policies import make_policy
 from ..lod.polytree import Polytree
+from ..lod.quadtree import LodState, PatchList, Terrain, select
+from ..lod.streaming import overview_windows
 from ..mesh import Mesh
+from ..scene import LodConfig
 
-__all__ = ["SourceBase", "PeerSource", "PolytreeSource", "BintreeSource", "CdlodSource", "ClipmapSource",
-           "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source", "scheme_range"]
+__all__ = ["SourceBase", "StreamedSource", "PeerSource", "PolytreeSource", "BintreeSource", "CdlodSource",
+           "ClipmapSource", "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source", "scheme_range"]
 
 
 @dataclass(eq=False)
@@ -54,6 +68,94 @@ class SourceBase:
 
     def is_cached(self, key: object) -> bool:
         return key in self.cache
+
+
+@dataclass(eq=False)
+class StreamedSource(SourceBase):
+    """Quadtree frames of a :class:`StreamedHeightmap`, reading only the tiles under the drawn patches.
+
+    Selection is :func:`terrainwarp.lod.select` on the streamed pyramids; the patches are tessellated as in
+    memory (one launch, the same edge factors), then displaced from one overview window per step the
+    patches need (:func:`terrainwarp.lod.streaming.overview_windows`, :func:`terrainwarp.kernels.stack.
+    stack_displace`), with vertex normals by central differences in the window each vertex read. With
+    ``full_resolution`` (a heightmap that fits in memory) the one window is the whole grid, read tile by
+    tile, and the normals are its Sobel map's, as in memory: the frame is bit for bit the in-memory one.
+
+    ``last`` holds the latest frame's counters: tiles read, bytes read and cache hits (for that frame),
+    the windows and their samples, the tile cache's resident bytes, the pyramid blocks built.
+    """
+
+    heightmap: StreamedHeightmap
+    lod: LodConfig = field(default_factory=LodConfig)
+    device: str = "cpu"
+    full_resolution: bool = False
+    terrain: Terrain | None = None
+    state: LodState | None = None
+    build_ms: float = 0.0
+    last: dict = field(default_factory=dict)
+    provides_normals: bool = True  # the mesh carries vertex normals: no heightmap normal map is made
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.heightmap, StreamedHeightmap):
+            raise TypeError(f"heightmap: expected a StreamedHeightmap, got {type(self.heightmap).__name__}")
+        if self.lod.filter != "bilinear":
+            raise ValueError(f"lod.filter: a streamed heightmap is displaced 'bilinear', got {self.lod.filter!r}")
+        if self.terrain is None:
+            t0 = time.perf_counter()
+            self.terrain = Terrain.prepare(self.heightmap, roots=self.lod.roots, tess=self.lod.tess,
+                                           device=self.device)
+            self.build_ms = (time.perf_counter() - t0) * 1e3
+        self._zero = wp.zeros(1, dtype=wp.float32, device=self.device)
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        hm = self.heightmap
+        before = hm.counters()
+        blocks = dict(self.terrain.provider.counters)
+        t0 = time.perf_counter()
+        patches = select(self.terrain, camera, make_policy(self.lod), self.state, device=self.device)
+        select_ms = (time.perf_counter() - t0) * 1e3
+        mesh, windows = self.mesh_of(patches, camera)
+        after = hm.counters()
+        self.last = {k: after[k] - before[k] for k in ("tiles_read", "bytes_read", "hits")}
+        self.last.update(windows=len(windows), window_samples=int(sum(w[3] * w[4] for w in windows)),
+                         finest_step=1 << windows[0][0] if windows else 0,
+                         coarsest_step=1 << windows[-1][0] if windows else 0, patches=len(patches),
+                         cache_resident_bytes=after["resident_bytes"],
+                         pyramid_blocks_built=self.terrain.provider.counters["blocks_built"] - blocks["blocks_built"])
+        self.patches = patches
+        return mesh, select_ms
+
+    def mesh_of(self, patches: PatchList, camera: Camera) -> tuple[Mesh, list[tuple[int, int, int, int, int]]]:
+        """The patches tessellated for ``camera`` and displaced from their overview windows."""
+        hm = self.heightmap
+        factor = np.maximum(patches.outer.max(axis=1, initial=1.0), patches.inner.max(axis=1, initial=1.0))
+        windows = [(0, 0, 0, *hm.shape)] if self.full_resolution and len(patches) else \
+            overview_windows(hm, patches.origin_cells, patches.size_cells, factor)
+        stack = [(sh, r0, c0, hm.window(1 << sh, r0, c0, rows, cols)) for sh, r0, c0, rows, cols in windows]
+        stand_in = wp.array(ptr=self._zero.ptr, dtype=wp.float32, shape=hm.shape, strides=(0, 0),
+                            device=self.device, copy=False)  # the grid's shape, no heights: displaced below
+        t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
+                                "inner": patches.inner, "level": patches.level}, stand_in, hm.dx, hm.dz,
+                               camera.position, spacing=self.lod.spacing, origin=hm.origin, device=self.device,
+                               need=("uv", "level", "patch_id"), uv_cells=True)
+        if not stack:
+            return Mesh(positions=t.positions, eye=camera.position, triangles=t.triangles, uv=t.uv, level=t.level,
+                        patch_id=t.patch_id, normals=np.zeros_like(t.positions)), windows
+        pos, nrm, _ = stack_displace(t.uv, t.positions, stack, [hm.source.level_shape(1 << w[0]) for w in stack],
+                                     float(camera.position[1]), hm.dx, hm.dz, device=self.device)
+        tri = t.triangles
+        if any(np.isnan(w[3]).any() for w in stack):  # no-data holes: drop triangles touching them
+            pos, tri = drop_nonfinite_triangles(pos, tri, device=self.device)
+            nrm[~np.isfinite(nrm).all(axis=1)] = (0.0, 1.0, 0.0)
+        w1, h1 = np.float32(max(hm.shape[1] - 1, 1)), np.float32(max(hm.shape[0] - 1, 1))
+        uv = np.stack([t.uv[:, 0] / w1, t.uv[:, 1] / h1], axis=1).astype(np.float32)
+        if self.full_resolution:  # the in-memory frame's normals: the grid's Sobel map, fetched at uv
+            grid = stack[0][3]
+            nmap = self.cached(("normal_map", self.device),
+                               lambda: sobel_normals(grid, hm.dx, hm.dz, border="clamp", device=self.device))
+            nrm = sample_normal_map(nmap, uv, device=self.device)
+        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=t.level, patch_id=t.patch_id,
+                    normals=nrm), windows
 
 
 @dataclass(eq=False)

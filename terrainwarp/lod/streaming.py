@@ -1,0 +1,295 @@
+"""Pyramids and overview windows of a streamed heightmap: selection and displacement that read only what a
+frame needs.
+
+A :class:`StreamedPyramid` gives the quadtree its per-node (min, max, geometric error) without the grid
+in memory, in one of two ways:
+
+* **exact** (files and arrays; any source with ``exact=True``): built once, root by root (a root's
+  window of samples at a time, never the grid), by the same kernel as the in-memory pyramids, so every
+  value is bit for bit the in-memory one. For a file the result is kept in a cache beside it
+  (``<file>.twcache/``, or ``~/.cache/terrainwarp/tiles/`` when that folder is read-only), reused across
+  runs and rebuilt when the file changes (size, modification time and a hash of its first and last
+  64 KiB). The same pass writes the point-sampled overviews (steps 2, 4, ...) that far patches read.
+* **on demand** (procedural sources, whose overviews have a known :meth:`detail_bound`): the nodes a
+  selection visits are worked out in blocks of ``BLOCK`` x ``BLOCK`` nodes from the overview whose step
+  is 1/8 of the node's vertex spacing (each node seen through an (8T + 1)^2 window), and widened by the
+  bound on what that overview leaves out: min - b, max + b, error + b. The bounds are conservative, so
+  the selection refines at least as far as the exact pyramid would; they are exact (b = 0) where the
+  step is 1. Blocks live in an LRU of ``MAX_BLOCKS``.
+
+:func:`overview_windows` picks, for a frame's patches, one window per overview step: the bounding box of
+the patches whose vertex spacing is at least that step, so memory follows the frame, not the grid.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..heightmap import StreamedHeightmap
+from ..io.files import atomic_path, write_text
+from ..io.tiles import GeoTiffSource, cache_dir_for
+from ..kernels.pyramid import node_stats
+
+__all__ = ["StreamedPyramid", "overview_windows", "CACHE_VERSION", "BLOCK", "MAX_BLOCKS"]
+
+BLOCK = 4  # nodes per side of an on-demand stats block
+MAX_BLOCKS = 65536  # on-demand blocks kept (3 x 4 x 4 float32 each: 12 MiB in all)
+CACHE_VERSION = 1
+FINEST = 8  # the finest step a node is measured at: 1/8 of its vertex spacing (1 at the finest levels)
+WINDOW_MARGIN = 2  # overview samples around a window's patches (bilinear footprint and central differences)
+
+
+class StreamedPyramid:
+    """Per-node (min, max, geometric error) of a streamed heightmap's quadtree: ``stats_at(level, x, y)``.
+
+    Args:
+        hm: the heightmap.
+        roots, root_cells, depth, tess: the quadtree's layout (:func:`terrainwarp.lod.quadtree.layout`).
+        exact: build the exact pyramid root by root (default: when the source cannot bound its overviews).
+        progress: called with the number of roots done, while building an exact pyramid.
+    """
+
+    def __init__(self, hm: StreamedHeightmap, roots: tuple[int, int], root_cells: float, depth: int, tess: int,
+                 *, exact: bool | None = None, device: str = "cpu", progress: Callable[[int], None] | None = None):
+        self.hm, self.roots, self.root_cells, self.depth, self.tess = hm, roots, float(root_cells), depth, tess
+        self.device = device
+        self.exact = (not math.isfinite(hm.source.detail_bound(2))) if exact is None else bool(exact)
+        self.levels: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        self._blocks: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
+        self.counters = {"blocks_built": 0, "block_hits": 0, "cache": "none"}
+        if self.exact:
+            self.levels = self._exact(progress)
+
+    # -- the provider ------------------------------------------------------------------------------
+    def stats_at(self, level: int, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(min, max, error): the exact pyramid's, or on demand the tightest bounds measured so far for each
+        node (min - b, max + b, error + b at the finest step it was measured at; the coarsest step's for a
+        node not measured yet)."""
+        x = np.asarray(x, np.int64)
+        y = np.asarray(y, np.int64)
+        if self.levels is not None:
+            mn, mx, er = self.levels[level]
+            return (np.asarray(mn[y, x], np.float32), np.asarray(mx[y, x], np.float32),
+                    np.asarray(er[y, x], np.float32))
+        out = np.zeros((3, len(x)), np.float32)
+        todo = np.arange(len(x))
+        steps = self.steps(level)
+        for step in reversed(steps):
+            have = self._have(level, x[todo], y[todo], step) if step != steps[0] else np.ones(len(todo), bool)
+            if have.any():
+                mn, mx, er, pad = self.measured(level, x[todo[have]], y[todo[have]], step)
+                out[:, todo[have]] = (mn - pad, mx + pad, er + pad)
+                todo = todo[~have]
+        return out[0], out[1], out[2]
+
+    def steps(self, level: int) -> list[int]:
+        """The overview steps a level's nodes are measured at, coarse to fine: the node step (half the vertex
+        spacing), then a quarter of it, down to 1/FINEST of the spacing (a node never reads more than
+        (FINEST T + 1)^2 samples, whatever its size). An exact pyramid: [1]."""
+        if self.levels is not None:
+            return [1]
+        spacing = self.root_cells / 2.0**level / self.tess
+        finest = 1 << max(0, int(math.floor(math.log2(max(spacing / FINEST, 1.0)) + 1e-9)))
+        s, out = self.node_step(level), []
+        while s > finest:
+            out.append(s)
+            s //= 4
+        return out + [max(s, finest)]
+
+    def measured(self, level: int, x: np.ndarray, y: np.ndarray,
+                 step: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.float32]:
+        """(min, max, error) of nodes (level, x, y) measured at overview ``step`` (bounds from below of the
+        exact ones; exact at step 1), and b, the source's bound on what the step misses."""
+        x = np.asarray(x, np.int64)
+        y = np.asarray(y, np.int64)
+        out = np.zeros((3, len(x)), np.float32)
+        bid = (y // BLOCK) * ((self.roots[0] << level) // BLOCK + 1) + x // BLOCK
+        for b in np.unique(bid):
+            m = bid == b
+            by, bx = int(y[m][0] // BLOCK), int(x[m][0] // BLOCK)
+            blk = self._block(level, step, by, bx)
+            out[:, m] = blk[:, y[m] - by * BLOCK, x[m] - bx * BLOCK]
+        return out[0], out[1], out[2], np.float32(self.hm.source.detail_bound(step))
+
+    def _have(self, level: int, x: np.ndarray, y: np.ndarray, step: int) -> np.ndarray:
+        with self._lock:
+            return np.array([(level, step, int(b), int(a)) in self._blocks for a, b in
+                             zip(x // BLOCK, y // BLOCK, strict=True)], bool)
+
+    def _block(self, level: int, step: int, by: int, bx: int) -> np.ndarray:
+        key = (level, step, by, bx)
+        with self._lock:
+            blk = self._blocks.get(key)
+            if blk is not None:
+                self._blocks.move_to_end(key)
+                self.counters["block_hits"] += 1
+                return blk
+        blk = self._make_block(level, step, by, bx)
+        with self._lock:
+            self._blocks[key] = blk
+            self.counters["blocks_built"] += 1
+            while len(self._blocks) > MAX_BLOCKS:
+                self._blocks.popitem(last=False)
+        return blk
+
+    def node_step(self, level: int) -> int:
+        """The coarsest overview step a level's nodes are measured at: a power of two, at most half their
+        vertex spacing (a node is seen through at least (2T + 1)^2 samples); 1 at the finest levels."""
+        spacing = self.root_cells / 2.0**level / self.tess
+        return 1 << max(0, int(math.floor(math.log2(max(spacing / 2.0, 1.0)) + 1e-9)))
+
+    def _make_block(self, level: int, s: int, by: int, bx: int) -> np.ndarray:
+        """Measured stats of nodes [by*B, by*B + B) x [bx*B, bx*B + B) of ``level`` at overview step ``s``."""
+        side = self.root_cells / 2.0**level / s  # a node's side in overview samples
+        lr, lc = self.hm.source.level_shape(s)
+        r0, c0 = int(round(by * BLOCK * side)), int(round(bx * BLOCK * side))
+        blk = np.zeros((3, BLOCK, BLOCK), np.float32)
+        if r0 > lr - 1 or c0 > lc - 1:
+            return blk  # every node of the block lies outside the grid (never drawn)
+        rows = min(int(math.ceil(BLOCK * side)) + 1, lr - r0)
+        cols = min(int(math.ceil(BLOCK * side)) + 1, lc - c0)
+        win = self.hm.window(s, r0, c0, rows, cols)
+        (mn, mx, er), = node_stats(win, (BLOCK, BLOCK), side, 0, self.tess, device=self.device)
+        blk[0], blk[1], blk[2] = mn, mx, er
+        return blk
+
+    # -- the exact pyramid, root by root -------------------------------------------------------------
+    def _exact(self, progress: Callable[[int], None] | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        src = self.hm.source
+        cfg = {"version": CACHE_VERSION, "roots": list(self.roots), "root_cells": self.root_cells,
+               "depth": self.depth, "tess": self.tess}
+        folder = cache_dir_for(src.path) if isinstance(src, GeoTiffSource) else None
+        if folder is not None:
+            cfg["fingerprint"] = src.fingerprint()
+            got = self._load_cached(folder, cfg)
+            if got is not None:
+                self.counters["cache"] = "reused"
+                return got
+        levels = self._build(progress, folder)
+        if folder is not None:
+            self._save(folder, cfg, levels)
+            self.counters["cache"] = "built"
+        return levels
+
+    def _build(self, progress: Callable[[int], None] | None,
+               folder: Path | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Every root's window through the in-memory kernel; a root's nodes only read samples inside the
+        root's closed extent, and with an integer S_0 the window's coordinates are the grid's shifted by
+        an integer, so each value is bit for bit the whole grid's."""
+        nx, nz = self.roots
+        hh, ww = self.hm.shape
+        s0 = self.root_cells
+        whole = s0 != int(s0)  # fractional roots: node origins are not integer shifts; one window, the grid
+        levels = [tuple(np.zeros((nz << lv, nx << lv), np.float32) for _ in range(3)) for lv in range(self.depth + 1)]
+        overviews = self._overview_files(folder)
+        ranges = [(0, 0, nz, nx)] if whole else [(y, x, 1, 1) for y in range(nz) for x in range(nx)]
+        for y, x, ny_, nx_ in ranges:
+            r0, c0 = int(y * s0), int(x * s0)
+            if r0 <= hh - 1 and c0 <= ww - 1:
+                rows = min(int(math.ceil(ny_ * s0)) + 1, hh - r0)
+                cols = min(int(math.ceil(nx_ * s0)) + 1, ww - c0)
+                win = self.hm.window(1, r0, c0, rows, cols)
+                part = node_stats(win, (nx_, ny_), s0, self.depth, self.tess, device=self.device)
+                for lv, (mn, mx, er) in enumerate(part):
+                    a, b = y << lv, x << lv
+                    for dst, src in zip(levels[lv], (mn, mx, er), strict=True):
+                        dst[a:a + src.shape[0], b:b + src.shape[1]] = src
+                for step, arr in overviews.items():
+                    if r0 % step == 0 and c0 % step == 0:
+                        sub = win[::step, ::step]
+                        arr[r0 // step:r0 // step + sub.shape[0], c0 // step:c0 // step + sub.shape[1]] = sub
+            if progress is not None:
+                progress(1)
+        for arr in overviews.values():
+            arr.flush()
+        return levels
+
+    def _overview_files(self, folder: Path | None) -> dict[int, np.ndarray]:
+        """Memory-mapped point-sampled overviews to fill while building (a file's cache only): steps 2, 4,
+        ... dividing S_0, down to 2 samples a side."""
+        if folder is None or self.root_cells != int(self.root_cells):
+            return {}
+        folder.mkdir(parents=True, exist_ok=True)
+        out, step = {}, 2
+        while int(self.root_cells) % step == 0 and min(self.hm.source.level_shape(step)) >= 2:
+            out[step] = np.lib.format.open_memmap(folder / f"overview_{step}.npy.part", mode="w+", dtype=np.float32,
+                                                  shape=self.hm.source.level_shape(step))
+            step *= 2
+        return out
+
+    def _stats_name(self, lv: int) -> str:
+        nx, nz = self.roots
+        return f"stats_r{nx}x{nz}_t{self.tess}_d{self.depth}_L{lv}.npy"
+
+    def _save(self, folder: Path, cfg: dict[str, Any], levels: list) -> None:
+        for lv, arrs in enumerate(levels):
+            with atomic_path(folder / self._stats_name(lv)) as tmp:
+                np.save(tmp, np.stack(arrs))
+        for part in folder.glob("overview_*.npy.part"):
+            part.replace(folder / part.name[:-len(".part")])
+        self._attach(folder)
+        write_text(folder / "cache.json", json.dumps({"fingerprint": cfg["fingerprint"], "version": CACHE_VERSION},
+                                                     indent=1) + "\n")
+
+    def _load_cached(self, folder: Path, cfg: dict[str, Any]) -> list | None:
+        """This layout's pyramid from the folder, or None (a folder made for another version of the file is
+        emptied: nothing in it is valid)."""
+        try:
+            old = json.loads((folder / "cache.json").read_text())
+        except (OSError, ValueError):
+            old = None
+        if old is None or old.get("fingerprint") != cfg["fingerprint"] or old.get("version") != CACHE_VERSION:
+            for f in folder.glob("*.npy*") if folder.exists() else ():
+                f.unlink(missing_ok=True)
+            (folder / "cache.json").unlink(missing_ok=True)
+            return None
+        try:
+            levels = [tuple(np.load(folder / self._stats_name(lv), mmap_mode="r")) for lv in range(self.depth + 1)]
+        except (OSError, ValueError):
+            return None  # another layout (roots, tess, depth) of the same file: built now, beside the others
+        self._attach(folder)
+        return levels
+
+    def _attach(self, folder: Path) -> None:
+        """Hand the cache's overviews to the source (memory-mapped: pages are read when tiles touch them)."""
+        for f in sorted(folder.glob("overview_*.npy")):
+            step = int(f.stem.split("_")[1].split(".")[0])
+            self.hm.source.levels[step] = np.load(f, mmap_mode="r")
+
+
+def overview_windows(hm: StreamedHeightmap, origin_cells: np.ndarray, size_cells: np.ndarray, factor: np.ndarray,
+                     *, full_resolution: bool = False) -> list[tuple[int, int, int, int, int]]:
+    """The windows a frame's patches read: (shift, r0, c0, rows, cols) in step-2^shift overview samples,
+    finest first.
+
+    A patch reads the overview of the largest power-of-two step not above its vertex spacing (side /
+    largest tessellation factor; 1 with ``full_resolution``); each step's window is the bounding box of
+    its patches, ``WINDOW_MARGIN`` samples wider, clipped to the grid."""
+    if len(size_cells) == 0:
+        return []
+    spacing = np.asarray(size_cells, np.float64) / np.maximum(np.asarray(factor, np.float64), 1.0)
+    shift = np.zeros(len(spacing), np.int64) if full_resolution else \
+        np.floor(np.log2(np.maximum(spacing, 1.0)) + 1e-9).astype(np.int64)
+    lo = np.asarray(origin_cells, np.float64)
+    hi = lo + np.asarray(size_cells, np.float64)[:, None]
+    out = []
+    for sh in np.unique(shift):
+        m = shift == sh
+        s = float(1 << int(sh))
+        lr, lc = hm.source.level_shape(1 << int(sh))
+        c0 = int(max(0, math.floor(lo[m, 0].min() / s) - WINDOW_MARGIN))
+        r0 = int(max(0, math.floor(lo[m, 1].min() / s) - WINDOW_MARGIN))
+        c1 = int(min(lc - 1, math.ceil(hi[m, 0].max() / s) + WINDOW_MARGIN))
+        r1 = int(min(lr - 1, math.ceil(hi[m, 1].max() / s) + WINDOW_MARGIN))
+        if c0 <= c1 and r0 <= r1:
+            out.append((int(sh), r0, c0, r1 - r0 + 1, c1 - c0 + 1))
+    return out
