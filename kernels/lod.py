@@ -18,10 +18,11 @@ not split splits only past the *split* threshold (``tolerance * (1 + h)``, ``thr
 "Was split" is looked up by binary search in the sorted keys of the previous frame's split nodes.
 
 The tree map (:func:`tree_map`, :func:`mark_nodes`, :func:`neighbour_levels`): one int32 cell per node of
-every level of the complete tree (level L's ``(nz << L) x (nx << L)`` nodes row-major after the levels
-above it, like the terrain's per-level pyramids), holding ``leaf index + 1`` for a leaf, ``-1`` for a
-split node and 0 for a node inside a coarser leaf. The leaf containing any finest-level cell is then
-found by walking from a guessed level: down through split nodes, up through nodes that are not in the
+every level of the complete tree (a hash table of the nodes in the tree when the complete tree would
+exceed ``DENSE_MAX_CELLS`` cells: a streamed 2^20-sample terrain) (level L's ``(nz << L) x (nx << L)``
+nodes row-major after the levels above it, like the terrain's per-level pyramids), holding ``leaf index + 1``
+for a leaf, ``-1`` for a split node and 0 for a node inside a coarser leaf. The leaf containing any
+finest-level cell is then found by walking from a guessed level: down through split nodes, up through nodes that are not in the
 tree. Neighbour levels cost a few lookups per edge, linear in the number of leaves.
 """
 
@@ -175,24 +176,61 @@ def select_level(node_x: np.ndarray, node_y: np.ndarray, node_key: np.ndarray | 
 # ------------------------------------------------------------------------------------------------
 # the tree map: point location in a quadtree tiling, linear in the leaves
 # ------------------------------------------------------------------------------------------------
+@wp.struct
+class TreeMap:
+    """The tree map as kernels see it: a dense array of every node's cell, or (a tree too deep for that: the
+    complete tree of a 2^20-sample terrain has 10^9 leaves) an open-addressing hash table of the nodes in
+    the tree, keyed like tile keys (level << 58 | y << 29 | x); a node not in it reads 0."""
+
+    dense: wp.array(dtype=wp.int32)
+    keys: wp.array(dtype=wp.int64)  # -1: empty slot
+    vals: wp.array(dtype=wp.int32)
+    mask: wp.int64
+    sparse: int
+    nx: int
+    n_roots: int
+
+
 @wp.func
 def _tree_cell(level: int, x: int, y: int, nx: int, n_roots: int) -> int:
-    """Index of node (level, x, y) in the tree map: the levels above, then row-major in the level."""
+    """Index of node (level, x, y) in the dense tree map: the levels above, then row-major in the level."""
     return n_roots * (((1 << (2 * level)) - 1) / 3) + y * (nx << level) + x
 
 
 @wp.func
-def _leaf_at(tree: wp.array(dtype=wp.int32), fx: int, fy: int, start: int, depth: int, nx: int, nz: int) -> int:
+def _hash_slot(key: wp.int64, mask: wp.int64) -> wp.int64:
+    """Fibonacci hashing of a tile key (as :func:`_slots` on the host)."""
+    h = wp.uint64(key) * wp.uint64(11400714819323198485)
+    return wp.int64(h >> wp.uint64(24)) & mask
+
+
+@wp.func
+def _cell(t: TreeMap, level: int, x: int, y: int) -> int:
+    if t.sparse == 0:
+        return t.dense[_tree_cell(level, x, y, t.nx, t.n_roots)]
+    key = (wp.int64(level) << wp.int64(58)) | (wp.int64(y) << wp.int64(29)) | wp.int64(x)
+    slot = _hash_slot(key, t.mask)
+    k = t.keys[slot]
+    while k != key and k != wp.int64(-1):
+        slot = (slot + wp.int64(1)) & t.mask
+        k = t.keys[slot]
+    if k == key:
+        return t.vals[slot]
+    return 0
+
+
+@wp.func
+def _leaf_at(tree: TreeMap, fx: int, fy: int, start: int, depth: int) -> int:
     """Index of the leaf containing finest-level cell (fx, fy) of the root grid, walking from level
     ``start``: down through split nodes, up through nodes inside a coarser leaf."""
     m = int(start)
-    c = tree[_tree_cell(m, fx >> (depth - m), fy >> (depth - m), nx, nx * nz)]
+    c = _cell(tree, m, fx >> (depth - m), fy >> (depth - m))
     while c <= 0:
         if c < 0:
             m = m + 1
         else:
             m = m - 1
-        c = tree[_tree_cell(m, fx >> (depth - m), fy >> (depth - m), nx, nx * nz)]
+        c = _cell(tree, m, fx >> (depth - m), fy >> (depth - m))
     return c - 1
 
 
@@ -205,26 +243,26 @@ def _mark_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype
 
 
 @wp.func
-def _edge_level(tree: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32), lv: int, nbx: int, nby: int,
-                ax: int, ay: int, bx: int, by: int, depth: int, nx: int, nz: int) -> int:
+def _edge_level(tree: TreeMap, level_of: wp.array(dtype=wp.int32), lv: int, nbx: int, nby: int,
+                ax: int, ay: int, bx: int, by: int, depth: int, nz: int) -> int:
     """The larger ``level_of`` of the leaves containing finest cells a and b, both inside node (lv, nbx,
     nby), the neighbour across an edge (-1: beyond the root grid). Unless that node is split, one leaf
     holds both: one lookup."""
-    if nbx < 0 or nby < 0 or nbx >= (nx << lv) or nby >= (nz << lv):
+    if nbx < 0 or nby < 0 or nbx >= (tree.nx << lv) or nby >= (nz << lv):
         return -1
-    c = tree[_tree_cell(lv, nbx, nby, nx, nx * nz)]
+    c = _cell(tree, lv, nbx, nby)
     if c < 0:  # split: finer leaves, one walk down for each probe
-        return wp.max(level_of[_leaf_at(tree, ax, ay, lv + 1, depth, nx, nz)],
-                      level_of[_leaf_at(tree, bx, by, lv + 1, depth, nx, nz)])
+        return wp.max(level_of[_leaf_at(tree, ax, ay, lv + 1, depth)],
+                      level_of[_leaf_at(tree, bx, by, lv + 1, depth)])
     if c == 0:  # inside a coarser leaf
-        return level_of[_leaf_at(tree, ax, ay, lv - 1, depth, nx, nz)]
+        return level_of[_leaf_at(tree, ax, ay, lv - 1, depth)]
     return level_of[c - 1]
 
 
 @wp.kernel(enable_backward=False)
 def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.int32),
                       y: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32),
-                      tree: wp.array(dtype=wp.int32), depth: int, nx: int, nz: int,
+                      tree: TreeMap, depth: int, nz: int,
                       out: wp.array2d(dtype=wp.int32)):
     i = wp.tid() + offset
     lv = level[i]
@@ -237,24 +275,104 @@ def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(
     x0 = xi << sh
     y0 = yi << sh
     # probes just outside each edge at 1/4 and 3/4 of its length: west, north, east, south
-    out[i, 0] = _edge_level(tree, level_of, lv, xi - 1, yi, x0 - 1, y0 + q1, x0 - 1, y0 + q3, depth, nx, nz)
-    out[i, 1] = _edge_level(tree, level_of, lv, xi, yi - 1, x0 + q1, y0 - 1, x0 + q3, y0 - 1, depth, nx, nz)
-    out[i, 2] = _edge_level(tree, level_of, lv, xi + 1, yi, x0 + s, y0 + q1, x0 + s, y0 + q3, depth, nx, nz)
-    out[i, 3] = _edge_level(tree, level_of, lv, xi, yi + 1, x0 + q1, y0 + s, x0 + q3, y0 + s, depth, nx, nz)
+    out[i, 0] = _edge_level(tree, level_of, lv, xi - 1, yi, x0 - 1, y0 + q1, x0 - 1, y0 + q3, depth, nz)
+    out[i, 1] = _edge_level(tree, level_of, lv, xi, yi - 1, x0 + q1, y0 - 1, x0 + q3, y0 - 1, depth, nz)
+    out[i, 2] = _edge_level(tree, level_of, lv, xi + 1, yi, x0 + s, y0 + q1, x0 + s, y0 + q3, depth, nz)
+    out[i, 3] = _edge_level(tree, level_of, lv, xi, yi + 1, x0 + q1, y0 + s, x0 + q3, y0 + s, depth, nz)
 
 
-def tree_map(roots: tuple[int, int], depth: int, device: str = "cpu") -> wp.array:
+DENSE_MAX_CELLS = 1 << 26  # a deeper complete tree (256 MiB of int32 cells) gets the hash table
+
+
+def _slots(keys: np.ndarray, mask: int) -> np.ndarray:
+    h = keys.astype(np.uint64) * np.uint64(11400714819323198485)  # wraps, as the kernel's uint64
+    return (h >> np.uint64(24)).astype(np.int64) & np.int64(mask)
+
+
+class TreeMapHost:
+    """A tree map and its device view (:class:`TreeMap`): dense for a complete tree up to DENSE_MAX_CELLS
+    cells, else a hash table of the marked nodes (kept at most half full; grown on the host)."""
+
+    def __init__(self, roots: tuple[int, int], depth: int, device: str = "cpu"):
+        self.roots, self.depth, self.device = (int(roots[0]), int(roots[1])), int(depth), device
+        self.cells = roots[0] * roots[1] * ((4 ** (depth + 1) - 1) // 3)
+        self.sparse = self.cells > DENSE_MAX_CELLS
+        if self.sparse:
+            self.dense = wp.zeros(1, dtype=wp.int32, device=device)
+            self._alloc(1 << 12)
+        elif wp.get_device(device).is_cpu:  # calloc'd: only the pages a frame touches are ever zeroed
+            self.dense = wp.array(np.zeros(self.cells, np.int32), dtype=wp.int32, device=device, copy=False)
+        else:
+            self.dense = wp.zeros(self.cells, dtype=wp.int32, device=device)
+
+    def __len__(self) -> int:
+        return self.cells if not self.sparse else int(self.n)
+
+    def _alloc(self, cap: int) -> None:
+        self.k = np.full(cap, -1, np.int64)
+        self.v = np.zeros(cap, np.int32)
+        self.n = 0
+
+    def view(self) -> TreeMap:
+        t = TreeMap()
+        t.dense, t.sparse, t.nx, t.n_roots = self.dense, int(self.sparse), self.roots[0], self.roots[0] * self.roots[1]
+        k = self.k if self.sparse else np.full(1, -1, np.int64)
+        v = self.v if self.sparse else np.zeros(1, np.int32)
+        t.keys = wp.array(k, dtype=wp.int64, device=self.device)
+        t.vals = wp.array(v, dtype=wp.int32, device=self.device)
+        t.mask = len(k) - 1
+        return t
+
+    def put(self, keys: np.ndarray, vals: np.ndarray) -> None:
+        """Set the cells of ``keys`` (tile keys) to ``vals`` (the hash table; last write wins)."""
+        if (self.n + len(keys)) * 2 > len(self.k):
+            live = self.k >= 0
+            old_k, old_v = self.k[live], self.v[live]
+            cap = len(self.k)
+            while (len(old_k) + len(keys)) * 2 > cap:
+                cap *= 2
+            self._alloc(cap)
+            self._insert(old_k, old_v)
+        self._insert(keys, vals)
+
+    def _insert(self, keys: np.ndarray, vals: np.ndarray) -> None:
+        keys = np.asarray(keys, np.int64)
+        vals = np.asarray(vals, np.int32)
+        _, last = np.unique(keys[::-1], return_index=True)  # one write per key: the last one
+        pick = len(keys) - 1 - last
+        keys, vals = keys[pick], vals[pick]
+        mask = len(self.k) - 1
+        pos = _slots(keys, mask)
+        todo = np.arange(len(keys))
+        while len(todo):
+            cur = self.k[pos[todo]]
+            hit = cur == keys[todo]
+            self.v[pos[todo[hit]]] = vals[todo[hit]]
+            free = cur == -1
+            cand = todo[free]
+            _, first = np.unique(pos[cand], return_index=True)  # one claim per empty slot per round
+            won = cand[first]
+            self.k[pos[won]] = keys[won]
+            self.v[pos[won]] = vals[won]
+            self.n += len(won)
+            done = np.zeros(len(keys), bool)
+            done[todo[hit]] = True
+            done[won] = True
+            rest = todo[~done[todo]]
+            moved = rest[self.k[pos[rest]] != -1]  # blocked by another key: probe on
+            pos[moved] = (pos[moved] + 1) & mask
+            todo = rest
+
+
+def tree_map(roots: tuple[int, int], depth: int, device: str = "cpu") -> TreeMapHost:
     """An empty tree map (every cell 0) for ``roots`` = (nx, nz) root nodes and levels 0..depth."""
-    n = roots[0] * roots[1] * ((4 ** (depth + 1) - 1) // 3)
-    if wp.get_device(device).is_cpu:  # calloc'd: only the pages a frame touches are ever zeroed
-        return wp.array(np.zeros(n, np.int32), dtype=wp.int32, device=device, copy=False)
-    return wp.zeros(n, dtype=wp.int32, device=device)
+    return TreeMapHost(roots, depth, device)
 
 
-def tree_leaves(tree: wp.array, roots: tuple[int, int], depth: int) -> np.ndarray:
-    """The leaf indices of the map in key order (level by level, row-major (y, x) in a level): a scan of
+def tree_leaves(tree: TreeMapHost, roots: tuple[int, int], depth: int) -> np.ndarray:
+    """The leaf indices of a dense map in key order (level by level, row-major (y, x) in a level): a scan of
     the whole map, for when it is not much larger than the number of leaves."""
-    cells = tree.numpy()
+    cells = tree.dense.numpy()
     parts, start = [], 0
     for lv in range(depth + 1):
         n = roots[0] * roots[1] << (2 * lv)  # the level's cells, as _tree_cell lays them out
@@ -270,26 +388,30 @@ def _i32(a: np.ndarray, device: str | wp.Device) -> wp.array:
                     copy=not wp.get_device(device).is_cpu)
 
 
-def mark_nodes(tree: wp.array, roots: tuple[int, int], level: np.ndarray, x: np.ndarray, y: np.ndarray,
+def mark_nodes(tree: TreeMapHost, roots: tuple[int, int], level: np.ndarray, x: np.ndarray, y: np.ndarray,
                value: np.ndarray | int) -> None:
     """Write ``value`` (leaf index + 1, or -1 for a split node) into the cells of nodes (level, x, y)."""
     n = len(level)
     if n == 0:
         return
-    dev = tree.device
     v = np.broadcast_to(np.asarray(value, np.int32), (n,))
+    if tree.sparse:
+        lv, xx, yy = (np.asarray(a, np.int64) for a in (level, x, y))
+        tree.put((lv << 58) | (yy << 29) | xx, v)
+        return
+    dev = tree.dense.device
     launch(_mark_kernel, n, inputs=[_i32(level, dev), _i32(x, dev), _i32(y, dev), _i32(v, dev), int(roots[0]),
-                                    int(roots[0] * roots[1])], outputs=[tree], device=dev)
+                                    int(roots[0] * roots[1])], outputs=[tree.dense], device=dev)
 
 
-def neighbour_levels(tree: wp.array, roots: tuple[int, int], depth: int, level: np.ndarray, x: np.ndarray,
+def neighbour_levels(tree: TreeMapHost, roots: tuple[int, int], depth: int, level: np.ndarray, x: np.ndarray,
                      y: np.ndarray, level_of: np.ndarray) -> np.ndarray:
     """(n, 4) int32: for each node (level, x, y), the largest ``level_of[leaf]`` of the leaves just across
     its west, north, east and south edges (probed at 1/4 and 3/4 of the edge, which finds any leaf finer
     than level + 1); -1 beyond the root grid."""
     n = len(level)
-    dev = tree.device
+    dev = tree.dense.device
     out = wp.empty((n, 4), dtype=wp.int32, device=dev)
-    launch(_neighbour_kernel, n, inputs=[_i32(level, dev), _i32(x, dev), _i32(y, dev), _i32(level_of, dev), tree,
-                                         int(depth), int(roots[0]), int(roots[1])], outputs=[out], device=dev)
+    launch(_neighbour_kernel, n, inputs=[_i32(level, dev), _i32(x, dev), _i32(y, dev), _i32(level_of, dev),
+                                         tree.view(), int(depth), int(roots[1])], outputs=[out], device=dev)
     return out.numpy()

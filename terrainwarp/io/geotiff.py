@@ -32,6 +32,7 @@ import math
 import os
 import re
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
@@ -49,7 +50,7 @@ if TYPE_CHECKING:  # rasterio and affine are imported where used (heavy optional
 
 __all__ = ["GDAL_EXTS", "GeoRaster", "HeightGrid", "RasterHeader", "describe", "is_gdal_raster", "is_georeferenced",
            "open_raster", "read_header", "read_oriented",
-           "read_geotiff", "write_geotiff"]
+           "read_geotiff", "write_geotiff", "write_tiled"]
 
 # Extensions always read through GDAL; .tif/.tiff only when the file carries georeferencing (plain TIFFs
 # stay with OpenImageIO, see Heightmap.load).
@@ -665,4 +666,48 @@ def write_geotiff(hm: HeightGrid, path: str | os.PathLike) -> Path:
                     dst.offsets = (offset,)
                 if unit:
                     dst.units = (unit,)
+    return p
+
+
+def write_tiled(path: str | os.PathLike, shape: tuple[int, int], read: Callable[[int, int, int, int], np.ndarray], *,
+                dx: float = 1.0, dz: float | None = None, origin: tuple[float, float] = (0.0, 0.0),
+                crs: str = "EPSG:3857", block: int = 256, overviews: tuple[int, ...] = (2, 4, 8, 16),
+                progress: Callable[[int], None] | None = None) -> Path:
+    """Write a float32 heightmap larger than memory as a tiled, deflate-compressed GeoTIFF (a cloud-optimised
+    layout: internal tiles of ``block`` samples, and GDAL overviews), one band of tiles at a time.
+
+    Args:
+        shape: (rows, cols); row 0 is the northern row (the file is north-up, +z is south).
+        read: ``read(r0, c0, rows, cols)`` -> float32 heights of that window (e.g. a tile source's).
+        dx, dz: spacing in metres (a projected CRS in metres, so :func:`read_geotiff` finds it again).
+        origin: CRS (x, y) of the centre of the north-western cell (:meth:`terrainwarp.Heightmap.load` puts
+            that sample at world (0, 0) whatever it is).
+        overviews: GDAL overview factors built after the data (nearest); () for none.
+        progress: called with the rows written, band by band.
+    """
+    rasterio = _rasterio()
+    from affine import Affine  # lazy: heavy optional dependency (with rasterio)
+    from rasterio.enums import Resampling  # lazy: heavy optional dependency
+    from rasterio.windows import Window
+
+    h, w = (int(v) for v in shape)
+    dz = dx if dz is None else dz
+    p = Path(path)
+    x0, y0 = origin  # north-up: rows go down the CRS's y axis
+    profile = dict(driver="GTiff", width=w, height=h, count=1, dtype="float32", crs=rasterio.crs.CRS.from_string(crs),
+                   transform=Affine(dx, 0.0, x0 - dx / 2.0, 0.0, -dz, y0 + dz / 2.0), nodata=None,
+                   compress="deflate", tiled=True, blockxsize=block, blockysize=block, BIGTIFF="IF_SAFER")
+    with atomic_path(p) as tmp:
+        with rasterio.open(tmp, "w", **profile) as dst:
+            for r0 in range(0, h, block):
+                rows = min(block, h - r0)
+                for c0 in range(0, w, 8 * block):
+                    cols = min(8 * block, w - c0)
+                    dst.write(np.ascontiguousarray(read(r0, c0, rows, cols), np.float32), 1,
+                              window=Window(c0, r0, cols, rows))
+                if progress is not None:
+                    progress(rows)
+            if overviews:
+                dst.build_overviews(list(overviews), Resampling.nearest)
+                dst.update_tags(ns="rio_overview", resampling="nearest")
     return p

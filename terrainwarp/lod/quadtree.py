@@ -41,12 +41,19 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-import warp as wp
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import write_text
-from ..kernels.lod import frustum_planes, mark_nodes, neighbour_levels, select_level, tree_leaves, tree_map
+from ..kernels.lod import (
+    TreeMapHost,
+    frustum_planes,
+    mark_nodes,
+    neighbour_levels,
+    select_level,
+    tree_leaves,
+    tree_map,
+)
 from ..kernels.pyramid import node_stats
 from ..scene import check_roots, check_tess
 from .policies import (
@@ -335,7 +342,7 @@ class _Tree(NamedTuple):
     """The leaves and the tree map (:func:`terrainwarp.kernels.lod.tree_map`) that locates them."""
 
     nodes: _Nodes
-    map: wp.array
+    map: TreeMapHost
     roots: tuple[int, int]
     depth: int
 
@@ -350,7 +357,7 @@ class _Tree(NamedTuple):
         """Indices of the nodes in ``mask`` (leaves) sorted by key: read off the map when it is small
         beside the leaves (level by level, row-major), else sorted."""
         n = self.nodes
-        if len(self.map) <= 8 * len(n.level):
+        if not self.map.sparse and len(self.map) <= 8 * len(n.level):
             order = tree_leaves(self.map, self.roots, self.depth)
             return order[mask[order]]
         idx = np.flatnonzero(mask)

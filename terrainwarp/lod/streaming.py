@@ -113,17 +113,23 @@ class StreamedPyramid:
         y = np.asarray(y, np.int64)
         out = np.zeros((3, len(x)), np.float32)
         bid = (y // BLOCK) * ((self.roots[0] << level) // BLOCK + 1) + x // BLOCK
-        for b in np.unique(bid):
-            m = bid == b
-            by, bx = int(y[m][0] // BLOCK), int(x[m][0] // BLOCK)
+        order = np.argsort(bid, kind="stable")
+        ub, starts = np.unique(bid[order], return_index=True)
+        for k in range(len(ub)):  # one block per run of equal ids
+            m = order[starts[k]:starts[k + 1] if k + 1 < len(ub) else len(order)]
+            by, bx = int(y[m[0]] // BLOCK), int(x[m[0]] // BLOCK)
             blk = self._block(level, step, by, bx)
             out[:, m] = blk[:, y[m] - by * BLOCK, x[m] - bx * BLOCK]
         return out[0], out[1], out[2], np.float32(self.hm.source.detail_bound(step))
 
     def _have(self, level: int, x: np.ndarray, y: np.ndarray, step: int) -> np.ndarray:
+        """True for nodes whose block at ``step`` was measured already (nothing is measured here)."""
+        bx, by = x // BLOCK, y // BLOCK
+        bid = by * ((self.roots[0] << level) // BLOCK + 1) + bx
+        ub, first, inv = np.unique(bid, return_index=True, return_inverse=True)
         with self._lock:
-            return np.array([(level, step, int(b), int(a)) in self._blocks for a, b in
-                             zip(x // BLOCK, y // BLOCK, strict=True)], bool)
+            have = np.array([(level, step, int(by[i]), int(bx[i])) in self._blocks for i in first], bool)
+        return have[inv.reshape(-1)] if len(ub) else np.zeros(0, bool)
 
     def _block(self, level: int, step: int, by: int, bx: int) -> np.ndarray:
         key = (level, step, by, bx)
