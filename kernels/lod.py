@@ -22,8 +22,8 @@ every level of the complete tree (a hash table of the nodes in the tree when the
 exceed ``DENSE_MAX_CELLS`` cells: a streamed 2^20-sample terrain) (level L's ``(nz << L) x (nx << L)``
 nodes row-major after the levels above it, like the terrain's per-level pyramids), holding ``leaf index + 1``
 for a leaf, ``-1`` for a split node and 0 for a node inside a coarser leaf. The leaf containing any
-finest-level cell is then found by walking from a guessed level: down through split nodes, up through nodes that are not in the
-tree. Neighbour levels cost a few lookups per edge, linear in the number of leaves.
+finest-level cell is then found by walking from a guessed level: down through split nodes, up through nodes
+that are not in the tree. Neighbour levels cost a few lookups per edge, linear in the number of leaves.
 """
 
 from __future__ import annotations
