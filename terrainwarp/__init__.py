@@ -2,7 +2,7 @@
 
 Public API::
 
-    Heightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
+    Heightmap, StreamedHeightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
     Terrain, LodState, select, fit_lod, FitResult, compute_normals, compute_curvature,
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
     rasterize_clip, clip_coordinates, build_polytree, Polytree, set_threads
@@ -30,7 +30,7 @@ _say_first_compile(_wp.config.kernel_cache_dir)
 
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .fit.lod_fit import FitResult, fit_lod  # noqa: E402
-from .heightmap import Heightmap  # noqa: E402
+from .heightmap import Heightmap, StreamedHeightmap  # noqa: E402
 from .kernels.parallel import set_threads  # noqa: E402
 from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
 from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
@@ -46,7 +46,7 @@ from .scene import LodConfig, Scene  # noqa: E402
 from .surface.differential import compute_curvature, compute_normals  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["fit_lod", "FitResult", "Heightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize",
+__all__ = ["fit_lod", "FitResult", "Heightmap", "StreamedHeightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize",
            "Fragments",
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",

@@ -1,0 +1,112 @@
+"""Frames of a streamed heightmap: read at full resolution they are the in-memory frames bit for bit; read
+from overviews their geometry and error are the in-memory ones on these terrains; a terrain far larger
+than memory renders with only the tiles its frame needs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import digest
+from terrainwarp import Camera, Heightmap, Scene, StreamedHeightmap, render
+from terrainwarp.io.geotiff import write_tiled
+from terrainwarp.io.tiles import FbmSource
+from terrainwarp.rendering.sources import StreamedSource
+from terrainwarp.scene import LodConfig
+
+OUTS = ("image", "depth", "error")
+
+
+@pytest.fixture(scope="module")
+def fbm_tif(tmp_path_factory):
+    """A 2049^2 fBm written as a tiled (256^2, deflate) GeoTIFF with overviews, and its in-memory read."""
+    src = FbmSource(2049, seed=3, dx=10.0)
+    p = write_tiled(tmp_path_factory.mktemp("tif") / "fbm2049.tif", src.shape,
+                    lambda r0, c0, n, m: src.read(1, r0, c0, n, m), dx=10.0)
+    return p, Heightmap.load(p)
+
+
+def _same(a, b) -> bool:
+    return (np.array_equal(a.image, b.image) and np.array_equal(a.depth, b.depth, equal_nan=True)
+            and np.array_equal(a.triangle_id, b.triangle_id) and a.error.row() == b.error.row())
+
+
+def _frames(hm, st, cams, src_full):
+    for cam in cams:
+        a = render(Scene(hm, camera=cam, mesh="lod", outputs=OUTS))
+        b = render(Scene(st, camera=cam, mesh="lod", outputs=OUTS), source=src_full)
+        c = render(Scene(st, camera=cam, mesh="lod", outputs=OUTS))
+        yield a, b, c
+
+
+def test_dem_streamed_at_full_resolution_is_the_in_memory_frame():
+    hm = Heightmap.example()
+    st = StreamedHeightmap.of(hm)
+    cams = Scene(hm).camera_path(2)
+    assert cams == Scene(st).camera_path(2)  # the path samples the ground through the tiles, bit for bit
+    for a, b, c in _frames(hm, st, cams, StreamedSource(st, LodConfig(), full_resolution=True)):
+        assert _same(a, b)
+        assert np.array_equal(a.depth, c.depth, equal_nan=True) and a.error.row() == c.error.row()
+
+
+def test_geotiff_streamed_equals_in_memory_and_overviews_keep_the_error(fbm_tif):
+    p, hm = fbm_tif
+    st = Heightmap.open(p)
+    assert st.shape == hm.shape and (st.dx, st.dz) == (hm.dx, hm.dz) and st.height_range == hm.height_range
+    cams = Scene(hm).camera_path(2)
+    full = StreamedSource(st, LodConfig(), full_resolution=True)
+    for a, b, c in _frames(hm, st, cams, full):
+        assert _same(a, b)
+        # from overviews: every vertex of an integer tessellation lies on a sample of the window it reads
+        assert np.array_equal(a.depth, c.depth, equal_nan=True)
+        assert c.error.row()["p99_px"] == a.error.row()["p99_px"] <= 1.0
+        tiles = c.report.info["tiles"]
+        assert set(tiles) == {"tiles_read", "bytes_read", "hits"} and tiles["tiles_read"] + tiles["hits"] > 0
+        sel = next(r for r in c.report.stages if r.name == "select")
+        assert sel.counters["windows"] >= 1 and sel.counters["window_samples"] < hm.heights.size
+
+
+def test_streamed_frames_are_deterministic_and_report_their_reads(fbm_tif):
+    p, hm = fbm_tif
+    cam = Scene(hm).camera_path(3)[1]
+    runs = []
+    for _ in range(2):
+        st = Heightmap.open(p, cache_mb=4)  # a small cache: tiles are evicted and read again
+        f = render(Scene(st, camera=cam, mesh="lod", outputs=("image", "depth")))
+        runs.append(digest(f.image, f.depth, f.triangle_id))
+        assert st.counters()["resident_bytes"] <= 4 * 2**20 + 300_000  # the cap (one tile may overhang)
+    assert runs[0] == runs[1]
+
+
+def _ground(st, k, width=480, height=270):
+    (x0, z0), (x1, z1) = st.bounds_xz
+    x, z = 0.5 * (x0 + x1) + 150.0 * k, 0.5 * (z0 + z1) + 50.0 * k
+    g = float(st.sample([x], [z])[0])
+    return Camera(position=(x, g + 40.0, z), target=(x + 1000.0, g + 20.0, z + 300.0), fov_y_deg=60.0,
+                  width=width, height=height, near=1.0, far=x1 - x0)
+
+
+def test_a_terrain_larger_than_memory_renders_from_the_tiles_it_needs():
+    st = StreamedHeightmap.fbm(65537, seed=1, max_height=2000.0, dx=10.0, cache_mb=128)  # 17 GB as float32
+    f0 = render(Scene(st, camera=_ground(st, 0), mesh="lod", outputs=("image", "depth")))
+    f1 = render(Scene(st, camera=_ground(st, 1), mesh="lod", outputs=("image", "depth")))
+    c = st.counters()
+    assert c["bytes_read"] < 2e9 and c["peak_bytes"] <= 128 * 2**20 + 300_000
+    assert f1.report.info["tiles"]["tiles_read"] < f0.report.info["tiles"]["tiles_read"] / 4  # the cache serves
+    for f in (f0, f1):
+        assert np.isfinite(f.depth).mean() > 0.5 and len(np.unique(f.image.reshape(-1, 3), axis=0)) > 100
+    sel = next(r for r in f1.report.stages if r.name == "select")
+    assert sel.counters["coarsest_step"] >= 64 and sel.counters["finest_step"] == 1
+
+
+def test_streamed_scenes_refuse_what_they_cannot_draw(fbm_tif):
+    p, _ = fbm_tif
+    st = Heightmap.open(p)
+    with pytest.raises(ValueError, match="mesh: a streamed heightmap is drawn with mesh='lod'"):
+        render(Scene(st, outputs=("depth",)))
+    with pytest.raises(ValueError, match="lod.filter"):
+        render(Scene(st, mesh="lod", lod=LodConfig(filter="bicubic"), outputs=("depth",)))
+    with pytest.raises(ValueError, match="method"):
+        st.sample([0.0], [0.0], method="bicubic")
+    with pytest.raises(TypeError, match="source"):
+        StreamedHeightmap(np.zeros((4, 4), np.float32))
