@@ -2,7 +2,8 @@
 
 Public API::
 
-    Heightmap, StreamedHeightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments, orbit, flyover,
+    Heightmap, StreamedHeightmap, Camera, Scene, LodConfig, render, Frame, Report, Mesh, rasterize, Fragments,
+    orbit, flyover,
     Terrain, LodState, select, fit_lod, FitResult, compute_normals, compute_curvature,
     tessellate_patch, tessellate_patches, Tessellation, check_watertight, WatertightReport,
     rasterize_clip, clip_coordinates, build_polytree, Polytree, set_threads
@@ -46,8 +47,8 @@ from .scene import LodConfig, Scene  # noqa: E402
 from .surface.differential import compute_curvature, compute_normals  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["fit_lod", "FitResult", "Heightmap", "StreamedHeightmap", "Camera", "Scene", "render", "Frame", "Report", "Mesh", "rasterize",
-           "Fragments",
+__all__ = ["fit_lod", "FitResult", "Heightmap", "StreamedHeightmap", "Camera", "Scene", "render", "Frame", "Report",
+           "Mesh", "rasterize", "Fragments",
            "orbit", "flyover", "compute_normals", "compute_curvature", "Terrain", "LodState", "LodConfig", "select",
            "tessellate_patch", "tessellate_patches", "Tessellation", "check_watertight", "WatertightReport",
            "rasterize_clip", "clip_coordinates", "Bintree", "select_bintree", "precompute_visibility",

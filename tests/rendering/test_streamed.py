@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from conftest import digest
+
 from terrainwarp import Camera, Heightmap, Scene, StreamedHeightmap, render
 from terrainwarp.io.geotiff import write_tiled
 from terrainwarp.io.tiles import FbmSource
