@@ -361,24 +361,8 @@ class Scene:
     def from_dict(cls, data: dict, base_dir: str | Path = ".", name: str = "scene") -> Scene:
         _check_keys("scene", data, {"heightmap", "camera", "render", "lod", "path"})
         hm_d = data.get("heightmap", {"example": "jacksboro"})
-        _check_keys("heightmap", hm_d, {"example", "path", "dx", "dz", "max_height", "fbm"})
-        if "example" in hm_d:
-            if hm_d["example"] not in EXAMPLES:
-                raise ValueError(f"heightmap.example: expected one of {list(EXAMPLES)}, got {hm_d['example']!r}")
-            hm = Heightmap.example(hm_d["example"])
-        elif "path" in hm_d:
-            hp = Path(hm_d["path"])
-            if not hp.is_absolute():
-                hp = Path(base_dir) / hp
-            hm = Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"))
-        elif "fbm" in hm_d:
-            f = dict(hm_d["fbm"])
-            _check_keys("heightmap.fbm", f, {"rows", "cols", "seed", "max_height", "dx", "dz", "feature_size",
-                                             "octaves", "gain", "lacunarity", "ridged"})
-            rows = f.pop("rows", 257)
-            hm = Heightmap.fbm(rows, **f)
-        else:
-            raise ValueError("heightmap: expected one of the keys 'example', 'path' or 'fbm'")
+        _check_keys("heightmap", hm_d, {"example", "path", "dx", "dz", "max_height", "fbm", "stream"})
+        hm = _heightmap_from(hm_d, Path(base_dir))
         cam_d = data.get("camera")
         cam = None
         if cam_d is not None:
@@ -401,6 +385,35 @@ class Scene:
             _check_keys("lod", data["lod"], set(LodConfig.__dataclass_fields__))
             kw["lod"] = LodConfig(**data["lod"])
         return cls(heightmap=hm, camera=cam, name=name, source=data, **kw)
+
+
+def _heightmap_from(hm_d: dict, base_dir: Path) -> Heightmap | StreamedHeightmap:
+    """A scene file's ``[heightmap]`` table: ``example``, ``path`` or ``fbm``; ``stream = true`` opens a GeoTIFF
+    path (:meth:`Heightmap.open`) or generates the fBm (:meth:`StreamedHeightmap.fbm`) tile by tile."""
+    stream = hm_d.get("stream", False)
+    if not isinstance(stream, bool):
+        raise ValueError(f"heightmap.stream: expected true or false, got {stream!r}")
+    if "example" in hm_d:
+        if hm_d["example"] not in EXAMPLES:
+            raise ValueError(f"heightmap.example: expected one of {list(EXAMPLES)}, got {hm_d['example']!r}")
+        hm = Heightmap.example(hm_d["example"])
+        return StreamedHeightmap.of(hm) if stream else hm
+    if "path" in hm_d:
+        hp = Path(hm_d["path"])
+        if not hp.is_absolute():
+            hp = base_dir / hp
+        if stream:
+            if hm_d.get("max_height") is not None:
+                raise ValueError("heightmap.max_height: a streamed GeoTIFF's heights come from the file")
+            return Heightmap.open(hp, hm_d.get("dx"), hm_d.get("dz"))
+        return Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"))
+    if "fbm" in hm_d:
+        f = dict(hm_d["fbm"])
+        _check_keys("heightmap.fbm", f, {"rows", "cols", "seed", "max_height", "dx", "dz", "feature_size",
+                                         "octaves", "gain", "lacunarity", "ridged"})
+        rows = f.pop("rows", 257)
+        return StreamedHeightmap.fbm(rows, **f) if stream else Heightmap.fbm(rows, **f)
+    raise ValueError("heightmap: expected one of the keys 'example', 'path' or 'fbm'")
 
 
 def _check_keys(where: str, d: object, allowed: set[str]) -> None:

@@ -311,6 +311,9 @@ def _described(part: _Part, h64: np.ndarray, p: Path, file_meta: dict, b: int, k
 
 
 # -- the whole raster read by windows (a streamed heightmap) -----------------------------------------
+BLOCK_CACHE_MB = 32  # GDAL's block cache while reading windows (its default is 5% of the machine's memory)
+
+
 class RasterHeader(NamedTuple):
     """What :func:`read_geotiff` would say of the whole raster, read from the header only.
 
@@ -371,7 +374,8 @@ def read_oriented(header: RasterHeader, src: DatasetReader, r0: int, c0: int, ro
     fr, fc = header.flip
     fr0 = h - r0 - rows if fr else r0  # the window in file rows / columns
     fc0 = w - c0 - cols if fc else c0
-    part = _read_part(src, header.band, (fr0, fc0, rows, cols), 1, "nearest")
+    with _rasterio().Env(GDAL_CACHEMAX=BLOCK_CACHE_MB):  # the caller caches tiles: GDAL's cache would double it
+        part = _read_part(src, header.band, (fr0, fc0, rows, cols), 1, "nearest")
     h64, _, _ = _decode(part)
     if fr:
         h64 = h64[::-1]

@@ -246,6 +246,16 @@ class GeoTiffSource(TileSource):
                                      (cols - 1) * s + 1)
         return np.ascontiguousarray(full[::s, ::s])
 
+    def __getstate__(self) -> dict:  # to a Dask worker: the path and header, not the open datasets
+        state = dict(self.__dict__)
+        state.pop("_local", None)
+        state["levels"] = {}
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+
     def _dataset(self):
         """One open dataset per thread (GDAL handles are not shared across threads)."""
         ds = getattr(self._local, "ds", None)

@@ -188,7 +188,7 @@ class Terrain:
     @classmethod
     def prepare_streamed(cls, heightmap: StreamedHeightmap, roots: int | tuple[int, int] = 16, tess: int = 32,
                          depth: int | None = None, device: str = "cpu", *, exact: bool | None = None,
-                         progress: Callable[[int], None] | None = None) -> Terrain:
+                         progress: Callable[[int], None] | None = None, map: Callable | None = None) -> Terrain:
         """A streamed heightmap's quadtree: its pyramids come from a :class:`.streaming.StreamedPyramid`
         (exact and cached beside a file, or worked out on demand for the nodes a selection visits).
 
@@ -196,13 +196,15 @@ class Terrain:
             exact: force (True) or refuse (False) the exact pyramid built root by root; default: exact
                 when the source cannot bound its overviews (files), on demand otherwise (procedural).
             progress: called with 1 per root while an exact pyramid is built.
+            map: build the exact pyramid's roots on workers, e.g. ``Runner(workers=4).map`` (the sweeps' Dask
+                runner); the values are the same as in this process.
         """
         if not isinstance(heightmap, StreamedHeightmap):
             raise TypeError(f"heightmap: expected a StreamedHeightmap, got {type(heightmap).__name__}")
         (nx, nz), depth, root_cells = layout(heightmap.shape, roots, tess, depth)
         t0 = time.perf_counter()
         pyr = StreamedPyramid(heightmap, (nx, nz), root_cells, depth, int(tess), exact=exact, device=device,
-                              progress=progress)
+                              progress=progress, map=map)
         return cls(heightmap, (nx, nz), int(tess), depth, root_cells, [], (time.perf_counter() - t0) * 1e3,
                    provider=pyr)
 

@@ -35,10 +35,10 @@ import numpy as np
 
 from ..heightmap import StreamedHeightmap
 from ..io.files import atomic_path, write_text
-from ..io.tiles import GeoTiffSource, cache_dir_for
+from ..io.tiles import GeoTiffSource, TileCache, cache_dir_for
 from ..kernels.pyramid import node_stats
 
-__all__ = ["StreamedPyramid", "overview_windows", "CACHE_VERSION", "BLOCK", "MAX_BLOCKS"]
+__all__ = ["StreamedPyramid", "overview_windows", "root_pyramid", "CACHE_VERSION", "BLOCK", "MAX_BLOCKS"]
 
 BLOCK = 4  # nodes per side of an on-demand stats block
 MAX_BLOCKS = 65536  # on-demand blocks kept (3 x 4 x 4 float32 each: 12 MiB in all)
@@ -55,12 +55,15 @@ class StreamedPyramid:
         roots, root_cells, depth, tess: the quadtree's layout (:func:`terrainwarp.lod.quadtree.layout`).
         exact: build the exact pyramid root by root (default: when the source cannot bound its overviews).
         progress: called with the number of roots done, while building an exact pyramid.
+        map: ``map(fn, items, shared)`` to build the roots elsewhere (``terrainwarp.experiments.runner.Runner.map``:
+            the sweeps' Dask workers, each reading its own tiles); None: in this process.
     """
 
     def __init__(self, hm: StreamedHeightmap, roots: tuple[int, int], root_cells: float, depth: int, tess: int,
-                 *, exact: bool | None = None, device: str = "cpu", progress: Callable[[int], None] | None = None):
+                 *, exact: bool | None = None, device: str = "cpu", progress: Callable[[int], None] | None = None,
+                 map: Callable | None = None):
         self.hm, self.roots, self.root_cells, self.depth, self.tess = hm, roots, float(root_cells), depth, tess
-        self.device = device
+        self.device, self.map = device, map
         self.exact = (not math.isfinite(hm.source.detail_bound(2))) if exact is None else bool(exact)
         self.levels: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._blocks: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
@@ -188,31 +191,33 @@ class StreamedPyramid:
 
     def _build(self, progress: Callable[[int], None] | None,
                folder: Path | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """Every root's window through the in-memory kernel; a root's nodes only read samples inside the
-        root's closed extent, and with an integer S_0 the window's coordinates are the grid's shifted by
-        an integer, so each value is bit for bit the whole grid's."""
+        """Every root's window through the in-memory kernel (:func:`root_pyramid`), here or on the workers of
+        ``map``, then placed; each root's values are the same wherever it ran."""
         nx, nz = self.roots
-        hh, ww = self.hm.shape
         s0 = self.root_cells
         whole = s0 != int(s0)  # fractional roots: node origins are not integer shifts; one window, the grid
         levels = [tuple(np.zeros((nz << lv, nx << lv), np.float32) for _ in range(3)) for lv in range(self.depth + 1)]
         overviews = self._overview_files(folder)
         ranges = [(0, 0, nz, nx)] if whole else [(y, x, 1, 1) for y in range(nz) for x in range(nx)]
-        for y, x, ny_, nx_ in ranges:
-            r0, c0 = int(y * s0), int(x * s0)
-            if r0 <= hh - 1 and c0 <= ww - 1:
-                rows = min(int(math.ceil(ny_ * s0)) + 1, hh - r0)
-                cols = min(int(math.ceil(nx_ * s0)) + 1, ww - c0)
-                win = self.hm.window(1, r0, c0, rows, cols)
-                part = node_stats(win, (nx_, ny_), s0, self.depth, self.tess, device=self.device)
-                for lv, (mn, mx, er) in enumerate(part):
+        spec = (self.hm.source, s0, self.depth, self.tess, tuple(overviews))
+        if self.map is not None:
+            parts = self.map(root_pyramid, ranges, spec)
+            bad = [p for p in parts if isinstance(p, Exception)]
+            if bad:
+                raise ValueError(f"heightmap: a root's pyramid failed on a worker: {bad[0]}")
+        else:  # a cache of its own: each tile is read once (roots share only their edges), frames' stay theirs
+            tiles = TileCache(self.hm.source, 64)
+            parts = (root_pyramid(spec, r, tiles=tiles) for r in ranges)
+        for (y, x, _, _), part in zip(ranges, parts, strict=True):
+            if part is not None:
+                stats, subs = part
+                for lv, arrs in enumerate(stats):
                     a, b = y << lv, x << lv
-                    for dst, src in zip(levels[lv], (mn, mx, er), strict=True):
+                    for dst, src in zip(levels[lv], arrs, strict=True):
                         dst[a:a + src.shape[0], b:b + src.shape[1]] = src
-                for step, arr in overviews.items():
-                    if r0 % step == 0 and c0 % step == 0:
-                        sub = win[::step, ::step]
-                        arr[r0 // step:r0 // step + sub.shape[0], c0 // step:c0 // step + sub.shape[1]] = sub
+                r0, c0 = int(y * s0), int(x * s0)
+                for step, sub in subs.items():
+                    overviews[step][r0 // step:r0 // step + sub.shape[0], c0 // step:c0 // step + sub.shape[1]] = sub
             if progress is not None:
                 progress(1)
         for arr in overviews.values():
@@ -270,6 +275,27 @@ class StreamedPyramid:
         for f in sorted(folder.glob("overview_*.npy")):
             step = int(f.stem.split("_")[1].split(".")[0])
             self.hm.source.levels[step] = np.load(f, mmap_mode="r")
+
+
+def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *,
+                 tiles: TileCache | None = None) -> tuple[list, dict[int, np.ndarray]] | None:
+    """The pyramid of roots ``item`` = (y, x, rows of roots, columns of roots) from its window of samples, and
+    its point-sampled overviews at the steps in ``spec``, or None when the roots lie outside the grid. A
+    root's nodes read only samples inside the root's closed extent, and with an integer S_0 the window's
+    coordinates are the grid's shifted by an integer: every value is bit for bit the whole grid's. Runs
+    anywhere (a Dask worker reads its own tiles)."""
+    source, s0, depth, tess, steps = spec
+    y, x, ny_, nx_ = item
+    hh, ww = source.shape
+    r0, c0 = int(y * s0), int(x * s0)
+    if r0 > hh - 1 or c0 > ww - 1:
+        return None
+    rows = min(int(math.ceil(ny_ * s0)) + 1, hh - r0)
+    cols = min(int(math.ceil(nx_ * s0)) + 1, ww - c0)
+    win = (tiles if tiles is not None else TileCache(source, 64)).window(1, r0, c0, rows, cols)
+    stats = node_stats(win, (nx_, ny_), s0, depth, tess)
+    subs = {st: np.ascontiguousarray(win[::st, ::st]) for st in steps if r0 % st == 0 and c0 % st == 0}
+    return stats, subs
 
 
 def overview_windows(hm: StreamedHeightmap, origin_cells: np.ndarray, size_cells: np.ndarray, factor: np.ndarray,

@@ -111,3 +111,20 @@ def test_file_pyramid_is_cached_beside_the_file_and_rebuilt_when_it_changes(tmp_
     assert all(np.array_equal(a, b) for lv in range(ref.depth + 1)
                for a, b in zip(ref.stats[lv], t3.provider.levels[lv], strict=True))
     assert Heightmap.open(p).height_range == Heightmap.load(p).height_range
+
+
+def test_file_pyramid_built_on_the_dask_runner_equals_one_process(tmp_path):
+    from terrainwarp.experiments.runner import Runner
+
+    src = FbmSource(1025, seed=6, dx=10.0)
+    p = write_tiled(tmp_path / "d.tif", src.shape, lambda r0, c0, n, m: src.read(1, r0, c0, n, m), dx=10.0,
+                    overviews=())
+    with Runner(workers=2) as runner:
+        st = Heightmap.open(p)
+        t = Terrain.prepare_streamed(st, roots=16, tess=16, map=runner.map)
+    assert t.provider.counters["cache"] == "built"
+    ref = Terrain.prepare(Heightmap.load(p), roots=16, tess=16)
+    for lv in range(ref.depth + 1):
+        for a, b in zip(ref.stats[lv], t.provider.levels[lv], strict=True):
+            assert np.array_equal(a, b), lv
+    assert np.array_equal(np.asarray(st.source.levels[8]), src.read(8, 0, 0, *src.level_shape(8)))
