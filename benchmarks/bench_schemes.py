@@ -225,7 +225,8 @@ def cdlod_select_rows(ctx: Ctx, mults: tuple[float, ...] = (1, 4, 16)) -> list[l
     base = Cdlod(ctx.hm, 1.0, grid=CDLOD_GRID)
     # what one select-level launch costs with a single node: the per-level floor of Warp's host-side launch
     t = base.terrain
-    args = (np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), t.stats_at(0, np.zeros(1, np.int64), np.zeros(1, np.int64)), (0.0, 0.0, 0.0),
+    one = np.zeros(1, np.int64)
+    args = (one, one, one, t.stats_at(0, one, one), (0.0, 0.0, 0.0),
             (1.0, 1.0), np.zeros((6, 4), np.float32), 0, 0.0, 1.0, 0.0, False, np.zeros(0, np.int64))
     select_level(*args)
     t0 = time.perf_counter()

@@ -30,3 +30,10 @@ def test_inverse_rendering(tmp_path):
                                            "--height", "72", "--iters", "120"])
     assert res["drop"] >= 10.0, res["rmse_m"][::10]  # RMSE in metres against the true heights, from flat
     assert (tmp_path / "inverse_rendering.png").exists() and (tmp_path / "inverse_rendering.json").exists()
+
+
+def test_streamed_terrain(tmp_path):
+    rows = _load("streamed_terrain").main(["--out", str(tmp_path), "--size", "16385", "--frames", "2", "--width",
+                                           "160", "--height", "90"])
+    assert (tmp_path / "walk_1.png").exists() and rows[0]["tiles_read"] > 0
+    assert rows[1]["hits"] > 0 and rows[1]["tiles_read"] < rows[0]["tiles_read"]

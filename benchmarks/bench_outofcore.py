@@ -1,0 +1,194 @@
+"""Terrains larger than memory: peak RSS, tiles and bytes read, and time per frame of a ground-level camera
+path over streamed heightmaps (``terrainwarp.StreamedHeightmap``), each case in its own process so that its
+peak RSS is its own.
+
+Cases:
+
+* virtual fBm (``StreamedHeightmap.fbm``, never held) of 16,385^2, 65,537^2 (4.3 G samples: 17 GB as
+  float32) and 1,048,577^2 (1.1 T samples) at 1920x1080, and 65,537^2 at 960x540: how memory grows with
+  the heightmap and with the viewport;
+* a 16,385^2 fBm written by this benchmark as a tiled GeoTIFF (256^2 deflate tiles, GDAL overviews),
+  streamed (``Heightmap.open``; its pyramid cache built on the first open, then reused) against the
+  in-memory path (``Heightmap.load``) on the same path.
+
+Path: 8 cameras 40 m above the ground (sampled through the tiles), 150 m apart, looking 1 km ahead,
+60 degree vertical field of view, far plane the terrain's extent; default LOD (sse 1 px, tess 16, 16
+roots); tile cache 512 MiB (``TERRAINWARP_TILE_CACHE_MB``). The first frame includes the pyramid and every
+tile generated or read for it. Time ratios are against an in-memory 4,097^2 fBm frame of the same camera
+recipe, rendered in the same process after the case (its memory is not in the case's peak RSS).
+
+    .venv/bin/python benchmarks/bench_outofcore.py           # ~12 min on 2 cores
+    .venv/bin/python benchmarks/bench_outofcore.py --quick   # 16385^2 and 65537^2 at 960x540, ~3 min
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _common import md_table, write_result
+from tqdm import tqdm
+
+import terrainwarp as tw
+from terrainwarp.io.geotiff import write_tiled
+from terrainwarp.io.tiles import FbmSource
+
+N_FRAMES = 8
+FBM = dict(seed=1, max_height=2000.0, dx=10.0)
+
+
+def path(hm, width: int, height: int) -> list[tw.Camera]:
+    """Ground-level cameras from the centre of ``hm`` (Heightmap or StreamedHeightmap)."""
+    (x0, z0), (x1, z1) = hm.bounds_xz
+    out = []
+    for k in range(N_FRAMES):
+        x, z = 0.5 * (x0 + x1) + 143.7 * k, 0.5 * (z0 + z1) + 43.1 * k
+        g = float(hm.sample([x], [z])[0])
+        out.append(tw.Camera(position=(x, g + 40.0, z), target=(x + 957.9, g + 20.0, z + 287.4), fov_y_deg=60.0,
+                             width=width, height=height, near=1.0, far=max(x1 - x0, z1 - z0)))
+    return out
+
+
+def rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_path(hm, width: int, height: int) -> dict:
+    """The path's frames; an in-memory heightmap's Terrain (pyramids) is prepared once, in the first frame's
+    time, and held across frames as a streamed heightmap holds its own."""
+    frames = []
+    terrain = None
+    for cam in path(hm, width, height):
+        t0 = time.perf_counter()
+        if isinstance(hm, tw.Heightmap) and terrain is None:
+            lod = tw.LodConfig()
+            terrain = tw.Terrain.prepare(hm, roots=lod.roots, tess=lod.tess)
+        f = tw.render(tw.Scene(hm, camera=cam, mesh="lod", outputs=("image", "depth")), terrain=terrain)
+        s = time.perf_counter() - t0
+        tiles = f.report.info.get("tiles", {})
+        frames.append({"s": s, "tris": f.mesh.n_triangles, "frame_ms": f.report.frame_ms, **tiles})
+    return {"frames": frames, "rss_mib": rss_mib()}
+
+
+def baseline(width: int, height: int) -> float:
+    """Median wall seconds of the in-memory 4097^2 fBm path frames 2..8 (same camera recipe)."""
+    hm = tw.Heightmap.fbm(4097, **FBM)
+    return statistics.median(fr["s"] for fr in run_path(hm, width, height)["frames"][1:])
+
+
+def case(name: str) -> dict:
+    """One case, in this process: ``fbm:<n>:<w>x<h>``, ``tif-stream:<path>`` or ``tif-memory:<path>``."""
+    kind, arg, *rest = name.split(":")
+    width, height = (int(v) for v in (rest[0] if rest else "1920x1080").split("x"))
+    t0 = time.perf_counter()
+    if kind == "fbm":
+        hm = tw.StreamedHeightmap.fbm(int(arg), **FBM)
+    elif kind == "tif-stream":
+        hm = tw.Heightmap.open(arg)
+    else:
+        hm = tw.Heightmap.load(arg)
+    open_s = time.perf_counter() - t0
+    out = run_path(hm, width, height)
+    out.update(open_s=open_s, width=width, height=height, samples=hm.shape[0] * hm.shape[1])
+    if isinstance(hm, tw.StreamedHeightmap):
+        out["cache"] = hm.counters()
+        src = next(v for k, v in hm.held.items() if k[0] == "streamed_source")
+        out["pyramid"] = dict(src.terrain.provider.counters, build_s=src.build_ms / 1e3)
+        out["last"] = src.last
+    out["baseline_s"] = baseline(width, height)
+    return out
+
+
+def spawn(name: str) -> dict:
+    r = subprocess.run([sys.executable, __file__, "--case", name], capture_output=True, text=True, check=False)
+    if r.returncode != 0:
+        raise SystemExit(f"case {name} failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def row(label: str, r: dict) -> list[object]:
+    fr = r["frames"]
+    later = [f["s"] for f in fr[1:]]
+    later_read = [f.get("bytes_read", 0) for f in fr[1:]]
+    return [label, f"{r['width']}x{r['height']}", f"{r['samples']:.3g}", f"{r['samples'] * 4 / 2**30:.3g}",
+            round(r["rss_mib"]), round(r["open_s"] + fr[0]["s"], 1), round(statistics.median(later), 2),
+            round(max(later), 2), f"{statistics.median(later) / r['baseline_s']:.2f}x",
+            fr[0].get("tiles_read", "-"), round(fr[0].get("bytes_read", 0) / 2**20),
+            round(statistics.mean(later_read) / 2**20, 1), round(statistics.mean(f.get("hits", 0) for f in fr[1:])),
+            f"{statistics.median(f['tris'] for f in fr) / 1e6:.2f}"]
+
+
+HEADER = ["heightmap", "viewport", "samples", "GiB as float32", "peak RSS MiB", "first frame s", "later frames s",
+          "later max s", "later / in-memory 4097^2", "tiles read (first)", "MiB read (first)",
+          "MiB read / later frame", "cache hits / later frame", "M triangles"]
+
+
+def write_tif(folder: Path, n: int) -> tuple[Path, float]:
+    src = FbmSource(n, **FBM)
+    t0 = time.perf_counter()
+    with tqdm(total=n, desc=f"writing {n}^2 tiled GeoTIFF", unit="rows", leave=False) as bar:
+        p = write_tiled(folder / f"fbm{n}.tif", src.shape, lambda r0, c0, a, b: src.read(1, r0, c0, a, b),
+                        dx=FBM["dx"], progress=bar.update)
+    return p, time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--quick", action="store_true")
+    a = ap.parse_args()
+    if a.case:
+        print(json.dumps(case(a.case)))
+        return
+    view = "960x540" if a.quick else "1920x1080"
+    fbm_cases = [16385, 65537] if a.quick else [16385, 65537, 1048577]
+    rows, notes = [], []
+    for n in tqdm(fbm_cases, desc="virtual fBm"):
+        r = spawn(f"fbm:{n}:{view}")
+        rows.append(row(f"virtual fBm {n}^2", r))
+        notes.append(f"fBm {n}^2: pyramid blocks built {r['pyramid']['blocks_built']}, cache peak "
+                     f"{r['cache']['peak_bytes'] / 2**20:.0f} MiB, evicted {r['cache']['evicted']} tiles, "
+                     f"last frame {r['last']['windows']} windows of {r['last']['window_samples'] / 1e6:.1f} M "
+                     f"samples (steps {r['last']['finest_step']}..{r['last']['coarsest_step']}), "
+                     f"{r['last']['patches']} patches")
+    if not a.quick:
+        r = spawn("fbm:65537:960x540")
+        rows.append(row("virtual fBm 65537^2", r))
+    folder = Path(tempfile.mkdtemp(prefix="tw-outofcore-"))
+    try:
+        n = 4097 if a.quick else 16385
+        tif, write_s = write_tif(folder, n)
+        size = tif.stat().st_size
+        first = spawn(f"tif-stream:{tif}:{view}")
+        again = spawn(f"tif-stream:{tif}:{view}")
+        mem = spawn(f"tif-memory:{tif}:{view}")
+        rows.append(row(f"GeoTIFF {n}^2 streamed, first open", first))
+        rows.append(row(f"GeoTIFF {n}^2 streamed, cache reused", again))
+        rows.append(row(f"GeoTIFF {n}^2 in memory (load)", mem))
+        notes.append(f"GeoTIFF {n}^2: written in {write_s:.0f} s ({size / 2**20:.0f} MiB, 256^2 deflate tiles, "
+                     f"overviews 2-16); pyramid cache {first['pyramid']['cache']} in "
+                     f"{first['pyramid']['build_s']:.1f} s on the first open, {again['pyramid']['cache']} in "
+                     f"{again['pyramid']['build_s']:.2f} s on the second; peak RSS streamed "
+                     f"{again['rss_mib']:.0f} MiB against {mem['rss_mib']:.0f} MiB in memory "
+                     f"({again['rss_mib'] / mem['rss_mib']:.2f}x)")
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    body = (f"{N_FRAMES} cameras 40 m above the ground, 150 m apart, 60 degree fov, far plane = the extent; "
+            "default LOD (sse 1 px, tess 16, 16 roots); tile cache 512 MiB. First frame: opening the heightmap, "
+            "its pyramid (built or read) and every tile its frame needed. Later frames: frames 2..8 (render "
+            "wall time: select, mesh, raster, shade). Each case ran in its own process; the ratio column "
+            "divides by the median later frame of an in-memory 4097^2 fBm on the same camera recipe in that "
+            "process.\n\n" + md_table(HEADER, rows) + "\n\n" + "\n".join(f"* {t}" for t in notes) + "\n")
+    write_result("outofcore", "Terrains larger than memory (bench_outofcore.py)", body)
+
+
+if __name__ == "__main__":
+    main()
