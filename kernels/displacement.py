@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .parallel import empty, launch
+from .parallel import empty, launch, view
 
 
 def hole_height(heights: np.ndarray) -> float:
@@ -208,7 +208,7 @@ def sample_normal_map(nmap: np.ndarray, uv: np.ndarray, device: str = "cpu") -> 
     out = empty(max(n, 1), wp.vec3, device)
     if n:
         launch(_sample_normals_kernel, n,
-               [wp.array(np.ascontiguousarray(nmap, np.float32), dtype=wp.vec3, device=device),
+               [view(nmap, wp.vec3, device),
                 wp.array(np.ascontiguousarray(uv, np.float32), dtype=wp.vec2, device=device)], [out], device)
     return out.numpy()[:n].reshape(n, 3)
 

@@ -160,6 +160,14 @@ os.register_at_fork(after_in_child=_forget_pool)
 # ------------------------------------------------------------------------------------------------
 
 
+def view(a: np.ndarray, dtype: type, device: str | wp.Device | None = None) -> wp.array:
+    """A Warp array of ``a`` (contiguous, the dtype's scalar type): on the CPU the same memory, not a copy. A
+    heightmap-sized input (heights, a normal map) read by every frame is then never copied per frame."""
+    dev = wp.get_device(device)
+    scalar = wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype))
+    return wp.array(np.ascontiguousarray(a, scalar), dtype=dtype, device=dev, copy=not dev.is_cpu)
+
+
 def empty(shape: int | Sequence[int], dtype: type, device: str | wp.Device | None = None) -> wp.array:
     """``wp.empty``, but on the CPU through numpy, whose large allocations ask for huge pages: the first
     touch of a frame-sized output (by a launch's threads) then costs 2-3x less page faulting."""

@@ -41,7 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from .parallel import empty, launch
+from .parallel import empty, launch, view
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
@@ -851,7 +851,7 @@ def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device,
     out.tri = empty(max(m, 1), wp.vec3i, device)
     out.box = wp.array(box, dtype=vec4l, device=device)
     out.level = wp.array(lvl, dtype=wp.int32, device=device)
-    out.h = h if isinstance(h, wp.array) else wp.array(np.ascontiguousarray(h), dtype=wp.float32, device=device)
+    out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place
     out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
     out.eye_rem = wp.vec3(*eye_rem)
     out.cell = wp.vec2(float(cell[0]), float(cell[1]))

@@ -283,6 +283,11 @@ class Heightmap:
         frame's tint asks for it (a masked copy of the whole grid per call cost tens of ms at 4097^2)."""
         return (float(np.nanmin(self.heights)), float(np.nanmax(self.heights)))
 
+    @cached_property
+    def has_nodata(self) -> bool:
+        """True when some height is NaN (a no-data hole); worked out once (every LOD frame asks)."""
+        return bool(np.isnan(self.heights).any())
+
     def __repr__(self) -> str:
         lo, hi = self.height_range
         return (f"Heightmap({self.name!r}, shape={self.shape}, dx={self.dx:.4g}, dz={self.dz:.4g}, "

@@ -599,7 +599,7 @@ def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, device:
                            device=device, need=("uv", "level", "patch_id") if rich else ())
     normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
     positions, triangles = t.positions, t.triangles
-    if np.isnan(hm.heights).any():  # no-data holes: no triangle may touch a vertex that sampled NaN
+    if hm.has_nodata:  # no-data holes: no triangle may touch a vertex that sampled NaN
         positions, triangles = drop_nonfinite_triangles(positions, triangles, device=device)
     return Mesh(positions=positions, eye=cam.position, triangles=triangles, uv=t.uv, level=t.level,
                 patch_id=t.patch_id, normals=normals)
