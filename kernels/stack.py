@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .parallel import launch
+from .parallel import launch, view
 
 __all__ = ["stack_displace"]
 
@@ -105,7 +105,8 @@ def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tup
 
     Args:
         grid_uv: (N, 2) float32 grid coordinates (column, row) of the points, full-resolution cells.
-        positions: (N, 3) float32 camera-relative positions; y is replaced by height - eye_y.
+        positions: (N, 3) float32 camera-relative positions; y is replaced by height - eye_y (in place when
+            ``positions`` is a contiguous float32 array on the CPU).
         windows: finest first, (shift, r0, c0, heights (rows, cols) float32) of the step-2^shift overview.
         full_shapes: per window, (rows, cols) of its whole overview.
         eye_y: the eye's world height (float32 camera-relative, as the tessellator's).
@@ -114,7 +115,7 @@ def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tup
         (positions (N, 3), normals (N, 3), shift (N,) int32 of the window read).
     """
     n = len(grid_uv)
-    pos = wp.array(np.ascontiguousarray(positions, np.float32), dtype=wp.vec3, device=device)
+    pos = view(positions, wp.vec3, device)  # written in place on the CPU
     nrm = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
     win = wp.empty(max(n, 1), dtype=wp.int32, device=device)
     if n == 0:
@@ -125,8 +126,7 @@ def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tup
     table = np.array([(w[2], w[1], w[3].shape[1], w[3].shape[0]) for w in windows], np.int32)
     full = np.array([(fc, fr) for fr, fc in full_shapes], np.int32)
     launch(_stack_kernel, n, inputs=[
-        wp.array(np.ascontiguousarray(grid_uv, np.float32), dtype=wp.vec2, device=device),
-        wp.array(data, dtype=wp.float32, device=device), wp.array(table, dtype=wp.vec4i, device=device),
+        view(grid_uv, wp.vec2, device), view(data, wp.float32, device), wp.array(table, dtype=wp.vec4i, device=device),
         wp.array(np.array([w[0] for w in windows], np.int32), dtype=wp.int32, device=device),
         wp.array(starts, dtype=wp.int64, device=device), wp.array(full, dtype=wp.vec2i, device=device),
         len(windows), float(eye_y), float(dx), float(dz)], outputs=[pos, nrm, win], device=device)
