@@ -394,8 +394,9 @@ def _stage_select(run: _Run, rec: StageRecord) -> float | None:
 
 def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
     kind, frame = run.kind, run.frame
-    if kind == "source":  # made by the source's call in the select stage
-        mesh, n_patches, ms = frame.mesh, 0, run.source_mesh_ms
+    if kind == "source":  # made by the source's call in the select stage (a streamed one selects patches)
+        mesh, ms = frame.mesh, run.source_mesh_ms
+        n_patches = len(frame.patches) if frame.patches is not None else 0
     elif kind == "lod":
         mesh, n_patches, ms = _lod_mesh(run.scene, frame.patches, run.nmap, run.device), len(frame.patches), None
     else:

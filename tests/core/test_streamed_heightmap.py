@@ -39,3 +39,19 @@ def test_open_refuses_missing_and_unreadable_files(tmp_path):
         Heightmap.open(bad)
     with pytest.raises(TypeError, match="heightmap: expected a Heightmap"):
         StreamedHeightmap.of(np.zeros((3, 3), np.float32))
+
+
+def test_scene_files_stream_with_stream_true(tmp_path):
+    sc = Scene.from_dict({"heightmap": {"fbm": {"rows": 513, "seed": 2}, "stream": True}})
+    assert isinstance(sc.heightmap, StreamedHeightmap)
+    assert np.array_equal(sc.heightmap.load().heights, Heightmap.fbm(513, seed=2).heights)
+    assert isinstance(Scene.from_dict({"heightmap": {"example": "jacksboro", "stream": True}}).heightmap,
+                      StreamedHeightmap)
+    with pytest.raises(ValueError, match="heightmap.stream"):
+        Scene.from_dict({"heightmap": {"example": "jacksboro", "stream": "yes"}})
+    p = tmp_path / "h.tif"
+    Heightmap.example().save(p)
+    with pytest.raises(ValueError, match="heightmap.max_height"):
+        Scene.from_dict({"heightmap": {"path": str(p), "stream": True, "max_height": 10.0}})
+    sc = Scene.from_dict({"heightmap": {"path": str(p), "stream": True}})
+    assert isinstance(sc.heightmap, StreamedHeightmap) and sc.heightmap.shape == Heightmap.load(p).shape
