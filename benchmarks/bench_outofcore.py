@@ -120,7 +120,6 @@ def spawn(name: str) -> dict:
 def row(label: str, r: dict) -> list[object]:
     fr = r["frames"]
     later = [f["s"] for f in fr[1:]]
-    # the in-memory case has no tiles
     later_read = [f.get("bytes_read", 0) for f in fr[1:]]
     return [label, f"{r['width']}x{r['height']}", f"{r['samples']:.3g}", f"{r['samples'] * 4 / 2**30:.3g}",
             round(r["rss_mib"]), round(r["open_s"] + fr[0]["s"], 1), round(statistics.median(later), 2),
