@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .parallel import launch
+from .parallel import launch, view
 
 BORDERS = {"constant": 0, "clamp": 1, "skip": 2}
 METHODS = {"sobel": 0, "edge": 1, "triangle": 2, "quad": 3}
@@ -87,6 +87,19 @@ def _grad_normal(gx: float, gz: float) -> wp.vec3:
 def sobel_normal(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz: float, border: int,
                  c: float) -> wp.vec3:
     """Sobel normal; rows with a missing end are dropped and the 1-2-1 weights renormalised."""
+    if i >= 1 and j >= 1 and i < h.shape[0] - 1 and j < h.shape[1] - 1:
+        # inside the grid: the general path's operations, in its order, without its per-sample checks; a
+        # NaN neighbour makes a sum NaN and falls through to the general path (the same bits either way)
+        fx = float(0.0)
+        fz = float(0.0)
+        fx += 1.0 * (h[i - 1, j + 1] - h[i - 1, j - 1])
+        fz += 1.0 * (h[i + 1, j - 1] - h[i - 1, j - 1])
+        fx += 2.0 * (h[i, j + 1] - h[i, j - 1])
+        fz += 2.0 * (h[i + 1, j] - h[i - 1, j])
+        fx += 1.0 * (h[i + 1, j + 1] - h[i + 1, j - 1])
+        fz += 1.0 * (h[i + 1, j + 1] - h[i - 1, j + 1])
+        if wp.isfinite(fx) and wp.isfinite(fz):
+            return _grad_normal(fx / (4.0 * 2.0 * dx), fz / (4.0 * 2.0 * dz))
     ctr = fetch(h, i, j, border, c)
     sx = float(0.0)
     wx = float(0.0)
@@ -119,6 +132,11 @@ def sobel_normal(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz:
 
 @wp.func
 def edge_normal(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz: float) -> wp.vec3:
+    if i >= 1 and j >= 1 and i < h.shape[0] - 1 and j < h.shape[1] - 1:  # inside: central differences, as below
+        ex = (h[i, j + 1] - h[i, j - 1]) / (2.0 * dx)
+        ez = (h[i + 1, j] - h[i - 1, j]) / (2.0 * dz)
+        if wp.isfinite(ex) and wp.isfinite(ez) and wp.isfinite(h[i, j]):
+            return _grad_normal(ex, ez)
     ctr = fetch(h, i, j, 2, 0.0)
     gx = _slope_1d(fetch(h, i, j - 1, 2, 0.0), ctr[0], ctr[1], fetch(h, i, j + 1, 2, 0.0), dx)
     gz = _slope_1d(fetch(h, i - 1, j, 2, 0.0), ctr[0], ctr[1], fetch(h, i + 1, j, 2, 0.0), dz)
@@ -271,7 +289,7 @@ def device_heights(heights: np.ndarray, device: str) -> wp.array:
     if np.isinf(f).any():
         raise ValueError(f"heights: expected finite heights or NaN (no data), got {int(np.isinf(f).sum())} "
                          "infinite values (after conversion to float32)")
-    return wp.array(f, dtype=wp.float32, device=device)
+    return view(f, wp.float32, device)  # the CPU reads the heights in place
 
 
 def check_spacing(dx: float, dz: float) -> tuple[float, float]:
