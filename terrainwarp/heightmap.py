@@ -61,6 +61,13 @@ def check_heights(name: str, h: np.ndarray, *, allow_nan: bool) -> None:
         raise ValueError(f"{name}: every height is NaN")
 
 
+def grid_bounds(origin: tuple[float, float], shape: tuple[int, int], dx: float,
+                dz: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """((xmin, zmin), (xmax, zmax)) in world metres of a (rows, cols) grid whose sample (0, 0) is at ``origin``."""
+    x0, z0 = origin
+    return ((x0, z0), (x0 + (shape[1] - 1) * dx, z0 + (shape[0] - 1) * dz))
+
+
 @dataclass(frozen=True, eq=False)
 class Heightmap:
     """A regular grid of heights.
@@ -274,8 +281,7 @@ class Heightmap:
     @property
     def bounds_xz(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """((xmin, zmin), (xmax, zmax)) of the sample grid in world metres."""
-        x0, z0 = self.origin
-        return ((x0, z0), (x0 + (self.shape[1] - 1) * self.dx, z0 + (self.shape[0] - 1) * self.dz))
+        return grid_bounds(self.origin, self.shape, self.dx, self.dz)
 
     @cached_property
     def height_range(self) -> tuple[float, float]:
@@ -461,8 +467,8 @@ class StreamedHeightmap:
 
     @property
     def bounds_xz(self) -> tuple[tuple[float, float], tuple[float, float]]:
-        x0, z0 = self.origin
-        return ((x0, z0), (x0 + (self.shape[1] - 1) * self.dx, z0 + (self.shape[0] - 1) * self.dz))
+        """((xmin, zmin), (xmax, zmax)) of the sample grid in world metres."""
+        return grid_bounds(self.origin, self.shape, self.dx, self.dz)
 
     @cached_property
     def height_range(self) -> tuple[float, float]:

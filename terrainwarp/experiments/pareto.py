@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..heightmap import Heightmap
+from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import save_figure, write_text
 from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
@@ -334,6 +334,9 @@ def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progr
         out: CSV path: rows are saved to ``out.partial`` as they arrive and the sorted table to ``out``; a
             sweep interrupted before the end resumes from the partial file without redoing finished jobs.
     """
+    if isinstance(scene.heightmap, StreamedHeightmap):
+        raise ValueError("scene.heightmap: a sweep measures every frame against the full-resolution grid; sweep "
+                         "StreamedHeightmap.load() (or a part of the terrain that fits)")
     return run_sweep(scene, cameras, settings, progress=progress, images=images, device=device,
                      scheduler=scheduler, workers=workers, out=out).rows
 

@@ -60,7 +60,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..camera import Camera
-from ..heightmap import Heightmap
+from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import save_figure
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import Terrain, node_metrics, select
@@ -376,6 +376,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             (:func:`terrainwarp.rendering.pipeline.pop_stats`; measured in every validation and grid point).
     """
     _check_fit_arguments(budget_px, policy, gradient, steps, max_validations, grid_points)
+    if isinstance(scene.heightmap, StreamedHeightmap):
+        raise ValueError("scene.heightmap: fit_lod measures every frame against the full-resolution grid and its "
+                         "pyramids; fit on StreamedHeightmap.load() (or a part of the terrain that fits)")
     if max_pop_px is not None and (isinstance(max_pop_px, bool) or not isinstance(max_pop_px, int | float)
                                    or not math.isfinite(max_pop_px) or max_pop_px < 0):
         raise ValueError(f"max_pop_px: expected None or a finite number of pixels >= 0, got {max_pop_px!r}")

@@ -261,10 +261,7 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
     if resampling not in _RESAMPLING:
         raise ValueError(f"resampling: expected one of {list(_RESAMPLING)}, got {resampling!r}")
     with _open(p) as src:
-        b = _int_arg("band", band, 1)
-        if b > src.count:
-            raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
-        _check_transform(src, p)
+        b = _band(src, band, p)
         pw = _pixel_window(src, window, bounds)
         check_heightmap_fits("window" if window is not None else "bounds" if bounds is not None else "path",
                              pw[2] // k, pw[3] // k, what=f"part of {p.name} read as heights",
@@ -346,10 +343,7 @@ def read_header(path: str | os.PathLike, *, band: int = 1, dx: float | None = No
     if p.is_dir() or p.stat().st_size == 0:
         raise ValueError(f"path: expected a non-empty raster file, got {p}")
     with _open(p) as src:
-        b = _int_arg("band", band, 1)
-        if b > src.count:
-            raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
-        _check_transform(src, p)
+        b = _band(src, band, p)
         h, w = int(src.height), int(src.width)
         dtype = np.dtype(src.dtypes[b - 1])
         probe = _read_part(src, b, (0, 0, 1, 1), 1, "nearest")  # the band's tags, from one cell
@@ -385,6 +379,15 @@ def read_oriented(header: RasterHeader, src: DatasetReader, r0: int, c0: int, ro
 
 
 # -- window ------------------------------------------------------------------------------------------
+def _band(src: DatasetReader, band: object, p: Path) -> int:
+    """The 1-based band to read, checked against the raster, whose transform is checked too."""
+    b = _int_arg("band", band, 1)
+    if b > src.count:
+        raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
+    _check_transform(src, p)
+    return b
+
+
 def _check_transform(src: DatasetReader, p: Path) -> None:
     """Refuse what is not a grid aligned with east and north: ground control points, rotation/shear, a
     zero pixel size."""

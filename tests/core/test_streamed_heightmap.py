@@ -55,3 +55,14 @@ def test_scene_files_stream_with_stream_true(tmp_path):
         Scene.from_dict({"heightmap": {"path": str(p), "stream": True, "max_height": 10.0}})
     sc = Scene.from_dict({"heightmap": {"path": str(p), "stream": True}})
     assert isinstance(sc.heightmap, StreamedHeightmap) and sc.heightmap.shape == Heightmap.load(p).shape
+
+
+def test_fits_and_sweeps_refuse_a_streamed_heightmap():
+    from terrainwarp import fit_lod
+    from terrainwarp.experiments.pareto import sweep
+
+    sc = Scene(StreamedHeightmap.fbm(257), mesh="lod")
+    with pytest.raises(ValueError, match="scene.heightmap: fit_lod"):
+        fit_lod(sc, 1.0, cameras=[sc.camera])
+    with pytest.raises(ValueError, match="scene.heightmap: a sweep"):
+        sweep(sc, [sc.camera], [])
