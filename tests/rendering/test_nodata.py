@@ -112,14 +112,13 @@ def test_holes_are_background_and_the_colours_elsewhere_unchanged(mesh):
 def test_lod_frame_of_a_geotiff_with_nodata_is_not_one_colour(tmp_path):
     """The issue's repro: a GeoTIFF with no-data cells drawn as a LOD frame rendered uniformly green."""
     rasterio = pytest.importorskip("rasterio")
-    from rasterio.transform import from_origin
 
     h, holes = _terrain()
     a = h.copy()
     a[holes] = -9999.0
     p = tmp_path / "dem.tif"
     with rasterio.open(p, "w", driver="GTiff", width=N, height=N, count=1, dtype="float32", crs="EPSG:32633",
-                       transform=from_origin(0.0, N * 30.0, 30.0, 30.0), nodata=-9999.0) as d:
+                       transform=rasterio.Affine(30.0, 0.0, 0.0, 0.0, -30.0, N * 30.0), nodata=-9999.0) as d:
         d.write(a, 1)
     hm = Heightmap.load(p)
     assert np.array_equal(np.isnan(hm.heights), holes)  # north-up: row 0 is the file's first row
