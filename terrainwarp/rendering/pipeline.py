@@ -304,6 +304,8 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         raise TypeError(f"source: expected a MeshSource (with mesh_for(camera)), got {type(source).__name__}")
     if isinstance(hm, StreamedHeightmap):
         source = _streamed_source(scene, terrain, source, patches, device)
+        if state is not None and isinstance(source, StreamedSource):
+            source.state = state  # hysteresis across frames, as for an in-memory LOD scene
     kind = "source" if source is not None else scene.mesh
     if patches is not None:
         if not isinstance(patches, PatchList):

@@ -99,6 +99,18 @@ def test_a_terrain_larger_than_memory_renders_from_the_tiles_it_needs():
     assert sel.counters["coarsest_step"] >= 64 and sel.counters["finest_step"] == 1
 
 
+def test_hysteresis_state_reaches_a_streamed_selection(fbm_tif):
+    from terrainwarp import LodState
+
+    p, hm = fbm_tif
+    st = Heightmap.open(p)
+    state = LodState()
+    lod = LodConfig(hysteresis=0.2)
+    for cam in Scene(hm).camera_path(3)[:2]:
+        render(Scene(st, camera=cam, mesh="lod", lod=lod, outputs=("depth",)), state=state)
+    assert state.frames == 2 and len(state.split_keys) > 0
+
+
 def test_streamed_scenes_refuse_what_they_cannot_draw(fbm_tif):
     p, _ = fbm_tif
     st = Heightmap.open(p)
