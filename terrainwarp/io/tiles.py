@@ -31,7 +31,6 @@ import math
 import os
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -373,8 +372,7 @@ class TileCache:
             self.counters["bytes_read"] += t.nbytes
         return t
 
-    def window(self, step: int, r0: int, c0: int, rows: int, cols: int,
-               progress: Callable[[int], None] | None = None) -> np.ndarray:
+    def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
         """(rows, cols) float32 of the step-``step`` overview from sample (r0, c0), assembled from tiles
         (the window must lie inside the overview)."""
         lr, lc = self.source.level_shape(step)
@@ -391,6 +389,4 @@ class TileCache:
                 a0, b0 = max(r0, ti * TILE), max(c0, tj * TILE)
                 a1, b1 = min(last_r + 1, ti * TILE + t.shape[0]), min(last_c + 1, tj * TILE + t.shape[1])
                 out[a0 - r0:a1 - r0, b0 - c0:b1 - c0] = t[a0 - ti * TILE:a1 - ti * TILE, b0 - tj * TILE:b1 - tj * TILE]
-                if progress is not None:
-                    progress(1)
         return out

@@ -298,19 +298,18 @@ def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *,
     return stats, subs
 
 
-def overview_windows(hm: StreamedHeightmap, origin_cells: np.ndarray, size_cells: np.ndarray, factor: np.ndarray,
-                     *, full_resolution: bool = False) -> list[tuple[int, int, int, int, int]]:
+def overview_windows(hm: StreamedHeightmap, origin_cells: np.ndarray, size_cells: np.ndarray,
+                     factor: np.ndarray) -> list[tuple[int, int, int, int, int]]:
     """The windows a frame's patches read: (shift, r0, c0, rows, cols) in step-2^shift overview samples,
     finest first.
 
     A patch reads the overview of the largest power-of-two step not above its vertex spacing (side /
-    largest tessellation factor; 1 with ``full_resolution``); each step's window is the bounding box of
+    largest tessellation factor); each step's window is the bounding box of
     its patches, ``WINDOW_MARGIN`` samples wider, clipped to the grid."""
     if len(size_cells) == 0:
         return []
     spacing = np.asarray(size_cells, np.float64) / np.maximum(np.asarray(factor, np.float64), 1.0)
-    shift = np.zeros(len(spacing), np.int64) if full_resolution else \
-        np.floor(np.log2(np.maximum(spacing, 1.0)) + 1e-9).astype(np.int64)
+    shift = np.floor(np.log2(np.maximum(spacing, 1.0)) + 1e-9).astype(np.int64)
     lo = np.asarray(origin_cells, np.float64)
     hi = lo + np.asarray(size_cells, np.float64)[:, None]
     out = []

@@ -131,7 +131,10 @@ class StreamedSource(SourceBase):
         factor = np.maximum(patches.outer.max(axis=1, initial=1.0), patches.inner.max(axis=1, initial=1.0))
         windows = [(0, 0, 0, *hm.shape)] if self.full_resolution and len(patches) else \
             overview_windows(hm, patches.origin_cells, patches.size_cells, factor)
-        stack = [(sh, r0, c0, hm.window(1 << sh, r0, c0, rows, cols)) for sh, r0, c0, rows, cols in windows]
+        if self.full_resolution and windows:  # the whole grid, read from the tiles once and kept
+            stack = [(0, 0, 0, self.cached(("grid",), lambda: hm.window(1, 0, 0, *hm.shape)))]
+        else:
+            stack = [(sh, r0, c0, hm.window(1 << sh, r0, c0, rows, cols)) for sh, r0, c0, rows, cols in windows]
         stand_in = wp.array(ptr=self._zero.ptr, dtype=wp.float32, shape=hm.shape, strides=(0, 0),
                             device=self.device, copy=False)  # the grid's shape, no heights: displaced below
         t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
