@@ -45,6 +45,7 @@ import numpy as np
 import warp as wp
 
 from .parallel import atomic_add_i32, atomic_min_u64, empty, launch, max_parts
+from .parallel import view as as_warp  # 'view' is a view matrix here
 
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
@@ -888,7 +889,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
     key = _take_keys(npx, device)
     stats = wp.zeros((max_parts(_OVERSPLIT), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
     m = int(tri.shape[0])
-    tri_wp = wp.array(tri if m else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
+    tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
     tiles_x = (width + TILE - 1) // TILE
     tiles_y = (height + TILE - 1) // TILE
     if n and m:
@@ -954,7 +955,7 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.a
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     clip = wp.empty(max(len(pos32), 1), dtype=wp.vec4, device=device)
     if len(pos32):
-        launch(_vertex_kernel, len(pos32), [wp.array(pos32, dtype=wp.vec3, device=device),
+        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device),
                                             wp.mat44(*mvp.reshape(-1).tolist())], [clip], device)
     return clip
 

@@ -30,7 +30,7 @@ import numpy as np
 import warp as wp
 
 from .metrics import to_window
-from .parallel import atomic_min_i32, launch
+from .parallel import atomic_min_i32, empty, launch, view
 
 NONE = 2147483647  # no triangle covers the sample (the cover map's initial value)
 CONTAIN_ULPS = 8.0  # slack of the inclusive point-in-triangle test, float32 ulps of the coordinates
@@ -261,7 +261,8 @@ def _displacement_kernel(
     d = depth[row, col]
     if d < wp.float32(1.0):  # background: nothing in front of the sample
         dref = _view_depth(d, near, far)
-        if s[3] > dref + _depth_tolerance(depth, row, col, dref, near, far):
+        # the tolerance is >= 0: a sample no deeper than the buffer passes without it (same result)
+        if s[3] > dref and s[3] > dref + _depth_tolerance(depth, row, col, dref, near, far):
             out_state[i, j] = HIDDEN
             return
     out_pix[i, j] = row * width + col
@@ -306,8 +307,8 @@ def surface_at_samples(positions: np.ndarray, triangles: np.ndarray, offset: tup
     rows, cols = int(shape[0]), int(shape[1])
     pos = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
     tri = np.ascontiguousarray(triangles, np.int32).reshape(-1, 3)
-    pos_wp = wp.array(pos if len(pos) else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=device)
-    tri_wp = wp.array(tri if len(tri) else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device)
+    pos_wp = view(pos if len(pos) else np.zeros((1, 3), np.float32), wp.vec3, device)
+    tri_wp = view(tri if len(tri) else np.zeros((1, 3), np.int32), wp.int32, device)
     off = wp.vec3d(*[float(v) for v in offset])
     org = wp.vec3(*[float(v) for v in rel_origin])
     dx, dz = float(spacing[0]), float(spacing[1])
@@ -315,7 +316,7 @@ def surface_at_samples(positions: np.ndarray, triangles: np.ndarray, offset: tup
     if len(tri):
         launch(_cover_kernel, dim=len(tri), inputs=[pos_wp, tri_wp, off, org, dx, dz, rows, cols],
                outputs=[cover], device=device)
-    out = wp.empty((rows, cols), dtype=wp.float64, device=device)
+    out = empty((rows, cols), wp.float64, device)
     launch(_surface_kernel, dim=(rows, cols), inputs=[cover, pos_wp, tri_wp, off, org, dx, dz], outputs=[out],
            device=device)
     return out.numpy()
@@ -341,14 +342,13 @@ def sample_displacement(heights: np.ndarray, ya: np.ndarray | None, yb: np.ndarr
     """
     rows, cols = heights.shape
     hh, ww = depth.shape
-    yb_wp = wp.array(np.ascontiguousarray(yb, np.float64), dtype=wp.float64, device=device)
-    ya_wp = yb_wp if ya is None else wp.array(np.ascontiguousarray(ya, np.float64), dtype=wp.float64, device=device)
-    err = wp.empty((rows, cols), dtype=wp.float64, device=device)
-    state = wp.empty((rows, cols), dtype=wp.int32, device=device)
-    pix = wp.empty((rows, cols), dtype=wp.int32, device=device)
+    yb_wp = view(yb, wp.float64, device)  # heightmap-sized inputs: not copied on the CPU
+    ya_wp = yb_wp if ya is None else view(ya, wp.float64, device)
+    err = empty((rows, cols), wp.float64, device)
+    state = empty((rows, cols), wp.int32, device)
+    pix = empty((rows, cols), wp.int32, device)
     launch(_displacement_kernel, dim=(rows, cols), inputs=[
-        wp.array(np.ascontiguousarray(heights, np.float32), dtype=wp.float32, device=device), ya_wp, yb_wp,
-        int(ya is None), wp.array(np.ascontiguousarray(depth, np.float32), dtype=wp.float32, device=device),
+        view(heights, wp.float32, device), ya_wp, yb_wp, int(ya is None), view(depth, wp.float32, device),
         wp.vec3(*[float(v) for v in rel_origin]), float(spacing[0]), float(spacing[1]),
         wp.mat44d(*np.asarray(mvp, np.float64).reshape(-1).tolist()), float(near), float(far), int(ww), int(hh)],
         outputs=[err, state, pix], device=device)

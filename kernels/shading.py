@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 from .noise import hash_u32
-from .parallel import empty, launch
+from .parallel import empty, launch, view
 
 
 @wp.func
@@ -78,11 +78,63 @@ def height_span(heights: np.ndarray, triangles: np.ndarray | None = None,
     return lo, span
 
 
-def srgb8(rgb: np.ndarray) -> np.ndarray:
-    """(..., 3) float linear colour in [0, 1] -> uint8 sRGB (the image a frame saves)."""
-    c = np.clip(rgb, 0.0, 1.0)
-    s = np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
-    return np.round(s * 255.0).astype(np.uint8)
+def _srgb_encode(c: float) -> float:
+    """The sRGB transfer function (IEC 61966-2-1) of linear ``c`` in [0, 1], in float64."""
+    return 12.92 * c if c <= 0.0031308 else 1.055 * c ** (1.0 / 2.4) - 0.055
+
+
+def _srgb8_thresholds() -> np.ndarray:
+    """(255,) float32: entry k-1 is the least float32 linear value that encodes to 8-bit k or more, found by
+    bisection over float32 bit patterns with the transfer function in float64 (exact to the float32 input:
+    the code is the correctly rounded encoding, the same on every machine, whatever its libm or SIMD)."""
+    out = np.empty(255, np.float32)
+    for k in range(1, 256):
+        lo, hi = 0, int(np.float32(1.0).view(np.uint32))  # bit patterns of non-negative floats are ordered
+        while lo < hi:  # least pattern whose value encodes to >= k - 0.5
+            mid = (lo + hi) // 2
+            if _srgb_encode(float(np.uint32(mid).view(np.float32))) * 255.0 >= k - 0.5:
+                hi = mid
+            else:
+                lo = mid + 1
+        out[k - 1] = np.uint32(lo).view(np.float32)
+    return out
+
+
+SRGB8_THRESHOLDS = _srgb8_thresholds()
+_T_BITS = SRGB8_THRESHOLDS.view(np.uint32)
+_ONE_BITS = 0x3F800000  # 1.0f; non-negative floats order as their bit patterns
+# the code of the least float of each 2^16-pattern bucket below 1.0: a bucket spans at most one threshold
+_SRGB8_START = np.searchsorted(_T_BITS, np.arange(_ONE_BITS >> 16, dtype=np.uint32) << np.uint32(16),
+                               side="right").astype(np.int32)
+
+
+@wp.kernel(enable_backward=False)
+def _srgb8_kernel(offset: int, bits: wp.array(dtype=wp.uint32), t: wp.array(dtype=wp.uint32),
+                  start: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.uint8)):
+    i = wp.tid() + offset
+    u = bits[i]
+    code = int(0)  # negative, -0.0 and NaN encode to 0
+    if u >= wp.uint32(0x3F800000) and u <= wp.uint32(0x7F800000):  # [1, +inf]
+        code = 255
+    elif u < wp.uint32(0x3F800000):
+        code = start[int(u >> wp.uint32(16))]
+        while code < 255 and t[code] <= u:  # at most one step
+            code += 1
+    out[i] = wp.uint8(code)
+
+
+def srgb8(rgb: np.ndarray, device: str = "cpu") -> np.ndarray:
+    """(..., 3) float linear colour in [0, 1] -> uint8 sRGB (the image a frame saves), correctly rounded:
+    each channel is the 8-bit code nearest the exact transfer function of its float32 value (clamped to
+    [0, 1]; NaN encodes to 0), looked up in :data:`SRGB8_THRESHOLDS` by the value's bit pattern, so the
+    bytes do not depend on the machine's ``pow``. One launch over every channel, split across threads."""
+    a = np.ascontiguousarray(rgb, np.float32)
+    flat = a.reshape(-1).view(np.uint32)
+    out = empty(max(flat.size, 1), wp.uint8, device)
+    if flat.size:
+        launch(_srgb8_kernel, flat.size, [view(flat, wp.uint32, device), view(_T_BITS, wp.uint32, device),
+                                          view(_SRGB8_START, wp.int32, device)], [out], device)
+    return out.numpy()[: flat.size].reshape(a.shape)
 
 
 def hillshade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarray, normals: np.ndarray,
@@ -468,7 +520,7 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         a = np.ascontiguousarray(a, dtype=dtype)
         if len(a) == 0:
             a = np.zeros((1,) + shape, dtype)
-        return wp.array(a, dtype=wdt, device=device)
+        return view(a, wdt, device)  # a frame's vertices: not copied on the CPU
 
     light = light_direction(azimuth_deg, elevation_deg)
     lo, span = height_span(heights, triangles, height_range)
@@ -482,13 +534,9 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
     code = {"hillshade": 0, "cracks": 0, "level": 1, "patch": 2, "wireframe": 3, "splat": 4}[mode]
     rgb = empty((hh, ww), wp.vec3, device)
     nrm = empty((hh, ww), wp.vec3, device)
-    m = max(len(triangles), 1)
-    tri = np.zeros((m, 3), np.int32)
-    tri[: len(triangles)] = triangles
+    tri = np.ascontiguousarray(triangles, np.int32).reshape(-1, 3) if len(triangles) else np.zeros((1, 3), np.int32)
     launch(_shade_kernel, (hh, ww), [
-        wp.array(ids, dtype=wp.int32, device=device),
-        wp.array(np.ascontiguousarray(barycentrics, np.float32), dtype=wp.vec2, device=device),
-        wp.array(tri, dtype=wp.int32, device=device),
+        view(ids, wp.int32, device), view(barycentrics, wp.vec2, device), view(tri, wp.int32, device),
         varr(normals, (3,), np.float32, wp.vec3), varr(heights, (), np.float32, wp.float32),
         varr(level, (), np.int32, wp.int32), varr(patch_id, (), np.int32, wp.int32),
         varr(uv, (2,), np.float32, wp.vec2), varr(world_xz, (2,), np.float32, wp.vec2),

@@ -208,10 +208,7 @@ def _summary(err: np.ndarray, state: np.ndarray) -> dict[str, float | int]:
 
 
 def _as_map(err: np.ndarray, state: np.ndarray) -> np.ndarray:
-    out = np.full(err.shape, np.nan, np.float32)
-    vis = state == _k.VISIBLE
-    out[vis] = err[vis]
-    return out
+    return err.astype(np.float32)  # NaN but where visible (the kernel's contract)
 
 
 def sample_error(heightmap: Heightmap, camera: Camera, mesh: Mesh, ref_depth: np.ndarray, *,

@@ -190,3 +190,22 @@ def test_first_compile_prints_no_compiler_warning(tmp_path):
     assert r.returncode == 0 and "compiled" in r.stdout, r.stderr
     assert any((tmp_path / "cache").rglob("wp_terrainwarp.kernels.shading*.cpp"))  # it did compile here
     assert "warning" not in r.stderr.lower().replace("warp cuda warning", ""), r.stderr
+
+
+def test_srgb8_is_the_correctly_rounded_encoding():
+    """Each threshold encodes to its code and the float just below it to the code before (so every float32
+    in [0, 1] gets the code nearest the exact transfer function); out-of-range values clamp, NaN is 0."""
+    from terrainwarp.kernels.shading import SRGB8_THRESHOLDS, _srgb_encode, srgb8
+
+    t = SRGB8_THRESHOLDS
+    below = np.nextafter(t, np.float32(0))
+    assert np.array_equal(srgb8(t), np.arange(1, 256, dtype=np.uint8))
+    assert np.array_equal(srgb8(below), np.arange(0, 255, dtype=np.uint8))
+    x = np.random.default_rng(3).random(200_000, dtype=np.float32) ** 3  # dense near 0 (the linear segment)
+    exact = np.array([round(_srgb_encode(float(v)) * 255.0) for v in x[:20_000]])
+    assert np.array_equal(srgb8(x[:20_000]).astype(int), exact)
+    img = x.reshape(-1, 100, 2)[..., :1].repeat(3, axis=-1)  # any (..., 3) shape
+    assert srgb8(img).shape == img.shape and srgb8(img).dtype == np.uint8
+    odd = np.array([np.nan, -np.nan, -1.0, -0.0, 0.0, 1.0, 2.0, np.inf, -np.inf], np.float32)
+    assert srgb8(odd).tolist() == [0, 0, 0, 0, 0, 255, 255, 255, 0]
+    assert srgb8(np.zeros((0, 3), np.float32)).shape == (0, 3)
