@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -158,23 +158,6 @@ os.register_at_fork(after_in_child=_forget_pool)
 # ------------------------------------------------------------------------------------------------
 # launch
 # ------------------------------------------------------------------------------------------------
-
-
-def map_chunks(fn: Callable[[int, int], None], n: int, items_per_row: int = 1,
-               min_items: int = MIN_ITEMS) -> None:
-    """Call ``fn(start, stop)`` over :func:`chunks` of ``range(n)`` on the launch threads: for numpy work
-    that releases the GIL (whole-array ufuncs) on disjoint rows, so its result is the one-call result."""
-    ranges = chunks(n, items_per_row, min_items)
-    if len(ranges) <= 1:
-        if n > 0:
-            fn(0, n)
-        return
-    futures = [_pool(len(ranges) - 1).submit(fn, s, e) for s, e in ranges[1:]]
-    try:
-        fn(*ranges[0])
-    finally:
-        for f in futures:
-            f.result()
 
 
 def view(a: np.ndarray, dtype: type, device: str | wp.Device | None = None) -> wp.array:
