@@ -349,7 +349,8 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
             grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu",
-            progress: bool = False, max_pop_px: float | None = None) -> FitResult:
+            progress: bool = False, max_pop_px: float | None = None,
+            references: list[Frame] | None = None) -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
     within ``budget_px`` at the lowest cost (triangles).
 
@@ -374,6 +375,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             exact validations' frames and the grid search's frames.
         max_pop_px: if given, also bound the worst consecutive pair's pop p99 (px) over the path
             (:func:`terrainwarp.rendering.pipeline.pop_stats`; measured in every validation and grid point).
+        references: the full-detail grid frames of ``cameras`` (with depth), one per camera, when the caller
+            has them already (several fits on one path: a 4097^2 reference frame takes seconds); None: rendered
+            here.
     """
     _check_fit_arguments(budget_px, policy, gradient, steps, max_validations, grid_points)
     if isinstance(scene.heightmap, StreamedHeightmap):
@@ -392,8 +396,13 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     try:
         terrain = None if scheme else Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess,
                                                       device=device)
-        refs = [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
-                for c in cams]
+        if references is not None:
+            refs = _check_references(references, cams)
+            for _ in refs:
+                bar()
+        else:
+            refs = [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
+                    for c in cams]
         cache: dict = {}
         exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar, budget_px=budget_px,
                        max_pop_px=max_pop_px, knob=knob(policy, scene.heightmap, cache), cache=cache)
@@ -447,6 +456,17 @@ class _Progress:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+def _check_references(references: object, cams: list[Camera]) -> list[Frame]:
+    refs = list(references) if isinstance(references, list | tuple) else None
+    if refs is None or len(refs) != len(cams):
+        raise ValueError(f"references: expected a list of {len(cams)} frames (one per camera), got "
+                         f"{type(references).__name__}{'' if refs is None else f' of {len(refs)}'}")
+    for k, (f, c) in enumerate(zip(refs, cams, strict=True)):
+        if not isinstance(f, Frame) or f.depth is None or f.scene.camera != c:
+            raise ValueError(f"references[{k}]: expected the grid frame of cameras[{k}] with its depth")
+    return refs
 
 
 def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: int, max_validations: int,

@@ -50,6 +50,13 @@ def test_fit_meets_budget_and_matches_grid_search(scene):
     assert res.evaluations < g["evaluations"]
     again = fit_lod(sc, 1.5, policy="sse", cameras=cams, steps=30)
     assert again.value == res.value and again.validated.triangles == res.validated.triangles  # deterministic
+    refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
+    given = fit_lod(sc, 1.5, policy="sse", cameras=cams, steps=30, references=refs)  # several fits, one path
+    assert given.value == res.value and given.validated.triangles == res.validated.triangles
+    assert given.evaluations == again.evaluations
+    for bad in (refs[:1], refs[::-1], [None, None], "refs"):
+        with pytest.raises(ValueError, match="references"):
+            fit_lod(sc, 1.5, cameras=cams, references=bad)
 
 
 @pytest.mark.parametrize("policy", ["distance", "continuous"])
