@@ -31,6 +31,12 @@ Newton steps in log space, ``log t <- log t + (log budget - log p99) / slope``, 
 ``d log(error) / d log(t)`` from ``jax.grad`` of the relaxed model, then bisection once bracketed. A
 fit that misses the budget in validation is reported as missed, never as met.
 
+A validation measures the cameras worst first (by the last complete validation's per-frame p99) and stops
+at the first frame over the budget: the worst frame decides, so an infeasible value costs one or two
+measured frames, not the whole path; the frames left unmeasured are only selected and meshed for their
+triangle count (``FitResult.mesh_only_frames``), so every validation's cost is the whole path's. A feasible
+value is measured on every frame. (Not with a popping bound, which needs the consecutive pairs.)
+
 Popping as a constraint: ``fit_lod(..., max_pop_px=P)`` also measures, per consecutive camera pair, the pop
 between the previous camera's selection (held) and the current one, both drawn for the current camera
 (:func:`terrainwarp.rendering.pipeline.pop_stats`), and accepts a value only if the worst pair's pop p99 is
@@ -126,6 +132,13 @@ class Evaluation:
     frame_ms: list[float]
     image_p99_px: list[float] = field(default_factory=list)
     pop_p99_px: list[float] = field(default_factory=list)
+    # the cameras whose error was measured, in the order they were (None: all, in path order); a validation
+    # stopped at the first frame over the budget measured only a prefix (its triangles are every frame's)
+    frames: list[int] | None = None
+
+    @property
+    def complete(self) -> bool:
+        return self.frames is None or len(self.frames) == len(self.triangles)
 
     @property
     def worst_p99(self) -> float:
@@ -158,6 +171,8 @@ class FitResult:
             and the pop p99 of each consecutive pair: measured once more for the record when ``max_pop_px``
             is None, not counted in ``evaluations``).
         evaluations: exact pipeline frame evaluations the fit used (the grid search's are in ``grid``).
+        mesh_only_frames: frames of validations stopped at a frame over the budget that were only selected
+            and meshed for their triangle count (not measured; milliseconds each; not in ``evaluations``).
         history: the relaxed optimisation (iteration, temperature, loss, cost, error proxy, value) and
             the validation steps.
         grid: the grid search baseline in the same run, or None.
@@ -175,12 +190,13 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     grid: dict | None = None
     max_pop_px: float | None = None
+    mesh_only_frames: int = 0
 
     def to_dict(self) -> dict:
         v = self.validated
         return {"policy": self.policy, "budget_px": self.budget_px, "max_pop_px": self.max_pop_px,
                 "met": self.met, "value": self.value, "params": self.params._asdict(), "message": self.message,
-                "evaluations": self.evaluations, "wall_s": self.wall_s,
+                "evaluations": self.evaluations, "mesh_only_frames": self.mesh_only_frames, "wall_s": self.wall_s,
                 "error": "primary: per visible heightmap sample, px (terrainwarp.measure.sample_error); "
                          "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor)",
                 "validated": None if v is None else {"p99_px": v.p99_px, "max_px": v.max_px,
@@ -196,17 +212,29 @@ class FitResult:
 # ------------------------------------------------------------------------------------------------
 def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], policy: str, value: float,
              refs: list[Frame], device: str = "cpu", *, on_frame: Callable[[], None] | None = None,
-             pops: bool = False, cache: dict | None = None) -> Evaluation:
+             pops: bool = False, cache: dict | None = None, order: list[int] | None = None,
+             stop_above: float | None = None) -> Evaluation:
     """Run the exact pipeline at one parameter value over all cameras (references given); the frame cost
     is ``Report.frame_ms``; the error is the primary error (``Frame.error.p99_px``), the image error kept
     beside it. ``pops``: also the pop of each consecutive pair (the previous frame's selection held,
     :func:`terrainwarp.rendering.pipeline.pop_stats`). ``on_frame()`` is called after each frame (progress).
 
+    ``order`` and ``stop_above`` (not with ``pops``): measure the cameras in that order and stop at the first
+    frame whose p99 exceeds ``stop_above`` (the worst frame decides feasibility: the value is infeasible
+    whatever the others measure); the frames left unmeasured are only selected and meshed (milliseconds), so
+    the evaluation's triangles, its cost, are still every frame's. ``Evaluation.frames`` lists the cameras
+    measured.
+
     A scheme (``policy`` in :data:`SCHEMES`; ``terrain`` unused) is drawn as its mesh source
     (:func:`terrainwarp.rendering.sources.scheme_source`, its pyramids kept in ``cache`` across values)."""
+    if pops and (order is not None or stop_above is not None):
+        raise ValueError("order / stop_above: popping is measured between consecutive frames of the path")
     ev = Evaluation(float(value), [], [], [], [])
     src = scheme_source(policy, scene.heightmap, value, cache=cache, device=device) if policy in SCHEMES else None
     cfg = scene.lod if src is not None else scene.lod.with_policy(policy, value)
+    if order is not None or stop_above is not None:
+        return _evaluate_until(ev, scene, terrain, cameras, refs, cfg, src, device, on_frame,
+                               list(range(len(cameras))) if order is None else [int(k) for k in order], stop_above)
     prev: Frame | None = None
     for k, (cam, ref) in enumerate(zip(cameras, refs)):
         sc = scene.with_(camera=cam, mesh="lod" if src is None else "grid", lod=cfg, outputs=("error",))
@@ -222,6 +250,35 @@ def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], polic
         prev = f
         if on_frame is not None:
             on_frame()
+    return ev
+
+
+def _evaluate_until(ev: Evaluation, scene: Scene, terrain: Terrain | None, cameras: list[Camera], refs: list[Frame],
+                    cfg: LodConfig, src, device: str, on_frame: Callable[[], None] | None, order: list[int],
+                    stop_above: float | None) -> Evaluation:
+    """:func:`evaluate`'s frames in ``order``, stopping after the first whose p99 exceeds ``stop_above``."""
+    if sorted(order) != list(range(len(cameras))):
+        raise ValueError(f"order: expected a permutation of the {len(cameras)} camera indices, got {order!r}")
+    tris = [0] * len(cameras)
+    ev.frames = []
+    mesh = "lod" if src is None else "grid"
+    for k in order:
+        if stop_above is not None and ev.p99_px and ev.p99_px[-1] > stop_above:  # infeasible: cost only
+            f = render(scene.with_(camera=cameras[k], mesh=mesh, lod=cfg, outputs=("mesh",)), terrain=terrain,
+                       device=device, source=src)
+            tris[k] = int(f.mesh.n_triangles)
+            continue
+        sc = scene.with_(camera=cameras[k], mesh=mesh, lod=cfg, outputs=("error",))
+        f = render(sc, terrain=terrain, reference=refs[k], device=device, source=src)
+        ev.frames.append(k)
+        ev.p99_px.append(float(f.error.p99_px))
+        ev.max_px.append(float(f.error.max_px))
+        ev.image_p99_px.append(float(f.error.image_err_p99_px))
+        ev.frame_ms.append(f.report.frame_ms)
+        tris[k] = int(f.mesh.n_triangles)
+        if on_frame is not None:
+            on_frame()
+    ev.triangles = tris
     return ev
 
 
@@ -347,7 +404,7 @@ def relaxed_model(terrain: Terrain, cameras: list[Camera], policy: str, device: 
 # the fit
 # ------------------------------------------------------------------------------------------------
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
-            steps: int = 60, max_validations: int = 8, rel_tol: float = 0.05, grid_points: int = 0,
+            steps: int = 60, max_validations: int = 8, rel_tol: float = 0.02, grid_points: int = 0,
             grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu",
             progress: bool = False, max_pop_px: float | None = None,
             references: list[Frame] | None = None) -> FitResult:
@@ -362,7 +419,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             settings: no relaxed fit, the budget bracketed on the exact pipeline; see the module docstring).
         steps: optax Adam steps of the relaxed fit (quadtree policies).
         max_validations: exact-pipeline validations (each runs every camera) for the correction.
-        rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``.
+        rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``, or when a feasible
+            and an infeasible value bracket the budget with triangle counts within ``rel_tol`` of each other
+            (no value between them can be cheaper by more).
         grid_points: if > 0, also run the grid-search baseline with that many points.
         grid_evaluator: how the grid search runs its evaluations (None: in this process; see
             :func:`grid_search`).
@@ -497,6 +556,7 @@ class _Exact:
     device: str
     history: list[dict] = field(default_factory=list)
     n_eval: int = 0
+    n_mesh_only: int = 0  # frames of stopped validations only selected and meshed (their triangles)
     evals: dict[float, Evaluation] = field(default_factory=dict)
     on_frame: Callable[[], None] | None = None
     budget_px: float = math.inf
@@ -507,14 +567,31 @@ class _Exact:
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
 
-    def __call__(self, v: float) -> Evaluation:
+    def __call__(self, v: float, complete: bool = False) -> Evaluation:
+        """The evaluation at ``v`` (snapped). Without a pop bound, the cameras are measured worst first (by the
+        last complete evaluation's per-frame p99) and the validation stops at the first frame over the
+        budget (:func:`evaluate`'s ``stop_above``); ``complete``: every frame measured."""
         v = self.knob.snap(v)
-        if v not in self.evals:
-            self.evals[v] = e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs,
-                                         self.device, on_frame=self.on_frame, pops=self.max_pop_px is not None,
-                                         cache=self.cache)
-            self.n_eval += len(self.cams)
+        if v not in self.evals or (complete and not self.evals[v].complete):
+            if self.max_pop_px is not None or complete:
+                e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
+                             on_frame=self.on_frame, pops=self.max_pop_px is not None, cache=self.cache)
+            else:
+                last = next((x for x in reversed(self.evals.values()) if x.complete), None)
+                order = (sorted(range(len(self.cams)), key=lambda k: (-last.p99_px[k], k)) if last is not None
+                         else list(range(len(self.cams))))
+                e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
+                             on_frame=self.on_frame, cache=self.cache, order=order, stop_above=self.budget_px)
+                if e.complete:  # measured in another order: back to path order, as every complete evaluation
+                    back = sorted(range(len(e.frames)), key=lambda i: e.frames[i])
+                    e.p99_px, e.max_px, e.image_p99_px, e.frame_ms = (
+                        [a[i] for i in back] for a in (e.p99_px, e.max_px, e.image_p99_px, e.frame_ms))
+                    e.frames = None
+            self.evals[v] = e
+            self.n_eval += len(self.cams) if e.frames is None else len(e.frames)
+            self.n_mesh_only += 0 if e.frames is None else len(self.cams) - len(e.frames)
             self.history.append({"stage": "validate", "value": v, "worst_p99_px": e.worst_p99, "cost": e.cost,
+                                 "frames_measured": len(self.cams) if e.frames is None else len(e.frames),
                                  **({"worst_pop_p99_px": e.worst_pop} if self.max_pop_px is not None else {})})
         return self.evals[v]
 
@@ -658,6 +735,7 @@ def _pixel_step(exact: _Exact, e: Evaluation, v: float, target: float, budget_px
 
     sc = exact.scene
     w = int(np.argmax(e.p99_px))
+    w = w if e.frames is None else e.frames[w]  # a stopped validation measured cameras e.frames
     _, slope = log_slope(sc.heightmap, exact.cams[w], v, sc.lod.level, exact.terrain, cull_back=sc.cull_back,
                          device=exact.device)
     exact.n_eval += 1
@@ -695,16 +773,18 @@ def _result(exact: _Exact, good: Evaluation | None, budget_px: float, t_start: f
     pop_txt = "" if pop is None else f" and worst pair pop p99 <= {pop:g} px"
     if good is None:  # never met: is the budget reachable at all?
         finest = spec.fit_range[0] if spec.coarser_up else spec.fit_range[1]
-        floor = exact(finest)
+        floor = exact(finest, complete=True)  # the worst frame's error, for the message
         if not exact.meets(floor):
             msg = (f"budget {budget_px:g} px{pop_txt} cannot be met: even the finest setting ({spec.field} = "
                    f"{finest:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px"
                    + ("" if pop is None else f" and a worst pair pop p99 of {floor.worst_pop:.3g} px"))
             return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, exact.n_eval,
-                             time.perf_counter() - t_start, msg, exact.history, max_pop_px=pop)
+                             time.perf_counter() - t_start, msg, exact.history, max_pop_px=pop,
+                             mesh_only_frames=exact.n_mesh_only)
         good = floor
     res = FitResult(policy, budget_px, exact.meets(good), good.value, _params(policy, good.value), good,
-                    exact.n_eval, time.perf_counter() - t_start, "", exact.history, max_pop_px=pop)
+                    exact.n_eval, time.perf_counter() - t_start, "", exact.history, max_pop_px=pop,
+                    mesh_only_frames=exact.n_mesh_only)
     res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px"
                    + ("" if pop is None else f", worst pair pop p99 {good.worst_pop:.3g} px <= {pop:g} px")
                    + f" with {spec.field} = {good.value:.4g}, {good.cost:.0f} triangles per frame")

@@ -202,3 +202,26 @@ def test_fit_lod_fits_each_scheme_by_bracketing_on_the_exact_pipeline(name):
     assert not any(h["stage"] == "relaxed" for h in res.history)
     assert len(res.validated.pop_p99_px) == 1 and res.grid["value"] is not None
     assert all(lo <= row[0] <= hi for row in res.grid["table"])
+
+
+def test_a_validation_stops_at_the_first_frame_over_the_budget(scene):
+    """Infeasible is decided by one frame over the budget: the rest are only meshed (their triangles, so the
+    cost is every frame's); a feasible value is measured on every frame, whatever the order."""
+    sc = scene[0]
+    cams = sc.camera_path(3)
+    terrain = Terrain.prepare(sc.heightmap, roots=4, tess=8)
+    refs = [render(sc.with_(camera=c, mesh="grid", outputs=("depth",))) for c in cams]
+    full = evaluate(sc, terrain, cams, "sse", 6.0, refs)
+    assert full.complete and full.frames is None
+    worst = int(np.argmax(full.p99_px))
+    order = [worst] + [k for k in range(3) if k != worst]
+    stopped = evaluate(sc, terrain, cams, "sse", 6.0, refs, order=order, stop_above=0.5 * min(full.p99_px))
+    assert stopped.frames == [worst] and not stopped.complete
+    assert stopped.p99_px == [full.p99_px[worst]] and stopped.triangles == full.triangles
+    every = evaluate(sc, terrain, cams, "sse", 6.0, refs, order=order, stop_above=max(full.p99_px))
+    assert every.frames == order and every.complete
+    assert every.p99_px == [full.p99_px[k] for k in order] and every.triangles == full.triangles
+    with pytest.raises(ValueError, match="order"):
+        evaluate(sc, terrain, cams, "sse", 6.0, refs, order=[0, 0, 1], stop_above=1.0)
+    with pytest.raises(ValueError, match="popping"):
+        evaluate(sc, terrain, cams, "sse", 6.0, refs, pops=True, stop_above=1.0)
