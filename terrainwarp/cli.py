@@ -233,6 +233,9 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
                          f"{g['cost']:.0f} | {g['evaluations']} | {g['wall_s']:.1f} |")
     lines += ["", res.message, ""]
+    if res.mesh_only_frames:
+        lines += [f"Validations stopped at the first frame over the budget: {res.mesh_only_frames} frames of them "
+                  "were only selected and meshed for their triangle count (not in the evaluations).", ""]
     return lines
 
 
