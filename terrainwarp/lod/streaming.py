@@ -114,16 +114,14 @@ class StreamedPyramid:
         exact ones; exact at step 1), and b, the source's bound on what the step misses."""
         x = np.asarray(x, np.int64)
         y = np.asarray(y, np.int64)
-        out = np.zeros((3, len(x)), np.float32)
+        bound = np.float32(self.hm.source.detail_bound(step))
+        if not len(x):
+            return np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, np.float32), bound
         bid = (y // BLOCK) * ((self.roots[0] << level) // BLOCK + 1) + x // BLOCK
-        order = np.argsort(bid, kind="stable")
-        ub, starts = np.unique(bid[order], return_index=True)
-        for k in range(len(ub)):  # one block per run of equal ids
-            m = order[starts[k]:starts[k + 1] if k + 1 < len(ub) else len(order)]
-            by, bx = int(y[m[0]] // BLOCK), int(x[m[0]] // BLOCK)
-            blk = self._block(level, step, by, bx)
-            out[:, m] = blk[:, y[m] - by * BLOCK, x[m] - bx * BLOCK]
-        return out[0], out[1], out[2], np.float32(self.hm.source.detail_bound(step))
+        _, first, inv = np.unique(bid, return_index=True, return_inverse=True)
+        blocks = np.stack([self._block(level, step, int(y[i] // BLOCK), int(x[i] // BLOCK)) for i in first])
+        out = blocks[inv.reshape(-1), :, y % BLOCK, x % BLOCK]  # (n, 3): one gather for every node
+        return out[:, 0].copy(), out[:, 1].copy(), out[:, 2].copy(), bound
 
     def _have(self, level: int, x: np.ndarray, y: np.ndarray, step: int) -> np.ndarray:
         """True for nodes whose block at ``step`` was measured already (nothing is measured here)."""
