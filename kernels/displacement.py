@@ -154,7 +154,7 @@ def grid_mesh(heights: np.ndarray, dx: float, dz: float, rel_origin: tuple[float
     """
     hh, ww = heights.shape
     holes = bool(np.isnan(heights).any())
-    h = wp.array(np.ascontiguousarray(heights, dtype=np.float32), dtype=wp.float32, device=device)
+    h = view(heights, wp.float32, device)  # the heightmap: not copied per frame on the CPU
     pos = empty(hh * ww, wp.vec3, device)
     uv = empty(hh * ww, wp.vec2, device)
     launch(_grid_vertices_kernel, (hh, ww), [h, float(dx), float(dz), wp.vec3(*rel_origin),

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .parallel import launch
+from .parallel import launch, view
 
 # ------------------------------------------------------------------------------------------------
 # functions
@@ -161,7 +161,7 @@ def sample_grid(heights: np.ndarray, u: np.ndarray, v: np.ndarray, method: str =
     if n == 0:
         return np.zeros(shape, np.float32)
     uv = np.stack([u.reshape(-1), v.reshape(-1)], axis=1)
-    h = wp.array(np.ascontiguousarray(heights, dtype=np.float32), dtype=wp.float32, device=device)
+    h = view(heights, wp.float32, device)  # the heightmap: not copied per frame on the CPU
     out = wp.empty(n, dtype=wp.float32, device=device)
     launch(_sample_kernel, dim=n, inputs=[h, wp.array(uv, dtype=wp.vec2, device=device), METHODS[method]],
            outputs=[out], device=device)

@@ -21,7 +21,7 @@ import warp as wp
 
 from .displacement import write_quad
 from .lod import box_outside
-from .parallel import empty, launch
+from .parallel import empty, launch, view
 from .sampling import sample_bilinear
 
 # ------------------------------------------------------------------------------------------------
@@ -424,7 +424,7 @@ MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 def _heights(heights: np.ndarray | wp.array, device: str) -> wp.array:
     if isinstance(heights, wp.array):
         return heights
-    return wp.array(np.ascontiguousarray(heights, dtype=np.float32), dtype=wp.float32, device=device)
+    return view(heights, wp.float32, device)  # the heightmap: not copied per frame on the CPU
 
 
 def _vertex_outputs(nv: int, device: str) -> list[wp.array]:
