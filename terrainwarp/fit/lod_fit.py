@@ -455,13 +455,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     try:
         terrain = None if scheme else Terrain.prepare(scene.heightmap, roots=scene.lod.roots, tess=scene.lod.tess,
                                                       device=device)
-        if references is not None:
-            refs = _check_references(references, cams)
-            for _ in refs:
-                bar()
-        else:
-            refs = [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
-                    for c in cams]
+        refs = _references(scene, cams, references, bar, device)
         cache: dict = {}
         exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar, budget_px=budget_px,
                        max_pop_px=max_pop_px, knob=knob(policy, scene.heightmap, cache), cache=cache)
@@ -517,7 +511,11 @@ class _Progress:
             self.bar.close()
 
 
-def _check_references(references: object, cams: list[Camera]) -> list[Frame]:
+def _references(scene: Scene, cams: list[Camera], references: object, bar: _Progress, device: str) -> list[Frame]:
+    """The caller's reference frames (checked), or the full-detail grid frame of each camera rendered here."""
+    if references is None:
+        return [bar.after(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
+                for c in cams]
     refs = list(references) if isinstance(references, list | tuple) else None
     if refs is None or len(refs) != len(cams):
         raise ValueError(f"references: expected a list of {len(cams)} frames (one per camera), got "
@@ -525,6 +523,8 @@ def _check_references(references: object, cams: list[Camera]) -> list[Frame]:
     for k, (f, c) in enumerate(zip(refs, cams, strict=True)):
         if not isinstance(f, Frame) or f.depth is None or f.scene.camera != c:
             raise ValueError(f"references[{k}]: expected the grid frame of cameras[{k}] with its depth")
+    for _ in refs:
+        bar()
     return refs
 
 
