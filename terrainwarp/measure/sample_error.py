@@ -207,8 +207,9 @@ def _summary(err: np.ndarray, state: np.ndarray) -> dict[str, float | int]:
     return {"p99_px": float(np.percentile(e, 99)), "max_px": float(e.max()), "mean_px": float(e.mean()), **counts}
 
 
-def _as_map(err: np.ndarray, state: np.ndarray) -> np.ndarray:
-    return err.astype(np.float32)  # NaN but where visible (the kernel's contract)
+def _as_map(err: np.ndarray) -> np.ndarray:
+    """The per-sample map: the kernel leaves every sample but the visible ones NaN already."""
+    return err.astype(np.float32)
 
 
 def sample_error(heightmap: Heightmap, camera: Camera, mesh: Mesh, ref_depth: np.ndarray, *,
@@ -230,7 +231,7 @@ def sample_error(heightmap: Heightmap, camera: Camera, mesh: Mesh, ref_depth: np
     depth = _check(heightmap, camera, {"mesh": mesh}, ref_depth)
     y = _relative_surface(heightmap, mesh, camera.position, device)
     err, state, _ = _measure(heightmap, camera, None, y, depth, device)
-    return SampleError(**_summary(err, state), error_map=_as_map(err, state) if keep_map else None)
+    return SampleError(**_summary(err, state), error_map=_as_map(err) if keep_map else None)
 
 
 def popping(heightmap: Heightmap, camera: Camera, held: Mesh, current: Mesh, ref_depth: np.ndarray, *,
@@ -261,4 +262,4 @@ def popping(heightmap: Heightmap, camera: Camera, held: Mesh, current: Mesh, ref
     return PopStats(p99_px=s["p99_px"], max_px=s["max_px"], mean_px=s["mean_px"], popped=int(moved.sum()),
                     popped_pixels=int(np.unique(pix[moved]).size), threshold_px=float(threshold_px),
                     visible=s["visible"], outside=s["outside"], hidden=s["hidden"], missing=s["missing"],
-                    no_data=s["no_data"], pop_map=_as_map(err, state) if keep_map else None)
+                    no_data=s["no_data"], pop_map=_as_map(err) if keep_map else None)
