@@ -49,6 +49,24 @@ def _bilinear(data: wp.array(dtype=wp.float32), start: int, cols: int, rows: int
 
 
 @wp.func
+def _bilinear_in(data: wp.array(dtype=wp.float32), start: int, cols: int, u: float, v: float) -> float:
+    """_bilinear where no clamp applies (u in [0, cols - 2), v in [0, rows - 2)): the same operations."""
+    j0 = int(wp.floor(u))
+    i0 = int(wp.floor(v))
+    fu = u - float(j0)
+    fv = v - float(i0)
+    k = start + i0 * cols + j0
+    ref = data[k]
+    b = data[k + 1] - ref
+    c = data[k + cols] - ref
+    d = data[k + cols + 1] - ref
+    a = 0.0
+    top = a + (b - a) * fu
+    bot = c + (d - c) * fu
+    return ref + (top + (bot - top) * fv)
+
+
+@wp.func
 def _holds(lo: int, n: int, full: int, k: int) -> bool:
     """Window [lo, lo + n) of an overview ``full`` samples long holds samples k - 1 .. k + 2 (or reaches the
     grid's edge on the side it lacks)."""
@@ -64,6 +82,7 @@ def _stack_kernel(
     shift: wp.array(dtype=wp.int32),
     start: wp.array(dtype=wp.int64),
     full: wp.array(dtype=wp.vec2i),
+    inv: wp.array(dtype=wp.float32),
     n_win: int,
     eye_y: float,
     dx: float,
@@ -78,20 +97,32 @@ def _stack_kernel(
     w = n_win - 1
     for m in range(n_win):  # the finest window that holds the point's footprint
         t = table[m]
-        s = float(1 << shift[m])
-        u = g[0] / s
-        v = g[1] / s
+        r = inv[m]  # 2^-shift: the product is the quotient g / 2^shift, exactly
+        u = g[0] * r
+        v = g[1] * r
         if _holds(t[0], t[2], full[m][0], int(wp.floor(u))) and _holds(t[1], t[3], full[m][1], int(wp.floor(v))):
             w = m
             break
     t = table[w]
     s = float(1 << shift[w])
-    u = g[0] / s - float(t[0])  # exact: an integer shift of a float32 below 2^24
-    v = g[1] / s - float(t[1])
+    u = g[0] * inv[w] - float(t[0])  # exact: an integer shift of a float32 below 2^24
+    v = g[1] * inv[w] - float(t[1])
     st = int(start[w])
-    h = _bilinear(data, st, t[2], t[3], u, v)
-    hx = _bilinear(data, st, t[2], t[3], u + 1.0, v) - _bilinear(data, st, t[2], t[3], u - 1.0, v)
-    hz = _bilinear(data, st, t[2], t[3], u, v + 1.0) - _bilinear(data, st, t[2], t[3], u, v - 1.0)
+    up = u + 1.0
+    um = u - 1.0
+    vp = v + 1.0
+    vm = v - 1.0
+    h = float(0.0)
+    hx = float(0.0)
+    hz = float(0.0)
+    if um >= 0.0 and vm >= 0.0 and up < float(t[2] - 1) and vp < float(t[3] - 1):  # no clamp applies
+        h = _bilinear_in(data, st, t[2], u, v)
+        hx = _bilinear_in(data, st, t[2], up, v) - _bilinear_in(data, st, t[2], um, v)
+        hz = _bilinear_in(data, st, t[2], u, vp) - _bilinear_in(data, st, t[2], u, vm)
+    else:
+        h = _bilinear(data, st, t[2], t[3], u, v)
+        hx = _bilinear(data, st, t[2], t[3], up, v) - _bilinear(data, st, t[2], t[3], um, v)
+        hz = _bilinear(data, st, t[2], t[3], u, vp) - _bilinear(data, st, t[2], t[3], u, vm)
     p = pos[k]
     pos[k] = wp.vec3(p[0], h - eye_y, p[2])
     nrm[k] = wp.normalize(wp.vec3(-hx / (2.0 * dx * s), 1.0, -hz / (2.0 * dz * s)))
@@ -129,5 +160,6 @@ def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tup
         view(grid_uv, wp.vec2, device), view(data, wp.float32, device), wp.array(table, dtype=wp.vec4i, device=device),
         wp.array(np.array([w[0] for w in windows], np.int32), dtype=wp.int32, device=device),
         wp.array(starts, dtype=wp.int64, device=device), wp.array(full, dtype=wp.vec2i, device=device),
+        wp.array(np.array([1.0 / (1 << w[0]) for w in windows], np.float32), dtype=wp.float32, device=device),
         len(windows), float(eye_y), float(dx), float(dz)], outputs=[pos, nrm, win], device=device)
     return pos.numpy()[:n].reshape(-1, 3), nrm.numpy()[:n].reshape(-1, 3), win.numpy()[:n]
