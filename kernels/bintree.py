@@ -7,7 +7,7 @@ gx``), the apex is the right angle and ``(apex, b0, b1)`` is counter-clockwise s
 Splitting from the apex to the hypotenuse midpoint ``c`` gives ``(c, apex, b0)`` and ``(c, b1, apex)``,
 both counter-clockwise again.
 
-Kernels, one launch per level (never a loop over nodes):
+Build kernels, one launch per level (never a loop over nodes):
 
 * vertex heights: per grid point, from the heightmap by the paper's "three closest samples" (the
   plane through the three of the four surrounding samples nearest to the point; the farthest is
@@ -16,10 +16,17 @@ Kernels, one launch per level (never a loop over nodes):
 * links: the base neighbour (the node of the same level sharing the hypotenuse, -1 on the border)
   through a dense map keyed by the hypotenuse midpoint and direction.
 * bounds: per node min/max height of its subtree, bottom-up.
-* selection, per frame: per-vertex LOD thresholds ``ceil(M - log2(D / S))`` clamped to [1, M]; per
-  level the split/cull flags of every node; the forced-split propagation (ROAM: a split node's base
-  neighbour is split too) as a fixed-point iteration; the leaves by count -> scan -> emit; the mesh
-  with vertex compaction by mark -> scan -> emit.
+
+Selection, per frame, is one launch of one thread (:class:`Walk`): a ground view touches a few
+thousand of a 65,536-triangle tree's 131,071 nodes, where launches per level and per propagation pass
+visit all of them (issue 19: 8.7 ms a frame on the bench path, about 30 launches; the walk is well under
+1 ms). It is sequential, so it does not go through the parallel-launch helper; on a GPU the per-level
+passes (kept as the reference in tests/lod/test_bintree.py) are the shape to launch. The walk:
+breadth-first from the root, the cull and split decisions of the children of split nodes, with
+per-vertex LOD thresholds ``ceil(M - log2(D / S))`` clamped to [1, M] worked out on first use; the
+forced-split propagation (ROAM: a split node's base neighbour is split too) as the same sequential
+passes, visiting only the nodes each pass can change; the leaves in heap order by a second
+breadth-first pass; the mesh with its vertices compacted in id order.
 """
 
 from __future__ import annotations
@@ -162,148 +169,357 @@ def _bounds_up_kernel(off: int,
 
 
 # ------------------------------------------------------------------------------------------------
-# kernels: selection
+# kernels: selection (one walk per frame)
 # ------------------------------------------------------------------------------------------------
 
+# per-node flags in the walk's scratch
+_SPLIT = wp.constant(1)
+_DECIDED = wp.constant(2)  # culling decided for this node
+_CULLED = wp.constant(4)
 
-@wp.kernel(enable_backward=False)
-def _threshold_kernel(vh: wp.array(dtype=wp.float32), g1: int, rx0: float, rz0: float, step: float, eye_y: float,
-                      max_level: int, inv_s: float,
-                      # outputs
-                      out_t: wp.array(dtype=wp.int32)):
-    t = wp.tid()
-    gz = t / g1
-    gx = t - gz * g1
-    d = wp.length(wp.vec3(rx0 + float(gx) * step, vh[t] - eye_y, rz0 + float(gz) * step))
-    r = max_level
-    x = d * inv_s
+
+@wp.struct
+class _Frame:
+    """What one frame's walk reads: the tree (heap-indexed arrays) and the observer."""
+
+    apex: wp.array(dtype=wp.int32)
+    b0: wp.array(dtype=wp.int32)
+    b1: wp.array(dtype=wp.int32)
+    bn: wp.array(dtype=wp.int32)
+    lo: wp.array(dtype=wp.float32)
+    hi: wp.array(dtype=wp.float32)
+    vh: wp.array(dtype=wp.float32)
+    planes: wp.array(dtype=wp.vec4)
+    vis: wp.array(dtype=wp.uint8)
+    g1: int
+    max_level: int
+    mode: int
+    hole_fix: int
+    propagate: int
+    use_frustum: int
+    use_vis: int
+    rx0: float
+    rz0: float
+    step: float
+    eye_y: float
+    inv_s: float
+
+
+@wp.func
+def _threshold(f: _Frame, t: int) -> int:
+    """The paper's LOD threshold ``ceil(M - log2(D / S))`` clamped to [1, M] of grid vertex t."""
+    gz = t / f.g1
+    gx = t - gz * f.g1
+    d = wp.length(wp.vec3(f.rx0 + float(gx) * f.step, f.vh[t] - f.eye_y, f.rz0 + float(gz) * f.step))
+    r = f.max_level
+    x = d * f.inv_s
     if x > 1.0:  # M - log2(D / S) < M
-        r = int(wp.ceil(float(max_level) - wp.log2(x)))
-    out_t[t] = wp.clamp(r, 1, max_level)
+        r = int(wp.ceil(float(f.max_level) - wp.log2(x)))
+    return wp.clamp(r, 1, f.max_level)
 
 
-@wp.kernel(enable_backward=False)
-def _select_level_kernel(off: int, level: int, max_level: int, mode: int, hole_fix: int, g1: int,
-                         rx0: float, rz0: float, step: float, eye_y: float,
-                         apex: wp.array(dtype=wp.int32), b0: wp.array(dtype=wp.int32), b1: wp.array(dtype=wp.int32),
-                         vt: wp.array(dtype=wp.int32), lo: wp.array(dtype=wp.float32),
-                         hi: wp.array(dtype=wp.float32), planes: wp.array(dtype=wp.vec4), use_frustum: int,
-                         vis: wp.array(dtype=wp.uint8), use_vis: int,
-                         # outputs (parents read, this level written)
-                         out_split: wp.array(dtype=wp.int32), out_cull: wp.array(dtype=wp.int32)):
-    g = off + wp.tid()
-    par = (g - 1) / 2
-    c = out_cull[par]
-    a = apex[g]
-    p = b0[g]
-    q = b1[g]
-    if c == 0 and use_frustum != 0:
+@wp.func
+def _cached_threshold(f: _Frame, t: int, cache: wp.array(dtype=wp.uint8)) -> int:
+    """:func:`_threshold`, computed once per vertex and frame (thresholds are >= 1, so 0 = not yet)."""
+    r = int(cache[t])
+    if r == 0:
+        r = _threshold(f, t)
+        cache[t] = wp.uint8(r)
+    return r
+
+
+@wp.func
+def _outside(f: _Frame, g: int) -> int:
+    """1 when node g's own box (triangle footprint x subtree heights) is outside the frustum or the
+    visibility table hides it."""
+    c = int(0)
+    if f.use_frustum != 0:
+        g1 = f.g1
+        a = f.apex[g]
+        p = f.b0[g]
+        q = f.b1[g]
         az = a / g1
         pz = p / g1
         qz = q / g1
         ax = a - az * g1
         px = p - pz * g1
         qx = q - qz * g1
-        xmin = rx0 + float(wp.min(ax, wp.min(px, qx))) * step
-        xmax = rx0 + float(wp.max(ax, wp.max(px, qx))) * step
-        zmin = rz0 + float(wp.min(az, wp.min(pz, qz))) * step
-        zmax = rz0 + float(wp.max(az, wp.max(pz, qz))) * step
-        ymin = lo[g] - eye_y
-        ymax = hi[g] - eye_y
+        xmin = f.rx0 + float(wp.min(ax, wp.min(px, qx))) * f.step
+        xmax = f.rx0 + float(wp.max(ax, wp.max(px, qx))) * f.step
+        zmin = f.rz0 + float(wp.min(az, wp.min(pz, qz))) * f.step
+        zmax = f.rz0 + float(wp.max(az, wp.max(pz, qz))) * f.step
+        ymin = f.lo[g] - f.eye_y
+        ymax = f.hi[g] - f.eye_y
         for i in range(6):
-            pl = planes[i]
+            pl = f.planes[i]
             vx = wp.where(pl[0] > 0.0, xmax, xmin)
             vy = wp.where(pl[1] > 0.0, ymax, ymin)
             vz = wp.where(pl[2] > 0.0, zmax, zmin)
             if pl[0] * vx + pl[1] * vy + pl[2] * vz + pl[3] < 0.0:
                 c = 1
-    if c == 0 and use_vis != 0:
-        if vis[g] == wp.uint8(0):
+    if c == 0 and f.use_vis != 0:
+        if f.vis[g] == wp.uint8(0):
             c = 1
-    out_cull[g] = c
+    return c
+
+
+@wp.func
+def _culled(f: _Frame, g: int, flags: wp.array(dtype=wp.uint8)) -> int:
+    """Nonzero when node g or an ancestor is culled. Decides (and stores) it for g and its undecided
+    ancestors top down, testing a node only below a kept parent, as a level-by-level pass would; the
+    root is decided (kept) before the walk starts."""
+    k = int(0)  # levels up from g to its nearest decided ancestor (or g itself)
+    a = g
+    while (int(flags[a]) & _DECIDED) == 0:
+        a = (a - 1) / 2
+        k += 1
+    c = int(flags[a]) & _CULLED
+    while k > 0:
+        k -= 1
+        a = ((g + 1) >> k) - 1  # g's ancestor k levels up
+        if c == 0:
+            c = _outside(f, a) * _CULLED
+        flags[a] = wp.uint8(int(flags[a]) | _DECIDED | c)
+    return c
+
+
+@wp.func
+def _wants_split(f: _Frame, g: int, level: int, cache: wp.array(dtype=wp.uint8)) -> int:
+    """The selection rule for a kept node whose parent is split: brute force splits to depth M; the
+    LOD rule splits above the smallest vertex threshold, and the paper's hole fix splits once more
+    when the right-angle vertex alone has the lowest threshold."""
     s = int(0)
-    if out_split[par] != 0 and c == 0 and level < max_level:
-        if mode == 0:
+    if level < f.max_level:
+        if f.mode == 0:
             s = 1
         else:
-            ta = vt[a]
-            t0 = vt[p]
-            t1 = vt[q]
-            tmin = wp.min(ta, wp.min(t0, t1))
-            if level < tmin:
+            ta = _cached_threshold(f, f.apex[g], cache)
+            t0 = _cached_threshold(f, f.b0[g], cache)
+            t1 = _cached_threshold(f, f.b1[g], cache)
+            if level < wp.min(ta, wp.min(t0, t1)):
                 s = 1
-            elif hole_fix != 0 and ta < t0 and ta < t1:  # paper: the right angle alone is coarser
+            elif f.hole_fix != 0 and ta < t0 and ta < t1:
                 s = 1
-    out_split[g] = s
+    return s
+
+
+@wp.func
+def _is_split(flags: wp.array(dtype=wp.uint8), g: int) -> int:
+    return int(flags[g]) & _SPLIT
+
+
+@wp.func
+def _set_split(flags: wp.array(dtype=wp.uint8), g: int):
+    flags[g] = wp.uint8(int(flags[g]) | _SPLIT)
+
+
+@wp.func
+def _heap_push(h: wp.array(dtype=wp.int32), size: int, v: int) -> int:
+    """Push v on the binary min-heap h[:size]; returns the new size."""
+    i = int(size)
+    go = int(1)
+    while go != 0 and i > 0:
+        p = (i - 1) / 2
+        if h[p] <= v:
+            go = 0
+        else:
+            h[i] = h[p]
+            i = p
+    h[i] = v
+    return size + 1
+
+
+@wp.func
+def _heap_pop(h: wp.array(dtype=wp.int32), size: int) -> int:
+    """Remove the minimum h[0] from the binary min-heap h[:size] (size > 0); returns the new size."""
+    n = size - 1
+    v = h[n]
+    i = int(0)
+    go = int(1)
+    while go != 0:
+        c = 2 * i + 1
+        if c >= n:
+            go = 0
+        else:
+            if c + 1 < n and h[c + 1] < h[c]:
+                c = c + 1
+            if v <= h[c]:
+                go = 0
+            else:
+                h[i] = h[c]
+                i = c
+    if n > 0:
+        h[i] = v
+    return n
+
+
+@wp.func
+def _select(f: _Frame, flags: wp.array(dtype=wp.uint8), cache: wp.array(dtype=wp.uint8),
+            queue: wp.array(dtype=wp.int32), out_split: wp.array(dtype=wp.int32)) -> int:
+    """Breadth-first from the root through split nodes: decide culling and splitting of every child
+    of a split node. A FIFO over a complete binary tree visits nodes in heap order, so the split nodes
+    come out ascending (a valid min-heap). Returns their count."""
+    queue[0] = 1
+    queue[1] = 2
+    head = int(0)
+    tail = int(2)
+    count = int(0)
+    level = int(1)
+    level_end = int(3)  # heap indices of level L end at 2**(L+1) - 1
+    while head < tail:
+        g = queue[head]
+        head += 1
+        while g >= level_end:
+            level += 1
+            level_end = 2 * level_end + 1
+        if _culled(f, g, flags) == 0:
+            if _wants_split(f, g, level, cache) != 0:
+                _set_split(flags, g)
+                out_split[count] = g
+                count += 1
+                queue[tail] = 2 * g + 1
+                queue[tail + 1] = 2 * g + 2
+                tail += 2
+    return count
+
+
+@wp.func
+def _propagate(f: _Frame, flags: wp.array(dtype=wp.uint8), heap: wp.array(dtype=wp.int32), n_split: int,
+               later: wp.array(dtype=wp.int32)) -> wp.vec2i:
+    """ROAM's forced split propagation, node for node the sequential passes "for every split node g in
+    heap order: split its base neighbour n (and n's ancestors) if n is not split" until a pass changes
+    nothing. Only nodes split by a pass need the next one: a node a pass has met keeps its neighbour
+    split for good, and base neighbours are mutual, so a node split as g's neighbour has g, split, as
+    its own. That leaves the ancestors split on the way (``later``), all behind g, so next pass's. In a
+    pass, order matters (an ancestor split for one node may be another's neighbour, which is then not
+    counted as forced): the heap gives heap order. Returns (forced splits, passes)."""
+    size = int(n_split)
+    forced = int(0)
+    passes = int(0)
+    go = int(1)
+    while go != 0:
+        passes += 1
+        changed = int(0)
+        n_later = int(0)
+        while size > 0:
+            g = heap[0]
+            size = _heap_pop(heap, size)
+            n = f.bn[g]
+            if n >= 0:
+                if _is_split(flags, n) == 0:
+                    changed += 1
+                    _set_split(flags, n)
+                    a = (n - 1) / 2  # its ancestors too: the split nodes stay a tree
+                    while _is_split(flags, a) == 0:
+                        _set_split(flags, a)
+                        later[n_later] = a
+                        n_later += 1
+                        a = (a - 1) / 2
+        forced += changed
+        if changed == 0:
+            go = 0
+        for i in range(n_later):
+            size = _heap_push(heap, size, later[i])
+    return wp.vec2i(forced, passes)
+
+
+@wp.func
+def _emit_leaves(f: _Frame, flags: wp.array(dtype=wp.uint8), queue: wp.array(dtype=wp.int32),
+                 out_node: wp.array(dtype=wp.int32), out_tri: wp.array(dtype=wp.int32),
+                 out_used: wp.array(dtype=wp.int32), out_grid: wp.array(dtype=wp.int32)) -> wp.vec3i:
+    """The kept children of split nodes that are not split, in heap order (breadth-first again), with
+    their grid vertex ids; marks the vertices used and lists them in out_grid as first met. Returns
+    (triangles, nodes visited (queue[:visited]), distinct vertices)."""
+    queue[0] = 1
+    queue[1] = 2
+    head = int(0)
+    tail = int(2)
+    count = int(0)
+    nv = int(0)
+    while head < tail:
+        g = queue[head]
+        head += 1
+        if _is_split(flags, g) != 0:
+            queue[tail] = 2 * g + 1
+            queue[tail + 1] = 2 * g + 2
+            tail += 2
+        elif _culled(f, g, flags) == 0:
+            out_node[count] = g
+            out_tri[3 * count + 0] = f.apex[g]
+            out_tri[3 * count + 1] = f.b0[g]
+            out_tri[3 * count + 2] = f.b1[g]
+            count += 1
+            for k in range(3):
+                v = out_tri[3 * count - 3 + k]
+                if out_used[v] == 0:
+                    out_used[v] = 1
+                    out_grid[nv] = v
+                    nv += 1
+    return wp.vec3i(count, tail, nv)
+
+
+@wp.func
+def _emit_vertices(f: _Frame, count: int, nv: int, heap: wp.array(dtype=wp.int32),
+                   out_tri: wp.array(dtype=wp.int32), out_used: wp.array(dtype=wp.int32),
+                   out_pos: wp.array(dtype=wp.vec3), out_grid: wp.array(dtype=wp.int32)):
+    """Put the used grid vertices in id order (few: a heap sort of the list; many: a scan of the
+    marks over the whole grid), emit their camera-relative positions, point the triangles at them and
+    clear the marks."""
+    n_grid = f.g1 * f.g1
+    if 32 * nv < n_grid:
+        size = int(0)
+        for i in range(nv):
+            size = _heap_push(heap, size, out_grid[i])
+        for i in range(nv):
+            out_grid[i] = heap[0]
+            size = _heap_pop(heap, size)
+    else:
+        i = int(0)
+        for t in range(n_grid):
+            if out_used[t] != 0:
+                out_grid[i] = t
+                i += 1
+    for i in range(nv):
+        t = out_grid[i]
+        gz = t / f.g1
+        gx = t - gz * f.g1
+        out_pos[i] = wp.vec3(f.rx0 + float(gx) * f.step, f.vh[t] - f.eye_y, f.rz0 + float(gz) * f.step)
+        out_used[t] = i
+    for i in range(3 * count):
+        out_tri[i] = out_used[out_tri[i]]
+    for i in range(nv):
+        out_used[out_grid[i]] = 0
 
 
 @wp.kernel(enable_backward=False)
-def _propagate_kernel(bn: wp.array(dtype=wp.int32),
-                      # outputs
-                      out_split: wp.array(dtype=wp.int32), out_changed: wp.array(dtype=wp.int32)):
-    g = wp.tid() + 1
-    if out_split[g] != 0:
-        n = bn[g]
-        if n >= 0:
-            if out_split[n] == 0:
-                wp.atomic_add(out_changed, 0, 1)
-                out_split[n] = 1
-                a = n
-                while a > 0:
-                    a = (a - 1) / 2
-                    out_split[a] = 1
-
-
-@wp.kernel(enable_backward=False)
-def _leaf_flag_kernel(split: wp.array(dtype=wp.int32), cull: wp.array(dtype=wp.int32),
-                      # outputs
-                      out_flag: wp.array(dtype=wp.int32)):
-    g = wp.tid() + 1
-    f = int(0)
-    if split[(g - 1) / 2] != 0 and split[g] == 0 and cull[g] == 0:
-        f = 1
-    out_flag[g - 1] = f
-
-
-@wp.kernel(enable_backward=False)
-def _leaf_emit_kernel(flag: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
-                      apex: wp.array(dtype=wp.int32), b0: wp.array(dtype=wp.int32), b1: wp.array(dtype=wp.int32),
-                      # outputs
-                      out_node: wp.array(dtype=wp.int32), out_tri: wp.array(dtype=wp.int32),
-                      out_used: wp.array(dtype=wp.int32)):
-    k = wp.tid()
-    if flag[k] != 0:
-        g = k + 1
-        i = start[k]
-        out_node[i] = g
-        out_tri[3 * i + 0] = apex[g]
-        out_tri[3 * i + 1] = b0[g]
-        out_tri[3 * i + 2] = b1[g]
-        out_used[apex[g]] = 1  # idempotent writes: order-independent
-        out_used[b0[g]] = 1
-        out_used[b1[g]] = 1
-
-
-@wp.kernel(enable_backward=False)
-def _vertex_emit_kernel(used: wp.array(dtype=wp.int32), start: wp.array(dtype=wp.int32),
-                        vh: wp.array(dtype=wp.float32), g1: int, rx0: float, rz0: float, step: float, eye_y: float,
-                        # outputs
-                        out_pos: wp.array(dtype=wp.vec3), out_grid: wp.array(dtype=wp.int32)):
-    t = wp.tid()
-    if used[t] != 0:
-        gz = t / g1
-        gx = t - gz * g1
-        i = start[t]
-        out_pos[i] = wp.vec3(rx0 + float(gx) * step, vh[t] - eye_y, rz0 + float(gz) * step)
-        out_grid[i] = t
-
-
-@wp.kernel(enable_backward=False)
-def _remap_kernel(start: wp.array(dtype=wp.int32),
-                  # outputs
-                  out_tri: wp.array(dtype=wp.int32)):
-    i = wp.tid()
-    out_tri[i] = start[out_tri[i]]
+def _walk_kernel(f: _Frame,
+                 # scratch, zero before and after: flags (n_nodes,), cache ((G+1)**2,); any: queue (n_nodes,),
+                 # heap (max(n_nodes, (G+1)**2),), later (n_nodes,)
+                 flags: wp.array(dtype=wp.uint8), cache: wp.array(dtype=wp.uint8), queue: wp.array(dtype=wp.int32),
+                 heap: wp.array(dtype=wp.int32), later: wp.array(dtype=wp.int32),
+                 # outputs (out_used: zero before and after)
+                 out_node: wp.array(dtype=wp.int32), out_tri: wp.array(dtype=wp.int32),
+                 out_used: wp.array(dtype=wp.int32), out_pos: wp.array(dtype=wp.vec3),
+                 out_grid: wp.array(dtype=wp.int32), out_counts: wp.array(dtype=wp.int32)):
+    flags[0] = wp.uint8(_SPLIT | _DECIDED)  # the root square: always split, never culled
+    n_split = _select(f, flags, cache, queue, heap)
+    r = wp.vec2i(0, 0)
+    if f.propagate != 0:
+        r = _propagate(f, flags, heap, n_split, later)
+    e = _emit_leaves(f, flags, queue, out_node, out_tri, out_used, out_grid)
+    _emit_vertices(f, e[0], e[2], heap, out_tri, out_used, out_pos, out_grid)
+    # clean up: every node whose flags or vertex thresholds the walk touched is in queue[:visited]
+    for i in range(e[1]):
+        g = queue[i]
+        flags[g] = wp.uint8(0)
+        cache[f.apex[g]] = wp.uint8(0)
+        cache[f.b0[g]] = wp.uint8(0)
+        cache[f.b1[g]] = wp.uint8(0)
+    flags[0] = wp.uint8(0)
+    out_counts[0] = e[0]
+    out_counts[1] = e[2]
+    out_counts[2] = r[0]
+    out_counts[3] = r[1]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -367,11 +583,90 @@ def build_tree(heights: np.ndarray, origin: tuple[float, float], spacing: tuple[
             "grid": grid}
 
 
+class Walk:
+    """One tree's per-frame selection, for one thread: the buffers of :func:`_walk_kernel` and its
+    launch, recorded once and replayed each frame (allocating a dozen arrays and packing a launch of
+    them each frame took longer than the walk itself). The walk leaves its scratch zeroed again, so no
+    frame depends on the one before (tested); :meth:`__call__` returns copies.
+
+    Args:
+        tree: :func:`build_tree`'s output. depth: its M.
+    """
+
+    def __init__(self, tree: dict, depth: int, device: str = "cpu"):
+        m = int(depth)
+        g1 = int(tree["grid"]) + 1
+        n = (1 << (m + 1)) - 1
+        self.device = wp.get_device(device)
+        f = _Frame()
+        f.apex, f.b0, f.b1, f.bn = tree["apex"], tree["b0"], tree["b1"], tree["base_neighbour"]
+        f.lo, f.hi, f.vh = tree["lo"], tree["hi"], tree["vertex_height"]
+        f.g1, f.max_level = g1, m
+        self.planes = f.planes = wp.zeros(6, dtype=wp.vec4, device=device)
+        self.vis = f.vis = wp.zeros(n, dtype=wp.uint8, device=device)
+        self.frame = f
+        self.scratch = [wp.zeros(n, dtype=wp.uint8, device=device), wp.zeros(g1 * g1, dtype=wp.uint8, device=device),
+                        wp.empty(n, dtype=wp.int32, device=device),
+                        wp.empty(max(n, g1 * g1), dtype=wp.int32, device=device),
+                        wp.empty(n, dtype=wp.int32, device=device)]
+        leaves = 1 << m  # at most: the leaves of a depth-M binary tree
+        self.out = {"node": wp.empty(leaves, dtype=wp.int32, device=device),
+                    "triangles": wp.empty(3 * leaves, dtype=wp.int32, device=device),
+                    "used": wp.zeros(g1 * g1, dtype=wp.int32, device=device),
+                    "positions": wp.empty(g1 * g1, dtype=wp.vec3, device=device),
+                    "grid_id": wp.empty(g1 * g1, dtype=wp.int32, device=device),
+                    "counts": wp.zeros(4, dtype=wp.int32, device=device)}
+        self.launch = wp.launch(_walk_kernel, dim=1, inputs=[f, *self.scratch], outputs=list(self.out.values()),
+                                device=device, record_cmd=True)
+        self._views = None  # on the CPU, numpy views of the arrays: uploads and read-backs skip Warp
+        if self.device.is_cpu:
+            self._views = {k: a.numpy() for k, a in [*self.out.items(), ("planes", self.planes), ("vis", self.vis)]}
+
+    def _upload(self, name: str, a: np.ndarray) -> None:
+        if self._views is not None:
+            self._views[name][...] = a
+        else:
+            getattr(self, name).assign(a)
+
+    def _host(self, name: str, k: int) -> np.ndarray:
+        """A copy of the first k items of output ``name``."""
+        if self._views is not None:
+            return self._views[name][:k].copy()
+        return self.out[name][:k].numpy()
+
+    def __call__(self, rel_origin: tuple[float, float], step: float, eye_y: float, short_side: float, *,
+                 mode: int, hole_fix: bool, propagate: bool, planes: np.ndarray | None,
+                 vis: np.ndarray | None) -> dict:
+        """:func:`select_nodes` for this walk's tree."""
+        f = self.frame
+        f.mode, f.hole_fix, f.propagate = int(mode), int(bool(hole_fix)), int(bool(propagate))
+        f.use_frustum, f.use_vis = int(planes is not None), int(vis is not None)
+        f.rx0, f.rz0, f.step, f.eye_y = float(rel_origin[0]), float(rel_origin[1]), float(step), float(eye_y)
+        f.inv_s = 1.0 / float(short_side)
+        if planes is not None:
+            self._upload("planes", np.asarray(planes, np.float32).reshape(6, 4))
+        if vis is not None:
+            self._upload("vis", vis)
+        self.launch.set_param_at_index(0, f)
+        self.launch.launch()
+        count, nv, forced, iters = (int(v) for v in self._host("counts", 4))
+        return {"node": self._host("node", count), "triangles": self._host("triangles", 3 * count).reshape(-1, 3),
+                "positions": self._host("positions", nv).reshape(-1, 3), "grid_id": self._host("grid_id", nv),
+                "forced": forced, "iterations": iters}
+
+
 def select_nodes(tree: dict, depth: int, rel_origin: tuple[float, float], step: float, eye_y: float,
                  short_side: float, *, mode: int, hole_fix: bool, propagate: bool,
-                 planes: np.ndarray | None, vis: np.ndarray | None, device: str = "cpu") -> dict:
-    """One frame's selection: thresholds, per-level split/cull flags, optional forced splits, the leaves
-    and the compacted mesh.
+                 planes: np.ndarray | None, vis: np.ndarray | None, device: str = "cpu",
+                 walk: Walk | None = None) -> dict:
+    """One frame's selection: split/cull decisions from the root down, optional forced splits, the
+    leaves and the compacted mesh, in one launch.
+
+    The walk is one sequential thread (``dim=1``): it visits only the children of split nodes (some
+    thousand for a ground view of a 65,536-triangle tree) and works out a vertex's threshold when a
+    node first needs it, where level-by-level passes launch once per level over every node. Its output
+    is, bit for bit, that of those passes (kept as the reference in tests/lod/test_bintree.py),
+    forced-split and pass counts included.
 
     Args:
         tree: :func:`build_tree`'s output.
@@ -383,66 +678,14 @@ def select_nodes(tree: dict, depth: int, rel_origin: tuple[float, float], step: 
         propagate: forced split propagation (a split node's base neighbour is split) until stable.
         planes: (6, 4) float32 camera-relative frustum planes, or None for no culling.
         vis: (2**(M+1) - 1,) uint8 per-node visibility (0 = hidden: culled with its subtree), or None.
+        walk: a :class:`Walk` of this tree to reuse (one per thread); None makes one for this call.
 
     Returns:
-        dict: ``node`` (m,) int32 heap index per triangle; ``positions`` (n, 3) float32 camera-relative;
-        ``triangles`` (m, 3) int32 ccw from above; ``grid_id`` (n,) int32 grid vertex id per vertex;
-        ``forced`` number of forced splits; ``iterations`` of the propagation.
+        dict: ``node`` (m,) int32 heap index per triangle, ascending; ``positions`` (n, 3) float32
+        camera-relative; ``triangles`` (m, 3) int32 ccw from above; ``grid_id`` (n,) int32 grid vertex id
+        per vertex, ascending; ``forced`` number of forced splits; ``iterations``: propagation passes (the
+        last one changes nothing; 0 without propagation).
     """
-    m = int(depth)
-    g1 = tree["grid"] + 1
-    n = (1 << (m + 1)) - 1
-    rx0, rz0 = float(rel_origin[0]), float(rel_origin[1])
-    vt = wp.empty(g1 * g1, dtype=wp.int32, device=device)
-    wp.launch(_threshold_kernel, dim=g1 * g1,
-              inputs=[tree["vertex_height"], g1, rx0, rz0, float(step), float(eye_y), m, 1.0 / float(short_side)],
-              outputs=[vt], device=device)
-    split = wp.zeros(n, dtype=wp.int32, device=device)
-    cull = wp.zeros(n, dtype=wp.int32, device=device)
-    split.fill_(0)
-    wp.copy(split, wp.array([1], dtype=wp.int32, device=device), 0, 0, 1)  # the root square is always split
-    pl = wp.array(planes if planes is not None else np.zeros((6, 4), np.float32), dtype=wp.vec4, device=device)
-    va = wp.array(vis if vis is not None else np.zeros(1, np.uint8), dtype=wp.uint8, device=device)
-    for level in range(1, m + 1):
-        wp.launch(_select_level_kernel, dim=1 << level,
-                  inputs=[(1 << level) - 1, level, m, int(mode), int(bool(hole_fix)), g1, rx0, rz0, float(step),
-                          float(eye_y), tree["apex"], tree["b0"], tree["b1"], vt, tree["lo"], tree["hi"], pl,
-                          int(planes is not None), va, int(vis is not None)],
-                  outputs=[split, cull], device=device)
-    forced = 0
-    iters = 0
-    if propagate:
-        changed = wp.zeros(1, dtype=wp.int32, device=device)
-        while True:
-            changed.zero_()
-            wp.launch(_propagate_kernel, dim=n - 1, inputs=[tree["base_neighbour"]], outputs=[split, changed],
-                      device=device)
-            iters += 1
-            c = int(changed.numpy()[0])
-            forced += c
-            if c == 0:
-                break
-    flag = wp.empty(n - 1, dtype=wp.int32, device=device)
-    wp.launch(_leaf_flag_kernel, dim=n - 1, inputs=[split, cull], outputs=[flag], device=device)
-    start = wp.empty_like(flag)
-    wp.utils.array_scan(flag, start, inclusive=False)
-    fl, st = flag.numpy(), start.numpy()
-    count = int(st[-1] + fl[-1])
-    node = wp.empty(max(count, 1), dtype=wp.int32, device=device)
-    tri = wp.empty(max(3 * count, 1), dtype=wp.int32, device=device)
-    used = wp.zeros(g1 * g1, dtype=wp.int32, device=device)
-    wp.launch(_leaf_emit_kernel, dim=n - 1, inputs=[flag, start, tree["apex"], tree["b0"], tree["b1"]],
-              outputs=[node, tri, used], device=device)
-    vstart = wp.empty_like(used)
-    wp.utils.array_scan(used, vstart, inclusive=False)
-    nv = int(vstart.numpy()[-1] + used.numpy()[-1])
-    pos = wp.empty(max(nv, 1), dtype=wp.vec3, device=device)
-    gid = wp.empty(max(nv, 1), dtype=wp.int32, device=device)
-    wp.launch(_vertex_emit_kernel, dim=g1 * g1,
-              inputs=[used, vstart, tree["vertex_height"], g1, rx0, rz0, float(step), float(eye_y)],
-              outputs=[pos, gid], device=device)
-    if count:
-        wp.launch(_remap_kernel, dim=3 * count, inputs=[vstart], outputs=[tri], device=device)
-    return {"node": node.numpy()[:count], "triangles": tri.numpy()[:3 * count].reshape(-1, 3),
-            "positions": pos.numpy()[:nv].reshape(-1, 3), "grid_id": gid.numpy()[:nv], "forced": forced,
-            "iterations": iters}
+    w = walk if walk is not None else Walk(tree, depth, device)
+    return w(rel_origin, step, eye_y, short_side, mode=mode, hole_fix=hole_fix, propagate=propagate, planes=planes,
+             vis=vis)

@@ -26,8 +26,9 @@ float32: vertex positions are camera-relative (root corner minus eye in float64 
 from __future__ import annotations
 
 import math
+import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
 
 import numpy as np
@@ -78,6 +79,15 @@ class Bintree:
     arrays: dict
     build_s: float
     device: str = "cpu"
+    _walks: threading.local = field(default_factory=threading.local, init=False, repr=False)
+
+    def _walk(self) -> _k.Walk:
+        """This thread's selection walk of the tree (its buffers and recorded launch, made on first use and
+        reused every frame; one per thread, so threads may select on one tree at once)."""
+        w = getattr(self._walks, "walk", None)
+        if w is None:
+            w = self._walks.walk = _k.Walk(self.arrays, self.depth, self.device)
+        return w
 
     @classmethod
     def build(cls, heightmap: Heightmap, depth: int | None = None, method: str = "nearest3",
@@ -254,18 +264,19 @@ def select_bintree(tree: Bintree, camera: Camera, *, lod: bool = True, hole_fix:
         planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
     r = _k.select_nodes(tree.arrays, tree.depth, relative_origin(tree.origin, eye)[::2], tree.step,
                         float(eye[1]), tree.short_side, mode=int(bool(lod)), hole_fix=bool(hole_fix and lod),
-                        propagate=bool(propagate and lod), planes=planes, vis=vis, device=tree.device)
+                        propagate=bool(propagate and lod), planes=planes, vis=vis, device=tree.device,
+                        walk=tree._walk())
     dt = time.perf_counter() - t0
-    node = r["node"].astype(np.int32)
+    node = r["node"].astype(np.int32, copy=False)
     level = (np.floor(np.log2(node.astype(np.float64) + 1.0))).astype(np.int32)
-    pos = r["positions"].astype(np.float32)
-    gid = r["grid_id"].astype(np.int32)
+    pos = r["positions"].astype(np.float32, copy=False)
+    gid = r["grid_id"].astype(np.int32, copy=False)
     g = tree.vertex_grid_xz(gid).astype(np.float64)
     (hx0, hz0), (hx1, hz1) = tree.heightmap.bounds_xz
     ex, ez = hx1 - hx0, hz1 - hz0  # one of them is 0 for a single row or column: u or v is then 0
     uv = np.stack([(tree.origin[0] + g[:, 0] * tree.step - hx0) / ex if ex > 0 else 0.0 * g[:, 0],
                    (tree.origin[1] + g[:, 1] * tree.step - hz0) / ez if ez > 0 else 0.0 * g[:, 1]], axis=1)
-    mesh = Mesh(positions=pos, eye=tuple(float(v) for v in eye), triangles=r["triangles"].astype(np.int32),
+    mesh = Mesh(positions=pos, eye=tuple(float(v) for v in eye), triangles=r["triangles"].astype(np.int32, copy=False),
                 uv=uv.astype(np.float32).reshape(-1, 2), level=np.zeros(len(pos), np.int32),
                 patch_id=np.zeros(len(pos), np.int32))
     stats = {"triangles": int(len(node)), "forced_splits": int(r["forced"]),

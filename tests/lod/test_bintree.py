@@ -4,12 +4,16 @@ formula, the paper's hole fixing (and its counter-example), forced split propaga
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+import warp as wp
 from conftest import digest
 
 import terrainwarp as tw
+from terrainwarp.camera import relative_origin
+from terrainwarp.kernels.lod import frustum_planes
 from terrainwarp.lod.bintree import Bintree, lod_threshold, select_bintree
 
 
@@ -356,3 +360,221 @@ def test_devices_agree(device):
     a, b = select_bintree(cpu, cam), select_bintree(other, cam)
     assert np.array_equal(a.node, b.node) and np.array_equal(a.mesh.triangles, b.mesh.triangles)
     np.testing.assert_allclose(a.mesh.positions, b.mesh.positions, rtol=0, atol=1e-3)
+
+
+# -- the one-launch walk against the per-level passes it replaced ---------------------------------
+# The selection used to be one launch per level (split/cull flags of every node), then forced-split
+# passes over every node until one changed nothing. Those kernels are kept here, as they were, as the
+# reference: the walk must give the same triangles, vertices (bit for bit), forced-split and pass counts.
+@wp.kernel(enable_backward=False)
+def _ref_threshold_kernel(vh: wp.array(dtype=wp.float32), g1: int, rx0: float, rz0: float, step: float,
+                          eye_y: float, max_level: int, inv_s: float,
+                          # outputs
+                          out_t: wp.array(dtype=wp.int32)):
+    t = wp.tid()
+    gz = t / g1
+    gx = t - gz * g1
+    d = wp.length(wp.vec3(rx0 + float(gx) * step, vh[t] - eye_y, rz0 + float(gz) * step))
+    r = max_level
+    x = d * inv_s
+    if x > 1.0:
+        r = int(wp.ceil(float(max_level) - wp.log2(x)))
+    out_t[t] = wp.clamp(r, 1, max_level)
+
+
+@wp.kernel(enable_backward=False)
+def _ref_select_level_kernel(off: int, level: int, max_level: int, mode: int, hole_fix: int, g1: int,
+                             rx0: float, rz0: float, step: float, eye_y: float,
+                             apex: wp.array(dtype=wp.int32), b0: wp.array(dtype=wp.int32),
+                             b1: wp.array(dtype=wp.int32), vt: wp.array(dtype=wp.int32),
+                             lo: wp.array(dtype=wp.float32), hi: wp.array(dtype=wp.float32),
+                             planes: wp.array(dtype=wp.vec4), use_frustum: int, vis: wp.array(dtype=wp.uint8),
+                             use_vis: int,
+                             # outputs (parents read, this level written)
+                             out_split: wp.array(dtype=wp.int32), out_cull: wp.array(dtype=wp.int32)):
+    g = off + wp.tid()
+    par = (g - 1) / 2
+    c = out_cull[par]
+    a = apex[g]
+    p = b0[g]
+    q = b1[g]
+    if c == 0 and use_frustum != 0:
+        az = a / g1
+        pz = p / g1
+        qz = q / g1
+        ax = a - az * g1
+        px = p - pz * g1
+        qx = q - qz * g1
+        xmin = rx0 + float(wp.min(ax, wp.min(px, qx))) * step
+        xmax = rx0 + float(wp.max(ax, wp.max(px, qx))) * step
+        zmin = rz0 + float(wp.min(az, wp.min(pz, qz))) * step
+        zmax = rz0 + float(wp.max(az, wp.max(pz, qz))) * step
+        ymin = lo[g] - eye_y
+        ymax = hi[g] - eye_y
+        for i in range(6):
+            pl = planes[i]
+            vx = wp.where(pl[0] > 0.0, xmax, xmin)
+            vy = wp.where(pl[1] > 0.0, ymax, ymin)
+            vz = wp.where(pl[2] > 0.0, zmax, zmin)
+            if pl[0] * vx + pl[1] * vy + pl[2] * vz + pl[3] < 0.0:
+                c = 1
+    if c == 0 and use_vis != 0:
+        if vis[g] == wp.uint8(0):
+            c = 1
+    out_cull[g] = c
+    s = int(0)  # noqa: UP018 (a Warp local assigned in branches)
+    if out_split[par] != 0 and c == 0 and level < max_level:
+        if mode == 0:
+            s = 1
+        else:
+            ta = vt[a]
+            t0 = vt[p]
+            t1 = vt[q]
+            tmin = wp.min(ta, wp.min(t0, t1))
+            if level < tmin:
+                s = 1
+            elif hole_fix != 0 and ta < t0 and ta < t1:
+                s = 1
+    out_split[g] = s
+
+
+@wp.kernel(enable_backward=False)
+def _ref_propagate_kernel(bn: wp.array(dtype=wp.int32),
+                          # outputs
+                          out_split: wp.array(dtype=wp.int32), out_changed: wp.array(dtype=wp.int32)):
+    g = wp.tid() + 1  # one CPU launch runs its indices in order: a pass in heap order
+    if out_split[g] != 0:
+        n = bn[g]
+        if n >= 0:
+            if out_split[n] == 0:
+                wp.atomic_add(out_changed, 0, 1)
+                out_split[n] = 1
+                a = n
+                while a > 0:
+                    a = (a - 1) / 2
+                    out_split[a] = 1
+
+
+@wp.kernel(enable_backward=False)
+def _ref_vertex_kernel(ids: wp.array(dtype=wp.int32), vh: wp.array(dtype=wp.float32), g1: int, rx0: float,
+                       rz0: float, step: float, eye_y: float,
+                       # outputs
+                       out_pos: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    t = ids[i]
+    gz = t / g1
+    gx = t - gz * g1
+    out_pos[i] = wp.vec3(rx0 + float(gx) * step, vh[t] - eye_y, rz0 + float(gz) * step)
+
+
+def _reference_select(tree: Bintree, cam, *, lod: bool = True, hole_fix: bool = True, propagate: bool = True,
+                      frustum: bool = True, vis: np.ndarray | None = None) -> dict:
+    """The per-level selection (dense flags over all 2**(M+1) - 1 nodes), leaves and vertex compaction in
+    numpy; ``select_bintree``'s arguments."""
+    arr, m, g1, n = tree.arrays, tree.depth, tree.grid + 1, tree.n_nodes
+    eye = np.asarray(cam.position, np.float64)
+    rx0, eye_y, rz0 = relative_origin(tree.origin, eye)
+    planes = frustum_planes(cam.proj_matrix() @ cam.view_matrix(relative=True)) if frustum else None
+    vt = wp.empty(g1 * g1, dtype=wp.int32)
+    wp.launch(_ref_threshold_kernel, dim=g1 * g1, inputs=[arr["vertex_height"], g1, rx0, rz0, tree.step, eye_y, m,
+                                                          1.0 / tree.short_side], outputs=[vt])
+    split = wp.array(np.r_[1, np.zeros(n - 1)].astype(np.int32), dtype=wp.int32)  # the root is split
+    cull = wp.zeros(n, dtype=wp.int32)
+    pl = wp.array(planes if planes is not None else np.zeros((6, 4), np.float32), dtype=wp.vec4)
+    va = wp.array(vis if vis is not None else np.zeros(1, np.uint8), dtype=wp.uint8)
+    for level in range(1, m + 1):
+        wp.launch(_ref_select_level_kernel, dim=1 << level,
+                  inputs=[(1 << level) - 1, level, m, int(lod), int(hole_fix and lod), g1, rx0, rz0, tree.step, eye_y,
+                          arr["apex"], arr["b0"], arr["b1"], vt, arr["lo"], arr["hi"], pl, int(frustum), va,
+                          int(vis is not None)], outputs=[split, cull])
+    forced = passes = 0
+    while propagate and lod:
+        changed = wp.zeros(1, dtype=wp.int32)
+        wp.launch(_ref_propagate_kernel, dim=n - 1, inputs=[arr["base_neighbour"]], outputs=[split, changed])
+        passes += 1
+        forced += int(changed.numpy()[0])
+        if changed.numpy()[0] == 0:
+            break
+    s, c = split.numpy(), cull.numpy()
+    g = np.arange(1, n)
+    node = g[(s[(g - 1) // 2] != 0) & (s[g] == 0) & (c[g] == 0)]  # leaves, in heap order
+    gid, inv = np.unique(tree.node_vertices(node), return_inverse=True)
+    pos = wp.empty(max(len(gid), 1), dtype=wp.vec3)
+    wp.launch(_ref_vertex_kernel, dim=len(gid), inputs=[wp.array(gid.astype(np.int32), dtype=wp.int32),
+                                                        arr["vertex_height"], g1, rx0, rz0, tree.step, eye_y],
+              outputs=[pos])
+    return {"node": node.astype(np.int32), "triangles": inv.reshape(-1, 3).astype(np.int32),
+            "grid_id": gid.astype(np.int32), "positions": pos.numpy()[:len(gid)], "forced": forced,
+            "iterations": passes}
+
+
+def _assert_same_as_reference(tree: Bintree, frame, ref: dict) -> None:
+    assert np.array_equal(frame.node, ref["node"])
+    assert np.array_equal(frame.mesh.triangles, ref["triangles"])
+    assert np.array_equal(frame.grid_id, ref["grid_id"])
+    assert np.array_equal(frame.mesh.positions.view(np.uint32), ref["positions"].view(np.uint32))  # bit for bit
+    assert (frame.stats["forced_splits"], frame.stats["propagation_iterations"]) == (ref["forced"],
+                                                                                   ref["iterations"])
+    assert np.array_equal(frame.level, np.floor(np.log2(ref["node"] + 1.0)).astype(np.int32))
+
+
+_OPTIONS = {"lod": {}, "brute": {"lod": False}, "no_fix": {"hole_fix": False, "propagate": False},
+            "paper_fix": {"propagate": False}, "no_frustum": {"frustum": False},
+            "everything": {"lod": False, "frustum": False}}
+
+
+@pytest.mark.parametrize("name", ["fbm", "dem"])
+def test_walk_matches_the_per_level_reference(name, fbm_tree, dem_tree):
+    t = fbm_tree if name == "fbm" else dem_tree
+    vis = (np.random.default_rng(5).random(t.n_nodes) < 0.9).astype(np.uint8)  # hides ~10% of subtrees
+    g1 = t.grid + 1
+    for cam in _ground_path(t, 3):
+        for kw in _OPTIONS.values():
+            f = select_bintree(t, cam, **kw)
+            _assert_same_as_reference(t, f, _reference_select(t, cam, **kw))
+        f = select_bintree(t, cam, visibility=vis)
+        ref = _reference_select(t, cam, vis=vis)
+        _assert_same_as_reference(t, f, ref)
+        assert 32 * f.mesh.n_vertices < g1 * g1  # the LOD frame's vertices are sorted (few) ...
+    assert 32 * select_bintree(t, cam, lod=False, frustum=False).mesh.n_vertices >= g1 * g1  # ... all: scanned
+
+
+def test_walk_matches_the_reference_where_propagation_cascades():
+    """Rough terrain (white noise, 300 m over 10 m spacing): forced splits cascade over several passes,
+    with base neighbours both ahead of and behind the node that forces them, so the walk's pass count
+    follows the sequential passes'."""
+    a = np.random.default_rng(0).random((65, 65)).astype(np.float32) * 300
+    t = Bintree.build(tw.Heightmap.from_array(a, 10.0), 12)
+    most = 0
+    for x, z in [(407.65547988573076, 172.663496808877), (100.0, 500.0), (320.0, 320.0), (600.0, 40.0)]:
+        y = float(t.surface_height(x, z)) + 1.8
+        cam = tw.Camera(position=(x, y, z), target=(x + 1, y, z))
+        for kw in ({}, {"frustum": False}, {"hole_fix": False}):
+            ref = _reference_select(t, cam, **kw)
+            _assert_same_as_reference(t, select_bintree(t, cam, **kw), ref)
+            most = max(most, ref["iterations"])
+    assert most >= 3  # cascades of forced splits over more than one changing pass: the case is exercised
+
+
+def test_selection_does_not_depend_on_earlier_frames_or_threads(fbm_tree):
+    """The walk reuses its buffers frame after frame (one set per thread): a frame is the same first,
+    after others of every kind, on a fresh tree, and from threads selecting at once."""
+    t = fbm_tree
+    cams = _ground_path(t, 4)
+    vis = (np.random.default_rng(6).random(t.n_nodes) < 0.8).astype(np.uint8)
+
+    def run(cam) -> list[str]:
+        out = []
+        for kw in [*_OPTIONS.values(), {"visibility": vis}]:
+            f = select_bintree(t, cam, **kw)
+            out.append(digest(f.mesh.positions, f.mesh.triangles, f.node, f.grid_id,
+                              np.array([f.stats["forced_splits"], f.stats["propagation_iterations"]])))
+        return out
+
+    first = [run(cam) for cam in cams]
+    assert [run(cam) for cam in reversed(cams)] == first[::-1]
+    fresh = Bintree.build(t.heightmap, t.depth)
+    f, g = select_bintree(fresh, cams[2]), select_bintree(t, cams[2])
+    assert np.array_equal(f.node, g.node) and np.array_equal(f.mesh.positions, g.mesh.positions)
+    with ThreadPoolExecutor(4) as ex:
+        assert list(ex.map(run, cams * 2)) == first * 2
