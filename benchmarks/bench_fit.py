@@ -87,11 +87,13 @@ def main() -> None:
                         "grid tris", "cost vs grid", "fit evals", "grid evals", "evals ratio", "mesh-only", "targets",
                         "fit s", "grid s"], rows))
     print(body)
+    # results/fit[_fbmN][_WxH].md: the 1080p table and the cheaper 640x360 one side by side
+    res = "" if (w, h) == (1920, 1080) else f"_{w}x{h}"
     if a.fbm:
-        write_result(f"fit_fbm{a.fbm}", f"Fit against grid search on a {a.fbm}^2 fBm (bench_fit.py --fbm {a.fbm})",
-                     body)
+        write_result(f"fit_fbm{a.fbm}{res}", f"Fit against grid search on a {a.fbm}^2 fBm at {w}x{h} "
+                     f"(bench_fit.py --fbm {a.fbm})", body)
     else:
-        write_result("fit", "Fit against grid search (bench_fit.py)", body)
+        write_result(f"fit{res}", f"Fit against grid search on the DEM at {w}x{h} (bench_fit.py)", body)
 
 
 if __name__ == "__main__":
