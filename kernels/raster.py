@@ -30,8 +30,9 @@ through EGL in tests/test_raster.py, with the same clip-space vertices):
    binned into TILE x TILE screen tiles (count -> scan -> emit) and drawn tile by tile, each tile
    touched only by triangles whose edges do not exclude it.
 
-Resolve: the key decodes to the triangle id and depth; perspective-correct barycentrics of each pixel
-centre on the original (unclipped) triangle come from its clip-space vertices: with
+Resolve: the key decodes to the triangle id and depth, in the screen tiles the drawing kernels flagged
+(where they wrote a key; the rest of the image is background, a host fill); perspective-correct
+barycentrics of each pixel centre on the original (unclipped) triangle come from its clip-space vertices: with
 ``a_i = x_i - px*w_i`` and ``c_i = y_i - py*w_i`` (px, py the centre in NDC) they are
 ``cross(a, c) / sum(cross(a, c))``, exact for clipped triangles too. :func:`interpolate_warp` is the
 same computation as a differentiable kernel (gradients to clip positions and attributes).
@@ -39,12 +40,13 @@ same computation as a differentiable kernel (gradients to clip positions and att
 Output images have row 0 at the top (window y is flipped once, here).
 """
 
+import sys
 import threading
 
 import numpy as np
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_u64, empty, launch, max_parts
+from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 
 SUBPIXEL_BITS = 8
@@ -145,6 +147,28 @@ def _setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, gb: w
     fys = vec9f()
     zs = vec9f()
     n = int(0)  # noqa: UP018 -- a mutable Warp int
+    if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb) and c0[3] > 0.0 and c1[3] > 0.0 and c2[3] > 0.0:
+        # nothing to reject or clip (most triangles): what the polygon path below gives for them, without the
+        # polygon arrays (the tile kernel sets a large triangle up again for every tile it is binned to)
+        n = 3
+        hw3 = 0.5 * float(width)
+        hh3 = 0.5 * float(height)
+        fa = _window(c0, hw3, hh3)
+        fb = _window(c1, hw3, hh3)
+        fc = _window(c2, hw3, hh3)
+        fxs[0] = fa[0]
+        fxs[1] = fb[0]
+        fxs[2] = fc[0]
+        fys[0] = fa[1]
+        fys[1] = fb[1]
+        fys[2] = fc[1]
+        zs[0] = fa[2]
+        zs[1] = fb[2]
+        zs[2] = fc[2]
+        for k in range(3):
+            xs[k] = _snap(fxs[k])
+            ys[k] = _snap(fys[k])
+        return n, xs, ys, fxs, fys, zs
     reject = wp.bool(False)
     if c0[0] > c0[3] and c1[0] > c1[3] and c2[0] > c2[3]:
         reject = True
@@ -400,15 +424,13 @@ def _raster_poly(n: int, xs: vec9l, ys: vec9l, fxs: vec9f, fys: vec9f, zs: vec9f
 
 
 @wp.func
-def _note_rows(out_stats: wp.array2d(dtype=wp.int64), part: int, height: int, py0: int, py1: int):
-    """Widen this chunk's band of image rows that may hold drawn keys by window rows [py0, py1]:
-    column 8 holds max(height - top row), column 9 max(bottom row + 1), both 0 when nothing was drawn."""
-    a = wp.clamp(py0, 0, height - 1)
-    b = wp.clamp(py1, 0, height - 1)
-    if a <= b:
-        # one writer per row on the CPU (a chunk), every thread of the launch on CUDA: Warp's atomic max
-        wp.atomic_max(out_stats, part, 8, wp.int64(b + 1))  # height - top row (top = height - 1 - b)
-        wp.atomic_max(out_stats, part, 9, wp.int64(height - a))  # bottom row + 1
+def _mark_tiles(out_dirty: wp.array(dtype=wp.int32), tiles_x: int, r: wp.vec4i):
+    """Flag the screen tiles of pixel rectangle r = (x0, x1, y0, y1) (inside the viewport) as holding
+    drawn keys: the resolve and the barycentrics visit only flagged tiles, so a caller flags every
+    rectangle in which it wrote a key (a plain store of 1: concurrent writers all store the same)."""
+    for ty in range(r[2] / TILE, r[3] / TILE + 1):
+        for tx in range(r[0] / TILE, r[1] / TILE + 1):
+            out_dirty[ty * tiles_x + tx] = 1
 
 
 @wp.func
@@ -494,12 +516,14 @@ def _small_count_kernel(
     tiles_x: int,
     # outputs
     out_key: wp.array(dtype=wp.uint64),
+    out_dirty: wp.array(dtype=wp.int32),
     out_big: wp.array(dtype=wp.int32),
     out_tile_count: wp.array(dtype=wp.int32),
     out_stats: wp.array2d(dtype=wp.int64),
 ):
     """Per triangle: set up; draw it at once when its pixel box spans at most SMALL_PX pixels each
-    way, else count the screen tiles it may cover (out_big[t] = 1). Counters go to row ``part``."""
+    way, else count the screen tiles it may cover (out_big[t] = 1). Counters go to row ``part``; the
+    tiles where a key was written are flagged in ``out_dirty``."""
     t = wp.tid() + offset
     out_big[t] = 0
     c0 = clip[tris[t, 0]]
@@ -539,7 +563,10 @@ def _small_count_kernel(
         if xmax - xmin < wp.int64((SMALL_PX - 1) * SUBPIXEL) and ymax - ymin < wp.int64((SMALL_PX - 1) * SUBPIXEL):
             c = _raster_tri(ax, ay, bx, by, cx, cy, fa, fb, fc, t, wp.vec4i(0, width - 1, 0, height - 1),
                             width, height, out_key)
-            _note_rows(out_stats, part, height, _pixel_lo(ymin), _pixel_hi(ymax))
+            if c[2] > wp.int64(0):  # a key written: somewhere in the triangle's pixel box
+                box = wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
+                               wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
+                _mark_tiles(out_dirty, tiles_x, box)
             if c[0] > wp.int64(0):
                 wp.atomic_add(out_stats, part, 0, wp.int64(1))
                 wp.atomic_add(out_stats, part, 1, c[0])
@@ -554,7 +581,8 @@ def _small_count_kernel(
         return
     if box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX:
         acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key)
-        _note_rows(out_stats, part, height, box[2], box[3])
+        if acc[3] > wp.int64(0):
+            _mark_tiles(out_dirty, tiles_x, box)
         if acc[0] > wp.int64(0):
             wp.atomic_add(out_stats, part, 0, wp.int64(1))
             wp.atomic_add(out_stats, part, 1, acc[1])
@@ -624,9 +652,11 @@ def _tile_kernel(
     tri_list: wp.array(dtype=wp.int32),
     # outputs
     out_key: wp.array(dtype=wp.uint64),
+    out_dirty: wp.array(dtype=wp.int32),
     out_stats: wp.array2d(dtype=wp.int64),
 ):
-    """Per screen tile: draw the large triangles binned to it, clipped to the tile."""
+    """Per screen tile: draw the large triangles binned to it, clipped to the tile; flag it in
+    ``out_dirty`` when a key was written."""
     tile = wp.tid() + offset
     ty = tile / tiles_x
     tx = tile - ty * tiles_x
@@ -640,8 +670,9 @@ def _tile_kernel(
         c2 = clip[tris[t, 2]]
         n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
         acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key)
+    if acc[3] > wp.int64(0):
+        out_dirty[tile] = 1
     if tile_count[tile] > 0:
-        _note_rows(out_stats, part, height, r[2], r[3])
         wp.atomic_add(out_stats, part, 1, acc[1])
         wp.atomic_add(out_stats, part, 2, acc[2])
         wp.atomic_add(out_stats, part, 3, acc[3])
@@ -651,67 +682,95 @@ def _tile_kernel(
 def _resolve_ids_kernel(
     offset: int,
     part: int,
-    row0: int,
+    bands: wp.array(dtype=wp.int32),
+    dirty: wp.array(dtype=wp.int32),
     width: int,
+    height: int,
     # outputs
     out_key: wp.array(dtype=wp.uint64),
     out_id: wp.array(dtype=wp.int32),
     out_depth: wp.array(dtype=wp.float32),
     out_covered: wp.array(dtype=wp.int64),
 ):
-    """Decode the depth|id keys of one image row (from row ``row0`` on): triangle id (-1 background) and
-    window depth (1 background); each drawn key is set back to empty (the others are), so the buffer is
-    clear for the next frame. A thread per row (a 2-D launch costs ~5 ns a pixel in index arithmetic on
-    the CPU); covered pixels are counted into ``out_covered[part]``."""
-    p0 = (wp.tid() + offset + row0) * width
+    """Decode the depth|id keys of the flagged screen tiles (``dirty``) of one band of TILE window rows
+    (``bands``: those with a flagged tile) into the triangle id and window depth of each drawn pixel, and set
+    the key back to empty: unflagged tiles hold no drawn key, so the buffer is then clear for the next
+    frame. Row by row (memory order); background pixels are not written (the images start filled with
+    -1 and 1.0). Covered pixels are counted into ``out_covered[part]``."""
+    ty = bands[wp.tid() + offset]
+    tiles_x = (width + TILE - 1) / TILE
     covered = wp.int64(0)
-    for q in range(width):
-        p = p0 + q
-        k = out_key[p]
-        if k == wp.uint64(0xFFFFFFFFFFFFFFFF):
-            out_id[p] = -1
-            out_depth[p] = 1.0
-        else:
-            out_key[p] = wp.uint64(0xFFFFFFFFFFFFFFFF)
-            out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
-            out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
-            covered += wp.int64(1)
+    for y in range(ty * TILE, wp.min(ty * TILE + TILE, height)):
+        p0 = (height - 1 - y) * width
+        for tx in range(tiles_x):
+            if dirty[ty * tiles_x + tx] != 0:
+                for x in range(tx * TILE, wp.min(tx * TILE + TILE, width)):
+                    p = p0 + x
+                    k = out_key[p]
+                    if k != wp.uint64(0xFFFFFFFFFFFFFFFF):
+                        out_key[p] = wp.uint64(0xFFFFFFFFFFFFFFFF)
+                        out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
+                        out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
+                        covered += wp.int64(1)
     wp.atomic_add(out_covered, part, covered)  # one writer per part on the CPU; a true atomic on CUDA
+
+
+@wp.kernel(enable_backward=False)
+def _ndc_x_kernel(
+    offset: int,
+    width: int,
+    # outputs
+    out_x: wp.array(dtype=float),
+):
+    """NDC x of the centre of each image column: pixel_ndc's own arithmetic, once per column."""
+    j = wp.tid() + offset
+    out_x[j] = pixel_ndc(0, j, 1, width)[0]
 
 
 @wp.kernel(enable_backward=False)
 def _barycentrics_kernel(
     offset: int,
-    row0: int,
+    bands: wp.array(dtype=wp.int32),
+    dirty: wp.array(dtype=wp.int32),
+    ndc_x: wp.array(dtype=float),
     tri_id: wp.array2d(dtype=wp.int32),
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     # outputs
     out_bary: wp.array2d(dtype=wp.vec2),
 ):
-    """Perspective-correct barycentrics (b0, b1) of each covered pixel centre on its visible triangle, a
-    thread per image row from row ``row0`` on; background pixels are not written (the output starts as
-    zeros). The triangle's clip vertices are fetched again only when the id changes along the row."""
-    i = wp.tid() + offset + row0
+    """Perspective-correct barycentrics (b0, b1) of each covered pixel centre on its visible triangle, over
+    the flagged screen tiles (``dirty``, the only ones with covered pixels) of one band of TILE window rows
+    (``bands``), row by row; background pixels are not written (the output starts as zeros). The
+    triangle's clip vertices are fetched again only when the id changes along a row; the centre's NDC
+    (pixel_ndc, whose x and y do not depend on each other) comes from ``ndc_x`` and once per row: its two
+    divisions were ~40% of the kernel."""
     hh = tri_id.shape[0]
     ww = tri_id.shape[1]
-    last = int(-1)  # noqa: UP018 -- a mutable Warp int
+    ty = bands[wp.tid() + offset]
+    tiles_x = (ww + TILE - 1) / TILE
     c0 = wp.vec4()
     c1 = wp.vec4()
     c2 = wp.vec4()
-    for j in range(ww):
-        t = tri_id[i, j]
-        if t >= 0:
-            if t != last:
-                c0 = clip[tris[t, 0]]
-                c1 = clip[tris[t, 1]]
-                c2 = clip[tris[t, 2]]
-                last = t
-            b = clip_barycentrics(c0, c1, c2, pixel_ndc(i, j, hh, ww))
-            if wp.isfinite(b):
-                out_bary[i, j] = wp.vec2(b[0], b[1])
-            else:  # a triangle seen edge-on through this centre (not drawn by the coverage test in practice)
-                out_bary[i, j] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
+    for y in range(ty * TILE, wp.min(ty * TILE + TILE, hh)):
+        i = hh - 1 - y
+        py = pixel_ndc(i, 0, hh, ww)[1]
+        last = int(-1)  # noqa: UP018 -- a mutable Warp int
+        for tx in range(tiles_x):
+            if dirty[ty * tiles_x + tx] != 0:
+                for j in range(tx * TILE, wp.min(tx * TILE + TILE, ww)):
+                    t = tri_id[i, j]
+                    if t >= 0:
+                        if t != last:
+                            c0 = clip[tris[t, 0]]
+                            c1 = clip[tris[t, 1]]
+                            c2 = clip[tris[t, 2]]
+                            last = t
+                        b = clip_barycentrics(c0, c1, c2, wp.vec2(ndc_x[j], py))
+                        if wp.isfinite(b):
+                            out_bary[i, j] = wp.vec2(b[0], b[1])
+                        else:  # a triangle seen edge-on through this centre (not drawn by the coverage test)
+                            out_bary[i, j] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
 
 
 @wp.kernel
@@ -766,10 +825,10 @@ class Fragments:
     Iterating yields (triangle_id, depth, barycentrics, stats), as the earlier NamedTuple did.
     """
 
-    __slots__ = ("triangle_id", "depth", "stats", "_bary", "_clip", "_tris", "_device", "_ids", "_rows")
+    __slots__ = ("triangle_id", "depth", "stats", "_bary", "_clip", "_tris", "_device", "_ids", "_rows", "_tiles")
 
     def __init__(self, triangle_id, depth, barycentrics, stats, *, clip=None, tris=None, device="cpu", ids=None,
-                 rows=None):
+                 rows=None, tiles=None):
         self.triangle_id = triangle_id
         self.depth = depth
         self.stats = stats
@@ -777,22 +836,25 @@ class Fragments:
         self._clip, self._tris, self._device = clip, tris, device
         self._ids = ids  # the triangle ids as a device array (on the CPU: triangle_id's own memory)
         self._rows = rows  # image rows [top, bottom) outside which every pixel is background
+        self._tiles = tiles  # int32 flag per screen tile (window order), 0: every pixel in it is background
 
     @property
     def barycentrics(self) -> np.ndarray:
         if self._bary is None:
             hh, ww = self.triangle_id.shape
-            top, bottom = (0, hh) if self._rows is None else self._rows
+            dirty = _band_tiles(ww, hh, self._rows) if self._tiles is None else self._tiles
+            bands = _bands(dirty, ww)
             ids = self._ids
             if ids is None or ids.device.is_cuda:  # the host image, as the caller may have changed it
                 ids = wp.array(self.triangle_id, dtype=wp.int32, device=self._device)
-            # zeros (the background), written only where covered: on the CPU numpy's calloc, whose pages
-            # the kernel never touches stay the kernel's zero pages
-            out = wp.zeros((hh, ww), dtype=wp.vec2, device=self._device) if wp.get_device(self._device).is_cuda \
-                else wp.array(np.zeros((hh, ww, 2), np.float32), dtype=wp.vec2, device=self._device, copy=False)
-            if bottom > top:
-                launch(_barycentrics_kernel, bottom - top, [top, ids.reshape((hh, ww)), self._clip, self._tris],
-                       [out], self._device, min_items=_MIN_PIXELS // ww + 1)
+            out = _filled((hh, ww), wp.vec2, 0.0, self._device)  # the background; the kernel writes covered pixels
+            if len(bands):
+                ndc_x = wp.empty(ww, dtype=float, device=self._device)
+                wp.launch(_ndc_x_kernel, ww, [0, ww], [ndc_x], device=self._device)
+                launch(_barycentrics_kernel, len(bands),
+                       [as_warp(bands, wp.int32, self._device), as_warp(dirty, wp.int32, self._device), ndc_x,
+                        ids.reshape((hh, ww)), self._clip, self._tris], [out], self._device,
+                       min_items=_MIN_PIXELS // (TILE * ww) + 1)
             self._bary = out.numpy().reshape(hh, ww, 2)
             self._clip = self._tris = self._ids = None
         return self._bary
@@ -833,9 +895,11 @@ def _check_size(width: object, height: object) -> tuple[int, int]:
     return int(width), int(height)
 
 
-# Depth|id key buffers, all empty, by (device, pixels): the resolve sets every key it reads back to empty, so a
-# buffer is handed back clear and the next frame of that size skips clearing it (a frame-sized fill per frame).
-# A rasterize that fails part-way does not hand its buffer back.
+# Depth|id key buffers, all empty, by (device, pixels): the drawing kernels flag each screen tile in which they wrote
+# a key, and the resolve reads the flagged tiles only and sets every drawn key it reads back to empty, so a buffer
+# is handed back clear and the next frame of that size clears nothing (a frame-sized fill per frame saved; the
+# resolve's cost follows the tiles drawn, not the viewport). A rasterize that fails part-way does not hand its
+# buffer back.
 _KEYS: dict[tuple[str, int], list[wp.array]] = {}
 _KEYS_LOCK = threading.Lock()
 _KEYS_KEPT = 2  # buffers kept per (device, size)
@@ -860,27 +924,88 @@ def _give_keys(key: wp.array, npx: int, device: str) -> None:
             free.append(key)
 
 
-def _resolve(key: wp.array, c: np.ndarray, width: int, height: int, device: str):
-    """Ids and depth images from the keys, decoding only the band of rows drawn (``c``: the summed
-    counter rows' band columns); -> (ids (H, W), depth (H, W), device ids, (top, bottom), pixels covered)."""
-    npx = width * height
-    top, bottom = height - int(c[:, 8].max()), int(c[:, 9].max())
-    if bottom <= top:
-        top = bottom = 0
-    out_id = empty(npx, wp.int32, device)
-    out_depth = empty(npx, wp.float32, device)
-    covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
+def _tiles_x(width: int) -> int:
+    return (width + TILE - 1) // TILE
+
+
+def _band_tiles(width: int, height: int, rows: tuple[int, int] | None) -> np.ndarray:
+    """Flags (int32, window tile order, as the binning's) of the screen tiles that meet image rows
+    [top, bottom), all of them with None."""
+    top, bottom = (0, height) if rows is None else rows
+    tx = _tiles_x(width)
+    flags = np.zeros(tx * ((height + TILE - 1) // TILE), np.int32)
     if bottom > top:
-        launch(_resolve_ids_kernel, bottom - top, [top, width], [key, out_id, out_depth, covered], device,
-               parts=True, min_items=_MIN_PIXELS // width + 1)
+        flags[(height - bottom) // TILE * tx:((height - 1 - top) // TILE + 1) * tx] = 1
+    return flags
+
+
+def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
+    """The rows of screen tiles (int32, from window row 0 up) with a flagged tile."""
+    return np.flatnonzero(dirty.reshape(-1, _tiles_x(width)).any(axis=1)).astype(np.int32)
+
+
+# Output images (ids, depth, barycentrics) on the CPU, by (shape, dtype): a frame's images are the caller's, but
+# once the caller holds no view of one any more (its only references are this list's and the check's own), the
+# next frame of that size takes it again. Freshly allocated frame-sized memory costs page faults on its first
+# write (~5-10 ms for a 1080p frame's 32 MB here, more than drawing 10k triangles); memory seen before costs a fill.
+_IMAGES: dict[tuple, list[np.ndarray]] = {}
+_IMAGES_LOCK = threading.Lock()
+_IMAGES_KEPT = 2  # per (shape, dtype): the frame being made and the one before it, still held by its caller
+_IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
+
+
+def _unreferenced() -> int:
+    """sys.getrefcount of a list's item that nothing else references (the list's reference and the call's)."""
+    kept = [np.empty(1)]
+    return sys.getrefcount(kept[0])
+
+
+_FREE_REFS = _unreferenced()
+
+
+def _image(shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """An uninitialised host array for an output image: a kept one no view of which is alive, else a new one."""
+    key = (shape, np.dtype(dtype).str)
+    with _IMAGES_LOCK:
+        kept = _IMAGES.setdefault(key, [])
+        for i in range(len(kept)):
+            if sys.getrefcount(kept[i]) == _FREE_REFS:
+                return kept[i]
+        a = np.empty(shape, dtype)  # numpy's large allocations ask for huge pages (parallel.empty)
+        if len(kept) < _IMAGES_KEPT and a.nbytes <= _IMAGES_MAX_BYTES:
+            kept.append(a)
+        return a
+
+
+def _filled(shape: int | tuple[int, ...], dtype: type, value: float, device: str) -> wp.array:
+    """A new output array holding ``value`` everywhere (on the CPU a kept image, see _image, or a new one)."""
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
+    if not wp.get_device(device).is_cpu:
+        return wp.zeros(shape, dtype=dtype, device=device) if value == 0 else \
+            wp.full(shape, value=value, dtype=dtype, device=device)
+    a = _image((*shape, *getattr(dtype, "_shape_", ())), wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype)))
+    a.fill(value)
+    return wp.array(a, dtype=dtype, device=device, copy=False)
+
+
+def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: str):
+    """Ids and depth images from the keys, decoding only the screen tiles flagged in ``dirty``; every other
+    pixel is background, filled on the host. -> (ids (H, W), depth (H, W), device ids, the tile flags (int32),
+    pixels covered)."""
+    npx = width * height
+    flags = dirty.numpy()
+    bands = _bands(flags, width)
+    out_id = _filled(npx, wp.int32, -1, device)
+    out_depth = _filled(npx, wp.float32, 1.0, device)
+    covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
+    if len(bands):
+        launch(_resolve_ids_kernel, len(bands), [as_warp(bands, wp.int32, device), dirty, width, height],
+               [key, out_id, out_depth, covered], device, parts=True, min_items=_MIN_PIXELS // (TILE * width) + 1)
     ids = out_id.numpy().reshape(height, width)
     depth = out_depth.numpy().reshape(height, width)
-    for a, b in ((0, top), (bottom, height)):  # background rows, written on the host (a fill)
-        ids[a:b] = -1
-        depth[a:b] = 1.0
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
-    return ids, depth, out_id, (top, bottom), int(covered.numpy().sum())
+    return ids, depth, out_id, flags, int(covered.numpy().sum())
 
 
 def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
@@ -890,15 +1015,17 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
     stats = wp.zeros((max_parts(_OVERSPLIT), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
     m = int(tri.shape[0])
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    tiles_x = (width + TILE - 1) // TILE
+    tiles_x = _tiles_x(width)
     tiles_y = (height + TILE - 1) // TILE
+    dirty = as_warp(np.zeros(tiles_x * tiles_y, np.int32), wp.int32, device)  # flags of the tiles with keys written
     if n and m:
         gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
         cb = int(bool(cull_back))
         big = wp.empty(m, dtype=wp.int32, device=device)
         tile_count = wp.zeros(tiles_x * tiles_y, dtype=wp.int32, device=device)
         launch(_small_count_kernel, m, [clip, tri_wp, width, height, cb, gb, tiles_x],
-               [key, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES, oversplit=_OVERSPLIT)
+               [key, dirty, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES,
+               oversplit=_OVERSPLIT)
         total = int(stats.numpy()[:, 5].sum())
         if total:
             tile_start = wp.empty_like(tile_count)
@@ -909,17 +1036,15 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                    [cursor, tri_list], device, min_items=_MIN_TRIANGLES)
             launch(_tile_kernel, tiles_x * tiles_y,
                    [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
-                   [key, stats], device, parts=True, min_items=_MIN_TILES,
+                   [key, dirty, stats], device, parts=True, min_items=_MIN_TILES,
                    oversplit=_OVERSPLIT)
-    rows = stats.numpy()
-    ids, depth, ids_wp, (top, bottom), covered = _resolve(key, rows, width, height, device)
+    ids, depth, ids_wp, tiles, covered = _resolve(key, dirty, width, height, device)
     _give_keys(key, npx, device)
-    c = rows[:, :8].sum(axis=0)  # integer sums: the same whatever the chunks
+    c = stats.numpy()[:, :8].sum(axis=0)  # integer sums: the same whatever the chunks
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
                "pixels_written": int(c[3]), "pixels_covered": covered}
-    return Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp,
-                     rows=(top, bottom))
+    return Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp, tiles=tiles)
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,

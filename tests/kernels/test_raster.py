@@ -424,3 +424,113 @@ def test_depth_one_is_not_drawn_as_gl_less_against_a_cleared_buffer():
     assert not (f.triangle_id == 0).any()
     assert (f.triangle_id == 1).sum() > 50
     assert np.array_equal(f.triangle_id, ids)
+
+
+# -- pooled buffers: keys cleared only where drawn, output images reused once dropped --------------------------
+
+
+def _scenes(w=160, h=120):
+    """Draws at one viewport size that cover different rows and tiles: a terrain (many rows, large triangles
+    binned), a thin band of small triangles, large clipped triangles (some behind the camera), an empty draw."""
+    pos, tri, cam = terrain_frame(rows=12, width=w, height=h)  # small triangles and large (binned) ones
+    clip_t = clip_coordinates(pos, cam.view_matrix(relative=True), cam.proj_matrix())
+    rng = np.random.default_rng(5)
+    band = window_to_clip(np.c_[rng.uniform(-5, w + 5, 60), rng.uniform(0.42 * h, 0.47 * h, 60)], w, h)
+    band[:, 2] = rng.uniform(-0.9, 0.9, 60)
+    big = window_to_clip(rng.uniform(-0.3, 1.3, (12, 2)) * [w, h], w, h)
+    big[:, 2] = rng.uniform(-1.2, 1.2, 12)
+    big[:, 3] = rng.uniform(0.5, 2.0, 12)
+    big[:, :3] *= big[:, 3:4]
+    big[::5, 3] *= -0.5
+    seq = lambda n: np.arange(n, dtype=np.int32).reshape(-1, 3)  # noqa: E731
+    return {"terrain": (clip_t, tri), "band": (band, seq(60)), "big": (big, seq(12)),
+            "empty": (np.zeros((0, 4), np.float32), np.zeros((0, 3), np.int32))}, (w, h)
+
+
+def _fresh_pools():
+    from terrainwarp.kernels import raster
+
+    raster._KEYS.clear()
+    raster._IMAGES.clear()
+
+
+def _result(f):
+    stats = {k: v for k, v in f.stats.items() if k != "pixels_written"}  # the one order-dependent counter
+    return f.triangle_id.copy(), f.depth.copy(), f.barycentrics.copy(), stats
+
+
+def _same(a, b):
+    return all(np.array_equal(x, y) for x, y in zip(a[:3], b[:3], strict=True)) and a[3] == b[3]
+
+
+def test_pooled_buffers_reused_by_other_draws_give_the_fresh_result():
+    from terrainwarp.kernels import raster
+
+    scenes, (w, h) = _scenes()
+    fresh = {}
+    for name, (clip, tri) in scenes.items():
+        _fresh_pools()
+        fresh[name] = _result(rasterize_clip(clip, tri, w, h))
+    assert (fresh["terrain"][0] >= 0).sum() > 2000 and (fresh["band"][0] >= 0).sum() > 50
+    assert fresh["terrain"][3]["triangles_binned"] > 0 and fresh["big"][3]["triangles_binned"] > 0
+    assert (fresh["empty"][0] == -1).all() and (fresh["empty"][2] == 0).all()
+    # every draw after every other (a draw after one that covered more rows, or other tiles), through the pools
+    order = ["terrain", "band", "terrain", "empty", "big", "band", "big", "terrain", "empty", "band"]
+    for prev, name in zip(order, order[1:], strict=False):
+        r = _result(rasterize_clip(*scenes[name], w, h))
+        assert _same(r, fresh[name]), f"{name} after {prev}"
+    # the key buffers went back clear: every key drawn was in a flagged tile, and the resolve emptied it
+    for bufs in raster._KEYS.values():
+        for key in bufs:
+            assert (key.numpy() == np.uint64(0xFFFFFFFFFFFFFFFF)).all()
+
+
+def test_images_held_by_the_caller_are_never_reused_and_changes_to_dropped_ones_do_not_leak():
+    scenes, (w, h) = _scenes()
+    _fresh_pools()
+    want = {name: _result(rasterize_clip(*scenes[name], w, h)) for name in ("terrain", "band")}
+    f1 = rasterize_clip(*scenes["terrain"], w, h)
+    view_of_ids = f1.triangle_id[10:]  # a view alone keeps the image taken
+    depth_only = f1.depth
+    del f1
+    for _ in range(3):  # more frames of the size than images are kept
+        f2 = rasterize_clip(*scenes["band"], w, h)
+        assert _same(_result(f2), want["band"])
+    assert np.array_equal(view_of_ids, want["terrain"][0][10:]) and np.array_equal(depth_only, want["terrain"][1])
+    # the caller writes into a frame's images, then drops it: the next frame that takes them starts clean
+    f2.triangle_id[:] = 7
+    f2.depth[:] = 0.25
+    f2.barycentrics[:] = 0.5
+    del f2, view_of_ids, depth_only
+    for name in ("band", "terrain", "band"):
+        assert _same(_result(rasterize_clip(*scenes[name], w, h)), want[name]), name
+
+
+def test_barycentrics_computed_after_later_draws_are_unchanged():
+    scenes, (w, h) = _scenes()
+    _fresh_pools()
+    want = _result(rasterize_clip(*scenes["terrain"], w, h))
+    f = rasterize_clip(*scenes["terrain"], w, h)
+    for name in ("band", "big", "empty"):
+        rasterize_clip(*scenes[name], w, h).barycentrics  # noqa: B018 -- the lazy resolve, in between
+    assert _same(_result(f), want)
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_identical_for_any_thread_count_with_pooled_buffers(threads):
+    from terrainwarp.kernels import parallel
+
+    scenes, (w, h) = _scenes(203, 97)  # tiles cut by the viewport's edges
+    order = ["terrain", "band", "big", "empty", "terrain", "band"]
+    runs = []
+    try:
+        for n in (1, threads):
+            parallel.set_threads(n)
+            parallel.set_min_items(1)  # chunks as fine as the threads allow
+            _fresh_pools()
+            runs.append([_result(rasterize_clip(*scenes[name], w, h)) for name in order])
+    finally:
+        parallel.set_threads(None)
+        parallel.set_min_items(None)
+    for name, a, b in zip(order, *runs, strict=True):
+        assert _same(a, b), name
