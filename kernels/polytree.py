@@ -8,28 +8,34 @@ gradients (equations 1-2) are ``Xgr = (z2 - z1) + (z3 - z4)`` and ``Ygr = (z4 - 
 Quadtree: the cells are padded to N x N, N = 2^depth; a node of level ``l`` covers 2^l x 2^l cells and
 nodes of a level are numbered in Morton order (bit 2b of the code is bit b of the column, bit 2b+1 of the
 row), so the four sons of node k are 4k .. 4k+3 in the order son 1 (low row, low column), son 2 (low row,
-high column), son 4 (high row, low column), son 3 (high row, high column) of the paper's figure 6, and
-the polygon lists of the sons of a node lie next to each other in the level's record array.
+high column), son 4 (high row, low column), son 3 (high row, high column) of the paper's figure 6.
 
-One pass (one tolerance) runs the levels bottom-up, three launches each, all nodes of a level in
-parallel and each node sequential (deterministic):
+A node merges its sons' polygons along border A (son 1 | son 2), then B (son 4 | son 3), then C (top half |
+bottom half), walking each border with the neighbour search of section 2.1: descend the quadtree to the
+topmost node that holds a single polygon and contains the point, then follow the polytree's father pointers
+up to the sons' level and the merge pointers inside the node, O(depth). A pair passes the bounds check
+when its extents along the border are equal (the union is a rectangle) and the homogeneity check when
+``|dXgr| + |dYgr| <= tolerance`` (the paper says "less than"; ``<=`` lets tolerance 0 merge exactly coplanar
+cells). A failed pair sets a flag bit on both polygons (FLAG_* below).
 
-1. ``_leaf_count_kernel`` / ``_merge_kernel``: a node copies its sons' records into scratch and merges
-   along border A (son 1 | son 2), then B (son 4 | son 3), then C (top half | bottom half), walking each
-   border with the neighbour search of section 2.1: descend the quadtree to the topmost node that holds
-   a single polygon and contains the point, then follow the polytree's father pointers up to the sons'
-   level and the merge forwarding pointers inside the node: O(depth). A pair passes the bounds check
-   when its extents along the border are equal (the union is a rectangle) and the homogeneity check
-   when ``|dXgr| + |dYgr| <= tolerance`` (the paper says "less than"; ``<=`` lets tolerance 0 merge
-   exactly coplanar cells). A failed pair sets a flag bit on both polygons (FLAG_* below).
-2. ``wp.utils.array_scan`` of the per-node counts.
-3. ``_emit_kernel``: the surviving polygons become the level's records; every son record gets its father
-   pointer (the polygon of this level it merged into); ``single_rec`` marks nodes holding one polygon.
+The tolerances come in ascending order, one pass each, and a pass costs what changed since the last one:
 
-Nodes that held a single polygon after an earlier (lower) tolerance keep it without merging, and their
-descendants are not launched at all (step j of the paper: single is hereditary and monotone in the
-tolerance); the launches are recorded once per quadtree and replayed with the new tolerance and work-list
-length, so a late tolerance costs what is left to merge.
+* step j of the paper: a node that held a single polygon after a pass keeps it ("frozen") and is never
+  merged again (single is hereditary: two polygons of a node are never joined higher up);
+* a node merges exactly as in its last merge while neither its sons' polygons changed nor the tolerance
+  reached a similarity that failed in it, so each node keeps the smallest failed ``|dXgr| + |dYgr|`` of its
+  subtree, and a pass merges again only the unfrozen nodes where that is <= the tolerance (each of them
+  changes). Their last merges are undone top-down (each node logs the polygons its merge changed), then
+  they merge again bottom-up.
+
+Everything a pass reports is what merging every unfrozen node again would give: the root's polygons in the
+paper's order with their flags, and the counters (STAT_*) of all unfrozen nodes (an unchanged node's are
+those of its last merge); ``tests/lod/test_polytree.py`` checks every pass against the per-tolerance
+algorithm. A pass is one launch of one thread (``_pass_kernel``): it touches the few nodes a tolerance
+changes where launches per level visit all of them (issue 19: 100 tolerances of a 257^2 map took 0.76 s as
+three launches a level a pass, 27 a tolerance). It is sequential, so it does not go through the
+parallel-launch helper; on a GPU, a launch per level over the marked nodes (their merges touch disjoint
+slots) is the shape to launch.
 
 Section 2.4 (``_tri_count_kernel`` / ``_tri_emit_kernel``) and section 2.5 (``_morph_target_kernel``,
 ``_morph_positions_kernel``) follow; the host side is :mod:`terrainwarp.lod.polytree`.
@@ -37,8 +43,12 @@ Section 2.4 (``_tri_count_kernel`` / ``_tri_emit_kernel``) and section 2.5 (``_m
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import warp as wp
+
+from .parallel import launch
 
 FLAG_LOW_J = 1  # a merge across (part of) the polygon's j0 side was tried and failed
 FLAG_HIGH_J = 2  # ... across its j1 side
@@ -50,16 +60,97 @@ STAT_TESTS, STAT_BOUNDS_FAIL, STAT_SIMILARITY_FAIL, STAT_MERGES, STAT_FIND_STEPS
 # (two neighbour searches per pair test: mean steps per search = STAT_FIND_STEPS / (2 * STAT_TESTS))
 
 # ------------------------------------------------------------------------------------------------
+# merge state
+# ------------------------------------------------------------------------------------------------
+# Slots: a polygon of any level is named by its corner cell (i0, j0), as the Morton code of that cell in
+# the padded N x N grid; the cells of a node of level l are the slots k << 2l .. (k+1) << 2l, and a merge
+# keeps the slot of the polygon with the lower corner, so a level's polygons in slot order are its records
+# in the paper's order (the sons' lists one after the other, each union where its first part was).
+#
+# The polygons of every level live in one state: per slot, the polygon whose corner it is after every merge
+# so far (_Slot: the root's tiling) and its link, -1 while it is alive, else ``(slot merged into) << 5 |
+# level of that merge`` (the polytree's pointers: the polygon of level l containing a cell is found by
+# following the links of levels <= l from the cell; slots outside the grid hold _OUTSIDE). Each node
+# (_Node) keeps an undo log (_Undo) of the slots its last merge changed, as they were before it (all alive
+# then). Arrays of structs, so that one index computation reaches a slot's fields (Warp checks and scales
+# every index), and the links, which the searches walk, in their own small array.
+
+_LEVEL_BITS = wp.constant(5)
+_LEVEL_MASK = wp.constant(31)
+_OUTSIDE = wp.constant(0x7FFFFFFF)
+
+
+@wp.struct
+class _Slot:
+    rect: wp.vec4i  # (i0, i1, j0, j1)
+    grad: wp.vec2  # (Xgr, Ygr) of rect: equations 1-2, once per rectangle
+    flags: wp.int32  # FLAG_*
+    stamp: wp.int32  # the node merge that last logged this slot (at logpos[slot] of the undo logs)
+
+
+@wp.struct
+class _Undo:
+    rect: wp.vec4i
+    grad: wp.vec2
+    slot: wp.int32
+    flags: wp.int32
+
+
+@wp.struct
+class _Node:
+    i0: wp.int32  # the corner cell: the node holds cells when i0 < ch and j0 < cw
+    j0: wp.int32
+    count: wp.int32  # polygons after its last merge (1 once frozen; a cell: 1)
+    frozen: wp.int32  # step j: it held one polygon after a pass and keeps it
+    done: wp.int32  # merged at least once
+    ulen: wp.int32  # length of its undo log
+    sub: wp.float32  # smallest failed |dXgr| + |dYgr| of its last merge and of its subtree's (-inf: never merged)
+    tests: wp.int32  # the counters of its last merge (STAT_*)
+    bfail: wp.int32
+    sfail: wp.int32
+    merges: wp.int32
+    steps: wp.int32
+    smax: wp.int32
+
+
+@wp.struct
+class _MergeArrays:
+    """Every array of a :class:`MergeState`: the pass kernel's one argument besides the pass index."""
+
+    h: wp.array2d(dtype=wp.float32)
+    tols: wp.array(dtype=wp.float32)  # the tolerances of run_passes
+    n_base: wp.array(dtype=wp.int32)  # level l's nodes from n_base[l] in the flat node arrays
+    u_base: wp.array(dtype=wp.int32)  # level l's undo logs from u_base[l], _log_room(l) entries a node
+    morton_i: wp.array(dtype=wp.int32)  # slot of cell (i, j): morton_i[i] | morton_j[j]
+    morton_j: wp.array(dtype=wp.int32)
+    nodes: wp.array(dtype=_Node)
+    g: wp.array(dtype=_Slot)
+    link: wp.array(dtype=wp.int32)
+    logpos: wp.array(dtype=wp.int32)
+    u: wp.array(dtype=_Undo)
+    marks: wp.array(dtype=wp.int32)  # the nodes merged in this pass, level l's from n_base[l]
+    n_marked: wp.array(dtype=wp.int32)  # ... how many per level
+    stack: wp.array(dtype=wp.int32)  # the output's descent
+    totals: wp.array(dtype=wp.int64)  # STAT_TESTS .. STAT_FIND_STEPS over the unfrozen nodes
+    hist: wp.array(dtype=wp.int32)  # unfrozen nodes by their most steps of one search (for STAT_FIND_MAX)
+    counter: wp.array(dtype=wp.int32)  # node merges so far (their stamps)
+    error: wp.array(dtype=wp.int32)
+    out_rect: wp.array(dtype=wp.vec4i)  # every pass's root polygons, appended
+    out_grad: wp.array(dtype=wp.vec2)
+    out_flags: wp.array(dtype=wp.int32)
+    out_used: wp.array(dtype=wp.int32)  # rows written
+    out_count: wp.array(dtype=wp.int32)  # per pass: polygons
+    out_stats: wp.array2d(dtype=wp.int64)  # per pass: STAT_*
+    depth: int
+    ch: int
+    cw: int
+    nc: int  # cells
+    nslots: int  # N * N
+
+
+# ------------------------------------------------------------------------------------------------
 # functions
 # ------------------------------------------------------------------------------------------------
-
-
-@wp.func
-def _morton(i: int, j: int, depth: int) -> int:
-    code = int(0)
-    for b in range(depth):
-        code = code | (((j >> b) & 1) << (2 * b)) | (((i >> b) & 1) << (2 * b + 1))
-    return code
 
 
 @wp.func
@@ -82,115 +173,343 @@ def _grads(h: wp.array2d(dtype=wp.float32), r: wp.vec4i) -> wp.vec2:
 
 
 @wp.func
-def _node_rect(k: int, level: int, depth: int, ch: int, cw: int) -> wp.vec4i:
-    o = _demorton(k, depth - level)
-    s = 1 << level
-    i0 = o[0] * s
-    j0 = o[1] * s
-    return wp.vec4i(i0, wp.min(i0 + s, ch), j0, wp.min(j0 + s, cw))
+def _log_room(m: int) -> int:
+    """Undo log entries of a node of level m: a merge touches each polygon next to a border once, so at most
+    the node's cells and at most its border cells."""
+    return wp.min(1 << (2 * m), 1 << (m + 2))
 
 
 @wp.func
-def _find(r: int, c: int, m: int, depth: int, single_rec: wp.array(dtype=wp.int32),
-          node_base: wp.array(dtype=wp.int32), rec_father: wp.array(dtype=wp.int32),
-          level_base: wp.array(dtype=wp.int32), sc_fwd: wp.array(dtype=wp.int32)) -> wp.vec2i:
-    """(scratch index (level m-1 numbering) of the live polygon of the node being merged at level m that
-    contains cell (r, c), pointer steps taken): section 2.1's descent to the topmost node holding a single
-    polygon, then father pointers up to the sons' level and merge pointers inside the node, O(depth)."""
-    code = _morton(r, c, depth)
+def _find(r: int, c: int, m: int, morton_i: wp.array(dtype=wp.int32), morton_j: wp.array(dtype=wp.int32),
+          link: wp.array(dtype=wp.int32)) -> wp.vec3i:
+    """(slot of the sons' polygon containing cell (r, c), slot of the live polygon it is part of in the merge
+    of the node of level m in progress, merge pointers followed inside the node)."""
+    x = morton_i[r] | morton_j[c]
+    lk = link[x]
+    while lk >= 0 and (lk & _LEVEL_MASK) < m:  # up the polytree to the sons' level
+        x = lk >> _LEVEL_BITS
+        lk = link[x]
+    s = x
+    hops = int(0)
+    while lk >= 0:  # merges of this node (the higher levels' are undone)
+        s = lk >> _LEVEL_BITS
+        lk = link[s]
+        hops = hops + 1
+    return wp.vec3i(x, s, hops)
+
+
+@wp.func
+def _top_single(r: int, c: int, x: wp.vec4i, m: int, ch: int, cw: int) -> int:
+    """The level of the topmost quadtree node below level m that contains cell (r, c) and holds a single
+    polygon, where section 2.1's descent stops: a node holds one polygon exactly when its cells lie in one
+    polygon x of level m-1 (two polygons of a node are never joined higher up)."""
     lv = m - 1
-    rec = int(-1)
-    steps = int(0)
-    while lv >= 0:
-        rec = single_rec[node_base[lv] + (code >> (2 * lv))]
-        steps = steps + 1
-        if rec >= 0:
+    while lv > 0:
+        s = 1 << lv
+        bi = (r >> lv) << lv
+        bj = (c >> lv) << lv
+        if bi >= x[0] and wp.min(bi + s, ch) <= x[1] and bj >= x[2] and wp.min(bj + s, cw) <= x[3]:
             break
         lv = lv - 1
-    while lv < m - 1:
-        rec = rec_father[rec]
-        lv = lv + 1
-        steps = steps + 1
-    s = rec - level_base[m - 1]
-    while sc_fwd[s] >= 0:
-        s = sc_fwd[s]
-        steps = steps + 1
-    return wp.vec2i(s, steps)
+    return lv
+
+
+@wp.func
+def _steps(r: int, c: int, f: wp.vec3i, m: int, mid: int, ch: int, cw: int, g: wp.array(dtype=_Slot),
+           logpos: wp.array(dtype=wp.int32), u: wp.array(dtype=_Undo)) -> int:
+    """Pointer steps of section 2.1's search for cell (r, c), found as ``f`` (:func:`_find`): the descent to
+    the topmost single node reads m - top nodes, the father pointers up take m - 1 - top, then the merge
+    pointers inside the node."""
+    steps = 1 + f[2]
+    if m > 1:
+        x = g[f[0]].rect  # the sons' polygon as it was before this merge
+        if g[f[0]].stamp == mid:
+            x = u[logpos[f[0]]].rect
+        steps = steps + 2 * (m - 1 - _top_single(r, c, x, m, ch, cw))
+    return steps
+
+
+@wp.func
+def _log(s: int, mid: int, at: int, g: wp.array(dtype=_Slot), logpos: wp.array(dtype=wp.int32),
+         u: wp.array(dtype=_Undo)) -> int:
+    """Before the node merge ``mid`` first changes slot s, save it at ``at`` in its undo log; returns the log's
+    new length."""
+    if g[s].stamp == mid:
+        return at
+    g[s].stamp = mid
+    logpos[s] = at
+    u[at].rect = g[s].rect
+    u[at].grad = g[s].grad
+    u[at].slot = s
+    u[at].flags = g[s].flags
+    return at + 1
 
 
 @wp.func
 def _merge_border(h: wp.array2d(dtype=wp.float32), vertical: int, fixed: int, start: int, end: int, tol: float,
-                  m: int, depth: int, single_rec: wp.array(dtype=wp.int32), node_base: wp.array(dtype=wp.int32),
-                  rec_father: wp.array(dtype=wp.int32), level_base: wp.array(dtype=wp.int32),
-                  sc_rect: wp.array(dtype=wp.vec4i), sc_fwd: wp.array(dtype=wp.int32),
-                  sc_flags: wp.array(dtype=wp.int32), stats: wp.array(dtype=wp.int64)) -> int:
-    """Walk one border (column ``fixed`` if vertical, else row ``fixed``) from ``start`` to ``end`` and
-    merge every passing pair; returns the number of merges."""
+                  m: int, node: int, mid: int, at: int, st: _MergeArrays) -> wp.vec2i:
+    """Walk one border (column ``fixed`` if vertical, else row ``fixed``) from ``start`` to ``end`` and merge
+    every passing pair, logging from ``at``; returns (merges, the log's new length). Adds to the node's
+    counters and smallest failure."""
+    g = st.g
+    link = st.link
+    k0 = 2  # extent along the border: rows for a vertical border, columns for a horizontal one
+    if vertical != 0:
+        k0 = 0
     merges = int(0)
     tests = int(0)
     bfail = int(0)
     sfail = int(0)
     steps = int(0)
     max_steps = int(0)
+    thr = float(st.nodes[node].sub)
     p = start
     while p < end:
-        a = int(0)
-        b = int(0)
-        fa = wp.vec2i()
-        fb = wp.vec2i()
+        ra_i = fixed - 1  # the two cells: (ra_i, ra_j) on the low side, (rb_i, rb_j) on the high side
+        ra_j = p
+        rb_i = fixed
+        rb_j = p
         if vertical != 0:
-            fa = _find(p, fixed - 1, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
-            fb = _find(p, fixed, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
-        else:
-            fa = _find(fixed - 1, p, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
-            fb = _find(fixed, p, m, depth, single_rec, node_base, rec_father, level_base, sc_fwd)
-        a = fa[0]
-        b = fb[0]
-        steps = steps + fa[1] + fb[1]
-        max_steps = wp.max(max_steps, wp.max(fa[1], fb[1]))
-        ra = sc_rect[a]
-        rb = sc_rect[b]
-        k0 = 2  # extent along the border: rows for a vertical border, columns for a horizontal one
-        if vertical != 0:
-            k0 = 0
+            ra_i = p
+            ra_j = fixed - 1
+            rb_i = p
+            rb_j = fixed
+        fa = _find(ra_i, ra_j, m, st.morton_i, st.morton_j, link)
+        fb = _find(rb_i, rb_j, m, st.morton_i, st.morton_j, link)
+        sa = _steps(ra_i, ra_j, fa, m, mid, st.ch, st.cw, g, st.logpos, st.u)
+        sb = _steps(rb_i, rb_j, fb, m, mid, st.ch, st.cw, g, st.logpos, st.u)
+        steps = steps + sa + sb
+        max_steps = wp.max(max_steps, wp.max(sa, sb))
+        a = fa[1]
+        b = fb[1]
+        at = _log(a, mid, at, g, st.logpos, st.u)
+        at = _log(b, mid, at, g, st.logpos, st.u)
+        ra = g[a].rect
+        rb = g[b].rect
         ea = ra[k0 + 1]
         eb = rb[k0 + 1]
+        fla = g[a].flags
+        flb = g[b].flags
         tests = tests + 1
         ok = int(0)
         if ra[k0] == rb[k0] and ea == eb:
-            ga = _grads(h, ra)
-            gb = _grads(h, rb)
+            ga = g[a].grad
+            gb = g[b].grad
             d = wp.abs(ga[0] - gb[0]) + wp.abs(ga[1] - gb[1])
             if d <= tol:
-                u = wp.vec4i(ra[0], rb[1], ra[2], rb[3])  # a is on the low side of the border
-                sc_rect[a] = u
-                sc_fwd[b] = a
+                un = wp.vec4i(ra[0], rb[1], ra[2], rb[3])  # a is on the low side of the border
+                g[a].rect = un
+                g[a].grad = _grads(h, un)
+                link[b] = (a << _LEVEL_BITS) | m
                 # the union keeps the failures of its outer sides (the shared side is gone)
                 if vertical != 0:
-                    sc_flags[a] = (sc_flags[a] & 13) | (sc_flags[b] & 14)
+                    g[a].flags = (fla & 13) | (flb & 14)
                 else:
-                    sc_flags[a] = (sc_flags[a] & 7) | (sc_flags[b] & 11)
+                    g[a].flags = (fla & 7) | (flb & 11)
                 merges = merges + 1
                 ok = 1
             else:
                 sfail = sfail + 1
+                thr = wp.min(thr, d)
         else:
             bfail = bfail + 1
         if ok == 0:
             if vertical != 0:
-                sc_flags[a] = sc_flags[a] | 2
-                sc_flags[b] = sc_flags[b] | 1
+                g[a].flags = fla | 2
+                g[b].flags = flb | 1
             else:
-                sc_flags[a] = sc_flags[a] | 8
-                sc_flags[b] = sc_flags[b] | 4
+                g[a].flags = fla | 8
+                g[b].flags = flb | 4
         p = wp.min(ea, eb)
-    wp.atomic_add(stats, 0, wp.int64(tests))
-    wp.atomic_add(stats, 1, wp.int64(bfail))
-    wp.atomic_add(stats, 2, wp.int64(sfail))
-    wp.atomic_add(stats, 3, wp.int64(merges))
-    wp.atomic_add(stats, 4, wp.int64(steps))
-    wp.atomic_max(stats, 5, wp.int64(max_steps))
-    return merges
+    st.nodes[node].sub = thr
+    st.nodes[node].tests = st.nodes[node].tests + tests
+    st.nodes[node].bfail = st.nodes[node].bfail + bfail
+    st.nodes[node].sfail = st.nodes[node].sfail + sfail
+    st.nodes[node].merges = st.nodes[node].merges + merges
+    st.nodes[node].steps = st.nodes[node].steps + steps
+    st.nodes[node].smax = wp.max(st.nodes[node].smax, max_steps)
+    return wp.vec2i(merges, at)
+
+
+@wp.func
+def _add_totals(n: _Node, sign: int, st: _MergeArrays):
+    """Add (sign 1) or take out (-1) a node's counters from the pass totals."""
+    st.totals[0] = st.totals[0] + wp.int64(sign * n.tests)
+    st.totals[1] = st.totals[1] + wp.int64(sign * n.bfail)
+    st.totals[2] = st.totals[2] + wp.int64(sign * n.sfail)
+    st.totals[3] = st.totals[3] + wp.int64(sign * n.merges)
+    st.totals[4] = st.totals[4] + wp.int64(sign * n.steps)
+    st.hist[n.smax] = st.hist[n.smax] + sign
+
+
+@wp.func
+def _merge_node(m: int, k: int, tol: float, st: _MergeArrays):
+    """Merge node k of level m (m >= 1; its slots hold its sons' polygons) at ``tol``: borders A, B, C of the
+    paper's order, then its count, counters and smallest failure."""
+    nodes = st.nodes
+    ch = st.ch
+    cw = st.cw
+    node = st.n_base[m] + k
+    mid = st.counter[0] + 1  # this merge's stamp
+    st.counter[0] = mid
+    at = st.u_base[m] + k * _log_room(m)
+    ulog = at
+    nd = nodes[node]
+    if nd.done != 0:  # its last counters leave the totals
+        _add_totals(nd, -1, st)
+    nodes[node].tests = 0
+    nodes[node].bfail = 0
+    nodes[node].sfail = 0
+    nodes[node].merges = 0
+    nodes[node].steps = 0
+    nodes[node].smax = 0
+    nodes[node].sub = float(wp.inf)
+    sons = st.n_base[m - 1] + 4 * k
+    count = int(0)
+    sub = float(wp.inf)
+    for j in range(4):
+        son = nodes[sons + j]
+        if son.i0 < ch and son.j0 < cw:
+            count = count + son.count
+            sub = wp.min(sub, son.sub)
+    half = 1 << (m - 1)
+    i0 = nd.i0
+    j0 = nd.j0
+    i1 = wp.min(i0 + 2 * half, ch)
+    j1 = wp.min(j0 + 2 * half, cw)
+    jm = j0 + half
+    im = i0 + half
+    r = wp.vec2i()
+    if jm < cw:
+        # border A (son 1 | son 2), then B (son 4 | son 3)
+        r = _merge_border(st.h, 1, jm, i0, wp.min(im, i1), tol, m, node, mid, at, st)
+        count = count - r[0]
+        at = r[1]
+        if im < ch:
+            r = _merge_border(st.h, 1, jm, im, i1, tol, m, node, mid, at, st)
+            count = count - r[0]
+            at = r[1]
+    if im < ch:
+        # border C (sons 1-2 | sons 4-3)
+        r = _merge_border(st.h, 0, im, j0, j1, tol, m, node, mid, at, st)
+        count = count - r[0]
+        at = r[1]
+    nodes[node].ulen = at - ulog
+    nodes[node].count = count
+    nodes[node].sub = wp.min(nodes[node].sub, sub)
+    nodes[node].done = 1
+    _add_totals(nodes[node], 1, st)
+    if count == 1:  # a single polygon is its node, without failures (internal check)
+        s0 = k << (2 * m)
+        q = st.g[s0]
+        if q.rect[0] != i0 or q.rect[1] != i1 or q.rect[2] != j0 or q.rect[3] != j1 or q.flags != 0:
+            st.error[0] = 1
+        if st.link[s0] != -1:
+            st.error[0] = 1
+
+
+@wp.func
+def _mark(tol: float, st: _MergeArrays):
+    """The nodes to merge at ``tol``, per level: the unfrozen ones whose subtree's smallest failure is <= tol
+    (every one of them changes, and every ancestor of one is one), found top-down."""
+    n_base = st.n_base
+    marks = st.marks
+    depth = st.depth
+    for m in range(depth + 1):
+        st.n_marked[m] = 0
+    root = st.nodes[n_base[depth]]
+    if depth > 0 and root.frozen == 0 and root.sub <= tol:
+        marks[n_base[depth]] = 0
+        st.n_marked[depth] = 1
+    m = depth
+    while m > 1:
+        c = int(0)
+        for i in range(st.n_marked[m]):
+            k = marks[n_base[m] + i]
+            for j in range(4):
+                son = st.nodes[n_base[m - 1] + 4 * k + j]
+                if son.i0 < st.ch and son.j0 < st.cw and son.frozen == 0 and son.sub <= tol:
+                    marks[n_base[m - 1] + c] = 4 * k + j
+                    c = c + 1
+        st.n_marked[m - 1] = c
+        m = m - 1
+
+
+@wp.func
+def _undo(st: _MergeArrays):
+    """Undo the last merges of the marked nodes, top-down: their slots go back to their sons' polygons."""
+    g = st.g
+    m = st.depth
+    while m >= 1:
+        for i in range(st.n_marked[m]):
+            k = st.marks[st.n_base[m] + i]
+            ulog = st.u_base[m] + k * _log_room(m)
+            for e in range(ulog, ulog + st.nodes[st.n_base[m] + k].ulen):
+                w = st.u[e]
+                g[w.slot].rect = w.rect
+                g[w.slot].grad = w.grad
+                g[w.slot].flags = w.flags
+                st.link[w.slot] = -1
+        m = m - 1
+
+
+@wp.func
+def _emit(s: int, at: int, st: _MergeArrays):
+    q = st.g[s]
+    st.out_rect[at] = q.rect
+    st.out_grad[at] = q.grad
+    st.out_flags[at] = q.flags
+
+
+@wp.func
+def _emit_root(st: _MergeArrays) -> int:
+    """Append the root's polygons in slot order to ``out_*`` from ``out_used[0]``: a scan of the slots, or,
+    with few polygons, a descent that stops at nodes holding one; returns how many."""
+    base = st.out_used[0]
+    n = int(0)
+    depth = st.depth
+    if 4 * st.nodes[st.n_base[depth]].count >= st.nc or depth == 0:
+        for s in range(st.nslots):
+            if st.link[s] == -1:
+                _emit(s, base + n, st)
+                n = n + 1
+    else:
+        stack = st.stack
+        stack[0] = depth  # entries: k << 5 | level
+        top = int(1)
+        while top > 0:
+            top = top - 1
+            lv = stack[top] & 31
+            k = stack[top] >> 5
+            nd = st.nodes[st.n_base[lv] + k]
+            if lv == 0 or nd.count == 1:
+                s = k << (2 * lv)
+                if st.link[s] == -1:
+                    _emit(s, base + n, st)
+                    n = n + 1
+            else:
+                for z in range(4):
+                    kk = 4 * k + 3 - z  # pushed last to first: popped in slot order
+                    sn = st.nodes[st.n_base[lv - 1] + kk]
+                    if sn.i0 < st.ch and sn.j0 < st.cw:
+                        stack[top] = (kk << 5) | (lv - 1)
+                        top = top + 1
+    st.out_used[0] = base + n
+    return n
+
+
+@wp.func
+def _freeze(st: _MergeArrays):
+    """Step j: the nodes merged into one polygon in this pass keep it from the next pass on (and their
+    counters leave the totals)."""
+    for lv in range(1, st.depth + 1):
+        for i in range(st.n_marked[lv]):
+            node = st.n_base[lv] + st.marks[st.n_base[lv] + i]
+            nd = st.nodes[node]
+            if nd.count == 1:
+                st.nodes[node].frozen = 1
+                st.nodes[node].sub = float(wp.inf)
+                _add_totals(nd, -1, st)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -199,158 +518,62 @@ def _merge_border(h: wp.array2d(dtype=wp.float32), vertical: int, fixed: int, st
 
 
 @wp.kernel(enable_backward=False)
-def _leaf_count_kernel(
-    active: wp.array(dtype=wp.int32),
+def _init_kernel(
+    offset: int,
     depth: int,
     ch: int,
     cw: int,
-    single_prev: wp.array(dtype=wp.int32),
-    node_base: wp.array(dtype=wp.int32),
-    # outputs
-    out_count: wp.array(dtype=wp.int32),
-):
-    k = active[wp.tid()]
-    ij = _demorton(k, depth)
-    c = int(0)
-    if ij[0] < ch and ij[1] < cw:
-        c = 1
-        if depth > 0:
-            if single_prev[node_base[1] + (k >> 2)] != 0:
-                c = 0
-    out_count[k] = c
-
-
-@wp.kernel(enable_backward=False)
-def _merge_kernel(
-    active: wp.array(dtype=wp.int32),
     h: wp.array2d(dtype=wp.float32),
-    m: int,
-    depth: int,
-    ch: int,
-    cw: int,
-    tol: float,
-    single_prev: wp.array(dtype=wp.int32),
-    node_base: wp.array(dtype=wp.int32),
-    level_base: wp.array(dtype=wp.int32),
-    prev_off: wp.array(dtype=wp.int32),
-    rec_rect: wp.array(dtype=wp.vec4i),
-    rec_flags: wp.array(dtype=wp.int32),
-    rec_father: wp.array(dtype=wp.int32),
-    single_rec: wp.array(dtype=wp.int32),
+    n_base: wp.array(dtype=wp.int32),
     # outputs
-    sc_rect: wp.array(dtype=wp.vec4i),
-    sc_fwd: wp.array(dtype=wp.int32),
-    sc_flags: wp.array(dtype=wp.int32),
-    out_count: wp.array(dtype=wp.int32),
-    stats: wp.array(dtype=wp.int64),
+    out_nodes: wp.array(dtype=_Node),
+    out_g: wp.array(dtype=_Slot),
+    out_link: wp.array(dtype=wp.int32),
 ):
-    k = active[wp.tid()]
-    if m < depth:
-        if single_prev[node_base[m + 1] + (k >> 2)] != 0:
-            out_count[k] = 0
-            return
-    if single_prev[node_base[m] + k] != 0:
-        out_count[k] = 1
-        return
-    lo = prev_off[4 * k]
-    hi = prev_off[4 * k + 4]
-    if hi == lo:
-        out_count[k] = 0
-        return
-    pb = level_base[m - 1]
-    for s in range(lo, hi):
-        sc_rect[s] = rec_rect[pb + s]
-        sc_fwd[s] = -1
-        sc_flags[s] = rec_flags[pb + s]
-    nr = _node_rect(k, m, depth, ch, cw)
-    half = 1 << (m - 1)
-    jm = nr[2] + half
-    im = nr[0] + half
-    n = hi - lo
-    if jm < cw:
-        # border A (son 1 | son 2), then B (son 4 | son 3)
-        n = n - _merge_border(h, 1, jm, nr[0], wp.min(im, nr[1]), tol, m, depth, single_rec, node_base, rec_father,
-                              level_base, sc_rect, sc_fwd, sc_flags, stats)
-        if im < ch:
-            n = n - _merge_border(h, 1, jm, im, nr[1], tol, m, depth, single_rec, node_base, rec_father,
-                                  level_base, sc_rect, sc_fwd, sc_flags, stats)
-    if im < ch:
-        # border C (sons 1-2 | sons 4-3)
-        n = n - _merge_border(h, 0, im, nr[2], nr[3], tol, m, depth, single_rec, node_base, rec_father,
-                              level_base, sc_rect, sc_fwd, sc_flags, stats)
-    out_count[k] = n
+    """Node ``tid`` (flat index; the cells' nodes are the slots) before any pass: a cell holds one polygon
+    and nothing to merge, other nodes were never merged."""
+    t = wp.tid() + offset
+    m = int(0)
+    while t >= n_base[m + 1]:
+        m = m + 1
+    o = _demorton(t - n_base[m], depth - m)
+    n = _Node()
+    n.i0 = o[0] << m
+    n.j0 = o[1] << m
+    n.sub = -wp.inf
+    if m == 0:
+        n.sub = wp.inf
+        q = _Slot()
+        out_link[t] = _OUTSIDE
+        if n.i0 < ch and n.j0 < cw:
+            n.count = 1
+            q.rect = wp.vec4i(n.i0, n.i0 + 1, n.j0, n.j0 + 1)
+            q.grad = _grads(h, q.rect)
+            out_link[t] = -1
+        out_g[t] = q
+    out_nodes[t] = n
 
 
 @wp.kernel(enable_backward=False)
-def _emit_kernel(
-    active: wp.array(dtype=wp.int32),
-    h: wp.array2d(dtype=wp.float32),
-    m: int,
-    depth: int,
-    ch: int,
-    cw: int,
-    single_prev: wp.array(dtype=wp.int32),
-    node_base: wp.array(dtype=wp.int32),
-    level_base: wp.array(dtype=wp.int32),
-    count: wp.array(dtype=wp.int32),
-    off: wp.array(dtype=wp.int32),
-    prev_off: wp.array(dtype=wp.int32),
-    sc_rect: wp.array(dtype=wp.vec4i),
-    sc_fwd: wp.array(dtype=wp.int32),
-    sc_flags: wp.array(dtype=wp.int32),
-    # outputs
-    sc_out: wp.array(dtype=wp.int32),
-    rec_rect: wp.array(dtype=wp.vec4i),
-    rec_grad: wp.array(dtype=wp.vec2),
-    rec_flags: wp.array(dtype=wp.int32),
-    rec_father: wp.array(dtype=wp.int32),
-    single_rec: wp.array(dtype=wp.int32),
-):
-    k = active[wp.tid()]
-    cnt = count[k]
-    o = level_base[m] + off[k]
-    if cnt == 1:
-        single_rec[node_base[m] + k] = o
-    else:
-        single_rec[node_base[m] + k] = -1
-    if cnt == 0:
-        return
-    if m == 0 or single_prev[node_base[m] + k] != 0:
-        r = _node_rect(k, m, depth, ch, cw)
-        rec_rect[o] = r
-        rec_grad[o] = _grads(h, r)
-        rec_flags[o] = 0
-        rec_father[o] = -1
-        return
-    lo = prev_off[4 * k]
-    hi = prev_off[4 * k + 4]
-    n = int(0)
-    for s in range(lo, hi):
-        if sc_fwd[s] < 0:
-            r = sc_rect[s]
-            rec_rect[o + n] = r
-            rec_grad[o + n] = _grads(h, r)
-            rec_flags[o + n] = sc_flags[s]
-            rec_father[o + n] = -1
-            sc_out[s] = o + n
-            n = n + 1
-    pb = level_base[m - 1]
-    for s in range(lo, hi):
-        f = s
-        while sc_fwd[f] >= 0:
-            f = sc_fwd[f]
-        rec_father[pb + s] = sc_out[f]
-
-
-@wp.kernel(enable_backward=False)
-def _keep_single_kernel(
-    single_rec: wp.array(dtype=wp.int32),
-    # outputs
-    single_prev: wp.array(dtype=wp.int32),
-):
-    k = wp.tid()
-    if single_rec[k] >= 0:
-        single_prev[k] = 1
+def _pass_kernel(st: _MergeArrays, row: int):
+    """Pass ``row``, at tolerance ``st.tols[row]``, one thread (the state is ``st``'s arrays, read and
+    written): undo the marked nodes' last merges top-down, merge them again bottom-up, append the root's
+    polygons to ``st.out_*``, write the pass's counters to ``st.out_stats[row]``, freeze."""
+    tol = st.tols[row]
+    _mark(tol, st)
+    _undo(st)
+    for lv in range(1, st.depth + 1):
+        for i in range(st.n_marked[lv]):
+            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, st)
+    st.out_count[row] = _emit_root(st)
+    for i in range(5):
+        st.out_stats[row, i] = st.totals[i]
+    high = int(0)
+    for v in range(st.hist.shape[0]):
+        if st.hist[v] > 0:
+            high = v
+    st.out_stats[row, 5] = wp.int64(high)
+    _freeze(st)
 
 
 @wp.kernel(enable_backward=False)
@@ -715,141 +938,172 @@ def _morph_positions_kernel(
 
 
 class MergeState:
-    """Device arrays of the merge, reused across tolerances (the quadtree of the paper).
+    """The quadtree of the paper and the merge state of every node, reused across tolerances (ascending).
+
+    ``arrays`` (a ``_MergeArrays``) holds every array the pass kernel reads and writes: ``g`` and ``link``,
+    one ``_Slot`` and link per cell of the padded N x N grid by Morton code, ``nodes``, one ``_Node`` per
+    quadtree node (flat index ``node_base[l] + k``), and ``u``, the nodes' undo logs.
 
     Attributes:
         depth: quadtree depth (N = 2^depth cells a side).
         n_nodes: nodes per level, level 0 (cells) .. depth (root).
-        node_base: (depth+2,) int32 offsets of each level in the flat per-node arrays.
-        level_base: (depth+1,) int32 offsets of each level's records in the flat record arrays
-            (each level has room for one record per cell).
-        single_prev: flat (sum n_nodes,) int32, 1 where a node held one polygon after an earlier tolerance.
+        node_base: (depth+2,) int64 offsets of each level in the flat per-node arrays.
     """
+
+    OUT_ROWS = 1 << 23  # output rows held at once on the CPU (untouched rows cost address space only)
 
     def __init__(self, heights: np.ndarray, device: str = "cpu"):
         hh, ww = heights.shape
         self.ch, self.cw = hh - 1, ww - 1
         self.ncells = self.ch * self.cw
         n = max(self.ch, self.cw)
-        self.depth = int(max(0, int(np.ceil(np.log2(n))))) if n > 1 else 0
-        d = self.depth
+        self.depth = d = int(max(0, int(np.ceil(np.log2(n))))) if n > 1 else 0
         self.n_nodes = [4 ** (d - m) for m in range(d + 1)]
-        nb = np.zeros(d + 2, np.int32)
+        nb = np.zeros(d + 2, np.int64)
         nb[1:] = np.cumsum(self.n_nodes)
-        self.node_base_np = nb
+        self.node_base = nb
         self.device = device
-        self.h = wp.array(np.ascontiguousarray(heights, np.float32), dtype=wp.float32, device=device)
-        self.node_base = wp.array(nb, dtype=wp.int32, device=device)
-        self.level_base = wp.array(np.arange(d + 1, dtype=np.int32) * self.ncells, dtype=wp.int32, device=device)
-        total_nodes = int(nb[-1])
-        self.single_prev = wp.zeros(total_nodes, dtype=wp.int32, device=device)
-        self.single_rec = wp.full(total_nodes, value=-1, dtype=wp.int32, device=device)
-        cap = self.ncells * (d + 1)
-        self.rec_rect = wp.zeros(cap, dtype=wp.vec4i, device=device)
-        self.rec_grad = wp.zeros(cap, dtype=wp.vec2, device=device)
-        self.rec_flags = wp.zeros(cap, dtype=wp.int32, device=device)
-        self.rec_father = wp.full(cap, value=-1, dtype=wp.int32, device=device)
-        self.sc_rect = wp.zeros(self.ncells, dtype=wp.vec4i, device=device)
-        self.sc_fwd = wp.full(self.ncells, value=-1, dtype=wp.int32, device=device)
-        self.sc_flags = wp.zeros(self.ncells, dtype=wp.int32, device=device)
-        self.sc_out = wp.zeros(self.ncells, dtype=wp.int32, device=device)
-        self.count = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
-        self.off = [wp.zeros(c + 1, dtype=wp.int32, device=device) for c in self.n_nodes]
-        self.stats = wp.zeros(6, dtype=wp.int64, device=device)
-        self._cmds = None
-        # nodes that hold at least one cell, per level (Morton order)
-        self._inside = []
-        for m in range(d + 1):
-            code = np.arange(self.n_nodes[m], dtype=np.int64)
-            i = np.zeros_like(code)
-            j = np.zeros_like(code)
-            for b in range(d - m):
-                j |= ((code >> (2 * b)) & 1) << b
-                i |= ((code >> (2 * b + 1)) & 1) << b
-            self._inside.append(((i << m) < self.ch) & ((j << m) < self.cw))
-        self.active = [wp.zeros(c, dtype=wp.int32, device=device) for c in self.n_nodes]
-        self.n_active = [0] * (d + 1)
-        self._update_active()
+        total, ns = int(nb[-1]), self.n_nodes[0]
+        u_base = np.zeros(d + 2, np.int64)
+        u_base[2:] = np.cumsum([c * min(4 ** m, 2 ** (m + 2)) for m, c in enumerate(self.n_nodes) if m > 0])
+        if max(u_base[-1], total) >= 2 ** 31 or ns > 2 ** (31 - 5):  # links hold slot << 5
+            raise ValueError(f"heightmap: {hh} x {ww} samples is too large for the polytree's int32 indices")
+
+        def arr(a, dtype):
+            return wp.array(a, dtype=dtype, device=device)
+
+        def zeros(n, dtype):
+            return wp.zeros(max(int(n), 1), dtype=dtype, device=device)
+
+        def empty(n, dtype):  # written before it is read
+            return wp.empty(max(int(n), 1), dtype=dtype, device=device)
+
+        a = _MergeArrays()
+        a.h = arr(np.ascontiguousarray(heights, np.float32), wp.float32)
+        a.tols = zeros(1, wp.float32)
+        a.n_base, a.u_base = arr(nb.astype(np.int32), wp.int32), arr(u_base[:-1].astype(np.int32), wp.int32)
+        a.morton_i = arr((_spread(np.arange(max(self.ch, 1))) << 1).astype(np.int32), wp.int32)
+        a.morton_j = arr(_spread(np.arange(max(self.cw, 1))).astype(np.int32), wp.int32)
+        a.nodes, a.g, a.link, a.logpos = empty(total, _Node), empty(ns, _Slot), empty(ns, wp.int32), empty(ns, wp.int32)
+        a.u = empty(u_base[-1], _Undo)
+        a.marks, a.n_marked, a.stack = empty(total, wp.int32), zeros(d + 1, wp.int32), empty(3 * d + 4, wp.int32)
+        a.totals, a.hist = zeros(5, wp.int64), zeros(2 * d + 8, wp.int32)  # a search takes <= 2 * depth + 1 steps
+        a.counter, a.error, a.out_used = zeros(1, wp.int32), zeros(1, wp.int32), zeros(1, wp.int32)
+        a.out_count, a.out_stats = zeros(1, wp.int32), wp.zeros((1, 6), dtype=wp.int64, device=device)
+        a.depth, a.ch, a.cw, a.nc, a.nslots = d, self.ch, self.cw, self.ncells, ns
+        launch(_init_kernel, total, inputs=[d, self.ch, self.cw, a.h, a.n_base], outputs=[a.nodes, a.g, a.link],
+               device=device)
+        self.arrays = a
+        self._used = a.out_used.numpy() if device == "cpu" else None  # on the CPU a view: read after each pass
+        self._pending = np.zeros(6, np.int64)
+
+    def run_passes(self, tolerances, stop_at_one: bool = False) -> tuple[np.ndarray, ...]:
+        """Merge at each tolerance (ascending, metres), stopping after the first pass whose root holds one
+        polygon when ``stop_at_one``. One launch a pass (each pass is timed).
+
+        Returns:
+            rects (P, 4) int32, grads (P, 2) float32, flags (P,) int32: every pass's root polygons one after
+            the other, each pass in the paper's order; counts (T,) int64 polygons per pass; stats (T, 6)
+            int64 per pass (STAT_*); ms (T,) float64 wall time per pass.
+        """
+        tol = np.asarray(tolerances, np.float64).reshape(-1)
+        a, dev, nc = self.arrays, self.device, max(self.ncells, 1)
+        t_n = len(tol)
+        if t_n:
+            a.tols = wp.array(tol.astype(np.float32), dtype=wp.float32, device=dev)
+        a.out_count = wp.zeros(max(t_n, 1), dtype=wp.int32, device=dev)
+        a.out_stats = wp.zeros((max(t_n, 1), 6), dtype=wp.int64, device=dev)
+        # room for every pass at once where that is cheap (CPU pages are touched only when written)
+        rows = nc * max(2, min(t_n, self.OUT_ROWS // nc)) if dev == "cpu" else 2 * nc
+        self._new_out(rows)
+        cmd = wp.launch(_pass_kernel, dim=1, inputs=[a, 0], device=dev, record_cmd=True)
+        chunks, ms = [], []
+        used = 0
+        for t in range(t_n):
+            if used + nc > rows:  # a pass writes at most one row a cell
+                chunks.append(self._take(used))
+                self._new_out(rows)
+                cmd.set_param_at_index(0, a)
+                used = 0
+            t0 = time.perf_counter()
+            cmd.set_param_at_index(1, t)
+            cmd.launch()
+            new = int(self._used[0]) if self._used is not None else int(a.out_used.numpy()[0])
+            ms.append((time.perf_counter() - t0) * 1e3)
+            last, used = new - used, new
+            if stop_at_one and last == 1:
+                break
+        if int(a.error.numpy()[0]):
+            raise RuntimeError("polytree merge: a single polygon is not its node's rectangle")  # an internal error
+        chunks.append(self._take(used))
+        done = len(ms)
+        rects, grads, flags = (np.concatenate([c[q] for c in chunks]) if len(chunks) > 1 else chunks[0][q]
+                               for q in range(3))
+        return (rects, grads, flags, a.out_count.numpy()[:done].astype(np.int64), a.out_stats.numpy()[:done].copy(),
+                np.asarray(ms, np.float64))
 
     def run_pass(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Merge every level at ``tol``; returns the root's polygons: rects (P, 4) int32 (i0, i1, j0, j1),
-        gradients (P, 2) float32 (Xgr, Ygr), flags (P,) int32."""
-        dev = self.device
-        d = self.depth
-        if self._cmds is None:
-            self._cmds = self._record()
-        for m in range(d + 1):
-            first, emit = self._cmds[m]
-            na = self.n_active[m]
-            self.count[m].zero_()
-            if na:
-                if m > 0:
-                    first.set_param_by_name("tol", float(tol))
-                first.set_dim(na)
-                first.launch()
-            wp.utils.array_scan(self.count[m], self.off[m], inclusive=False)  # count[n] is 0: off[n] = total
-            if na:
-                emit.set_dim(na)
-                emit.launch()
-        # step j: nodes holding one polygon keep it for every higher tolerance
-        wp.launch(_keep_single_kernel, dim=self.single_rec.shape[0], inputs=[self.single_rec],
-                  outputs=[self.single_prev], device=dev)
-        self._update_active()
-        base = d * self.ncells
-        total = int(self.off[d].numpy()[1])
-        # copies: on the CPU .numpy() is a view of memory the next pass overwrites
-        rects = self.rec_rect[base:base + total].numpy().reshape(total, 4).copy()
-        grads = self.rec_grad[base:base + total].numpy().reshape(total, 2).copy()
-        flags = self.rec_flags[base:base + total].numpy().reshape(total).copy()
+        """Merge at ``tol`` (not below the last tolerance); returns the root's polygons: rects (P, 4) int32
+        (i0, i1, j0, j1), gradients (P, 2) float32 (Xgr, Ygr), flags (P,) int32. Its counters add to
+        :meth:`take_stats`."""
+        rects, grads, flags, _, stats, _ = self.run_passes([tol])
+        self._pending[:STAT_FIND_MAX] += stats[0, :STAT_FIND_MAX]
+        self._pending[STAT_FIND_MAX] = max(self._pending[STAT_FIND_MAX], stats[0, STAT_FIND_MAX])
         return rects, grads, flags
 
-    def _update_active(self) -> None:
-        """Next pass's work lists: per level, the nodes that hold cells and whose father does not hold a
-        single polygon already (the nodes under a single one are never visited again; their stale
-        ``single_rec`` entries are never read, as every neighbour search stops at the single ancestor)."""
-        sp = self.single_prev.numpy()
-        nb = self.node_base_np
-        for m in range(self.depth + 1):
-            keep = self._inside[m].copy()
-            if m < self.depth:
-                keep &= np.repeat(sp[nb[m + 1]:nb[m + 2]] == 0, 4)
-            idx = np.flatnonzero(keep).astype(np.int32)
-            self.n_active[m] = len(idx)
-            if len(idx):
-                self.active[m][:len(idx)].assign(idx)
-
-    def _record(self) -> list:
-        """Recorded launches per level (packing the arguments once; a pass only changes the tolerance)."""
-        dev = self.device
-        d = self.depth
-        cmds = []
-        for m in range(d + 1):
-            n = self.n_nodes[m]
-            cnt = self.count[m]
-            if m == 0:
-                first = wp.launch(_leaf_count_kernel, dim=n,
-                                  inputs=[self.active[m], d, self.ch, self.cw, self.single_prev, self.node_base],
-                                  outputs=[cnt], device=dev, record_cmd=True)
-            else:
-                first = wp.launch(_merge_kernel, dim=n,
-                                  inputs=[self.active[m], self.h, m, d, self.ch, self.cw, 0.0, self.single_prev,
-                                          self.node_base, self.level_base, self.off[m - 1], self.rec_rect,
-                                          self.rec_flags, self.rec_father, self.single_rec],
-                                  outputs=[self.sc_rect, self.sc_fwd, self.sc_flags, cnt, self.stats], device=dev,
-                                  record_cmd=True)
-            emit = wp.launch(_emit_kernel, dim=n,
-                             inputs=[self.active[m], self.h, m, d, self.ch, self.cw, self.single_prev, self.node_base,
-                                     self.level_base, cnt, self.off[m], self.off[m - 1] if m else self.off[0],
-                                     self.sc_rect, self.sc_fwd, self.sc_flags],
-                             outputs=[self.sc_out, self.rec_rect, self.rec_grad, self.rec_flags, self.rec_father,
-                                      self.single_rec], device=dev, record_cmd=True)
-            cmds.append((first, emit))
-        return cmds
-
     def take_stats(self) -> np.ndarray:
-        s = self.stats.numpy().copy()
-        self.stats.zero_()
+        """(6,) int64 counters of the passes of :meth:`run_pass` since the last call (STAT_*)."""
+        s = self._pending.copy()
+        self._pending[:] = 0
         return s
+
+    def level(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """The tiling of quadtree level m as each node's last merge left it (the polytree's level m): rects
+        (P, 4) int32 in the paper's order and father (P,) int64, the index in level m+1's rects of the
+        polygon each one is part of (-1 at the root). For inspection: undoes the higher levels' merges on a
+        host copy."""
+        if isinstance(m, bool) or not isinstance(m, int | np.integer) or not 0 <= m <= self.depth:
+            raise ValueError(f"m: expected a level in [0, {self.depth}], got {m!r}")
+        a = self.arrays
+        nb, nodes, u = self.node_base, a.nodes.numpy(), a.u.numpy()
+        u_base = a.u_base.numpy()
+        rect, alive = a.g.numpy()["rect"].copy(), a.link.numpy() == -1
+        tiling = {self.depth: rect[alive]}
+        for lv in range(self.depth, m, -1):
+            room = min(4 ** lv, 2 ** (lv + 2))
+            for k in range(self.n_nodes[lv]):
+                e = u[u_base[lv] + k * room:][:nodes["ulen"][nb[lv] + k]]
+                rect[e["slot"]], alive[e["slot"]] = e["rect"], True
+            tiling[lv - 1] = rect[alive]
+        rects = tiling[m].reshape(-1, 4).astype(np.int32)
+        if m == self.depth:
+            return rects, np.full(len(rects), -1, np.int64)
+        label, _ = paint(tiling[m + 1], (self.ch, self.cw), device="cpu")
+        return rects, label[rects[:, 0], rects[:, 2]].astype(np.int64)
+
+    def _new_out(self, rows: int) -> None:
+        a, dev = self.arrays, self.device
+        a.out_rect = wp.empty(rows, dtype=wp.vec4i, device=dev)
+        a.out_grad = wp.empty(rows, dtype=wp.vec2, device=dev)
+        a.out_flags = wp.empty(rows, dtype=wp.int32, device=dev)
+        a.out_used.zero_()
+
+    def _take(self, used: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The first ``used`` output rows as host arrays (views on the CPU: those rows are not written again)."""
+        a = self.arrays
+        return (a.out_rect.numpy()[:used].reshape(used, 4), a.out_grad.numpy()[:used].reshape(used, 2),
+                a.out_flags.numpy()[:used].reshape(used))
+
+
+def _spread(v: np.ndarray) -> np.ndarray:
+    """Bits of v (< 2^31) spread to the even bit positions (Morton interleave)."""
+    v = np.asarray(v, np.int64)
+    out = np.zeros_like(v)
+    b = 0
+    while (v >> b).any():
+        out |= ((v >> b) & 1) << (2 * b)
+        b += 1
+    return out
 
 
 def paint(rects: np.ndarray, shape_cells: tuple[int, int], device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
@@ -926,3 +1180,4 @@ def morph_positions(heights: np.ndarray, src: np.ndarray, dst: np.ndarray, s: fl
         wp.launch(_morph_positions_kernel, dim=n, inputs=[h, a, b, float(s), float(dx), float(dz),
                                                            wp.vec3(*rel_origin)], outputs=[out], device=device)
     return out.numpy()[:n].reshape(n, 3)
+

@@ -10,8 +10,9 @@ morphed continuously between tolerances.
     mesh = pt.mesh(10, eye=camera.position)                 # watertight Mesh for the rasterizer
     mesh = pt.morph_mesh(10.4, eye=camera.position)         # TIN morph 40% of the way to level 11
 
-The merge itself runs in :mod:`terrainwarp.kernels.polytree` (all nodes of a quadtree level in parallel,
-each node in the paper's order A, B, C); here are the host side, the polygon array and the meshes.
+The merge itself runs in :mod:`terrainwarp.kernels.polytree` (each node in the paper's order A, B, C; one
+launch a tolerance, which merges again only the nodes whose result that tolerance changes); here are the
+host side, the polygon array and the meshes.
 
 Conventions: a rectangle ``(i0, i1, j0, j1)`` covers cells ``i0 <= i < i1``, ``j0 <= j < j1`` of the
 (H-1) x (W-1) cells; its corners are heightmap samples, sample (i, j) at world
@@ -28,7 +29,6 @@ tolerance of the order of the slope times the size difference to merge.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -137,7 +137,9 @@ class Polytree:
         depth: quadtree depth (2^depth cells a side).
         pass_ms: (T,) wall time of each tolerance's merge pass (ms).
         pass_stats: (T, 6) int64 per pass: pair tests, bounds failures, similarity failures, merges,
-            neighbour-search pointer steps (two searches per test), the most steps of one search.
+            neighbour-search pointer steps (two searches per test), the most steps of one search; the
+            paper's algorithm's counts, over every node not frozen by step j (also the nodes a pass did not
+            need to merge again, with the counts of their last merge).
     """
 
     heightmap: Heightmap
@@ -309,8 +311,9 @@ def default_tolerances(heightmap: Heightmap, n: int = 100) -> np.ndarray:
 
 def build_polytree(heightmap: Heightmap, tolerances: object, *, stop_at_one: bool = True,
                    device: str = "cpu") -> Polytree:
-    """Merge at every tolerance (ascending), reusing the quadtree nodes that hold one polygon (step j),
-    and stop after the first tolerance whose root holds one polygon (``stop_at_one``).
+    """Merge at every tolerance (ascending), reusing the quadtree nodes that hold one polygon (step j) and
+    the merges a tolerance does not change, and stop after the first tolerance whose root holds one polygon
+    (``stop_at_one``).
 
     Args:
         heightmap: finite heights, at least 2 x 2 samples.
@@ -329,24 +332,12 @@ def build_polytree(heightmap: Heightmap, tolerances: object, *, stop_at_one: boo
     if np.any(np.diff(tol) < 0):
         raise ValueError("tolerances: expected ascending values")
     st = _k.MergeState(hm.heights, device=device)
-    starts, rects, grads, flags, done, ms, stats = [0], [], [], [], [], [], []
-    for t in tol:
-        t0 = time.perf_counter()
-        r, g, f = st.run_pass(float(t))
-        ms.append((time.perf_counter() - t0) * 1e3)
-        stats.append(st.take_stats())
-        rects.append(r)
-        grads.append(g)
-        flags.append(f)
-        done.append(t)
-        starts.append(starts[-1] + len(r))
-        if stop_at_one and len(r) == 1:
-            break
-    pa = PolygonArray(tolerances=np.asarray(done, np.float32), start=np.asarray(starts, np.int64),
-                      rects=np.concatenate(rects).reshape(-1, 4).astype(np.int32),
-                      grads=np.concatenate(grads).reshape(-1, 2).astype(np.float32),
-                      flags=np.concatenate(flags).astype(np.int32))
-    return Polytree(hm, pa, st.depth, np.asarray(ms), np.asarray(stats), device)
+    rects, grads, flags, counts, stats, ms = st.run_passes(tol, stop_at_one=stop_at_one)
+    pa = PolygonArray(tolerances=tol[:len(counts)].astype(np.float32),
+                      start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                      rects=rects.astype(np.int32, copy=False), grads=grads.astype(np.float32, copy=False),
+                      flags=flags.astype(np.int32, copy=False))
+    return Polytree(hm, pa, st.depth, ms, stats, device)
 
 
 def merge_rectangles(heightmap: Heightmap, tolerance: float, device: str = "cpu") -> np.ndarray:

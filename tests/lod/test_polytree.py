@@ -1,5 +1,6 @@
 """Tests of the bottom-up polygon merging (taylor-barrett-continuous-resolution.txt): merge rules against a
-sequential Python reference, multi-tolerance reuse, coverage, watertight triangulation and TIN morphing."""
+sequential Python reference, the incremental passes against the per-tolerance algorithm, multi-tolerance
+reuse, coverage, watertight triangulation and TIN morphing."""
 
 from __future__ import annotations
 
@@ -72,6 +73,138 @@ def _ref_merge(h: np.ndarray, tol: float) -> list[tuple[int, int, int, int]]:
         return polys
 
     return sorted(tuple(p) for p in node(0, 0, n))
+
+
+class _RefPasses:
+    """The per-tolerance algorithm, sequential: every pass merges every node that does not hold a single
+    polygon since an earlier pass (step j), level by level, each from a copy of its sons' records, finding
+    polygons with section 2.1's search (descent to the topmost single node, father pointers, merge
+    pointers), and counts what it does."""
+
+    def __init__(self, h: np.ndarray):
+        self.h = np.asarray(h, np.float32)
+        self.ch, self.cw = self.h.shape[0] - 1, self.h.shape[1] - 1
+        n = max(self.ch, self.cw)
+        self.depth = int(np.ceil(np.log2(n))) if n > 1 else 0
+        self.frozen = [[False] * 4 ** (self.depth - m) for m in range(self.depth + 1)]
+
+    def corner(self, k: int, m: int) -> tuple[int, int]:
+        i = j = 0
+        for b in range(self.depth - m):
+            j |= ((k >> (2 * b)) & 1) << b
+            i |= ((k >> (2 * b + 1)) & 1) << b
+        return i << m, j << m
+
+    def grads(self, r) -> tuple[np.float32, np.float32]:
+        h = self.h
+        z1, z2, z3, z4 = h[r[0], r[2]], h[r[0], r[3]], h[r[1], r[3]], h[r[1], r[2]]
+        return np.float32((z2 - z1) + (z3 - z4)), np.float32((z4 - z1) + (z3 - z2))
+
+    def find(self, r: int, c: int, m: int, lo: int, fwd: list) -> tuple[int, int]:
+        code = sum((((c >> b) & 1) << (2 * b)) | (((r >> b) & 1) << (2 * b + 1)) for b in range(self.depth))
+        lv, steps = m - 1, 0
+        while True:
+            steps += 1
+            q = self.single[lv][code >> (2 * lv)]
+            if q >= 0:
+                break
+            lv -= 1
+        while lv < m - 1:
+            q, lv, steps = self.father[lv][q], lv + 1, steps + 1
+        q -= lo
+        while fwd[q] >= 0:
+            q, steps = fwd[q], steps + 1
+        return q, steps
+
+    def border(self, sc: list, fwd: list, m: int, lo: int, vertical: bool, fixed: int, p: int, end: int):
+        st = self.stats
+        while p < end:
+            (a, sa), (b, sb) = (self.find(p, fixed - 1, m, lo, fwd), self.find(p, fixed, m, lo, fwd)) if vertical \
+                else (self.find(fixed - 1, p, m, lo, fwd), self.find(fixed, p, m, lo, fwd))
+            st[0], st[4], st[5] = st[0] + 1, st[4] + sa + sb, max(st[5], sa, sb)
+            ra, rb = sc[a][0], sc[b][0]
+            k0 = 0 if vertical else 2
+            ok = False
+            if ra[k0] == rb[k0] and ra[k0 + 1] == rb[k0 + 1]:
+                ga, gb = self.grads(ra), self.grads(rb)
+                if np.float32(abs(ga[0] - gb[0]) + abs(ga[1] - gb[1])) <= self.tol:
+                    keep = (13, 14) if vertical else (7, 11)
+                    sc[a] = [[ra[0], rb[1], ra[2], rb[3]], (sc[a][1] & keep[0]) | (sc[b][1] & keep[1])]
+                    fwd[b], ok = a, True
+                    st[3] += 1
+                else:
+                    st[2] += 1
+            else:
+                st[1] += 1
+            if not ok:
+                sc[a][1] |= 2 if vertical else 8
+                sc[b][1] |= 1 if vertical else 4
+            p = min(ra[k0 + 1], rb[k0 + 1])
+
+    def node(self, m: int, k: int, rec: list):
+        """Merge node k of level m (its sons' records are level m-1's) and append its records to ``rec``."""
+        i0, j0 = self.corner(k, m)
+        s, ch, cw = 1 << m, self.ch, self.cw
+        if m == 0 or self.frozen[m][k]:
+            rec.append([[i0, min(i0 + s, ch), j0, min(j0 + s, cw)], 0])
+            return
+        lo, hi = self.first[m - 1][4 * k], self.first[m - 1][4 * k + 4]
+        sc = [[list(r), f] for r, f in self.recs[m - 1][lo:hi]]
+        fwd = [-1] * len(sc)
+        half = 1 << (m - 1)
+        i1, j1, im, jm = min(i0 + s, ch), min(j0 + s, cw), i0 + half, j0 + half
+        if jm < cw:
+            self.border(sc, fwd, m, lo, True, jm, i0, min(im, i1))
+            if im < ch:
+                self.border(sc, fwd, m, lo, True, jm, im, i1)
+        if im < ch:
+            self.border(sc, fwd, m, lo, False, im, j0, j1)
+        out_of = {}
+        for q in range(len(sc)):
+            if fwd[q] < 0:
+                out_of[q] = len(rec)
+                rec.append(sc[q])
+        for q in range(len(sc)):
+            f = q
+            while fwd[f] >= 0:
+                f = fwd[f]
+            self.father[m - 1][lo + q] = out_of[f]
+
+    def run(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """One pass: the root's (rects (P, 4) in record order, grads (P, 2) float32, flags (P,), counters (6,))."""
+        self.tol, self.stats = np.float32(tol), [0] * 6
+        self.recs, self.father, self.single, self.first = [], [], [], []
+        for m in range(self.depth + 1):
+            n = 4 ** (self.depth - m)
+            rec, single, first = [], [-1] * n, [0] * (n + 1)
+            for k in range(n):
+                first[k] = len(rec)
+                i0, j0 = self.corner(k, m)
+                if i0 < self.ch and j0 < self.cw and not (m < self.depth and self.frozen[m + 1][k >> 2]):
+                    self.node(m, k, rec)  # (not visited: outside, or under a node that keeps its polygon)
+                    if len(rec) - first[k] == 1:
+                        single[k] = first[k]
+            first[n] = len(rec)
+            self.recs.append(rec)
+            self.father.append([-1] * len(rec))
+            self.single.append(single)
+            self.first.append(first)
+        for m in range(self.depth + 1):  # step j
+            self.frozen[m] = [f or q >= 0 for f, q in zip(self.frozen[m], self.single[m], strict=True)]
+        root = self.recs[self.depth]
+        return (np.array([r for r, _ in root], np.int32).reshape(-1, 4),
+                np.array([self.grads(r) for r, _ in root], np.float32).reshape(-1, 2),
+                np.array([f for _, f in root], np.int32), np.array(self.stats, np.int64))
+
+
+def _ref_passes(h: np.ndarray, tols, stop_at_one: bool = True) -> list[tuple]:
+    """:class:`_RefPasses` over ascending tolerances, stopping like :func:`build_polytree`."""
+    ref, out = _RefPasses(h), []
+    for tol in tols:
+        out.append(ref.run(tol))
+        if stop_at_one and len(out[-1][0]) == 1:
+            break
+    return out
 
 
 def _sorted(rects: np.ndarray) -> list[tuple[int, int, int, int]]:
@@ -222,7 +355,7 @@ def test_deterministic_across_runs():
         pt = build_polytree(hm, tols)
         m = pt.mesh(5)
         digests.append(digest(pt.polygons.rects, pt.polygons.grads, pt.polygons.flags, pt.polygons.start,
-                              m.positions, m.triangles))
+                              pt.pass_stats, m.positions, m.triangles))
     assert digests[0] == digests[1]
 
 
@@ -374,30 +507,68 @@ def test_polytree_father_pointers_nest_level_by_level():
     hm = Heightmap.fbm(41, 37, seed=5, max_height=300.0, feature_size=16.0)
     st = MergeState(hm.heights)
     root, _, _ = st.run_pass(20.0)
-    rect = st.rec_rect.numpy()
-    father = st.rec_father.numpy()
-    base = st.level_base.numpy()
-    totals = [int(st.off[m].numpy()[-1]) for m in range(st.depth + 1)]
-    assert totals[0] == 40 * 36 and totals[-1] == len(root)
+    levels = [st.level(m) for m in range(st.depth + 1)]
+    assert len(levels[0][0]) == 40 * 36 and np.array_equal(levels[-1][0], root)
+    assert _sorted(levels[0][0]) == [(i, i + 1, j, j + 1) for i in range(40) for j in range(36)]
     for m in range(st.depth):
-        lo, hi = base[m], base[m] + totals[m]
-        f = father[lo:hi]
+        a, f = levels[m]
+        c = levels[m + 1][0]
         # every polygon of level m points to the polygon of level m+1 it became part of, which contains it
-        assert np.all((f >= base[m + 1]) & (f < base[m + 1] + totals[m + 1]))
-        a, b = rect[lo:hi], rect[f]
+        assert np.all((f >= 0) & (f < len(c)))
+        b = c[f]
         assert np.all((b[:, 0] <= a[:, 0]) & (a[:, 1] <= b[:, 1]) & (b[:, 2] <= a[:, 2]) & (a[:, 3] <= b[:, 3]))
         # and the sons' polygons tile each father exactly
-        area = np.zeros(totals[m + 1], np.int64)
-        np.add.at(area, f - base[m + 1], (a[:, 1] - a[:, 0]) * (a[:, 3] - a[:, 2]))
-        c = rect[base[m + 1]:base[m + 1] + totals[m + 1]]
+        area = np.zeros(len(c), np.int64)
+        np.add.at(area, f, (a[:, 1] - a[:, 0]) * (a[:, 3] - a[:, 2]))
         np.testing.assert_array_equal(area, (c[:, 1] - c[:, 0]) * (c[:, 3] - c[:, 2]))
+        assert len(a) >= len(c)  # each level refines the next one
     # following the father pointers from every cell ends at the root polygon covering it (section 2.1)
     lab = np.full((40, 36), -1)
-    for c in range(totals[0]):
+    for c, (i0, _, j0, _) in enumerate(levels[0][0]):
         r = c
-        for _ in range(st.depth):
-            r = father[r]
-        i0, i1, j0, j1 = rect[base[0] + c]
-        lab[i0, j0] = r - base[st.depth]
+        for m in range(st.depth):
+            r = levels[m][1][r]
+        lab[i0, j0] = r
     for k, (i0, i1, j0, j1) in enumerate(root):
         assert np.all(lab[i0:i1, j0:j1] == k)
+    with pytest.raises(ValueError, match="m:"):
+        st.level(st.depth + 1)
+
+
+# ------------------------------------------------------------------------------------------------
+# incremental passes against the per-tolerance algorithm
+# ------------------------------------------------------------------------------------------------
+
+
+def _ref_check(pt, ref):
+    """Every pass of a Polytree equals the reference's, exactly and in order."""
+    pa = pt.polygons
+    assert pa.n_levels == len(ref)
+    for t, (rects, grads, flags, stats) in enumerate(ref):
+        lo, hi = pa.start[t], pa.start[t + 1]
+        np.testing.assert_array_equal(pa.rects[lo:hi], rects, err_msg=f"pass {t}")
+        np.testing.assert_array_equal(pa.grads[lo:hi], grads, err_msg=f"pass {t}")
+        np.testing.assert_array_equal(pa.flags[lo:hi], flags, err_msg=f"pass {t}")
+        np.testing.assert_array_equal(pt.pass_stats[t], stats, err_msg=f"pass {t}")
+
+
+@pytest.mark.parametrize("shape,seed,stop", [((33, 33), 3, True), ((29, 19), 4, False), ((18, 41), 5, True)])
+def test_incremental_passes_equal_the_per_tolerance_algorithm(shape, seed, stop):
+    rng = np.random.default_rng(seed)
+    h = np.cumsum(rng.normal(size=shape), axis=0) * 2.0 + np.cumsum(rng.normal(size=shape), axis=1)
+    h[: shape[0] // 3, : shape[1] // 4] = 3.0  # a flat corner that freezes at tolerance 0
+    hm = _hm(h.astype(np.float32))
+    tols = list(default_tolerances(hm, 14)) + ([1e9, 1e9] if not stop else [])
+    tols = sorted(tols[:3] + [tols[2]] + tols[3:])  # a repeated tolerance: a pass that merges nothing
+    pt = build_polytree(hm, tols, stop_at_one=stop)
+    ref = _ref_passes(hm.heights, tols, stop_at_one=stop)
+    assert len(ref) > 5 and len(ref[0][0]) > len(ref[-1][0])
+    _ref_check(pt, ref)
+
+
+def test_incremental_passes_on_quantised_heights_with_ties():
+    # quantised heights: many similarities exactly equal to a tolerance (d <= tol merges, ties included)
+    rng = np.random.default_rng(11)
+    hm = _hm(np.round(rng.normal(size=(26, 35)) * 2.0) / 4.0)
+    tols = [0.0, 0.25, 0.5, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 64.0]
+    _ref_check(build_polytree(hm, tols, stop_at_one=False), _ref_passes(hm.heights, tols, stop_at_one=False))
