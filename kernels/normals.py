@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .parallel import launch, view
+from .parallel import MIN_ITEMS, empty, launch, view
 
 BORDERS = {"constant": 0, "clamp": 1, "skip": 2}
 METHODS = {"sobel": 0, "edge": 1, "triangle": 2, "quad": 3}
@@ -221,6 +221,133 @@ def vertex_normal(h: wp.array2d(dtype=wp.float32), i: int, j: int, dx: float, dz
 
 
 # ---------------------------------------------------------------------------------------------------
+# interior rows: one native loop per row
+# ---------------------------------------------------------------------------------------------------
+#
+# On the CPU a row whose stencils lie inside the grid and read no NaN takes a plain C++ loop over
+# contiguous memory instead of the per-sample functions above: clang vectorises it (8 samples per
+# instruction), which it never does with Warp's own loops (runtime byte strides, vec3 returns). The loop
+# does the general path's float operations in its order, one operation per statement where Warp's
+# generated code has one (so no multiply-add is fused that Warp's is not), with wp::neg's 0 - x and the
+# wp:: functions Warp calls: its outputs are the general path's bits (tests/surface/test_row_kernels.py
+# compares the two). A row with a NaN in its window, the border ring and a non-contiguous array take
+# the general path; so does CUDA (one sample per thread, as before): every native body starts with
+# CPU_ONLY and ends with END_CPU_ONLY.
+CPU_ONLY = """
+#if defined(__CUDA_ARCH__)
+    return 0;
+#else
+"""
+END_CPU_ONLY = """
+#endif
+"""
+
+# The window rows i-R..i+R, columns j0-R..j1+R-1 have no NaN (p: contiguous (H, W) floats, i in range).
+NAN_FREE = """
+    int bad_ = 0;
+    for (int r_ = i - R_; r_ <= i + R_; ++r_) {
+        const float* q_ = p + (int64_t)r_ * W;
+        for (int c_ = j0 - R_; c_ < j1 + R_; ++c_)
+            bad_ |= (q_[c_] != q_[c_]);
+    }
+    if (bad_) return 0;
+"""
+
+# o[3k..3k+2] = _grad_normal(GX, GZ): wp::normalize(vec3(wp::neg(GX), 1, wp::neg(GZ))), as vec.h has it
+GRAD_NORMAL = """
+        {
+            const float a0 = 0.0f - (GX);
+            const float a1 = 1.0f;
+            const float a2 = 0.0f - (GZ);
+            const float l = wp::sqrt(a0 * a0 + a1 * a1 + a2 * a2);
+            float r0 = 0.0f, r1 = 0.0f, r2 = 0.0f;
+            if (l > kEps) { r0 = a0 / l; r1 = a1 / l; r2 = a2 / l; }
+            o[3 * k] = r0;
+            o[3 * k + 1] = r1;
+            o[3 * k + 2] = r2;
+        }
+"""
+
+
+@wp.func_native(CPU_ONLY + """
+    const float* p = (const float*)h.data;
+    float* o = (float*)out.data;
+    const int W = (int)h.shape[1];
+    const int R_ = 1;
+""" + NAN_FREE + """
+    const float sx = 2.0f * dx;
+    const float sz = 2.0f * dz;
+    const float* u = p + (int64_t)(i - 1) * W;
+    const float* c = p + (int64_t)i * W;
+    const float* d = p + (int64_t)(i + 1) * W;
+    for (int j = j0; j < j1; ++j) {
+        const int64_t k = (int64_t)i * W + j;
+        const float ex = (c[j + 1] - c[j - 1]) / sx;
+        const float ez = (d[j] - u[j]) / sz;
+""" + GRAD_NORMAL.replace("GX", "ex").replace("GZ", "ez") + """
+    }
+    return 1;
+""" + END_CPU_ONLY)
+def _edge_row(h: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.vec3), i: int, j0: int, j1: int, dx: float,
+              dz: float) -> int:
+    """Edge normals of row i, columns [j0, j1) (all inside, 1 from the border); 0 (nothing written) when
+    the window has a NaN."""
+    ...
+
+
+@wp.func_native(CPU_ONLY + """
+    const float* p = (const float*)h.data;
+    float* o = (float*)out.data;
+    const int W = (int)h.shape[1];
+    const int R_ = 1;
+""" + NAN_FREE + """
+    const float sx = 8.0f * dx;
+    const float sz = 8.0f * dz;
+    const float* u = p + (int64_t)(i - 1) * W;
+    const float* c = p + (int64_t)i * W;
+    const float* d = p + (int64_t)(i + 1) * W;
+    for (int j = j0; j < j1; ++j) {
+        const int64_t k = (int64_t)i * W + j;
+        float fx = 0.0f;
+        float fz = 0.0f;
+        float t;
+        t = 1.0f * (u[j + 1] - u[j - 1]); fx = fx + t;
+        t = 1.0f * (d[j - 1] - u[j - 1]); fz = fz + t;
+        t = 2.0f * (c[j + 1] - c[j - 1]); fx = fx + t;
+        t = 2.0f * (d[j] - u[j]);         fz = fz + t;
+        t = 1.0f * (d[j + 1] - d[j - 1]); fx = fx + t;
+        t = 1.0f * (d[j + 1] - u[j + 1]); fz = fz + t;
+        const float gx = fx / sx;
+        const float gz = fz / sz;
+""" + GRAD_NORMAL.replace("GX", "gx").replace("GZ", "gz") + """
+    }
+    return 1;
+""" + END_CPU_ONLY)
+def _sobel_row(h: wp.array2d(dtype=wp.float32), out: wp.array2d(dtype=wp.vec3), i: int, j0: int, j1: int, dx: float,
+               dz: float) -> int:
+    """Sobel normals of row i, columns [j0, j1) (all inside, 1 from the border); 0 (nothing written) when
+    the window has a NaN."""
+    ...
+
+
+@wp.func
+def row_block(h: wp.array2d(dtype=wp.float32), i: int, b: int, width: int) -> wp.vec2i:
+    """Columns [j0, j1) of block b (``width`` columns each) of row i."""
+    j0 = b * width
+    return wp.vec2i(j0, wp.min(j0 + width, h.shape[1]))
+
+
+@wp.func
+def interior_span(h: wp.array2d(dtype=wp.float32), i: int, cols: wp.vec2i, r: int, fast: int) -> wp.vec2i:
+    """The part of ``cols`` of row i whose stencil of radius r lies inside the grid (empty: (j0, j0))."""
+    a = wp.max(cols[0], r)
+    e = wp.min(cols[1], h.shape[1] - r)
+    if fast == 0 or i < r or i >= h.shape[0] - r or a >= e:
+        return wp.vec2i(cols[0], cols[0])
+    return wp.vec2i(a, e)
+
+
+# ---------------------------------------------------------------------------------------------------
 # kernels
 # ---------------------------------------------------------------------------------------------------
 
@@ -233,12 +360,46 @@ def _sobel_kernel(
     dz: float,
     border: int,
     c: float,
+    width: int,
+    fast: int,
     # outputs
     out_n: wp.array2d(dtype=wp.vec3),
 ):
-    i, j = wp.tid()
+    i, b = wp.tid()
     i += offset
-    out_n[i, j] = sobel_normal(h, i, j, dx, dz, border, c)
+    cols = row_block(h, i, b, width)
+    s = interior_span(h, i, cols, 1, fast)
+    if s[0] < s[1]:
+        if _sobel_row(h, out_n, i, s[0], s[1], dx, dz) == 0:
+            s = wp.vec2i(s[0], s[0])
+    for j in range(cols[0], s[0]):
+        out_n[i, j] = sobel_normal(h, i, j, dx, dz, border, c)
+    for j in range(s[1], cols[1]):
+        out_n[i, j] = sobel_normal(h, i, j, dx, dz, border, c)
+
+
+@wp.kernel(enable_backward=False)
+def _edge_kernel(
+    offset: int,
+    h: wp.array2d(dtype=wp.float32),
+    dx: float,
+    dz: float,
+    width: int,
+    fast: int,
+    # outputs
+    out_n: wp.array2d(dtype=wp.vec3),
+):
+    i, b = wp.tid()
+    i += offset
+    cols = row_block(h, i, b, width)
+    s = interior_span(h, i, cols, 1, fast)
+    if s[0] < s[1]:
+        if _edge_row(h, out_n, i, s[0], s[1], dx, dz) == 0:
+            s = wp.vec2i(s[0], s[0])
+    for j in range(cols[0], s[0]):
+        out_n[i, j] = edge_normal(h, i, j, dx, dz)
+    for j in range(s[1], cols[1]):
+        out_n[i, j] = edge_normal(h, i, j, dx, dz)
 
 
 @wp.kernel(enable_backward=False)
@@ -302,6 +463,17 @@ def check_spacing(dx: float, dz: float) -> tuple[float, float]:
     return out[0], out[1]
 
 
+def row_launch(kernel: wp.Kernel, h: wp.array, inputs: list, out: wp.array) -> None:
+    """Launch a row kernel (``offset, h, *inputs, width, fast, out``) over ``h``: a whole row per task on
+    the CPU, one sample per thread on CUDA; ``fast`` when the native row loops may read ``h`` and write
+    ``out`` as contiguous (H, W) arrays."""
+    rows, cols = h.shape
+    width = cols if h.device.is_cpu else 1
+    fast = int(h.is_contiguous and out.is_contiguous)
+    launch(kernel, dim=(rows, -(-cols // width)), inputs=[h, *inputs, width, fast], outputs=[out],
+           device=h.device, min_items=max(1, -(-MIN_ITEMS // cols)))
+
+
 def sobel_normals(heights: np.ndarray, dx: float, dz: float, border: str = "clamp", constant: float = 0.0,
                   device: str = "cpu") -> np.ndarray:
     """(H, W, 3) float32 unit normals of ``heights`` by the Sobel filter.
@@ -316,19 +488,23 @@ def sobel_normals(heights: np.ndarray, dx: float, dz: float, border: str = "clam
         raise ValueError(f"border: expected one of {sorted(BORDERS)}, got {border!r}")
     dx, dz = check_spacing(dx, dz)
     h = device_heights(heights, device)
-    out = wp.empty(h.shape, dtype=wp.vec3, device=device)
-    launch(_sobel_kernel, dim=h.shape, inputs=[h, dx, dz, BORDERS[border], float(constant)],
-           outputs=[out], device=device)
+    out = empty(h.shape, wp.vec3, device)
+    row_launch(_sobel_kernel, h, [dx, dz, BORDERS[border], float(constant)], out)
     return out.numpy().reshape(h.shape[0], h.shape[1], 3)
 
 
 def vertex_normals_device(h: wp.array, dx: float, dz: float, method: str = "quad", border: str = "constant",
                           constant: float = 0.0) -> wp.array:
     """Device version of :func:`vertex_normals`: (H, W) wp.vec3 array on ``h.device``."""
-    out = wp.empty(h.shape, dtype=wp.vec3, device=h.device)
-    launch(_normals_kernel, dim=h.shape,
-           inputs=[h, dx, dz, METHODS[method], BORDERS[border], float(constant)], outputs=[out],
-           device=h.device)
+    out = empty(h.shape, wp.vec3, h.device)
+    if method == "sobel":
+        row_launch(_sobel_kernel, h, [dx, dz, BORDERS[border], float(constant)], out)
+    elif method == "edge":
+        row_launch(_edge_kernel, h, [dx, dz], out)
+    else:
+        launch(_normals_kernel, dim=h.shape,
+               inputs=[h, dx, dz, METHODS[method], BORDERS[border], float(constant)], outputs=[out],
+               device=h.device)
     return out
 
 

@@ -34,9 +34,9 @@ from ..kernels.curvature import (
     SURFACE_FIELDS,
     SURFACE_SCHEMES,
     directional_curvature,
+    surface_curvature_planes,
 )
 from ..kernels.curvature import max_curvature as _max_curvature
-from ..kernels.curvature import surface_curvature as _surface_curvature
 from ..kernels.normals import METHODS as NORMAL_METHODS
 from ..kernels.normals import decode_normal_map, encode_normal_map, vertex_normals
 
@@ -115,8 +115,8 @@ def surface_curvature(heightmap: Heightmap | np.ndarray, scheme: str = "zevenber
         convex ground; NaN at NaN heights.
     """
     h, dx_, dz_ = _unpack(heightmap, dx, dz)
-    k = _surface_curvature(h, dx_, dz_, scheme=scheme, device=device)
-    return {name: np.ascontiguousarray(k[..., c]) for c, name in enumerate(SURFACE_FIELDS)}
+    k = surface_curvature_planes(h, dx_, dz_, scheme=scheme, device=device)
+    return dict(zip(SURFACE_FIELDS, k, strict=True))  # each plane contiguous, no copy
 
 
 def max_curvature(curvature: np.ndarray, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
