@@ -721,10 +721,12 @@ def _bracket_step(good: Evaluation, bad: Evaluation, target: float, rel_tol: flo
     bad.cost and the remaining gain is at most the cost gap; the exact error is a step function of the
     parameter (discrete levels), so a narrow bracket is as far as refining can go.
 
-    Once bracketed, an infeasible try usually costs one measured frame (the worst camera first, stopping
-    over the budget) and a feasible one the whole path, so the step leans toward the infeasible end:
-    t >= 0.3 of the log bracket. Where the error is flat over the feasible part of the bracket (the
-    continuous policy at 0.5 px), regula falsi would otherwise crawl from the feasible end."""
+    The step goes 0.5-0.7 of the way from the feasible end to the infeasible one (log bracket). The
+    worst-frame error is flat over parts of a bracket and then jumps (whole levels change at once), where
+    plain regula falsi crawls from one end: from the infeasible end for the DEM's distance policy at 0.5 px
+    (1080p: five tries at 0.52-0.53 px, each 2% closer, until the tries ran out, 4.2% above the grid), from
+    the feasible end for its sse policy at 2 px (1080p: three tries at 1.949 px, 8 frames each). A feasible
+    try measures every frame and an infeasible one usually one (worst camera first), hence the lean."""
     lg, lb = math.log(good.value), math.log(bad.value)
     if good.cost - bad.cost <= rel_tol * good.cost or abs(lg - lb) < _narrow(rel_tol):
         return None
@@ -733,7 +735,7 @@ def _bracket_step(good: Evaluation, bad: Evaluation, target: float, rel_tol: flo
     floor = target - math.log(4.0)
     eg, eb = max(math.log(max(good.worst_p99, 1e-12)), floor), max(math.log(max(bad.worst_p99, 1e-12)), floor)
     t = (target - eg) / (eb - eg) if eb > eg else 0.5
-    t = min(max(t, 0.3), 0.9)  # keep clear of the ends: the curve is not straight
+    t = min(max(t, 0.5), 0.7)  # at least halfway, leaning to the infeasible end (see above)
     return math.exp(lg + t * (lb - lg))
 
 
