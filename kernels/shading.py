@@ -108,11 +108,17 @@ _SRGB8_START = np.searchsorted(_T_BITS, np.arange(_ONE_BITS >> 16, dtype=np.uint
                                side="right").astype(np.int32)
 
 
-@wp.kernel(enable_backward=False)
-def _srgb8_kernel(offset: int, bits: wp.array(dtype=wp.uint32), t: wp.array(dtype=wp.uint32),
-                  start: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.uint8)):
-    i = wp.tid() + offset
-    u = bits[i]
+@wp.func_native("""
+uint32_t u;
+memcpy(&u, &x, sizeof(u));
+return u;
+""")
+def _float_bits(x: float) -> wp.uint32: ...
+
+
+@wp.func
+def _srgb8_code(u: wp.uint32, t: wp.array(dtype=wp.uint32), start: wp.array(dtype=wp.int32)) -> wp.uint8:
+    """The sRGB code of the float32 whose bit pattern is ``u`` (see :func:`srgb8`)."""
     code = int(0)  # negative, -0.0 and NaN encode to 0
     if u >= wp.uint32(0x3F800000) and u <= wp.uint32(0x7F800000):  # [1, +inf]
         code = 255
@@ -120,7 +126,14 @@ def _srgb8_kernel(offset: int, bits: wp.array(dtype=wp.uint32), t: wp.array(dtyp
         code = start[int(u >> wp.uint32(16))]
         while code < 255 and t[code] <= u:  # at most one step
             code += 1
-    out[i] = wp.uint8(code)
+    return wp.uint8(code)
+
+
+@wp.kernel(enable_backward=False)
+def _srgb8_kernel(offset: int, bits: wp.array(dtype=wp.uint32), t: wp.array(dtype=wp.uint32),
+                  start: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.uint8)):
+    i = wp.tid() + offset
+    out[i] = _srgb8_code(bits[i], t, start)
 
 
 def srgb8(rgb: np.ndarray, device: str = "cpu") -> np.ndarray:
@@ -311,6 +324,19 @@ def _edge_distance_px(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, px: float, py: floa
     return d
 
 
+@wp.func
+def _put(i: int, j: int, rgb: wp.vec3, n: wp.vec3, write: wp.vec3i, t_bits: wp.array(dtype=wp.uint32),
+         t_start: wp.array(dtype=wp.int32), out_rgb: wp.array2d(dtype=wp.vec3), out_n: wp.array2d(dtype=wp.vec3),
+         out_8: wp.array3d(dtype=wp.uint8)):
+    if write[0] != 0:
+        out_rgb[i, j] = rgb
+    if write[1] != 0:
+        out_n[i, j] = n
+    if write[2] != 0:  # the bytes srgb8 gives for this float colour
+        for c in range(3):
+            out_8[i, j, c] = _srgb8_code(_float_bits(rgb[c]), t_bits, t_start)
+
+
 @wp.kernel(enable_backward=False)
 def _shade_kernel(
     offset: int,
@@ -339,17 +365,21 @@ def _shade_kernel(
     ambient: float,
     sky: wp.vec3,
     wire: wp.vec3,
+    write: wp.vec3i,  # (float rgb, per-pixel normals, sRGB codes): which outputs this frame needs
+    t_bits: wp.array(dtype=wp.uint32),
+    t_start: wp.array(dtype=wp.int32),
     # outputs
     out_rgb: wp.array2d(dtype=wp.vec3),
     out_n: wp.array2d(dtype=wp.vec3),
+    out_8: wp.array3d(dtype=wp.uint8),
 ):
-    """mode: 0 hillshade, 1 level, 2 patch, 3 wireframe (hillshade + edges), 4 splat."""
+    """mode: 0 hillshade, 1 level, 2 patch, 3 wireframe (hillshade + edges), 4 splat. ``write`` says which
+    outputs are written (an output not written is a 1 x 1 placeholder)."""
     i, j = wp.tid()
     i += offset
     t = tri_id[i, j]
     if t < 0:
-        out_rgb[i, j] = sky
-        out_n[i, j] = wp.vec3(0.0, 0.0, 0.0)
+        _put(i, j, sky, wp.vec3(0.0, 0.0, 0.0), write, t_bits, t_start, out_rgb, out_n, out_8)
         return
     b = bary[i, j]
     b2 = 1.0 - b[0] - b[1]
@@ -387,8 +417,7 @@ def _shade_kernel(
                               float(tri_id.shape[0] - 1 - i) + 0.5, hw, hh)
         if d < wire_px:
             rgb = wire
-    out_rgb[i, j] = rgb
-    out_n[i, j] = n
+    _put(i, j, rgb, n, write, t_bits, t_start, out_rgb, out_n, out_8)
 
 
 @wp.kernel(enable_backward=False)
@@ -482,7 +511,8 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
           rules=DEFAULT_SPLAT_RULES, wire_px: float = 0.6, crack_reach: int = 3,
           azimuth_deg: float = 315.0, elevation_deg: float = 45.0, ambient: float = 0.25,
           sky: tuple[float, float, float] = (0.62, 0.75, 0.90), height_range: tuple[float, float] | None = None,
-          device: str = "cpu") -> tuple[np.ndarray, np.ndarray, dict]:
+          encode: bool = False, want_normals: bool = True,
+          device: str = "cpu") -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Shade a frame in one of :data:`SHADING_MODES`.
 
     Args:
@@ -498,10 +528,14 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         height_range: (lo, hi) metres the hypsometric tint spans (the pipeline gives the heightmap's finite
             height range); None: the finite heights of the vertices ``triangles`` use (:func:`height_span`),
             so a vertex no triangle draws (a no-data hole's) never moves the colours.
+        encode: return the 8-bit sRGB image (:func:`srgb8` of the float colour, the same bytes) instead of
+            the float colour; the shading kernel encodes each pixel as it shades it (modes "cracks" and
+            "wireframe", which post-process the float colour, encode afterwards).
+        want_normals: also return the per-pixel normals (False: None, and they are not written).
 
     Returns:
-        rgb (H, W, 3) float32 linear in [0, 1], per-pixel normals (H, W, 3) float32, and counters
-        (``crack_pixels`` in "cracks" mode, ``edge_pixels`` in "wireframe" mode).
+        rgb (H, W, 3) float32 linear in [0, 1] (uint8 sRGB with ``encode``), per-pixel normals (H, W, 3)
+        float32 (or None), and counters (``crack_pixels`` in "cracks" mode, ``edge_pixels`` in "wireframe").
     """
     if mode not in SHADING_MODES:
         raise ValueError(f"mode: expected one of {list(SHADING_MODES)}, got {mode!r}")
@@ -532,8 +566,11 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         atlas, grid, hm_h, hm_w = np.zeros((2, 2, 4), np.float32), 1, 2, 2
     rtab = _rules_table([r if isinstance(r, SplatRule) else SplatRule(*r) for r in rules])
     code = {"hillshade": 0, "cracks": 0, "level": 1, "patch": 2, "wireframe": 3, "splat": 4}[mode]
-    rgb = empty((hh, ww), wp.vec3, device)
-    nrm = empty((hh, ww), wp.vec3, device)
+    fused = bool(encode) and mode not in ("cracks", "wireframe")
+    want_normals = bool(want_normals)
+    rgb = empty((1, 1) if fused else (hh, ww), wp.vec3, device)  # outputs not written: 1 x 1 placeholders
+    nrm = empty((hh, ww) if want_normals else (1, 1), wp.vec3, device)
+    out8 = empty((hh, ww, 3) if fused else (1, 1, 1), wp.uint8, device)
     tri = np.ascontiguousarray(triangles, np.int32).reshape(-1, 3) if len(triangles) else np.zeros((1, 3), np.int32)
     launch(_shade_kernel, (hh, ww), [
         view(ids, wp.int32, device), view(barycentrics, wp.vec2, device), view(tri, wp.int32, device),
@@ -543,13 +580,17 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         varr(clip, (4,), np.float32, wp.vec4), wp.array(_LEVEL_COLOURS, dtype=wp.vec3, device=device),
         wp.array(atlas, dtype=wp.float32, device=device), wp.array(rtab, dtype=wp.float32, device=device),
         len(rtab), int(grid), int(hm_h), int(hm_w), code, float(wire_px), lo, span, wp.vec3(*light),
-        float(ambient), wp.vec3(*sky), wp.vec3(*WIRE_COLOUR)], [rgb, nrm], device)
-    out = rgb.numpy()
+        float(ambient), wp.vec3(*sky), wp.vec3(*WIRE_COLOUR), wp.vec3i(int(not fused), int(want_normals), int(fused)),
+        view(_T_BITS, wp.uint32, device), view(_SRGB8_START, wp.int32, device)], [rgb, nrm, out8], device)
+    normals_px = nrm.numpy() if want_normals else None
     counters: dict = {"mode": mode}
+    if fused:
+        return out8.numpy(), normals_px, counters
+    out = rgb.numpy()
     if mode == "cracks":
         cr = find_cracks(ids, crack_reach, device=device)
         out[cr] = CRACK_COLOUR
         counters["crack_pixels"] = int(cr.sum())
     if mode == "wireframe":
         counters["edge_pixels"] = int(np.all(out == np.float32(WIRE_COLOUR), axis=-1).sum())
-    return out, nrm.numpy(), counters
+    return (srgb8(out, device) if encode else out), normals_px, counters

@@ -64,7 +64,7 @@ from ..io.files import atomic_path, write_image, write_json
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
 from ..kernels.raster import clip_coordinates, rasterize
-from ..kernels.shading import shade, splat_map, srgb8
+from ..kernels.shading import shade, splat_map
 from ..kernels.tessellator import tessellate_patches
 from ..lod.policies import make_policy
 from ..lod.quadtree import LodState, PatchList, Terrain, select
@@ -429,12 +429,14 @@ def _stage_shade(run: _Run, rec: StageRecord) -> None:
                                  mode=scene.shading, level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv,
                                  azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
                                  height_range=run.scene.heightmap.height_range,  # one tint for every mesh
+                                 encode="image" in scene.outputs,  # only what is asked
+                                 want_normals="normals" in scene.outputs,
                                  device=run.device, **_shade_inputs(run))
     if scene.shading != "hillshade":
         rec.counters.update(counters)
     rec.counters["pixels"] = int(frame.triangle_id.size)
     if "image" in scene.outputs:
-        frame.image = srgb8(rgb)
+        frame.image = rgb  # 8-bit sRGB, encoded by the shading kernel
     if "normals" in scene.outputs:
         frame.normals = pix_n
 

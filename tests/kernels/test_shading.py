@@ -209,3 +209,21 @@ def test_srgb8_is_the_correctly_rounded_encoding():
     odd = np.array([np.nan, -np.nan, -1.0, -0.0, 0.0, 1.0, 2.0, np.inf, -np.inf], np.float32)
     assert srgb8(odd).tolist() == [0, 0, 0, 0, 0, 255, 255, 255, 0]
     assert srgb8(np.zeros((0, 3), np.float32)).shape == (0, 3)
+
+
+@pytest.mark.parametrize("mode", ["hillshade", "level", "patch", "wireframe", "cracks"])
+def test_encoded_shading_is_srgb8_of_the_float_colour(mode):
+    """``encode=True`` (what a frame's image is made with: the kernel encodes each pixel as it shades it) gives
+    the bytes of srgb8(the float colour), out-of-range and NaN sky channels included; the per-pixel normals
+    are only made when asked for."""
+    from terrainwarp.kernels.shading import srgb8
+
+    pos, tri, f, normals = quad_scene(gap=0.2)
+    kw = dict(mode=mode, level=np.array([0, 1, 2, 3] * 2, np.int32), patch_id=np.arange(8, dtype=np.int32),
+              clip=clip_coordinates(pos, I4, I4), sky=(float("nan"), 2.0, -0.5))
+    rgb, n, c = shade(f.triangle_id, f.barycentrics, tri, normals, pos[:, 1], **kw)
+    img, none, c8 = shade(f.triangle_id, f.barycentrics, tri, normals, pos[:, 1], encode=True, want_normals=False, **kw)
+    assert img.dtype == np.uint8 and img.shape == rgb.shape and none is None and c8 == c
+    assert np.array_equal(img, srgb8(rgb))
+    assert img[f.triangle_id < 0][0].tolist() == [0, 255, 0]
+    assert n.shape == rgb.shape
