@@ -476,6 +476,7 @@ def _balance(terrain: Terrain, view: _View, policy: Policy, tree: _Tree, split_k
     the keys of the nodes it splits to ``split_keys``). Returns the balanced tree and the number of
     forced splits."""
     forced = 0
+    first_child = len(tree.nodes.level)
     for _ in range(4 * (terrain.depth + 1) + 8):  # terminates: each pass only splits, and depth is bounded
         nodes = tree.nodes
         nbr = tree.neighbour_levels(nodes.level)
@@ -487,9 +488,17 @@ def _balance(terrain: Terrain, view: _View, policy: Policy, tree: _Tree, split_k
         nl = np.concatenate([bl + 1] * 4)
         nxs, nys = _children(bx, by)
         split_keys.append(tile_key(bl, bx, by))
-        nd, nm, nc = _child_stats(terrain, view, nl, nxs, nys, policy, device)
-        tree = tree.split(bad, _Nodes(nl, nxs, nys, nd, nm, nc, ~_inside_many(terrain, nl, nxs, nys),
-                                      np.ones(len(nl), bool)))
+        zero = np.zeros(len(nl), np.float32)  # distance, metric and culling: worked out once, below
+        tree = tree.split(bad, _Nodes(nl, nxs, nys, zero, zero, np.zeros(len(nl), bool),
+                                      ~_inside_many(terrain, nl, nxs, nys), np.ones(len(nl), bool)))
+    # The passes read only levels, the grid's extent and which leaves are alive, so the children's stats are
+    # worked out once for the children that stayed leaves (one launch per level, not per pass and level, and
+    # none for a child a later pass split again): each node's stats are its own, whatever the batch.
+    nodes = tree.nodes
+    new = first_child + np.flatnonzero(nodes.alive[first_child:])
+    if len(new):
+        nd, nm, nc = _child_stats(terrain, view, nodes.level[new], nodes.x[new], nodes.y[new], policy, device)
+        nodes.dist[new], nodes.metric[new], nodes.culled[new] = nd, nm, nc
     return tree, forced
 
 
