@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import threading
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -222,6 +223,56 @@ def empty(shape: int | Sequence[int], dtype: type, device: str | wp.Device | Non
     a = np.empty((*shape, *inner), dtype=wp.dtype_to_numpy(scalar))
     return wp.array(a, dtype=dtype, device=dev, copy=False)
 
+
+
+# ------------------------------------------------------------------------------------------------
+# the frame-buffer pool: frame- and heightmap-sized outputs reused once nothing references them
+# ------------------------------------------------------------------------------------------------
+_POOL: dict[tuple, list[np.ndarray]] = {}
+_POOL_LOCK = threading.Lock()
+
+
+def _unreferenced() -> int:
+    """sys.getrefcount of a list's item that nothing else references (the list's reference and the call's)."""
+    kept = [np.empty(1)]
+    return sys.getrefcount(kept[0])
+
+
+_FREE_REFS = _unreferenced()
+
+
+def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20) -> np.ndarray:
+    """An uninitialised host array for an output: a kept one of this (shape, dtype) that nothing references any
+    more (no view of it alive: its only references are the pool's and the check's own), else a new one, kept
+    when fewer than ``keep`` are and it is at most ``max_bytes``.
+
+    Blocks above glibc's largest mmap threshold (32 MiB) go back to the kernel when freed, and on this kind of
+    VM faulting fresh memory in costs 0.6-16 ms/MB (against ~0.25 ms/MB to write memory seen before): a frame's
+    images, or a heightmap-sized error pass, would pay that on every frame. A caller that holds an output
+    keeps it: only an array nobody holds is handed out again."""
+    key = (tuple(int(d) for d in shape), np.dtype(dtype).str)
+    with _POOL_LOCK:
+        kept = _POOL.setdefault(key, [])
+        for i in range(len(kept)):
+            if sys.getrefcount(kept[i]) == _FREE_REFS:
+                return kept[i]
+        a = np.empty(key[0], dtype)  # numpy's large allocations ask for huge pages (see empty)
+        if len(kept) < keep and a.nbytes <= max_bytes:
+            kept.append(a)
+        return a
+
+
+def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Device | None = None, *,
+                 keep: int = 1, max_bytes: int = 1 << 30) -> wp.array:
+    """:func:`empty` from the frame-buffer pool (:func:`pooled`) on the CPU; ``wp.empty`` on CUDA. For outputs
+    as large as the heightmap that a frame makes and drops (an error pass's maps): one kept per shape."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        return wp.empty(shape, dtype=dtype, device=dev)
+    shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    a = pooled((*shape, *tuple(getattr(dtype, "_shape_", ()))), wp.dtype_to_numpy(scalar), keep, max_bytes)
+    return wp.array(a, dtype=dtype, device=dev, copy=False)
 
 
 def chunks(n: int, items_per_row: int = 1, min_items: int = MIN_ITEMS, oversplit: int = 1) -> list[tuple[int, int]]:

@@ -40,13 +40,12 @@ same computation as a differentiable kernel (gradients to clip positions and att
 Output images have row 0 at the top (window y is flipped once, here).
 """
 
-import sys
 import threading
 
 import numpy as np
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
+from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts, pooled
 from .parallel import view as as_warp  # 'view' is a view matrix here
 
 SUBPIXEL_BITS = 8
@@ -944,37 +943,17 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
     return np.flatnonzero(dirty.reshape(-1, _tiles_x(width)).any(axis=1)).astype(np.int32)
 
 
-# Output images (ids, depth, barycentrics) on the CPU, by (shape, dtype): a frame's images are the caller's, but
-# once the caller holds no view of one any more (its only references are this list's and the check's own), the
-# next frame of that size takes it again. Freshly allocated frame-sized memory costs page faults on its first
-# write (~5-10 ms for a 1080p frame's 32 MB here, more than drawing 10k triangles); memory seen before costs a fill.
-_IMAGES: dict[tuple, list[np.ndarray]] = {}
-_IMAGES_LOCK = threading.Lock()
+# Output images (ids, depth, barycentrics) on the CPU come from the frame-buffer pool (parallel.pooled): a frame's
+# images are the caller's, but once the caller holds no view of one any more, the next frame of that size takes it
+# again. Freshly allocated frame-sized memory costs page faults on its first write (~5-10 ms for a 1080p frame's
+# 32 MB here, more than drawing 10k triangles); memory seen before costs a fill.
 _IMAGES_KEPT = 2  # per (shape, dtype): the frame being made and the one before it, still held by its caller
 _IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
 
 
-def _unreferenced() -> int:
-    """sys.getrefcount of a list's item that nothing else references (the list's reference and the call's)."""
-    kept = [np.empty(1)]
-    return sys.getrefcount(kept[0])
-
-
-_FREE_REFS = _unreferenced()
-
-
 def _image(shape: tuple[int, ...], dtype: type) -> np.ndarray:
     """An uninitialised host array for an output image: a kept one no view of which is alive, else a new one."""
-    key = (shape, np.dtype(dtype).str)
-    with _IMAGES_LOCK:
-        kept = _IMAGES.setdefault(key, [])
-        for i in range(len(kept)):
-            if sys.getrefcount(kept[i]) == _FREE_REFS:
-                return kept[i]
-        a = np.empty(shape, dtype)  # numpy's large allocations ask for huge pages (parallel.empty)
-        if len(kept) < _IMAGES_KEPT and a.nbytes <= _IMAGES_MAX_BYTES:
-            kept.append(a)
-        return a
+    return pooled(shape, dtype, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
 
 
 def _filled(shape: int | tuple[int, ...], dtype: type, value: float, device: str) -> wp.array:

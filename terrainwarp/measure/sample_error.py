@@ -67,6 +67,7 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels import sample_error as _k
+from ..kernels.parallel import pooled
 from ..mesh import Mesh
 
 __all__ = ["SampleError", "PopStats", "surface_heights", "sample_error", "popping", "STATES"]
@@ -208,8 +209,11 @@ def _summary(err: np.ndarray, state: np.ndarray) -> dict[str, float | int]:
 
 
 def _as_map(err: np.ndarray) -> np.ndarray:
-    """The per-sample map: the kernel leaves every sample but the visible ones NaN already."""
-    return err.astype(np.float32)
+    """The per-sample map: the kernel leaves every sample but the visible ones NaN already. Float32, in a
+    buffer of the frame-buffer pool (two kept: a path's previous frame may still hold its map)."""
+    out = pooled(err.shape, np.float32, keep=2, max_bytes=1 << 30)
+    np.copyto(out, err, casting="same_kind")
+    return out
 
 
 def sample_error(heightmap: Heightmap, camera: Camera, mesh: Mesh, ref_depth: np.ndarray, *,

@@ -168,3 +168,21 @@ def test_freed_frame_memory_is_reused_without_page_faults():
 
 if __name__ == "__main__":
     print(json.dumps(digests(), indent=1, sort_keys=True))
+
+
+def test_pooled_buffers_are_reused_only_once_nothing_holds_them():
+    shape = (123, 7)
+    a = parallel.pooled(shape, np.float64)
+    addr = a.ctypes.data
+    b = parallel.pooled(shape, np.float64)  # a is held: another buffer
+    assert b.ctypes.data != addr
+    view_of_a = a[3:5]
+    del a
+    c = parallel.pooled(shape, np.float64)
+    assert c.ctypes.data != addr  # a view of a keeps it
+    del view_of_a, b, c
+    assert parallel.pooled(shape, np.float64).ctypes.data == addr  # nothing holds it: taken again
+    w = parallel.pooled_array(shape, wp.float32, "cpu")
+    held = w.numpy()  # the caller's numpy result holds the pooled buffer through the Warp array
+    del w
+    assert parallel.pooled_array(shape, wp.float32, "cpu").ptr != held.ctypes.data

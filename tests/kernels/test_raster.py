@@ -448,10 +448,10 @@ def _scenes(w=160, h=120):
 
 
 def _fresh_pools():
-    from terrainwarp.kernels import raster
+    from terrainwarp.kernels import parallel, raster
 
     raster._KEYS.clear()
-    raster._IMAGES.clear()
+    parallel._POOL.clear()
 
 
 def _result(f):

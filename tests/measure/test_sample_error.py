@@ -258,6 +258,12 @@ def test_identical_across_runs():
     assert runs[0].visible > 1000 and runs[0].max_px > 0.0
     assert digest(runs[0].error_map) == digest(runs[1].error_map)
     assert runs[0].row() == runs[1].row()
+    # the maps come from the frame-buffer pool: one a caller holds is never handed out again
+    kept = runs[0].error_map.copy()
+    other = sample_error(hm, cam, tw.render(sc.with_(lod=LodConfig(tolerance_px=8.0, **LOD))).mesh, grid.depth,
+                         keep_map=True)
+    assert other.error_map is not runs[0].error_map and other.max_px != runs[0].max_px
+    assert digest(runs[0].error_map) == digest(kept) and digest(runs[1].error_map) == digest(kept)
 
 
 # ------------------------------------------------------------------------------------------------
