@@ -21,6 +21,7 @@ once on CUDA:
 
 from __future__ import annotations
 
+import ctypes
 import math
 import os
 import sys
@@ -187,7 +188,6 @@ def keep_frame_memory(enable: bool | None = None) -> bool:
     if not enable:
         return False
     try:
-        import ctypes
         libc = ctypes.CDLL(None)
         mallopt = libc.mallopt
     except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without mallopt)
