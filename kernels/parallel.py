@@ -262,6 +262,16 @@ def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 
         return a
 
 
+def release_buffers() -> int:
+    """Drop every kept buffer of the pool (those still held stay with their holders); returns the bytes the pool
+    let go. For an application done with frames of a large heightmap: the error pass keeps one buffer of each
+    heightmap-sized kind (up to 1 GiB each) for the next frame."""
+    with _POOL_LOCK:
+        n = sum(a.nbytes for kept in _POOL.values() for a in kept)
+        _POOL.clear()
+    return n
+
+
 def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Device | None = None, *,
                  keep: int = 1, max_bytes: int = 1 << 30) -> wp.array:
     """:func:`empty` from the frame-buffer pool (:func:`pooled`) on the CPU; ``wp.empty`` on CUDA. For outputs
