@@ -217,11 +217,15 @@ def empty(shape: int | Sequence[int], dtype: type, device: str | wp.Device | Non
     dev = wp.get_device(device)
     if not dev.is_cpu:
         return wp.empty(shape, dtype=dtype, device=dev)
+    a = np.empty(*host_layout(shape, dtype))
+    return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+def host_layout(shape: int | Sequence[int], dtype: type) -> tuple[tuple[int, ...], np.dtype]:
+    """The numpy (shape, dtype) of a Warp array of ``shape`` and ``dtype`` (a vector type adds its own axes)."""
     shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
     scalar = getattr(dtype, "_wp_scalar_type_", dtype)
-    inner = tuple(getattr(dtype, "_shape_", ()))
-    a = np.empty((*shape, *inner), dtype=wp.dtype_to_numpy(scalar))
-    return wp.array(a, dtype=dtype, device=dev, copy=False)
+    return (*shape, *tuple(getattr(dtype, "_shape_", ()))), np.dtype(wp.dtype_to_numpy(scalar))
 
 
 
@@ -279,9 +283,7 @@ def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Devic
     dev = wp.get_device(device)
     if not dev.is_cpu:
         return wp.empty(shape, dtype=dtype, device=dev)
-    shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
-    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
-    a = pooled((*shape, *tuple(getattr(dtype, "_shape_", ()))), wp.dtype_to_numpy(scalar), keep, max_bytes)
+    a = pooled(*host_layout(shape, dtype), keep, max_bytes)
     return wp.array(a, dtype=dtype, device=dev, copy=False)
 
 

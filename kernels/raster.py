@@ -45,7 +45,7 @@ import threading
 import numpy as np
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts, pooled
+from .parallel import atomic_add_i32, atomic_min_u64, host_layout, launch, max_parts, pooled
 from .parallel import view as as_warp  # 'view' is a view matrix here
 
 SUBPIXEL_BITS = 8
@@ -962,7 +962,7 @@ def _filled(shape: int | tuple[int, ...], dtype: type, value: float, device: str
     if not wp.get_device(device).is_cpu:
         return wp.zeros(shape, dtype=dtype, device=device) if value == 0 else \
             wp.full(shape, value=value, dtype=dtype, device=device)
-    a = _image((*shape, *getattr(dtype, "_shape_", ())), wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype)))
+    a = _image(*host_layout(shape, dtype))
     a.fill(value)
     return wp.array(a, dtype=dtype, device=device, copy=False)
 
