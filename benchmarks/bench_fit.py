@@ -80,8 +80,9 @@ def main() -> None:
             "serve all budgets; its wall time is for the whole grid); the fit runs per budget. `cost vs grid` = "
             "fitted triangles / the grid's cheapest meeting setting's triangles - 1 (negative: the fit found a "
             "cheaper setting than the grid's points); evaluations are exact-pipeline frames (select + tessellate "
-            "+ rasterize + error; a validation stops at its first frame over the budget, and the frames it "
-            "leaves are only meshed for their triangles: `mesh-only` counts them); `targets` = met, within +2% "
+            "+ rasterize + error; a try measures its critical cameras worst first and stops at the first over the "
+            "budget, the frames it leaves are only meshed for their triangles: `mesh-only` counts them; the "
+            "fitted value is confirmed on every camera); `targets` = met, within +2% "
             f"of the grid's cost and at most 1/10 of its evaluations: {met} of {len(rows)} rows.\n\n"
             + md_table(["policy", "budget_px", "fit", "fit value", "fit p99_px", "fit tris", "grid value",
                         "grid tris", "cost vs grid", "fit evals", "grid evals", "evals ratio", "mesh-only", "targets",

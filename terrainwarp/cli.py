@@ -234,8 +234,9 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
                          f"{g['cost']:.0f} | {g['evaluations']} | {g['wall_s']:.1f} |")
     lines += ["", res.message, ""]
     if res.mesh_only_frames:
-        lines += [f"Validations stopped at the first frame over the budget: {res.mesh_only_frames} frames of them "
-                  "were only selected and meshed for their triangle count (not in the evaluations).", ""]
+        lines += [f"Frames only selected and meshed for their triangle count (not in the evaluations): "
+                  f"{res.mesh_only_frames}. A try measures its critical cameras worst first and stops at the first "
+                  "over the budget; the fitted value is measured on every camera.", ""]
     return lines
 
 

@@ -588,6 +588,8 @@ class _Exact:
     knob: Knob | None = None
     cache: dict = field(default_factory=dict)
     over: set[int] = field(default_factory=set)  # cameras measured over the budget at some value
+    latest: dict[int, float] = field(default_factory=dict)  # each camera's latest measured p99
+    safe_at: dict[int, float] = field(default_factory=dict)  # the coarsest value each camera met the budget at
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
@@ -595,11 +597,10 @@ class _Exact:
     def __call__(self, v: float, complete: bool = False, confirm: bool = False) -> Evaluation:
         """The evaluation at ``v`` (snapped).
 
-        Without a pop bound, a try is *provisional*: the cameras are measured worst first (by the last complete
-        evaluation's per-frame p99), only the critical ones (:meth:`critical`), stopping at the first frame
-        over the budget (:func:`evaluate`'s ``stop_above``). ``confirm``: every camera, still stopping at the
-        first over the budget (the frames a provisional try measured are not drawn again); ``complete``: every
-        camera measured, whatever its error."""
+        Without a pop bound, a try is *provisional*: it measures only the cameras :meth:`plan` gives, in its
+        order, stopping at the first frame over the budget (:func:`evaluate`'s ``stop_above``). ``confirm``:
+        every camera, still stopping at the first over the budget (the frames a provisional try measured are
+        not drawn again); ``complete``: every camera measured, whatever its error."""
         v = self.knob.snap(v)
         old = self.evals.get(v)
         if old is not None and (old.complete or not (complete or confirm)):
@@ -609,19 +610,22 @@ class _Exact:
             e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
                          on_frame=self.on_frame, pops=self.max_pop_px is not None, cache=self.cache)
         else:
-            last = next((x for x in reversed(self.evals.values()) if x.complete), None)
-            order = sorted(range(n), key=lambda k: (-last.p99_px[k], k)) if last is not None else list(range(n))
+            order, measure = self.plan(v)
             e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
                          on_frame=self.on_frame, cache=self.cache, order=order,
                          stop_above=None if complete else self.budget_px,
-                         measure=None if complete or confirm or last is None else self.critical(last),
-                         known=old)
+                         measure=None if complete or confirm else measure, known=old)
             if e.complete:  # measured in another order: back to path order, as every complete evaluation
                 back = sorted(range(len(e.frames)), key=lambda i: e.frames[i])
                 e.p99_px, e.max_px, e.image_p99_px, e.frame_ms = (
                     [a[i] for i in back] for a in (e.p99_px, e.max_px, e.image_p99_px, e.frame_ms))
                 e.frames = None
-        self.over |= {k for k, p in zip(e.frames or range(n), e.p99_px) if p > self.budget_px}
+        for k, p in zip(e.frames or range(n), e.p99_px, strict=True):
+            self.latest[k] = p
+            if p > self.budget_px:
+                self.over.add(k)
+            elif k not in self.safe_at or _coarser(self.knob, v, self.safe_at[k]):
+                self.safe_at[k] = v
         self.evals[v] = e
         measured = n if e.frames is None else len(e.frames)
         before = 0 if old is None else (n if old.frames is None else len(old.frames))
@@ -633,15 +637,24 @@ class _Exact:
                              **({"worst_pop_p99_px": e.worst_pop} if self.max_pop_px is not None else {})})
         return e
 
-    def critical(self, last: Evaluation) -> set[int]:
-        """The cameras a provisional try measures: those within half of ``last``'s (a complete evaluation) worst
-        p99, at least its two worst, and every camera that was ever over the budget. The rest had slack in
-        ``last``; the coarsest value that meets the budget is confirmed on every camera before it is
-        returned (:func:`_search`), so a camera that loses its slack costs a further try, never a wrong
-        result."""
-        ranked = sorted(range(len(last.p99_px)), key=lambda k: (-last.p99_px[k], k))
-        worst = last.p99_px[ranked[0]]
-        return set(ranked[:2]) | {k for k in ranked if last.p99_px[k] >= 0.5 * worst} | self.over
+    def plan(self, v: float) -> tuple[list[int], set[int] | None]:
+        """The order a try at ``v`` measures the cameras in, and the cameras a provisional try measures (None:
+        all, for the first try).
+
+        Order: the cameras ever over the budget first, then by their latest measured p99, highest first (the
+        worst frame decides, so an infeasible value usually costs one frame). Measured: the critical cameras,
+        those within half of the highest latest p99, at least two, and those ever over the budget; less the
+        cameras measured within the budget at ``v`` or a coarser value (the error grows with coarser values).
+        The others had slack when last measured. The value the search returns is confirmed on every camera
+        (:func:`_search`), so a camera that lost its slack costs a further try, never a wrong result."""
+        n = len(self.cams)
+        if not self.latest:
+            return list(range(n)), None
+        order = sorted(range(n), key=lambda k: (k not in self.over, -self.latest.get(k, math.inf), k))
+        top = max(self.latest.values())
+        crit = set(order[:2]) | {k for k, p in self.latest.items() if p >= 0.5 * top} | self.over
+        safe = {k for k, at in self.safe_at.items() if at == v or _coarser(self.knob, at, v)}
+        return order, (crit - safe) or {order[0]}  # at least one camera: a try has an error
 
 
 # -- relaxed fit -----------------------------------------------------------------------------------
@@ -718,7 +731,7 @@ def _search(exact: _Exact, v: float, step: Callable, rel_tol: float, max_validat
         bad = c
         finer = [x for x in exact.evals.values() if exact.meets(x) and _coarser(kn, c.value, x.value)]
         good = max(finer, key=lambda x: x.value if kn.coarser_up else -x.value) if finer else None
-        tries = min(tries, max_validations - 2)  # two more tries in the bracket just narrowed
+        tries = min(tries, max_validations - 3)  # three more tries in the bracket just narrowed
         nv = step(c, good, bad)
         nv = None if nv is None else kn.snap(nv)
     return good if good is not None and good.complete else None

@@ -264,3 +264,9 @@ def test_provisional_tries_are_confirmed_on_every_camera(monkeypatch):
     assert failed and failed[0]["value"] >= 1.8  # the provisional answer near 2.0 lost on camera 2
     assert exact.n_eval < 4 * sum(h["stage"] == "validate" for h in exact.history)
     assert 2 in exact.over
+    # the plan of a further try: the cameras that were over the budget first (2 among them); camera 3, measured
+    # within the budget at a coarser value, not measured (the error grows with coarser values)
+    v = 1.05 * good.value
+    order, measure = exact.plan(v)
+    safe = {k for k, at in exact.safe_at.items() if at >= v}
+    assert set(order[:len(exact.over)]) == exact.over and measure and not measure & safe
