@@ -266,10 +266,38 @@ def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 
         return a
 
 
+def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarray:
+    """The first ``shape[0]`` rows of a kept buffer that nothing references any more and has at least that many
+    rows (the smallest such), else of a new one with up to 1/64 more rows (at most 1.6% unused), kept in place
+    of the smallest unreferenced one when ``keep`` are kept already. For outputs whose length changes from
+    frame to frame (a tessellation's points and triangles): an exact-shape pool (:func:`pooled`) would never
+    hit, and a frame of 134 M triangles writes 2.5 GB that would otherwise be faulted in again on every frame.
+    The view holds its buffer: a caller that keeps the output keeps it from the pool."""
+    n, rest = int(shape[0]), tuple(int(d) for d in shape[1:])
+    key = ("rows", rest, np.dtype(dtype).str)
+    with _POOL_LOCK:
+        kept = _POOL.setdefault(key, [])
+        best, free = -1, []
+        for i in range(len(kept)):
+            if sys.getrefcount(kept[i]) == _FREE_REFS:
+                free.append(i)
+                if kept[i].shape[0] >= n and (best < 0 or kept[i].shape[0] < kept[best].shape[0]):
+                    best = i
+        if best >= 0:
+            return kept[best][:n]
+        grain = 1 << max(int(n).bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
+        a = np.empty((-(-n // grain) * grain, *rest), dtype)
+        if len(kept) < keep:
+            kept.append(a)
+        elif free:  # the kept buffers adapt to the frames: the smallest unreferenced one makes way
+            kept[min(free, key=lambda i: kept[i].shape[0])] = a
+        return a[:n]
+
+
 def release_buffers() -> int:
     """Drop every kept buffer of the pool (those still held stay with their holders); returns the bytes the pool
     let go. For an application done with frames of a large heightmap: the error pass keeps one buffer of each
-    heightmap-sized kind (up to 1 GiB each) for the next frame."""
+    heightmap-sized kind (up to 1 GiB each) for the next frame, the tessellator two of each of its outputs."""
     with _POOL_LOCK:
         n = sum(a.nbytes for kept in _POOL.values() for a in kept)
         _POOL.clear()
@@ -284,6 +312,15 @@ def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Devic
     if not dev.is_cpu:
         return wp.empty(shape, dtype=dtype, device=dev)
     a = pooled(*host_layout(shape, dtype), keep, max_bytes)
+    return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+def pooled_rows_array(n: int, dtype: type, device: str | wp.Device | None = None, *, keep: int = 2) -> wp.array:
+    """:func:`empty` of ``n`` items from :func:`pooled_rows` on the CPU; ``wp.empty`` on CUDA."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        return wp.empty(n, dtype=dtype, device=dev)
+    a = pooled_rows(*host_layout(n, dtype), keep)
     return wp.array(a, dtype=dtype, device=dev, copy=False)
 
 

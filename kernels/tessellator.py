@@ -41,7 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from .parallel import empty, launch, view
+from .parallel import empty, launch, pooled_rows_array, view
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
@@ -846,9 +846,9 @@ def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device,
     out.flags = flags
     for flag, name, dtype in ((W_DOMAIN, "dom", wp.vec2i), (W_PATCH_ID, "pid", wp.int32), (W_POSITION, "pos", wp.vec3),
                               (W_UV, "uv", wp.vec2), (W_LEVEL, "lev", wp.int32)):
-        if flags & flag:
-            setattr(out, name, empty(max(n, 1), dtype, device))
-    out.tri = empty(max(m, 1), wp.vec3i, device)
+        if flags & flag:  # frame-sized outputs from the pool: no fresh pages to fault in on every frame
+            setattr(out, name, pooled_rows_array(max(n, 1), dtype, device))
+    out.tri = pooled_rows_array(max(m, 1), wp.vec3i, device)
     out.box = wp.array(box, dtype=vec4l, device=device)
     out.level = wp.array(lvl, dtype=wp.int32, device=device)
     out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place

@@ -189,3 +189,30 @@ def test_pooled_buffers_are_reused_only_once_nothing_holds_them():
     held[...] = 1.5
     assert parallel.release_buffers() >= 123 * 7 * 8 and parallel.release_buffers() == 0
     assert (held == 1.5).all()  # a held buffer stays with its holder
+
+
+def test_pooled_rows_serve_frames_of_changing_length_and_never_a_held_one():
+    """A tessellation's outputs change length every frame: a kept buffer with enough rows serves a shorter
+    frame (the smallest such), a longer one gets a new buffer (up to 1/64 more rows) that takes the place of
+    the smallest free one, and a buffer a caller holds (through a view or a Warp array) is never handed out."""
+    parallel.release_buffers()
+    a = parallel.pooled_rows((1000, 3), np.int32)
+    assert a.shape == (1000, 3) and 1000 <= a.base.shape[0] <= 1000 * 65 // 64
+    base = a.base.ctypes.data
+    del a
+    b = parallel.pooled_rows((900, 3), np.int32)  # shorter: the same buffer
+    assert b.base.ctypes.data == base and b.shape == (900, 3)
+    c = parallel.pooled_rows((800, 3), np.int32)  # b holds it: a second buffer
+    assert c.base.ctypes.data != base
+    del b, c
+    big = parallel.pooled_rows((5000, 3), np.int32)  # longer: new, replaces the smallest free kept one
+    kept = parallel._POOL[("rows", (3,), np.dtype(np.int32).str)]
+    assert len(kept) == 2 and any(k is big.base for k in kept)
+    w = parallel.pooled_rows_array(4000, wp.vec3i, "cpu")  # 4000 rows fit the big one, but big is held
+    assert w.ptr != big.ctypes.data  # a new one, in place of the free 1000-row buffer
+    held, w_ptr, big_ptr = big.copy(), w.ptr, big.ctypes.data
+    del big, w
+    again = parallel.pooled_rows((4000, 3), np.int32)
+    assert again.ctypes.data == w_ptr  # the smallest free buffer with enough rows
+    assert parallel.pooled_rows((4500, 3), np.int32).ctypes.data == big_ptr
+    assert parallel.release_buffers() > 0 and held.shape == (5000, 3)

@@ -303,6 +303,23 @@ def test_tessellate_patches_is_deterministic():
     assert run() == run()
 
 
+def test_a_held_tessellation_keeps_its_outputs_while_later_frames_reuse_freed_ones():
+    """The outputs come from the frame-buffer pool (kernels.parallel.pooled_rows): a frame dropped lends its
+    buffers to the next, a frame held is never written by another, and the bits do not depend on the reuse."""
+    h = np.random.default_rng(3).normal(0, 10, (65, 65)).astype(np.float32)
+    big, small = _patches(n=3, size=16.0, level=12.5), _patches(n=2, size=16.0, level=9.0)
+    args = (h, 0.5, 0.5, (3.0, 40.0, -2.0))
+    held = tessellate_patches(big, *args, spacing="fractional_even")
+    before = digest(*held[:8])
+    for _ in range(2):  # a shorter frame while `held` is alive, twice: served by other buffers
+        tessellate_patches(small, *args, spacing="fractional_even")
+    assert digest(*held[:8]) == before
+    ptr = held.triangles.__array_interface__["data"][0]
+    del held
+    again = tessellate_patches(big, *args, spacing="fractional_even")  # the dropped frame's buffers, same bits
+    assert again.triangles.__array_interface__["data"][0] == ptr and digest(*again[:8]) == before
+
+
 @pytest.mark.parametrize("need", [(), ("uv",), ("level", "patch_id"), ("domain",)])
 def test_tessellate_patches_need_makes_only_what_is_asked_and_the_same_bits(need):
     """A depth-only frame (need=()) stores positions and triangles alone; whatever is made equals the full frame."""
