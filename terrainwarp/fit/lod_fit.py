@@ -31,16 +31,17 @@ Newton steps in log space, ``log t <- log t + (log budget - log p99) / slope``, 
 ``d log(error) / d log(t)`` from ``jax.grad`` of the relaxed model, then bisection once bracketed. A
 fit that misses the budget in validation is reported as missed, never as met.
 
-A validation measures the cameras worst first (by the last complete validation's per-frame p99) and stops
-at the first frame over the budget: the worst frame decides, so an infeasible value costs one or two
+A validation measures the cameras worst first (those ever over the budget, then by their latest p99) and
+stops at the first frame over the budget: the worst frame decides, so an infeasible value costs one or two
 measured frames, not the whole path; the frames left unmeasured are only selected and meshed for their
 triangle count (``FitResult.mesh_only_frames``), so every validation's cost is the whole path's. A try is
-provisional: it measures only the critical cameras (within half of the worst in the last complete
-validation, at least two, and any camera ever over the budget); the cameras with slack are measured once,
-when the search is over, on the value it returns. If one of them is then over the budget, that value
-becomes the infeasible end and the search goes on, so a fit's value is always measured on every camera.
-On the 4097^2 fBm at 1080p, a feasible try measured all 8 cameras before, and the sse 0.5 px fit took 42
-frames (five feasible tries). (Not with a popping bound, which needs the consecutive pairs.)
+provisional (:meth:`_Exact.plan`): it measures only the critical cameras (within half of the highest latest
+p99, at least two, and any camera ever over the budget), less those that met the budget at the same or a
+coarser value. The cameras skipped are measured once, when the search is over, on the value it returns; if
+one of them is then over the budget, that value becomes the infeasible end and the search goes on, so a
+fit's value is always measured on every camera. Before, a feasible try measured all 8 cameras: the 4097^2
+fBm's sse 0.5 px fit at 1080p took 42 frames (five feasible tries). (Not with a popping bound, which needs
+the consecutive pairs.)
 
 Popping as a constraint: ``fit_lod(..., max_pop_px=P)`` also measures, per consecutive camera pair, the pop
 between the previous camera's selection (held) and the current one, both drawn for the current camera
