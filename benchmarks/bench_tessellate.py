@@ -28,7 +28,7 @@ import numpy as np
 from _common import best_of, md_table, write_result
 
 from terrainwarp import set_threads
-from terrainwarp.kernels.parallel import threads
+from terrainwarp.kernels.parallel import release_buffers, threads
 from terrainwarp.kernels.tessellator import (
     SPACING_CODES,
     W_POSITION,
@@ -156,32 +156,39 @@ def main() -> None:
         "means the Warp kernels beat the vectorised numpy grid of the same size in the same run (numpy "
         "builds the plain grid; the kernels run the real tessellator: ring order, transition stitching, "
         f"fixed-point placement). Warp CPU launches split across {threads()} thread(s) (`--threads`; per core: "
-        "divide the Mvtx/s by that); numpy runs on one; timings on this shared 2-core "
+        "divide the Mvtx/s by that); numpy runs on one; best of --repeat, so a later frame: the outputs reuse "
+        "the buffers the frame before dropped (the frame-buffer pool); timings on this shared 2-core "
         "machine vary by about 2x between runs. Memory: output bytes "
         "(positions 12, uv 8, domain 8, patch id 4, level 4, triangles 2 x 12 per vertex; depth-only: positions "
         "and triangles, 12 + 12 x 2048/1089 bytes per vertex = 32.97 MiB per million vertices, the floor for float32 "
         "positions and int32 index triples).\n")
     if args.full:
+        release_buffers()  # the k rows' kept buffers
         pt = frame(32)
         t0 = time.perf_counter()
         res = tessellate_device(pt["outer"], pt["inner"], code, "cpu")
         t_dom = time.perf_counter() - t0
         del res
-        t0 = time.perf_counter()
-        res = device_frame(pt, h, eye)
-        t_dev = time.perf_counter() - t0
-        assert res[0] == full_nv
-        del res
-        t0 = time.perf_counter()
-        res = device_frame(pt, h, eye, True)
-        t_depth = time.perf_counter() - t0
-        del res
+        times = {}
+        for depth_only in (False, True):
+            release_buffers()  # a first frame: every output written to fresh pages
+            for when in ("first", "later"):  # a later frame: the outputs reuse the dropped frame's buffers
+                t0 = time.perf_counter()
+                res = device_frame(pt, h, eye, depth_only)
+                times[depth_only, when] = time.perf_counter() - t0
+                assert res[0] == full_nv
+                del res
+        release_buffers()
         rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-        body += (f"\ndeaconu2021's 64-root, level-32 frame, measured (one run, device stages only): "
-                 f"{full_p:,} leaf patches, {full_nv:,} domain points, {full_p * 2 * LEVEL ** 2:,} triangles "
-                 f"(their 67,108,864 counts 32 x 32 per patch): domain {t_dom:.2f} s ({full_nv / t_dom / 1e6:.1f} "
-                 f"Mpts/s), displaced {t_dev:.2f} s ({full_nv / t_dev / 1e6:.1f} Mvtx/s), depth-only {t_depth:.2f} s, "
-                 f"peak RSS {rss_gb:.1f} GiB.\n")
+        t_dev, t_depth = times[False, "later"], times[True, "later"]
+        body += (f"\ndeaconu2021's 64-root, level-32 frame, measured (device stages only; a first frame writes "
+                 "fresh pages, a later one the buffers the frame before it dropped, kept by the frame-buffer pool "
+                 f"`kernels.parallel.pooled_rows`): {full_p:,} leaf patches, {full_nv:,} domain points, "
+                 f"{full_p * 2 * LEVEL ** 2:,} triangles (their 67,108,864 counts 32 x 32 per patch): domain "
+                 f"{t_dom:.2f} s ({full_nv / t_dom / 1e6:.1f} Mpts/s); displaced {times[False, 'first']:.2f} s first, "
+                 f"{t_dev:.2f} s later ({full_nv / t_dev / 1e6:.1f} Mvtx/s); depth-only "
+                 f"{times[True, 'first']:.2f} s first, {t_depth:.2f} s later ({full_nv / t_depth / 1e6:.1f} "
+                 f"Mvtx/s); peak RSS {rss_gb:.1f} GiB.\n")
     else:
         p, nv = rows[-1][0], rows[-1][1]
         scale = full_p / p
