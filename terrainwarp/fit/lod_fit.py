@@ -700,7 +700,7 @@ def _search(exact: _Exact, v: float, step: Callable, rel_tol: float, max_validat
     """The search both fits share: up to ``max_validations`` provisional tries (:meth:`_Exact.__call__`), the
     next value from ``step(e, good, bad)`` (None: stop), then the coarsest feasible value confirmed on every
     camera. A confirmation that fails makes that value the infeasible end, and the search goes on from the
-    coarsest feasible value finer than it (one more try), so what is returned was measured on every
+    coarsest feasible value finer than it (three more tries), so what is returned was measured on every
     camera. Returns the confirmed evaluation, or None when nothing met the budget."""
     kn = exact.knob
     good: Evaluation | None = None  # feasible (met), coarsest so far
