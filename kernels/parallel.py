@@ -245,6 +245,12 @@ def _unreferenced() -> int:
 _FREE_REFS = _unreferenced()
 
 
+def _free(kept: list[np.ndarray]) -> list[int]:
+    """Indices of the kept buffers nothing references any more (no view of one alive: its only references are
+    the pool's list and the check's own)."""
+    return [i for i in range(len(kept)) if sys.getrefcount(kept[i]) == _FREE_REFS]
+
+
 def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20) -> np.ndarray:
     """An uninitialised host array for an output: a kept one of this (shape, dtype) that nothing references any
     more (no view of it alive: its only references are the pool's and the check's own), else a new one, kept
@@ -257,9 +263,9 @@ def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 
     key = (tuple(int(d) for d in shape), np.dtype(dtype).str)
     with _POOL_LOCK:
         kept = _POOL.setdefault(key, [])
-        for i in range(len(kept)):
-            if sys.getrefcount(kept[i]) == _FREE_REFS:
-                return kept[i]
+        free = _free(kept)
+        if free:
+            return kept[free[0]]
         a = np.empty(key[0], dtype)  # numpy's large allocations ask for huge pages (see empty)
         if len(kept) < keep and a.nbytes <= max_bytes:
             kept.append(a)
@@ -277,14 +283,10 @@ def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarra
     key = ("rows", rest, np.dtype(dtype).str)
     with _POOL_LOCK:
         kept = _POOL.setdefault(key, [])
-        best, free = -1, []
-        for i in range(len(kept)):
-            if sys.getrefcount(kept[i]) == _FREE_REFS:
-                free.append(i)
-                if kept[i].shape[0] >= n and (best < 0 or kept[i].shape[0] < kept[best].shape[0]):
-                    best = i
-        if best >= 0:
-            return kept[best][:n]
+        free = _free(kept)
+        fits = [i for i in free if kept[i].shape[0] >= n]
+        if fits:
+            return kept[min(fits, key=lambda i: kept[i].shape[0])][:n]
         grain = 1 << max(int(n).bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
         a = np.empty((-(-n // grain) * grain, *rest), dtype)
         if len(kept) < keep:
