@@ -289,45 +289,6 @@ def _ring_count(g: vec6i, r: int, e: int) -> int:
 
 
 @wp.func
-def _vidx(g: vec6i, r: int, e: int, k: int) -> int:
-    """Patch-local index of point k on edge e of ring r (the reference's storage order)."""
-    b = int(0)
-    if r > 0:
-        b = g[0] + g[1] + g[2] + g[3] - 4 + (r - 1) * (2 * g[4] + 2 * g[5] - 4 - 4 * r)
-        mu = g[4] - 2 * r
-        mv = g[5] - 2 * r
-        if mu == 1:  # a column at u = 1/2, stored with v decreasing
-            if e == 0:
-                return b + k
-            if e == 1:
-                return b + mv - 1
-            if e == 2:
-                return b + mv - 1 - k
-            return b
-        if mv == 1:  # a row at v = 1/2, stored with u increasing
-            if e == 0:
-                return b
-            if e == 1:
-                return b + k
-            if e == 2:
-                return b + mu - 1
-            return b + mu - 1 - k
-    if e == 3 and k == _ring_count(g, r, 3) - 1:
-        return b
-    off = int(0)
-    for j in range(e):
-        off += _ring_count(g, r, j) - 1
-    return b + off + k
-
-
-@wp.func
-def _row(g: vec6i, r: int, e: int, k: int, rev: int, c: int) -> int:
-    if rev == 1:
-        return _vidx(g, r, e, c - 1 - k)
-    return _vidx(g, r, e, k)
-
-
-@wp.func
 def _num_triangles(g: vec6i, odd: vec6i) -> int:
     nu = g[4]
     nv = g[5]
@@ -401,44 +362,88 @@ def _stitch_transition(out: _Out, t_in: int, vb: int, g: vec6i, e: int,
                        in_half_in: int, in_odd: int, out_half_in: int, out_odd: int) -> int:
     """Outer ring edge e -> first inner ring edge e, in ruler-function order (StitchTransition)."""
     t = t_in
+    a0 = _affine(g, 0, e)
+    a1 = _affine(g, 1, e)
     in_half = in_half_in - in_odd
     out_half = out_half_in - out_odd
     o = int(0)
     i = int(0)
     if 0 < out_half:
-        t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+        t = _tri(out, t, vb, _at(a0, o), _at(a0, o + 1), _at(a1, i))
         o += 1
     for k in range(1, 33):
         f = _final_point_position(k)
         if f < in_half:
-            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _at(a1, i), _at(a0, o), _at(a1, i + 1))
             i += 1
         if f < out_half:
-            t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+            t = _tri(out, t, vb, _at(a0, o), _at(a0, o + 1), _at(a1, i))
             o += 1
     if in_odd != out_odd or in_odd == 1:
         if in_odd == out_odd:  # quad in the middle
-            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
-            t = _tri(out, t, vb, _vidx(g, 1, e, i + 1), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
+            t = _tri(out, t, vb, _at(a1, i), _at(a0, o), _at(a1, i + 1))
+            t = _tri(out, t, vb, _at(a1, i + 1), _at(a0, o), _at(a0, o + 1))
             i += 1
             o += 1
         elif in_odd == 0:  # triangle pointing inside
-            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1))
+            t = _tri(out, t, vb, _at(a1, i), _at(a0, o), _at(a0, o + 1))
             o += 1
         else:  # triangle pointing outside
-            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _at(a1, i), _at(a0, o), _at(a1, i + 1))
             i += 1
     for kk in range(32):
         f = _final_point_position(32 - kk)
         if f < out_half:
-            t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+            t = _tri(out, t, vb, _at(a0, o), _at(a0, o + 1), _at(a1, i))
             o += 1
         if f < in_half:
-            t = _tri(out, t, vb, _vidx(g, 1, e, i), _vidx(g, 0, e, o), _vidx(g, 1, e, i + 1))
+            t = _tri(out, t, vb, _at(a1, i), _at(a0, o), _at(a1, i + 1))
             i += 1
     if 0 < out_half:
-        t = _tri(out, t, vb, _vidx(g, 0, e, o), _vidx(g, 0, e, o + 1), _vidx(g, 1, e, i))
+        t = _tri(out, t, vb, _at(a0, o), _at(a0, o + 1), _at(a1, i))
     return t
+
+
+@wp.func
+def _affine(g: vec6i, r: int, e: int) -> wp.vec4i:
+    """The patch-local indices of the points on edge e of ring r, in the reference's storage order, as
+    (start, step, last, wrap): point k is ``start + step * k``, except point ``last`` (the ring's closing
+    point, on edge 3 only), which is ``wrap``. Worked out once per row; :func:`_at` reads a point."""
+    b = int(0)
+    if r > 0:
+        b = g[0] + g[1] + g[2] + g[3] - 4 + (r - 1) * (2 * g[4] + 2 * g[5] - 4 - 4 * r)
+        mu = g[4] - 2 * r
+        mv = g[5] - 2 * r
+        if mu == 1:  # a column at u = 1/2, stored with v decreasing
+            if e == 0:
+                return wp.vec4i(b, 1, -1, b)
+            if e == 1:
+                return wp.vec4i(b + mv - 1, 0, -1, b)
+            if e == 2:
+                return wp.vec4i(b + mv - 1, -1, -1, b)
+            return wp.vec4i(b, 0, -1, b)
+        if mv == 1:  # a row at v = 1/2, stored with u increasing
+            if e == 0:
+                return wp.vec4i(b, 0, -1, b)
+            if e == 1:
+                return wp.vec4i(b, 1, -1, b)
+            if e == 2:
+                return wp.vec4i(b + mu - 1, 0, -1, b)
+            return wp.vec4i(b + mu - 1, -1, -1, b)
+    off = int(0)
+    for j in range(e):
+        off += _ring_count(g, r, j) - 1
+    last = int(-1)
+    if e == 3:
+        last = _ring_count(g, r, 3) - 1
+    return wp.vec4i(b + off, 1, last, b)
+
+
+@wp.func
+def _at(a: wp.vec4i, k: int) -> int:
+    if k == a[2]:
+        return a[3]
+    return a[0] + a[1] * k
 
 
 @wp.func
@@ -447,31 +452,39 @@ def _stitch_regular(out: _Out, t_in: int, vb: int, g: vec6i, trapezoid: int,
     """A strip between two rows (StitchRegular). diagonals: 0 mirrored, 1 inside-to-outside,
     2 inside-to-outside except the middle quad. The inner row may be read reversed (rev=1)."""
     t = t_in
-    o = int(0)
+    ao = _affine(g, ro, eo)
+    ai = _affine(g, ri, ei)
+    di = int(1)
     i = int(0)
+    if rev == 1:  # inner point k is row point n_in - 1 - k
+        di = -1
+        i = n_in - 1
+    o = int(0)
     if trapezoid == 1:
-        t = _tri(out, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
+        t = _tri(out, t, vb, _at(ao, o), _at(ao, o + 1), _at(ai, i))
         o += 1
+    a_o = _at(ao, o)
+    a_i = _at(ai, i)
     for p in range(n_in - 1):
         oi = int(0)
         if diagonals == 0 and p < n_in / 2:
             oi = 1
         if diagonals == 2 and p == n_in / 2 - 1:
             oi = 1
-        a_o = _vidx(g, ro, eo, o)
-        b_o = _vidx(g, ro, eo, o + 1)
-        a_i = _row(g, ri, ei, i, rev, n_in)
-        b_i = _row(g, ri, ei, i + 1, rev, n_in)
+        b_o = _at(ao, o + 1)
+        b_i = _at(ai, i + di)
         if oi == 1:
             t = _tri(out, t, vb, a_o, b_i, a_i)
             t = _tri(out, t, vb, a_o, b_o, b_i)
         else:
             t = _tri(out, t, vb, a_i, a_o, b_o)
             t = _tri(out, t, vb, a_i, b_o, b_i)
-        i += 1
+        a_o = b_o
+        a_i = b_i
+        i += di
         o += 1
     if trapezoid == 1:
-        t = _tri(out, t, vb, _vidx(g, ro, eo, o), _vidx(g, ro, eo, o + 1), _row(g, ri, ei, i, rev, n_in))
+        t = _tri(out, t, vb, a_o, _at(ao, o + 1), a_i)
     return t
 
 
