@@ -14,8 +14,8 @@ Per frame, in the same process:
   unset (llvmpipe uses every core), and in child processes with LP_NUM_THREADS=1 (one rasterizer
   thread beside the drawing thread, which runs the shaders and the tessellator) and LP_NUM_THREADS=0
   (rasterization in the drawing thread too: one core, like ours).
-* ``render()``: the whole call's wall time, which also pays for the barycentric image the pipeline
-  computes after its timed raster stage (even for a depth-only scene).
+* ``render()``: the whole call's wall time: the three stages and the rest of the call (building the
+  report); a depth-only scene leaves the barycentric image out, as it does the shading.
 * CPU time (``time.process_time``, every thread of the process), least of the runs: ours = ``select`` +
   ``tessellate_patches`` + ``rasterize`` called directly as ``render`` calls them, gl = the draws above;
   the work done, which a loaded shared machine disturbs far less than wall time.
@@ -246,9 +246,9 @@ def main(argv=None) -> None:
         "(one rasterizer thread beside the drawing thread that runs the shaders and the tessellator) / =0 "
         "(everything in the drawing thread: one core, like ours), each in a child process. Ratios are "
         "gl / ours (> 1: we are faster). `render() ms` is the whole `render` call, best of the same runs: "
-        "besides the three stages it computes the frame's perspective-correct barycentric image after the "
-        "timed raster stage (`Frame.barycentrics`, even when only depth is asked for), which llvmpipe's "
-        "fragment shader here does not do (it interpolates nothing). Policy: "
+        "the three stages and the rest of the call; a depth-only scene makes no barycentric image (the "
+        "pipeline computes it only for the shade and error stages), as llvmpipe's fragment shader here "
+        "interpolates nothing. Policy: "
         "screen-space error (`LodConfig` defaults: 16 roots, T = 16, equal spacing) at the tolerance shown. "
         "Camera `Camera.default_for` (the whole terrain in view); the fBm "
         "(`Heightmap.fbm(1025, seed=7, dx=10, max_height=800)`) tolerances are bisected for about 50k, 340k and "
