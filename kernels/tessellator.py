@@ -358,6 +358,48 @@ def _tri(o: _Out, t: int, vb: int, a: int, b: int, c: int) -> int:
 
 
 @wp.func
+def _affine(g: vec6i, r: int, e: int) -> wp.vec4i:
+    """The patch-local indices of the points on edge e of ring r, in the reference's storage order, as
+    (start, step, last, wrap): point k is ``start + step * k``, except point ``last`` (the ring's closing
+    point, on edge 3 only), which is ``wrap``. Worked out once per row; :func:`_at` reads a point."""
+    b = int(0)
+    if r > 0:
+        b = g[0] + g[1] + g[2] + g[3] - 4 + (r - 1) * (2 * g[4] + 2 * g[5] - 4 - 4 * r)
+        mu = g[4] - 2 * r
+        mv = g[5] - 2 * r
+        if mu == 1:  # a column at u = 1/2, stored with v decreasing
+            if e == 0:
+                return wp.vec4i(b, 1, -1, b)
+            if e == 1:
+                return wp.vec4i(b + mv - 1, 0, -1, b)
+            if e == 2:
+                return wp.vec4i(b + mv - 1, -1, -1, b)
+            return wp.vec4i(b, 0, -1, b)
+        if mv == 1:  # a row at v = 1/2, stored with u increasing
+            if e == 0:
+                return wp.vec4i(b, 0, -1, b)
+            if e == 1:
+                return wp.vec4i(b, 1, -1, b)
+            if e == 2:
+                return wp.vec4i(b + mu - 1, 0, -1, b)
+            return wp.vec4i(b + mu - 1, -1, -1, b)
+    off = int(0)
+    for j in range(e):
+        off += _ring_count(g, r, j) - 1
+    last = int(-1)
+    if e == 3:
+        last = _ring_count(g, r, 3) - 1
+    return wp.vec4i(b + off, 1, last, b)
+
+
+@wp.func
+def _at(a: wp.vec4i, k: int) -> int:
+    if k == a[2]:
+        return a[3]
+    return a[0] + a[1] * k
+
+
+@wp.func
 def _stitch_transition(out: _Out, t_in: int, vb: int, g: vec6i, e: int,
                        in_half_in: int, in_odd: int, out_half_in: int, out_odd: int) -> int:
     """Outer ring edge e -> first inner ring edge e, in ruler-function order (StitchTransition)."""
@@ -402,48 +444,6 @@ def _stitch_transition(out: _Out, t_in: int, vb: int, g: vec6i, e: int,
     if 0 < out_half:
         t = _tri(out, t, vb, _at(a0, o), _at(a0, o + 1), _at(a1, i))
     return t
-
-
-@wp.func
-def _affine(g: vec6i, r: int, e: int) -> wp.vec4i:
-    """The patch-local indices of the points on edge e of ring r, in the reference's storage order, as
-    (start, step, last, wrap): point k is ``start + step * k``, except point ``last`` (the ring's closing
-    point, on edge 3 only), which is ``wrap``. Worked out once per row; :func:`_at` reads a point."""
-    b = int(0)
-    if r > 0:
-        b = g[0] + g[1] + g[2] + g[3] - 4 + (r - 1) * (2 * g[4] + 2 * g[5] - 4 - 4 * r)
-        mu = g[4] - 2 * r
-        mv = g[5] - 2 * r
-        if mu == 1:  # a column at u = 1/2, stored with v decreasing
-            if e == 0:
-                return wp.vec4i(b, 1, -1, b)
-            if e == 1:
-                return wp.vec4i(b + mv - 1, 0, -1, b)
-            if e == 2:
-                return wp.vec4i(b + mv - 1, -1, -1, b)
-            return wp.vec4i(b, 0, -1, b)
-        if mv == 1:  # a row at v = 1/2, stored with u increasing
-            if e == 0:
-                return wp.vec4i(b, 0, -1, b)
-            if e == 1:
-                return wp.vec4i(b, 1, -1, b)
-            if e == 2:
-                return wp.vec4i(b + mu - 1, 0, -1, b)
-            return wp.vec4i(b + mu - 1, -1, -1, b)
-    off = int(0)
-    for j in range(e):
-        off += _ring_count(g, r, j) - 1
-    last = int(-1)
-    if e == 3:
-        last = _ring_count(g, r, 3) - 1
-    return wp.vec4i(b + off, 1, last, b)
-
-
-@wp.func
-def _at(a: wp.vec4i, k: int) -> int:
-    if k == a[2]:
-        return a[3]
-    return a[0] + a[1] * k
 
 
 @wp.func
