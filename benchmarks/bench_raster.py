@@ -12,7 +12,7 @@ and a 24-bit depth buffer: coverage pixels that differ, how many of those lie on
 one pixel of a coverage or depth edge), max depth difference off the silhouettes.
 
     .venv/bin/python benchmarks/bench_raster.py            # full table (~4-6 min on 2 cores)
-    .venv/bin/python benchmarks/bench_raster.py --quick    # 1e4..1e5 only
+    .venv/bin/python benchmarks/bench_raster.py --quick    # 1e4..1e5 only, printed (not written)
 """
 
 from __future__ import annotations
@@ -258,12 +258,14 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1e4 and 1e5 triangles only")
     ap.add_argument("--no-1e7", action="store_true", help="skip the 1e7-triangle frames")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "raster.md"))
+    ap.add_argument("--out", default=None, help="the results file (default: benchmarks/results/raster.md for a "
+                    "full run; a --quick run is printed only, so it never replaces the full table)")
     ap.add_argument("--threads", type=int, default=None, help="our CPU threads (default: every core we may use)")
     a = ap.parse_args(argv)
     tw.set_threads(a.threads)
     sizes = ["1e4", "1e5"] if a.quick else ["1e4", "1e5", "1e6"] + ([] if a.no_1e7 else ["1e7"])
-    run(sizes, out_md=a.out)
+    out = a.out if a.out else (None if a.quick else str(ROOT / "benchmarks" / "results" / "raster.md"))
+    run(sizes, out_md=out)
 
 
 if __name__ == "__main__":
