@@ -31,11 +31,17 @@ The tolerances come in ascending order, one pass each, and a pass costs what cha
 Everything a pass reports is what merging every unfrozen node again would give: the root's polygons in the
 paper's order with their flags, and the counters (STAT_*) of all unfrozen nodes (an unchanged node's are
 those of its last merge); ``tests/lod/test_polytree.py`` checks every pass against the per-tolerance
-algorithm. A pass is one launch of one thread (``_pass_kernel``): it touches the few nodes a tolerance
-changes where launches per level visit all of them (issue 19: 100 tolerances of a 257^2 map took 0.76 s as
-three launches a level a pass, 27 a tolerance). It is sequential, so it does not go through the
-parallel-launch helper; on a GPU, a launch per level over the marked nodes (their merges touch disjoint
-slots) is the shape to launch.
+algorithm. A pass touches the few nodes a tolerance changes, where launches per level visit all of them
+(issue 19: 100 tolerances of a 257^2 map took 0.76 s as three launches a level a pass, 27 a tolerance):
+
+* one thread, one launch (``_pass_kernel``): on one CPU thread, on CUDA, and for a depth below 4;
+* on several CPU threads, a pass that merges many nodes (``MergeState.PARALLEL_MIN_NODES``) is three
+  launches: mark and undo the top three levels (one thread), then undo and merge again the marked nodes
+  inside each of the 64 nodes three levels below the root (``_subtree_kernel``, through the parallel-launch
+  helper: a subtree's slots, nodes and undo logs are its own), then merge the top levels again and emit (one
+  thread). The counters go to a row per chunk and are summed in a fixed order, and every merge's stamp is
+  numbered as the one-thread pass numbers it, so both give the same bits. A pass that merges few nodes runs
+  its rest in one thread (two launches).
 
 Section 2.4 (``_tri_count_kernel`` / ``_tri_emit_kernel``) and section 2.5 (``_morph_target_kernel``,
 ``_morph_positions_kernel``) follow; the host side is :mod:`terrainwarp.lod.polytree`.
@@ -48,7 +54,7 @@ import time
 import numpy as np
 import warp as wp
 
-from .parallel import launch
+from .parallel import launch, threads
 
 FLAG_LOW_J = 1  # a merge across (part of) the polygon's j0 side was tried and failed
 FLAG_HIGH_J = 2  # ... across its j1 side
@@ -131,8 +137,8 @@ class _MergeArrays:
     marks: wp.array(dtype=wp.int32)  # the nodes merged in this pass, level l's from n_base[l]
     n_marked: wp.array(dtype=wp.int32)  # ... how many per level
     stack: wp.array(dtype=wp.int32)  # the output's descent
-    totals: wp.array(dtype=wp.int64)  # STAT_TESTS .. STAT_FIND_STEPS over the unfrozen nodes
-    hist: wp.array(dtype=wp.int32)  # unfrozen nodes by their most steps of one search (for STAT_FIND_MAX)
+    totals: wp.array2d(dtype=wp.int64)  # STAT_TESTS .. STAT_FIND_STEPS over the unfrozen nodes, a row per part
+    hist: wp.array2d(dtype=wp.int32)  # unfrozen nodes by their most steps of one search (STAT_FIND_MAX), per part
     counter: wp.array(dtype=wp.int32)  # node merges so far (their stamps)
     error: wp.array(dtype=wp.int32)
     out_rect: wp.array(dtype=wp.vec4i)  # every pass's root polygons, appended
@@ -332,31 +338,31 @@ def _merge_border(h: wp.array2d(dtype=wp.float32), vertical: int, fixed: int, st
 
 
 @wp.func
-def _add_totals(n: _Node, sign: int, st: _MergeArrays):
-    """Add (sign 1) or take out (-1) a node's counters from the pass totals."""
-    st.totals[0] = st.totals[0] + wp.int64(sign * n.tests)
-    st.totals[1] = st.totals[1] + wp.int64(sign * n.bfail)
-    st.totals[2] = st.totals[2] + wp.int64(sign * n.sfail)
-    st.totals[3] = st.totals[3] + wp.int64(sign * n.merges)
-    st.totals[4] = st.totals[4] + wp.int64(sign * n.steps)
-    st.hist[n.smax] = st.hist[n.smax] + sign
+def _add_totals(n: _Node, sign: int, part: int, st: _MergeArrays):
+    """Add (sign 1) or take out (-1) a node's counters from the pass totals, in row ``part`` (the parallel
+    subtree launch's chunk; the totals are the sums over the rows, so a row alone may be negative)."""
+    st.totals[part, 0] = st.totals[part, 0] + wp.int64(sign * n.tests)
+    st.totals[part, 1] = st.totals[part, 1] + wp.int64(sign * n.bfail)
+    st.totals[part, 2] = st.totals[part, 2] + wp.int64(sign * n.sfail)
+    st.totals[part, 3] = st.totals[part, 3] + wp.int64(sign * n.merges)
+    st.totals[part, 4] = st.totals[part, 4] + wp.int64(sign * n.steps)
+    st.hist[part, n.smax] = st.hist[part, n.smax] + sign
 
 
 @wp.func
-def _merge_node(m: int, k: int, tol: float, st: _MergeArrays):
+def _merge_node(m: int, k: int, tol: float, mid: int, part: int, st: _MergeArrays):
     """Merge node k of level m (m >= 1; its slots hold its sons' polygons) at ``tol``: borders A, B, C of the
-    paper's order, then its count, counters and smallest failure."""
+    paper's order, then its count, counters (into row ``part``) and smallest failure. ``mid`` is this merge's
+    stamp: unique to it (:func:`_stamp`)."""
     nodes = st.nodes
     ch = st.ch
     cw = st.cw
     node = st.n_base[m] + k
-    mid = st.counter[0] + 1  # this merge's stamp
-    st.counter[0] = mid
     at = st.u_base[m] + k * _log_room(m)
     ulog = at
     nd = nodes[node]
     if nd.done != 0:  # its last counters leave the totals
-        _add_totals(nd, -1, st)
+        _add_totals(nd, -1, part, st)
     nodes[node].tests = 0
     nodes[node].bfail = 0
     nodes[node].sfail = 0
@@ -398,7 +404,7 @@ def _merge_node(m: int, k: int, tol: float, st: _MergeArrays):
     nodes[node].count = count
     nodes[node].sub = wp.min(nodes[node].sub, sub)
     nodes[node].done = 1
-    _add_totals(nodes[node], 1, st)
+    _add_totals(nodes[node], 1, part, st)
     if count == 1:  # a single polygon is its node, without failures (internal check)
         s0 = k << (2 * m)
         q = st.g[s0]
@@ -436,21 +442,92 @@ def _mark(tol: float, st: _MergeArrays):
 
 
 @wp.func
-def _undo(st: _MergeArrays):
-    """Undo the last merges of the marked nodes, top-down: their slots go back to their sons' polygons."""
+def _undo_node(m: int, k: int, st: _MergeArrays):
+    """Undo the last merge of node k of level m: its slots go back to its sons' polygons."""
     g = st.g
-    m = st.depth
-    while m >= 1:
+    ulog = st.u_base[m] + k * _log_room(m)
+    for e in range(ulog, ulog + st.nodes[st.n_base[m] + k].ulen):
+        w = st.u[e]
+        g[w.slot].rect = w.rect
+        g[w.slot].grad = w.grad
+        g[w.slot].flags = w.flags
+        st.link[w.slot] = -1
+
+
+@wp.func
+def _undo_levels(top: int, bottom: int, st: _MergeArrays):
+    """Undo the last merges of the marked nodes of levels ``top`` down to ``bottom``, top-down (a slot logged at
+    several levels ends as the lowest one logged it)."""
+    m = top
+    while m >= bottom:
         for i in range(st.n_marked[m]):
-            k = st.marks[st.n_base[m] + i]
-            ulog = st.u_base[m] + k * _log_room(m)
-            for e in range(ulog, ulog + st.nodes[st.n_base[m] + k].ulen):
-                w = st.u[e]
-                g[w.slot].rect = w.rect
-                g[w.slot].grad = w.grad
-                g[w.slot].flags = w.flags
-                st.link[w.slot] = -1
+            _undo_node(m, st.marks[st.n_base[m] + i], st)
         m = m - 1
+
+
+@wp.func
+def _stamp_base(m: int, st: _MergeArrays) -> int:
+    """Stamp of the merge before the first marked node of level m in this pass: the merges are numbered on from
+    every earlier pass's (``counter``), level by level from level 1, each level in mark order, so that the
+    one-thread pass and the subtree launches (:func:`_subtree`) give every merge the same stamp."""
+    b = st.counter[0]
+    for lv in range(1, m):
+        b = b + st.n_marked[lv]
+    return b
+
+
+@wp.func
+def _merge_levels(lo: int, hi: int, tol: float, part: int, st: _MergeArrays):
+    """Merge the marked nodes of levels ``lo`` up to ``hi`` again, bottom-up."""
+    for lv in range(lo, hi + 1):
+        b = _stamp_base(lv, st)
+        for i in range(st.n_marked[lv]):
+            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, b + i + 1, part, st)
+
+
+@wp.func
+def _run_of(m: int, s: int, split: int, st: _MergeArrays) -> wp.vec2i:
+    """The marked nodes of level m (<= split) inside node s of level ``split``: positions [lo, hi) of level m's
+    mark list, which is sorted (marks are appended son by son under marked fathers in order)."""
+    base = st.n_base[m]
+    n = st.n_marked[m]
+    first = s << (2 * (split - m))
+    last = (s + 1) << (2 * (split - m))
+    lo = int(0)
+    hi = n
+    while lo < hi:  # the first mark >= first
+        mid = (lo + hi) >> 1
+        if st.marks[base + mid] < first:
+            lo = mid + 1
+        else:
+            hi = mid
+    end = lo
+    hi = n
+    while end < hi:  # the first mark >= last
+        mid = (end + hi) >> 1
+        if st.marks[base + mid] < last:
+            end = mid + 1
+        else:
+            hi = mid
+    return wp.vec2i(lo, end)
+
+
+@wp.func
+def _subtree(s: int, split: int, tol: float, part: int, st: _MergeArrays):
+    """Undo and merge again the marked nodes of levels ``split`` down to 1 inside node s of level ``split``,
+    after the levels above were undone: its slots, nodes and undo logs are its own, so subtrees run on
+    different threads (counters into row ``part``, stamps as the one-thread pass numbers them)."""
+    m = split
+    while m >= 1:
+        r = _run_of(m, s, split, st)
+        for i in range(r[0], r[1]):
+            _undo_node(m, st.marks[st.n_base[m] + i], st)
+        m = m - 1
+    for lv in range(1, split + 1):
+        r = _run_of(lv, s, split, st)
+        b = _stamp_base(lv, st)
+        for i in range(r[0], r[1]):
+            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, b + i + 1, part, st)
 
 
 @wp.func
@@ -509,7 +586,30 @@ def _freeze(st: _MergeArrays):
             if nd.count == 1:
                 st.nodes[node].frozen = 1
                 st.nodes[node].sub = float(wp.inf)
-                _add_totals(nd, -1, st)
+                _add_totals(nd, -1, 0, st)
+
+
+@wp.func
+def _finish(row: int, st: _MergeArrays):
+    """After the merges of pass ``row``: append the root's polygons, write the pass's counters (the sums over
+    the part rows), freeze, and number on the stamps past this pass's merges."""
+    st.out_count[row] = _emit_root(st)
+    parts = st.totals.shape[0]
+    for i in range(5):
+        acc = wp.int64(0)
+        for p in range(parts):
+            acc = acc + st.totals[p, i]
+        st.out_stats[row, i] = acc
+    high = int(0)
+    for v in range(st.hist.shape[1]):
+        c = int(0)
+        for p in range(parts):
+            c = c + st.hist[p, v]
+        if c > 0:
+            high = v
+    st.out_stats[row, 5] = wp.int64(high)
+    _freeze(st)
+    st.counter[0] = _stamp_base(st.depth + 1, st)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -561,19 +661,35 @@ def _pass_kernel(st: _MergeArrays, row: int):
     polygons to ``st.out_*``, write the pass's counters to ``st.out_stats[row]``, freeze."""
     tol = st.tols[row]
     _mark(tol, st)
-    _undo(st)
-    for lv in range(1, st.depth + 1):
-        for i in range(st.n_marked[lv]):
-            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, st)
-    st.out_count[row] = _emit_root(st)
-    for i in range(5):
-        st.out_stats[row, i] = st.totals[i]
-    high = int(0)
-    for v in range(st.hist.shape[0]):
-        if st.hist[v] > 0:
-            high = v
-    st.out_stats[row, 5] = wp.int64(high)
-    _freeze(st)
+    _undo_levels(st.depth, 1, st)
+    _merge_levels(1, st.depth, tol, 0, st)
+    _finish(row, st)
+
+
+@wp.kernel(enable_backward=False)
+def _mark_top_kernel(st: _MergeArrays, row: int, split: int):
+    """Pass ``row`` split across threads, first launch (one thread): mark, and undo the levels above ``split``."""
+    _mark(st.tols[row], st)
+    _undo_levels(st.depth, split + 1, st)
+
+
+@wp.kernel(enable_backward=False)
+def _subtree_kernel(offset: int, part: int, st: _MergeArrays, row: int, split: int):
+    """Second launch, one item per node of level ``split`` (:func:`_subtree`), split across threads."""
+    _subtree(wp.tid() + offset, split, st.tols[row], part, st)
+
+
+@wp.kernel(enable_backward=False)
+def _top_finish_kernel(st: _MergeArrays, row: int, split: int, rest: int):
+    """Third launch (one thread): merge the levels above ``split`` again, then :func:`_finish`. With ``rest``
+    = 1 instead of the subtree launch (a pass that merges few nodes): undo levels ``split`` to 1 and merge every
+    level again."""
+    lo = split + 1
+    if rest != 0:
+        _undo_levels(split, 1, st)
+        lo = 1
+    _merge_levels(lo, st.depth, st.tols[row], 0, st)
+    _finish(row, st)
 
 
 @wp.kernel(enable_backward=False)
@@ -951,6 +1067,12 @@ class MergeState:
     """
 
     OUT_ROWS = 1 << 23  # output rows held at once on the CPU (untouched rows cost address space only)
+    # A pass that merges at least this many nodes at the subtree levels runs them on every thread (CPU, depth >= 4):
+    # one launch marks and undoes the top levels, one undoes and merges the 4^SPLIT_BELOW subtrees below them, in
+    # parallel, one merges the top levels and emits. Smaller passes run in one thread (two launches).
+    PARALLEL_MIN_NODES = 1024
+    SPLIT_BELOW = 3  # the subtrees are the nodes this many levels below the root
+    PARTS = 64  # counter rows: the subtree launch's chunks (at most 4^SPLIT_BELOW)
 
     def __init__(self, heights: np.ndarray, device: str = "cpu"):
         hh, ww = heights.shape
@@ -987,7 +1109,9 @@ class MergeState:
         a.nodes, a.g, a.link, a.logpos = empty(total, _Node), empty(ns, _Slot), empty(ns, wp.int32), empty(ns, wp.int32)
         a.u = empty(u_base[-1], _Undo)
         a.marks, a.n_marked, a.stack = empty(total, wp.int32), zeros(d + 1, wp.int32), empty(3 * d + 4, wp.int32)
-        a.totals, a.hist = zeros(5, wp.int64), zeros(2 * d + 8, wp.int32)  # a search takes <= 2 * depth + 1 steps
+        # a search takes <= 2 * depth + 1 steps (the histogram's bins)
+        a.totals = wp.zeros((self.PARTS, 5), dtype=wp.int64, device=device)
+        a.hist = wp.zeros((self.PARTS, 2 * d + 8), dtype=wp.int32, device=device)
         a.counter, a.error, a.out_used = zeros(1, wp.int32), zeros(1, wp.int32), zeros(1, wp.int32)
         a.out_count, a.out_stats = zeros(1, wp.int32), wp.zeros((1, 6), dtype=wp.int64, device=device)
         a.depth, a.ch, a.cw, a.nc, a.nslots = d, self.ch, self.cw, self.ncells, ns
@@ -995,6 +1119,7 @@ class MergeState:
                device=device)
         self.arrays = a
         self._used = a.out_used.numpy() if device == "cpu" else None  # on the CPU a view: read after each pass
+        self._marked = a.n_marked.numpy() if device == "cpu" else None  # likewise, read after marking
         self._pending = np.zeros(6, np.int64)
 
     def run_passes(self, tolerances, stop_at_one: bool = False) -> tuple[np.ndarray, ...]:
@@ -1016,18 +1141,29 @@ class MergeState:
         # room for every pass at once where that is cheap (CPU pages are touched only when written)
         rows = nc * max(2, min(t_n, self.OUT_ROWS // nc)) if dev == "cpu" else 2 * nc
         self._new_out(rows)
-        cmd = wp.launch(_pass_kernel, dim=1, inputs=[a, 0], device=dev, record_cmd=True)
+        split = self.depth - self.SPLIT_BELOW
+        split_up = self._marked is not None and threads() > 1 and split >= 1
+        if split_up:
+            cmds = [wp.launch(_mark_top_kernel, dim=1, inputs=[a, 0, split], device=dev, record_cmd=True),
+                    wp.launch(_top_finish_kernel, dim=1, inputs=[a, 0, split, 0], device=dev, record_cmd=True)]
+        else:
+            cmds = [wp.launch(_pass_kernel, dim=1, inputs=[a, 0], device=dev, record_cmd=True)]
         chunks, ms = [], []
         used = 0
         for t in range(t_n):
             if used + nc > rows:  # a pass writes at most one row a cell
                 chunks.append(self._take(used))
                 self._new_out(rows)
-                cmd.set_param_at_index(0, a)
+                for cmd in cmds:
+                    cmd.set_param_at_index(0, a)
                 used = 0
             t0 = time.perf_counter()
-            cmd.set_param_at_index(1, t)
-            cmd.launch()
+            for cmd in cmds:
+                cmd.set_param_at_index(1, t)
+            if split_up:
+                self._split_pass(cmds, t, split)
+            else:
+                cmds[0].launch()
             new = int(self._used[0]) if self._used is not None else int(a.out_used.numpy()[0])
             ms.append((time.perf_counter() - t0) * 1e3)
             last, used = new - used, new
@@ -1041,6 +1177,17 @@ class MergeState:
                                for q in range(3))
         return (rects, grads, flags, a.out_count.numpy()[:done].astype(np.int64), a.out_stats.numpy()[:done].copy(),
                 np.asarray(ms, np.float64))
+
+    def _split_pass(self, cmds, t: int, split: int) -> None:
+        """Pass t on every thread when it merges enough nodes at the subtree levels, else in one."""
+        mark, finish = cmds
+        mark.launch()
+        parallel = int(self._marked[1:split + 1].sum()) >= self.PARALLEL_MIN_NODES
+        if parallel:
+            launch(_subtree_kernel, 4 ** self.SPLIT_BELOW, [self.arrays, t, split], device=self.device, parts=True,
+                   min_items=1, oversplit=4)  # subtrees differ in how many of their nodes a pass merges
+        finish.set_param_at_index(3, 0 if parallel else 1)
+        finish.launch()
 
     def run_pass(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Merge at ``tol`` (not below the last tolerance); returns the root's polygons: rects (P, 4) int32

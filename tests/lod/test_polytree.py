@@ -572,3 +572,31 @@ def test_incremental_passes_on_quantised_heights_with_ties():
     hm = _hm(np.round(rng.normal(size=(26, 35)) * 2.0) / 4.0)
     tols = [0.0, 0.25, 0.5, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 16.0, 64.0]
     _ref_check(build_polytree(hm, tols, stop_at_one=False), _ref_passes(hm.heights, tols, stop_at_one=False))
+
+
+def test_passes_split_across_threads_equal_the_per_tolerance_algorithm(monkeypatch):
+    # every pass through the subtree launch (a pass of a small grid merges too few nodes for it otherwise):
+    # on 2, 3 and 8 threads the subtrees' undo and merge run on different threads; the passes (polygons, flags,
+    # counters) must equal the per-tolerance algorithm and the one-thread run, bit for bit
+    from terrainwarp import set_threads
+    from terrainwarp.kernels.polytree import MergeState
+
+    monkeypatch.setattr(MergeState, "PARALLEL_MIN_NODES", 0)
+    rng = np.random.default_rng(21)
+    shape = (61, 45)  # depth 6: the subtrees are the 64 nodes of level 3
+    h = np.cumsum(rng.normal(size=shape), axis=0) * 2.0 + np.cumsum(rng.normal(size=shape), axis=1)
+    h[: shape[0] // 4, : shape[1] // 3] = 1.0  # a flat corner that freezes at tolerance 0
+    hm = _hm(h.astype(np.float32))
+    tols = sorted(list(default_tolerances(hm, 16)) + [1e9])
+    ref = _ref_passes(hm.heights, tols, stop_at_one=False)
+    digests = []
+    try:
+        for n in (1, 2, 3, 8):
+            set_threads(n)
+            pt = build_polytree(hm, tols, stop_at_one=False)
+            _ref_check(pt, ref)
+            digests.append(digest(pt.polygons.rects, pt.polygons.grads, pt.polygons.flags, pt.pass_stats))
+    finally:
+        set_threads(None)
+    assert len(set(digests)) == 1
+    assert len(ref[0][0]) > 200 and len(ref[-1][0]) == 1  # the passes did real work, down to one polygon
