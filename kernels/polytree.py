@@ -486,30 +486,26 @@ def _merge_levels(lo: int, hi: int, tol: float, part: int, st: _MergeArrays):
 
 
 @wp.func
-def _run_of(m: int, s: int, split: int, st: _MergeArrays) -> wp.vec2i:
-    """The marked nodes of level m (<= split) inside node s of level ``split``: positions [lo, hi) of level m's
-    mark list, which is sorted (marks are appended son by son under marked fathers in order)."""
+def _first_at_least(st: _MergeArrays, m: int, lo_in: int, key: int) -> int:
+    """Position of the first mark >= ``key`` in level m's sorted mark list, from position ``lo_in`` on."""
     base = st.n_base[m]
-    n = st.n_marked[m]
-    first = s << (2 * (split - m))
-    last = (s + 1) << (2 * (split - m))
-    lo = int(0)
-    hi = n
-    while lo < hi:  # the first mark >= first
+    lo = lo_in
+    hi = st.n_marked[m]
+    while lo < hi:
         mid = (lo + hi) >> 1
-        if st.marks[base + mid] < first:
+        if st.marks[base + mid] < key:
             lo = mid + 1
         else:
             hi = mid
-    end = lo
-    hi = n
-    while end < hi:  # the first mark >= last
-        mid = (end + hi) >> 1
-        if st.marks[base + mid] < last:
-            end = mid + 1
-        else:
-            hi = mid
-    return wp.vec2i(lo, end)
+    return lo
+
+
+@wp.func
+def _run_of(m: int, s: int, split: int, st: _MergeArrays) -> wp.vec2i:
+    """The marked nodes of level m (<= split) inside node s of level ``split``: positions [lo, hi) of level m's
+    mark list, which is sorted (marks are appended son by son under marked fathers in order)."""
+    lo = _first_at_least(st, m, 0, s << (2 * (split - m)))
+    return wp.vec2i(lo, _first_at_least(st, m, lo, (s + 1) << (2 * (split - m))))
 
 
 @wp.func
