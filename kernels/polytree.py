@@ -353,7 +353,7 @@ def _add_totals(n: _Node, sign: int, part: int, st: _MergeArrays):
 def _merge_node(m: int, k: int, tol: float, mid: int, part: int, st: _MergeArrays):
     """Merge node k of level m (m >= 1; its slots hold its sons' polygons) at ``tol``: borders A, B, C of the
     paper's order, then its count, counters (into row ``part``) and smallest failure. ``mid`` is this merge's
-    stamp: unique to it (:func:`_stamp`)."""
+    stamp: unique to it (:func:`_stamp_base`)."""
     nodes = st.nodes
     ch = st.ch
     cw = st.cw
@@ -455,37 +455,6 @@ def _undo_node(m: int, k: int, st: _MergeArrays):
 
 
 @wp.func
-def _undo_levels(top: int, bottom: int, st: _MergeArrays):
-    """Undo the last merges of the marked nodes of levels ``top`` down to ``bottom``, top-down (a slot logged at
-    several levels ends as the lowest one logged it)."""
-    m = top
-    while m >= bottom:
-        for i in range(st.n_marked[m]):
-            _undo_node(m, st.marks[st.n_base[m] + i], st)
-        m = m - 1
-
-
-@wp.func
-def _stamp_base(m: int, st: _MergeArrays) -> int:
-    """Stamp of the merge before the first marked node of level m in this pass: the merges are numbered on from
-    every earlier pass's (``counter``), level by level from level 1, each level in mark order, so that the
-    one-thread pass and the subtree launches (:func:`_subtree`) give every merge the same stamp."""
-    b = st.counter[0]
-    for lv in range(1, m):
-        b = b + st.n_marked[lv]
-    return b
-
-
-@wp.func
-def _merge_levels(lo: int, hi: int, tol: float, part: int, st: _MergeArrays):
-    """Merge the marked nodes of levels ``lo`` up to ``hi`` again, bottom-up."""
-    for lv in range(lo, hi + 1):
-        b = _stamp_base(lv, st)
-        for i in range(st.n_marked[lv]):
-            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, b + i + 1, part, st)
-
-
-@wp.func
 def _first_at_least(st: _MergeArrays, m: int, lo_in: int, key: int) -> int:
     """Position of the first mark >= ``key`` in level m's sorted mark list, from position ``lo_in`` on."""
     base = st.n_base[m]
@@ -503,9 +472,46 @@ def _first_at_least(st: _MergeArrays, m: int, lo_in: int, key: int) -> int:
 @wp.func
 def _run_of(m: int, s: int, split: int, st: _MergeArrays) -> wp.vec2i:
     """The marked nodes of level m (<= split) inside node s of level ``split``: positions [lo, hi) of level m's
-    mark list, which is sorted (marks are appended son by son under marked fathers in order)."""
+    mark list, which is sorted (marks are appended son by son under marked fathers in order); all of them when
+    s < 0."""
+    if s < 0:
+        return wp.vec2i(0, st.n_marked[m])
     lo = _first_at_least(st, m, 0, s << (2 * (split - m)))
     return wp.vec2i(lo, _first_at_least(st, m, lo, (s + 1) << (2 * (split - m))))
+
+
+@wp.func
+def _undo_levels(top: int, bottom: int, s: int, split: int, st: _MergeArrays):
+    """Undo the last merges of the marked nodes of levels ``top`` down to ``bottom`` (those inside node s of level
+    ``split``, or all with s < 0), top-down (a slot logged at several levels ends as the lowest one logged it)."""
+    m = top
+    while m >= bottom:
+        r = _run_of(m, s, split, st)
+        for i in range(r[0], r[1]):
+            _undo_node(m, st.marks[st.n_base[m] + i], st)
+        m = m - 1
+
+
+@wp.func
+def _stamp_base(m: int, st: _MergeArrays) -> int:
+    """Stamp of the merge before the first marked node of level m in this pass: the merges are numbered on from
+    every earlier pass's (``counter``), level by level from level 1, each level in mark order, so that the
+    one-thread pass and the subtree launches (:func:`_subtree`) give every merge the same stamp."""
+    b = st.counter[0]
+    for lv in range(1, m):
+        b = b + st.n_marked[lv]
+    return b
+
+
+@wp.func
+def _merge_levels(lo: int, hi: int, s: int, split: int, tol: float, part: int, st: _MergeArrays):
+    """Merge the marked nodes of levels ``lo`` up to ``hi`` (those inside node s of level ``split``, or all with
+    s < 0) again, bottom-up, counters into row ``part``."""
+    for lv in range(lo, hi + 1):
+        r = _run_of(lv, s, split, st)
+        b = _stamp_base(lv, st)
+        for i in range(r[0], r[1]):
+            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, b + i + 1, part, st)
 
 
 @wp.func
@@ -513,17 +519,8 @@ def _subtree(s: int, split: int, tol: float, part: int, st: _MergeArrays):
     """Undo and merge again the marked nodes of levels ``split`` down to 1 inside node s of level ``split``,
     after the levels above were undone: its slots, nodes and undo logs are its own, so subtrees run on
     different threads (counters into row ``part``, stamps as the one-thread pass numbers them)."""
-    m = split
-    while m >= 1:
-        r = _run_of(m, s, split, st)
-        for i in range(r[0], r[1]):
-            _undo_node(m, st.marks[st.n_base[m] + i], st)
-        m = m - 1
-    for lv in range(1, split + 1):
-        r = _run_of(lv, s, split, st)
-        b = _stamp_base(lv, st)
-        for i in range(r[0], r[1]):
-            _merge_node(lv, st.marks[st.n_base[lv] + i], tol, b + i + 1, part, st)
+    _undo_levels(split, 1, s, split, st)
+    _merge_levels(1, split, s, split, tol, part, st)
 
 
 @wp.func
@@ -657,8 +654,8 @@ def _pass_kernel(st: _MergeArrays, row: int):
     polygons to ``st.out_*``, write the pass's counters to ``st.out_stats[row]``, freeze."""
     tol = st.tols[row]
     _mark(tol, st)
-    _undo_levels(st.depth, 1, st)
-    _merge_levels(1, st.depth, tol, 0, st)
+    _undo_levels(st.depth, 1, -1, 0, st)
+    _merge_levels(1, st.depth, -1, 0, tol, 0, st)
     _finish(row, st)
 
 
@@ -666,7 +663,7 @@ def _pass_kernel(st: _MergeArrays, row: int):
 def _mark_top_kernel(st: _MergeArrays, row: int, split: int):
     """Pass ``row`` split across threads, first launch (one thread): mark, and undo the levels above ``split``."""
     _mark(st.tols[row], st)
-    _undo_levels(st.depth, split + 1, st)
+    _undo_levels(st.depth, split + 1, -1, 0, st)
 
 
 @wp.kernel(enable_backward=False)
@@ -682,9 +679,9 @@ def _top_finish_kernel(st: _MergeArrays, row: int, split: int, rest: int):
     level again."""
     lo = split + 1
     if rest != 0:
-        _undo_levels(split, 1, st)
+        _undo_levels(split, 1, -1, 0, st)
         lo = 1
-    _merge_levels(lo, st.depth, st.tols[row], 0, st)
+    _merge_levels(lo, st.depth, -1, 0, st.tols[row], 0, st)
     _finish(row, st)
 
 
@@ -1068,7 +1065,7 @@ class MergeState:
     # parallel, one merges the top levels and emits. Smaller passes run in one thread (two launches).
     PARALLEL_MIN_NODES = 1024
     SPLIT_BELOW = 3  # the subtrees are the nodes this many levels below the root
-    PARTS = 64  # counter rows: the subtree launch's chunks (at most 4^SPLIT_BELOW)
+    PARTS = 4 ** SPLIT_BELOW  # counter rows: one per subtree at most, so enough for the subtree launch's chunks
 
     def __init__(self, heights: np.ndarray, device: str = "cpu"):
         hh, ww = heights.shape
