@@ -36,6 +36,9 @@ from terrainwarp.io.files import write_text  # noqa: E402
 from terrainwarp.kernels import parallel  # noqa: E402
 from terrainwarp.kernels.displacement import grid_mesh  # noqa: E402
 from terrainwarp.kernels.raster import clip_coordinates, rasterize  # noqa: E402
+from terrainwarp.runtime import configure_from_env  # noqa: E402
+
+configure_from_env()  # as the terrainwarp command runs: quiet Warp, freed frame memory kept mapped
 
 RESOLUTIONS = [(640, 480), (1920, 1080)]
 # grid sizes: 2 (s - 1)^2 triangles

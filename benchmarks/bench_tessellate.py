@@ -28,7 +28,8 @@ import numpy as np
 from _common import best_of, md_table, write_result
 
 from terrainwarp import set_threads
-from terrainwarp.kernels.parallel import release_buffers, threads
+from terrainwarp.kernels.parallel import threads
+from terrainwarp.kernels.pool import release_buffers
 from terrainwarp.kernels.tessellator import (
     SPACING_CODES,
     W_POSITION,
@@ -183,7 +184,7 @@ def main() -> None:
         t_dev, t_depth = times[False, "later"], times[True, "later"]
         body += (f"\ndeaconu2021's 64-root, level-32 frame, measured (device stages only; a first frame writes "
                  "fresh pages, a later one the buffers the frame before it dropped, kept by the frame-buffer pool "
-                 f"`kernels.parallel.pooled_rows`): {full_p:,} leaf patches, {full_nv:,} domain points, "
+                 f"`kernels.pool.pooled_rows`): {full_p:,} leaf patches, {full_nv:,} domain points, "
                  f"{full_p * 2 * LEVEL ** 2:,} triangles (their 67,108,864 counts 32 x 32 per patch): domain "
                  f"{t_dom:.2f} s ({full_nv / t_dom / 1e6:.1f} Mpts/s); displaced {times[False, 'first']:.2f} s first, "
                  f"{t_dev:.2f} s later ({full_nv / t_dev / 1e6:.1f} Mvtx/s); depth-only "

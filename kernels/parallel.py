@@ -24,7 +24,6 @@ from __future__ import annotations
 import ctypes
 import math
 import os
-import sys
 import threading
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -32,11 +31,13 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
+from .pool import host_layout
+
 THREADS_ENV = "TERRAINWARP_THREADS"
 MIN_ITEMS = 4096  # fewer items per chunk than this are not worth a thread hand-off (~20 us)
 
 _lock = threading.Lock()
-_state: dict = {"threads": None, "default": None, "min_items": None, "pool": None, "pool_size": 0}
+_state: dict = {"threads": None, "default": None, "min_items": None, "pool": None, "pool_size": 0, "pid": os.getpid()}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -124,6 +125,7 @@ def threads() -> int:
     """The number of CPU threads a launch is split across now (the default is worked out once)."""
     n = _state["threads"]
     if n is None:
+        _same_process()
         n = _state["default"]
         if n is None:
             n = _state["default"] = default_threads()
@@ -138,8 +140,16 @@ def set_min_items(n: int | None) -> None:
     _state["min_items"] = n
 
 
+def _same_process() -> None:
+    """Forget the thread pool and the default thread count in a forked child (a sweep worker): it has none of
+    its parent's pool threads, and maybe other cores. Checked on use; no fork handler is registered."""
+    if _state["pid"] != os.getpid():
+        _state.update(pool=None, pool_size=0, default=None, pid=os.getpid())
+
+
 def _pool(n: int) -> ThreadPoolExecutor:
     with _lock:
+        _same_process()
         if _state["pool"] is None or _state["pool_size"] < n:
             if _state["pool"] is not None:
                 _state["pool"].shutdown(wait=False)
@@ -148,29 +158,23 @@ def _pool(n: int) -> ThreadPoolExecutor:
         return _state["pool"]
 
 
-def _forget_pool() -> None:  # a forked child (a sweep worker) has no pool threads, maybe other cores
-    _state["pool"] = None
-    _state["pool_size"] = 0
-    _state["default"] = None
-
-
-os.register_at_fork(after_in_child=_forget_pool)
-
-
 # ------------------------------------------------------------------------------------------------
 # frame memory: freed frame-sized blocks stay mapped for the next frame
 # ------------------------------------------------------------------------------------------------
 
-KEEP_MEMORY_ENV = "TERRAINWARP_KEEP_MEMORY"
 # glibc mallopt parameters (malloc.h) and the values set: blocks up to 32 MiB (glibc's largest mmap threshold
-# on 64-bit) come from the heap, and up to 1 GiB of freed heap stays mapped instead of going back to the kernel
+# on 64-bit) come from the heap, and up to 1 GiB of freed heap stays mapped instead of going back to the kernel;
+# glibc's initial values, set back by keep_frame_memory(False)
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
 KEEP_TRIM_BYTES, KEEP_TOP_PAD_BYTES, KEEP_MMAP_BYTES = 1 << 30, 64 << 20, 32 << 20
+GLIBC_TRIM_BYTES, GLIBC_TOP_PAD_BYTES, GLIBC_MMAP_BYTES = 128 << 10, 128 << 10, 128 << 10
 
 
-def keep_frame_memory(enable: bool | None = None) -> bool:
-    """Keep freed frame-sized memory mapped in this process, so that the next frame's outputs land on pages
-    already faulted in, as an engine's per-frame arena does. Called once when terrainwarp is imported.
+def keep_frame_memory(enable: bool = True) -> bool:
+    """Keep freed frame-sized memory mapped in this process (``enable``), so that the next frame's outputs land on
+    pages already faulted in, as an engine's per-frame arena does; ``False`` sets glibc's initial thresholds back
+    (its dynamic mmap threshold stays off once set). Process-wide: nothing calls it on import
+    (``terrainwarp.configure(keep_memory=True)`` and the ``terrainwarp`` command do).
 
     A frame makes and drops some hundred MB of arrays (vertices, triangles, images). glibc's defaults give
     blocks above a moving threshold back to the kernel on ``free`` and trim the heap's top beyond 2x that
@@ -179,22 +183,17 @@ def keep_frame_memory(enable: bool | None = None) -> bool:
     page costs 0.6-16 ms/MB on this VM, against 0.25 ms/MB for a page seen before); with this setting,
     a handful of faults and ~0 s. Peak memory does not grow: what is kept is what the previous frame held.
 
-    glibc on Linux only (elsewhere nothing changes). ``enable``: None reads ``TERRAINWARP_KEEP_MEMORY``
-    (``0`` turns it off; default on). Returns whether the allocator was set. It is process-wide; an
-    application that wants its freed memory back at once sets ``TERRAINWARP_KEEP_MEMORY=0``.
+    glibc on Linux only (elsewhere nothing changes). Returns whether the allocator was set.
     """
-    if enable is None:
-        enable = os.environ.get(KEEP_MEMORY_ENV, "1").strip() not in ("0", "false", "no", "off")
-    if not enable:
-        return False
     try:
         libc = ctypes.CDLL(None)
         mallopt = libc.mallopt
     except (OSError, AttributeError):  # not glibc (macOS, Windows, musl without mallopt)
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    done = [mallopt(_M_MMAP_THRESHOLD, KEEP_MMAP_BYTES), mallopt(_M_TRIM_THRESHOLD, KEEP_TRIM_BYTES),
-            mallopt(_M_TOP_PAD, KEEP_TOP_PAD_BYTES)]
+    mmap_b, trim_b, pad_b = ((KEEP_MMAP_BYTES, KEEP_TRIM_BYTES, KEEP_TOP_PAD_BYTES) if enable else
+                             (GLIBC_MMAP_BYTES, GLIBC_TRIM_BYTES, GLIBC_TOP_PAD_BYTES))
+    done = [mallopt(_M_MMAP_THRESHOLD, mmap_b), mallopt(_M_TRIM_THRESHOLD, trim_b), mallopt(_M_TOP_PAD, pad_b)]
     return all(d == 1 for d in done)
 
 
@@ -220,110 +219,6 @@ def empty(shape: int | Sequence[int], dtype: type, device: str | wp.Device | Non
     a = np.empty(*host_layout(shape, dtype))
     return wp.array(a, dtype=dtype, device=dev, copy=False)
 
-
-def host_layout(shape: int | Sequence[int], dtype: type) -> tuple[tuple[int, ...], np.dtype]:
-    """The numpy (shape, dtype) of a Warp array of ``shape`` and ``dtype`` (a vector type adds its own axes)."""
-    shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
-    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
-    return (*shape, *tuple(getattr(dtype, "_shape_", ()))), np.dtype(wp.dtype_to_numpy(scalar))
-
-
-
-# ------------------------------------------------------------------------------------------------
-# the frame-buffer pool: frame- and heightmap-sized outputs reused once nothing references them
-# ------------------------------------------------------------------------------------------------
-_POOL: dict[tuple, list[np.ndarray]] = {}
-_POOL_LOCK = threading.Lock()
-
-
-def _unreferenced() -> int:
-    """sys.getrefcount of a list's item that nothing else references (the list's reference and the call's)."""
-    kept = [np.empty(1)]
-    return sys.getrefcount(kept[0])
-
-
-_FREE_REFS = _unreferenced()
-
-
-def _free(kept: list[np.ndarray]) -> list[int]:
-    """Indices of the kept buffers nothing references any more (no view of one alive: its only references are
-    the pool's list and the check's own)."""
-    return [i for i in range(len(kept)) if sys.getrefcount(kept[i]) == _FREE_REFS]
-
-
-def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20) -> np.ndarray:
-    """An uninitialised host array for an output: a kept one of this (shape, dtype) that nothing references any
-    more (no view of it alive: its only references are the pool's and the check's own), else a new one, kept
-    when fewer than ``keep`` are and it is at most ``max_bytes``.
-
-    Blocks above glibc's largest mmap threshold (32 MiB) go back to the kernel when freed, and on this kind of
-    VM faulting fresh memory in costs 0.6-16 ms/MB (against ~0.25 ms/MB to write memory seen before): a frame's
-    images, or a heightmap-sized error pass, would pay that on every frame. A caller that holds an output
-    keeps it: only an array nobody holds is handed out again."""
-    key = (tuple(int(d) for d in shape), np.dtype(dtype).str)
-    with _POOL_LOCK:
-        kept = _POOL.setdefault(key, [])
-        free = _free(kept)
-        if free:
-            return kept[free[0]]
-        a = np.empty(key[0], dtype)  # numpy's large allocations ask for huge pages (see empty)
-        if len(kept) < keep and a.nbytes <= max_bytes:
-            kept.append(a)
-        return a
-
-
-def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarray:
-    """The first ``shape[0]`` rows of a kept buffer that nothing references any more and has at least that many
-    rows (the smallest such), else of a new one with up to 1/64 more rows (at most 1.6% unused), kept in place
-    of the smallest unreferenced one when ``keep`` are kept already. For outputs whose length changes from
-    frame to frame (a tessellation's points and triangles): an exact-shape pool (:func:`pooled`) would never
-    hit, and a frame of 134 M triangles writes 2.5 GB that would otherwise be faulted in again on every frame.
-    The view holds its buffer: a caller that keeps the output keeps it from the pool."""
-    n, rest = int(shape[0]), tuple(int(d) for d in shape[1:])
-    key = ("rows", rest, np.dtype(dtype).str)
-    with _POOL_LOCK:
-        kept = _POOL.setdefault(key, [])
-        free = _free(kept)
-        fits = [i for i in free if kept[i].shape[0] >= n]
-        if fits:
-            return kept[min(fits, key=lambda i: kept[i].shape[0])][:n]
-        grain = 1 << max(int(n).bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
-        a = np.empty((-(-n // grain) * grain, *rest), dtype)
-        if len(kept) < keep:
-            kept.append(a)
-        elif free:  # the kept buffers adapt to the frames: the smallest unreferenced one makes way
-            kept[min(free, key=lambda i: kept[i].shape[0])] = a
-        return a[:n]
-
-
-def release_buffers() -> int:
-    """Drop every kept buffer of the pool (those still held stay with their holders); returns the bytes the pool
-    let go. For an application done with frames of a large heightmap: the error pass keeps one buffer of each
-    heightmap-sized kind (up to 1 GiB each) for the next frame, the tessellator two of each of its outputs."""
-    with _POOL_LOCK:
-        n = sum(a.nbytes for kept in _POOL.values() for a in kept)
-        _POOL.clear()
-    return n
-
-
-def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Device | None = None, *,
-                 keep: int = 1, max_bytes: int = 1 << 30) -> wp.array:
-    """:func:`empty` from the frame-buffer pool (:func:`pooled`) on the CPU; ``wp.empty`` on CUDA. For outputs
-    as large as the heightmap that a frame makes and drops (an error pass's maps): one kept per shape."""
-    dev = wp.get_device(device)
-    if not dev.is_cpu:
-        return wp.empty(shape, dtype=dtype, device=dev)
-    a = pooled(*host_layout(shape, dtype), keep, max_bytes)
-    return wp.array(a, dtype=dtype, device=dev, copy=False)
-
-
-def pooled_rows_array(n: int, dtype: type, device: str | wp.Device | None = None, *, keep: int = 2) -> wp.array:
-    """:func:`empty` of ``n`` items from :func:`pooled_rows` on the CPU; ``wp.empty`` on CUDA."""
-    dev = wp.get_device(device)
-    if not dev.is_cpu:
-        return wp.empty(n, dtype=dtype, device=dev)
-    a = pooled_rows(*host_layout(n, dtype), keep)
-    return wp.array(a, dtype=dtype, device=dev, copy=False)
 
 
 def chunks(n: int, items_per_row: int = 1, min_items: int = MIN_ITEMS, oversplit: int = 1) -> list[tuple[int, int]]:

@@ -40,13 +40,13 @@ same computation as a differentiable kernel (gradients to clip positions and att
 Output images have row 0 at the top (window y is flipped once, here).
 """
 
-import threading
 
 import numpy as np
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_u64, host_layout, launch, max_parts, pooled
+from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
+from .pool import host_layout, pooled, take
 
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
@@ -894,21 +894,15 @@ def _check_size(width: object, height: object) -> tuple[int, int]:
     return int(width), int(height)
 
 
-# Depth|id key buffers, all empty, by (device, pixels): the drawing kernels flag each screen tile in which they wrote
-# a key, and the resolve reads the flagged tiles only and sets every drawn key it reads back to empty, so a buffer
-# is handed back clear and the next frame of that size clears nothing (a frame-sized fill per frame saved; the
-# resolve's cost follows the tiles drawn, not the viewport). A rasterize that fails part-way does not hand its
-# buffer back.
-_KEYS: dict[tuple[str, int], list[wp.array]] = {}
-_KEYS_LOCK = threading.Lock()
+# Depth|id key buffers, all empty, on scratch leases of the frame-buffer pool (pool.take), by (device, pixels): the
+# drawing kernels flag each screen tile in which they wrote a key, and the resolve reads the flagged tiles only and
+# sets every drawn key it reads back to empty, so a buffer is given back clear and the next frame of that size
+# clears nothing (a frame-sized fill per frame saved; the resolve's cost follows the tiles drawn, not the viewport).
+# A rasterize that fails part-way never gives its lease back: that buffer is dropped.
 _KEYS_KEPT = 2  # buffers kept per (device, size)
 
 
-def _take_keys(npx: int, device: str) -> wp.array:
-    with _KEYS_LOCK:
-        free = _KEYS.get((str(wp.get_device(device)), npx))
-        if free:
-            return free.pop()
+def _new_keys(npx: int, device: str) -> wp.array:
     if wp.get_device(device).is_cpu:
         key_np = np.empty(npx, np.uint64)  # numpy's large allocations ask for huge pages (parallel.empty)
         key_np.view(np.uint8).fill(255)  # all ones: the empty key (a byte fill is faster than wp.full)
@@ -916,11 +910,9 @@ def _take_keys(npx: int, device: str) -> wp.array:
     return wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
 
 
-def _give_keys(key: wp.array, npx: int, device: str) -> None:
-    with _KEYS_LOCK:
-        free = _KEYS.setdefault((str(wp.get_device(device)), npx), [])
-        if len(free) < _KEYS_KEPT:
-            free.append(key)
+def _take_keys(npx: int, device: str):
+    """A scratch lease of an all-empty key buffer of ``npx`` pixels (``lease.buffer``)."""
+    return take(("raster_keys", str(wp.get_device(device)), npx), lambda: _new_keys(npx, device), keep=_KEYS_KEPT)
 
 
 def _tiles_x(width: int) -> int:
@@ -990,7 +982,8 @@ def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: st
 def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
                     device: str) -> Fragments:
     npx = width * height
-    key = _take_keys(npx, device)
+    lease = _take_keys(npx, device)
+    key = lease.buffer
     stats = wp.zeros((max_parts(_OVERSPLIT), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
     m = int(tri.shape[0])
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
@@ -1018,7 +1011,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
                    [key, dirty, stats], device, parts=True, min_items=_MIN_TILES,
                    oversplit=_OVERSPLIT)
     ids, depth, ids_wp, tiles, covered = _resolve(key, dirty, width, height, device)
-    _give_keys(key, npx, device)
+    lease.give_back()  # every key drawn is empty again
     c = stats.numpy()[:, :8].sum(axis=0)  # integer sums: the same whatever the chunks
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),

@@ -30,7 +30,8 @@ import numpy as np
 import warp as wp
 
 from .metrics import to_window
-from .parallel import atomic_min_i32, launch, pooled_array, view
+from .parallel import atomic_min_i32, launch, view
+from .pool import pooled_array
 
 NONE = 2147483647  # no triangle covers the sample (the cover map's initial value)
 CONTAIN_ULPS = 8.0  # slack of the inclusive point-in-triangle test, float32 ulps of the coordinates

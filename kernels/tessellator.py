@@ -41,7 +41,8 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from .parallel import empty, launch, pooled_rows_array, view
+from .parallel import empty, launch, view
+from .pool import pooled_rows_array
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",

@@ -1,8 +1,10 @@
 import pytest
 import warp as wp
 
-import terrainwarp  # noqa: F401  (sets warp's log level before any kernel loads)
+import terrainwarp
 from terrainwarp.io.files import digest  # noqa: F401  (the one digest; tests import it from here)
+
+terrainwarp.configure(quiet=True)  # Warp's log level before any kernel loads (importing changes nothing)
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
 

@@ -36,7 +36,7 @@ MAX_FUNCTION_LINES = 80
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("terrainwarp.kernels",),
     ("terrainwarp.io",),
-    ("terrainwarp.heightmap", "terrainwarp.camera", "terrainwarp.mesh", "terrainwarp.scene"),
+    ("terrainwarp.heightmap", "terrainwarp.camera", "terrainwarp.mesh", "terrainwarp.scene", "terrainwarp.runtime"),
     ("terrainwarp.lod", "terrainwarp.surface"),
     ("terrainwarp.measure",),
     ("terrainwarp.rendering",),

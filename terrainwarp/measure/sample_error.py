@@ -67,7 +67,7 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels import sample_error as _k
-from ..kernels.parallel import pooled
+from ..kernels.pool import pooled
 from ..mesh import Mesh
 
 __all__ = ["SampleError", "PopStats", "surface_heights", "sample_error", "popping", "STATES"]

@@ -13,7 +13,8 @@ import warp as wp
 
 from terrainwarp.io.native import first_compile_note, say_first_compile
 
-CODE = "import terrainwarp as tw; tw.Heightmap.fbm(9)"
+# what the terrainwarp command does on start (runtime.configure_from_env), then a first kernel
+CODE = "import terrainwarp as tw; from terrainwarp import runtime; runtime.configure_from_env(); tw.Heightmap.fbm(9)"
 
 
 def _env(cache):

@@ -11,6 +11,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ import warp as wp
 
 import terrainwarp as tw
 from terrainwarp.io.files import digest
-from terrainwarp.kernels import parallel
+from terrainwarp.kernels import parallel, pool
 from terrainwarp.kernels.noise import fbm
 from terrainwarp.kernels.tessellator import tessellate_domains
 
@@ -141,7 +142,10 @@ def test_default_is_the_cores_this_process_may_use():
 _FRAME_MEMORY = """
 import resource, sys, numpy as np
 import terrainwarp
-from terrainwarp.kernels import parallel
+if sys.argv[1] != "-":
+    print(terrainwarp.configure(keep_memory=sys.argv[1] == "on").keep_memory)
+else:
+    print("unset")
 def frame():  # three 24 MiB outputs, written, then dropped, as a frame's images and vertices are
     blocks = [np.empty(24 << 20, np.uint8) for _ in range(3)]
     for b in blocks:
@@ -151,68 +155,169 @@ for _ in range(3):
     r0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     frame()
     faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r0)
-print(parallel.keep_frame_memory(), faults[-1])
+print(faults[-1])
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt: Linux only")
-def test_freed_frame_memory_is_reused_without_page_faults():
-    got = subprocess.run([sys.executable, "-c", _FRAME_MEMORY], capture_output=True, text=True, check=True)
-    kept, faults = got.stdout.split()
-    assert kept == "True"
-    assert int(faults) < 100  # 72 MiB written again: ~18,000 4 KiB pages if they went back to the kernel
-    env = dict(os.environ, TERRAINWARP_KEEP_MEMORY="0")
-    off = subprocess.run([sys.executable, "-c", _FRAME_MEMORY], env=env, capture_output=True, text=True, check=True)
-    assert off.stdout.split()[0] == "False"  # the opt-out leaves glibc's defaults alone
+def test_freed_frame_memory_is_reused_without_page_faults_when_asked():
+    def run(arg):
+        got = subprocess.run([sys.executable, "-c", _FRAME_MEMORY, arg], capture_output=True, text=True, check=True)
+        return got.stdout.split()
+
+    kept, faults = run("on")
+    assert kept == "True" and int(faults) < 100  # 72 MiB written again: ~18,000 4 KiB pages if given back
+    assert run("off")[0] == "False"  # (that import alone calls no mallopt: tests/core/test_runtime.py)
+
+
+def test_pool_and_thread_count_start_afresh_in_a_forked_child():
+    """No fork handler: a forked child notices the new process on use and starts its own launch threads."""
+    parallel.set_threads(2)
+    try:
+        h = np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32)
+        want = tw.compute_normals(tw.Heightmap.from_array(h, 1.0, 1.0), "sobel")
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: a launch split across threads works and gives the same bits
+            try:
+                got = tw.compute_normals(tw.Heightmap.from_array(h, 1.0, 1.0), "sobel")
+                os.write(w, b"1" if np.array_equal(got, want) else b"0")
+            finally:
+                os._exit(0)
+        os.waitpid(pid, 0)
+        assert os.read(r, 1) == b"1"
+    finally:
+        parallel.set_threads(None)
 
 
 if __name__ == "__main__":
     print(json.dumps(digests(), indent=1, sort_keys=True))
 
 
-def test_pooled_buffers_are_reused_only_once_nothing_holds_them():
+def test_pooled_buffers_are_reused_only_once_their_lease_has_ended():
+    pool.release_buffers()
     shape = (123, 7)
-    a = parallel.pooled(shape, np.float64)
+    a = pool.pooled(shape, np.float64)
     addr = a.ctypes.data
-    b = parallel.pooled(shape, np.float64)  # a is held: another buffer
+    assert isinstance(a.base, pool.Lease)
+    b = pool.pooled(shape, np.float64)  # a is held: another buffer
     assert b.ctypes.data != addr
     view_of_a = a[3:5]
     del a
-    c = parallel.pooled(shape, np.float64)
-    assert c.ctypes.data != addr  # a view of a keeps it
+    c = pool.pooled(shape, np.float64)
+    assert c.ctypes.data != addr  # a view of a keeps its lease
     del view_of_a, b, c
-    assert parallel.pooled(shape, np.float64).ctypes.data == addr  # nothing holds it: taken again
-    w = parallel.pooled_array(shape, wp.float32, "cpu")
-    held = w.numpy()  # the caller's numpy result holds the pooled buffer through the Warp array
+    assert pool.pooled(shape, np.float64).ctypes.data == addr  # the lease ended: lent again
+    w = pool.pooled_array(shape, wp.float32, "cpu")
+    held = w.numpy()  # the caller's numpy result holds the lease through the Warp array
+    sliced = pool.pooled_array(shape, wp.float32, "cpu")[2:]  # a Warp view of a Warp array holds it too
     del w
-    assert parallel.pooled_array(shape, wp.float32, "cpu").ptr != held.ctypes.data
+    assert pool.pooled_array(shape, wp.float32, "cpu").ptr not in (held.ctypes.data, sliced.ptr - 2 * 7 * 4)
     held[...] = 1.5
-    assert parallel.release_buffers() >= 123 * 7 * 8 and parallel.release_buffers() == 0
+    assert pool.release_buffers() >= 123 * 7 * 8 and pool.release_buffers() == 0
     assert (held == 1.5).all()  # a held buffer stays with its holder
+    del held, sliced
+    assert pool.kept_bytes()["free_buffers"] == 0  # leases taken before release_buffers() end without coming back
 
 
 def test_pooled_rows_serve_frames_of_changing_length_and_never_a_held_one():
     """A tessellation's outputs change length every frame: a kept buffer with enough rows serves a shorter
     frame (the smallest such), a longer one gets a new buffer (up to 1/64 more rows) that takes the place of
     the smallest free one, and a buffer a caller holds (through a view or a Warp array) is never handed out."""
-    parallel.release_buffers()
-    a = parallel.pooled_rows((1000, 3), np.int32)
-    assert a.shape == (1000, 3) and 1000 <= a.base.shape[0] <= 1000 * 65 // 64
-    base = a.base.ctypes.data
+    pool.release_buffers()
+    a = pool.pooled_rows((1000, 3), np.int32)
+    assert a.shape == (1000, 3) and 1000 <= a.base.buffer.shape[0] <= 1000 * 65 // 64
+    base = a.ctypes.data
     del a
-    b = parallel.pooled_rows((900, 3), np.int32)  # shorter: the same buffer
-    assert b.base.ctypes.data == base and b.shape == (900, 3)
-    c = parallel.pooled_rows((800, 3), np.int32)  # b holds it: a second buffer
-    assert c.base.ctypes.data != base
+    b = pool.pooled_rows((900, 3), np.int32)  # shorter: the same buffer
+    assert b.ctypes.data == base and b.shape == (900, 3)
+    c = pool.pooled_rows((800, 3), np.int32)  # b holds it: a second buffer
+    assert c.ctypes.data != base
     del b, c
-    big = parallel.pooled_rows((5000, 3), np.int32)  # longer: new, replaces the smallest free kept one
-    kept = parallel._POOL[("rows", (3,), np.dtype(np.int32).str)]
-    assert len(kept) == 2 and any(k is big.base for k in kept)
-    w = parallel.pooled_rows_array(4000, wp.vec3i, "cpu")  # 4000 rows fit the big one, but big is held
+    big = pool.pooled_rows((5000, 3), np.int32)  # longer: new, replaces the smallest free kept one
+    assert pool.kept_bytes()["free_buffers"] == 1 and pool.kept_bytes()["leased_buffers"] == 1
+    w = pool.pooled_rows_array(4000, wp.vec3i, "cpu")  # 4000 rows fit the big one, but big is held
     assert w.ptr != big.ctypes.data  # a new one, in place of the free 1000-row buffer
     held, w_ptr, big_ptr = big.copy(), w.ptr, big.ctypes.data
     del big, w
-    again = parallel.pooled_rows((4000, 3), np.int32)
+    again = pool.pooled_rows((4000, 3), np.int32)
     assert again.ctypes.data == w_ptr  # the smallest free buffer with enough rows
-    assert parallel.pooled_rows((4500, 3), np.int32).ctypes.data == big_ptr
-    assert parallel.release_buffers() > 0 and held.shape == (5000, 3)
+    assert pool.pooled_rows((4500, 3), np.int32).ctypes.data == big_ptr
+    assert pool.release_buffers() > 0 and held.shape == (5000, 3)
+
+
+def test_a_scratch_lease_comes_back_only_when_given_back():
+    pool.release_buffers()
+    made = []
+
+    def make():
+        made.append(np.zeros(16, np.uint8))
+        return made[-1]
+
+    one = pool.take(("t", 16), make)
+    one.buffer[:] = 7
+    one.give_back()
+    one.give_back()  # once only
+    two = pool.take(("t", 16), make)
+    assert two.buffer is made[0] and len(made) == 1 and (two.buffer == 7).all()  # as the last holder left it
+    del two  # dropped, not given back (its function failed part-way): the buffer goes with it
+    three = pool.take(("t", 16), make)
+    assert three.buffer is made[1]
+
+
+def test_leases_under_threads_never_lend_a_held_buffer():
+    """Eight threads take output leases of one kind, write their own mark, hold some, drop the rest; a buffer
+    still held is never lent to another thread (its mark survives), and dropped ones are lent again."""
+    pool.release_buffers()
+    errors, addrs = [], set()
+    lock = threading.Lock()
+
+    def work(t: int) -> None:
+        held = []
+        for i in range(300):
+            a = pool.pooled((64, 64), np.float32, keep=4)
+            a.fill(t * 1000 + i)
+            with lock:
+                addrs.add(a.ctypes.data)
+            if i % 7 == 0:
+                held.append((a, float(t * 1000 + i)))
+            for h, mark in held:
+                if not (h == mark).all():
+                    errors.append((t, i))
+            if len(held) > 3:
+                held.pop(0)
+
+    threads = [threading.Thread(target=work, args=(t,)) for t in range(8)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not errors
+    assert pool.kept_bytes()["leased_buffers"] == 0  # every lease ended when its last holder let go
+    assert len(addrs) < 8 * 300 // 4  # buffers were lent again (4 kept; the rest are plain allocations)
+
+
+def test_frames_rendered_and_held_by_threads_keep_their_bits():
+    """Four threads render frames of one scene and hold every other one; a held frame is never written by a
+    later one (the pool lends only buffers whose lease has ended), and every frame has the serial bits."""
+    hm = tw.Heightmap.fbm(65, seed=4)
+    sc = tw.Scene(hm, camera=tw.Camera.default_for(hm, 96, 64), mesh="lod", outputs=("image", "depth"))
+    want = digest(*(lambda f: (f.image, f.depth))(tw.render(sc)))
+    bad = []
+
+    def work() -> None:
+        held = []
+        for i in range(6):
+            f = tw.render(sc)
+            if i % 2 == 0:
+                held.append(f)
+            bad.extend(1 for h in held if digest(h.image, h.depth) != want)
+
+    threads = [threading.Thread(target=work) for _ in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert not bad
+
+

@@ -448,10 +448,9 @@ def _scenes(w=160, h=120):
 
 
 def _fresh_pools():
-    from terrainwarp.kernels import parallel, raster
+    from terrainwarp.kernels import pool
 
-    raster._KEYS.clear()
-    parallel._POOL.clear()
+    pool.release_buffers()
 
 
 def _result(f):
@@ -480,9 +479,10 @@ def test_pooled_buffers_reused_by_other_draws_give_the_fresh_result():
         r = _result(rasterize_clip(*scenes[name], w, h))
         assert _same(r, fresh[name]), f"{name} after {prev}"
     # the key buffers went back clear: every key drawn was in a flagged tile, and the resolve emptied it
-    for bufs in raster._KEYS.values():
-        for key in bufs:
-            assert (key.numpy() == np.uint64(0xFFFFFFFFFFFFFFFF)).all()
+    leases = [raster._take_keys(w * h, "cpu") for _ in range(2)]  # the two kept buffers, as given back
+    assert leases[0].buffer.ptr != leases[1].buffer.ptr
+    for lease in leases:
+        assert (lease.buffer.numpy() == np.uint64(0xFFFFFFFFFFFFFFFF)).all()
 
 
 def test_images_held_by_the_caller_are_never_reused_and_changes_to_dropped_ones_do_not_leak():

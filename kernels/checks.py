@@ -1,0 +1,95 @@
+"""The one validation helper for scalar arguments, at the lowest layer so that every public boundary uses it.
+
+One exception type per kind of error: a value of the wrong type (a string for a number, a bool or a float for
+an integer) raises ``TypeError``; a value of the right type outside its range (NaN, a negative spacing, an
+unknown name) raises ``ValueError``. Every message names the argument and says what was expected and what was
+given: ``"lod.tolerance_px: expected a number, got '1.0'"``, ``"dx: expected a finite number > 0, got -30.0"``.
+
+Integers are Python or numpy integers (bool is not one); numbers are integers or Python/numpy floats. Each
+check returns the value converted (``int`` or ``float``), so the caller keeps a plain Python scalar.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+
+__all__ = ["is_int", "is_number", "check_int", "check_number", "check_bool", "check_choice", "check_optional"]
+
+
+def is_int(v: object) -> bool:
+    """True for a Python or numpy integer (not a bool)."""
+    return not isinstance(v, bool | np.bool_) and isinstance(v, int | np.integer)
+
+
+def is_number(v: object) -> bool:
+    """True for a Python or numpy integer or float (not a bool, not a string, not complex)."""
+    return not isinstance(v, bool | np.bool_) and isinstance(v, int | float | np.integer | np.floating)
+
+
+def _bounds(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    parts = ([f"{'>' if lo_open else '>='} {lo}"] if lo is not None else []) + \
+        ([f"{'<' if hi_open else '<='} {hi}"] if hi is not None else [])
+    return " and ".join(parts)
+
+
+def _in(v: float, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> bool:
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        return False
+    return not (hi is not None and (v >= hi if hi_open else v > hi))
+
+
+def check_int(name: str, v: object, lo: int | None = None, hi: int | None = None) -> int:
+    """``v`` as an ``int`` in ``[lo, hi]`` (a bound of None: none).
+
+    Raises:
+        TypeError: ``v`` is not an integer. ValueError: it lies outside the range.
+    """
+    if not is_int(v):
+        raise TypeError(f"{name}: expected an integer, got {v!r}")
+    i = int(v)
+    if not _in(i, lo, hi, False, False):
+        raise ValueError(f"{name}: expected an integer {_bounds(lo, hi, False, False)}, got {i}")
+    return i
+
+
+def check_number(name: str, v: object, lo: float | None = None, hi: float | None = None, *,
+                 lo_open: bool = False, hi_open: bool = False, finite: bool = True) -> float:
+    """``v`` as a ``float``: finite (unless ``finite=False``, which allows +-inf but never NaN) and in the range
+    (``lo_open``/``hi_open``: the bound itself excluded).
+
+    Raises:
+        TypeError: ``v`` is not a number. ValueError: NaN, infinite, or outside the range.
+    """
+    if not is_number(v):
+        raise TypeError(f"{name}: expected a number, got {v!r}")
+    f = float(v)
+    what = ("a finite number" if finite else "a number") + (f" {_bounds(lo, hi, lo_open, hi_open)}"
+                                                             if lo is not None or hi is not None else "")
+    if math.isnan(f) or (finite and math.isinf(f)) or not _in(f, lo, hi, lo_open, hi_open):
+        raise ValueError(f"{name}: expected {what}, got {v!r}")
+    return f
+
+
+def check_bool(name: str, v: object) -> bool:
+    """``v`` as a ``bool`` (Python or numpy); TypeError for anything else (0, 1 and "true" included)."""
+    if not isinstance(v, bool | np.bool_):
+        raise TypeError(f"{name}: expected true or false, got {v!r}")
+    return bool(v)
+
+
+def check_choice(name: str, v: object, choices: Iterable[str]) -> str:
+    """``v``, one of ``choices`` (strings). TypeError for a non-string, ValueError for another string."""
+    options = list(choices)
+    if not isinstance(v, str):
+        raise TypeError(f"{name}: expected one of {options}, got {v!r}")
+    if v not in options:
+        raise ValueError(f"{name}: expected one of {options}, got {v!r}")
+    return v
+
+
+def check_optional(check, name: str, v: object, *args, **kwargs):
+    """``None``, or ``check(name, v, *args, **kwargs)``."""
+    return None if v is None else check(name, v, *args, **kwargs)
