@@ -1,9 +1,12 @@
 """The ``terrainwarp`` command line.
 
 Every command that takes a scene file uses the demo scene (the bundled SRTM DEM, default camera) when
-none is given. Outputs go under ``--out DIR``. Bad arguments, paths and scene files print one line on
-stderr and exit 2, and leave no new file in ``--out``; a run that succeeds says which files in ``--out``
-it did not write (left from an earlier run; never deleted).
+none is given. Outputs go under ``--out DIR``, written as one set (:func:`terrainwarp.io.files.output_set`):
+renamed into place only when every file is written. Bad arguments, paths and scene files, a full disk or
+any other failure print one line on stderr and exit 2; Ctrl-C prints one line and exits 130. Either way
+``--out`` is left as it was (the previous run's files whole, nothing new) except for a sweep's partial
+journal, from which a rerun resumes. A run that succeeds says which files in ``--out`` it did not write
+(left from an earlier run; never deleted).
 """
 
 from __future__ import annotations
@@ -25,12 +28,13 @@ from .experiments.plots import plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
 from .fit.lod_fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_fit
 from .heightmap import Heightmap
-from .io.files import write_json, write_text
+from .io.files import output_set, write_json, write_text
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
 from .rendering.sources import SCHEMES
+from .runtime import configure_from_env
 from .scene import (
     LOD_POLICIES,
     MAX_TESS,
@@ -458,18 +462,23 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help(sys.stderr)
         return 2
     args = parser.parse_args(argv)
+    configure_from_env()  # quiet Warp, kept frame memory: what a command run wants (import alone sets nothing)
     out = _OutDir(args.out) if getattr(args, "out", None) else None
     try:
         if out is not None:
             out.check()
-        rc = int(args.func(args) or 0)
+        with output_set(args.out) if out is not None else contextlib.nullcontext():
+            rc = int(args.func(args) or 0)
     except (ValueError, TypeError, OSError) as e:
         if out is not None:
             out.clean_up()
         print(f"terrainwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("terrainwarp: interrupted", file=sys.stderr)
+        if out is not None:
+            out.clean_up()
+        print("terrainwarp: interrupted" + (f" (a rerun resumes from {out.journals()[0]})" if out is not None and
+                                            out.journals() else ""), file=sys.stderr)
         return 130
     if out is not None:
         out.note_stale()
@@ -533,12 +542,18 @@ class _OutDir:
         ancestors = {self.path, *self.path.parents}
         return {d for d in [*self._walk(), *ancestors] if d.is_dir()}
 
+    def journals(self) -> list[Path]:
+        """A sweep's partial journals (``*.partial``) in ``--out``: what a rerun resumes from."""
+        return [f for f in self._files() if f.name.endswith(".partial")]
+
     def clean_up(self) -> None:
-        """Remove what a failed run created: new files, then new (empty) folders, ``--out`` itself included."""
+        """Remove what a failed run created: new files, then new (empty) folders, ``--out`` itself included. A
+        sweep's partial journal stays, so that a rerun resumes (the files the run would have replaced are as they
+        were: the run's writes were an output set)."""
         if self.before is None:
             return
         for f in self._files():
-            if f not in self.before:
+            if f not in self.before and not f.name.endswith(".partial"):
                 with contextlib.suppress(OSError):  # the one error to report is the command's
                     f.unlink()
         new_dirs = [d for d in [*self._walk(), self.path, *self.path.parents] if d.is_dir() and d not in self.dirs]

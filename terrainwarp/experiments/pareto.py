@@ -42,7 +42,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap, StreamedHeightmap
-from ..io.files import save_figure, write_text
+from ..io.files import output_set, save_figure, write_text
 from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
@@ -462,9 +462,15 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
 def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path, *,
                  path: dict | None = None) -> list[Path]:
     """frames.csv, pareto.png and report.md for a sweep. ``path``: :meth:`Scene.path_info` of the cameras
-    (its ``text`` is stated in report.md), None when the cameras are the caller's own."""
+    (its ``text`` is stated in report.md), None when the cameras are the caller's own. The three are written
+    as one set (:func:`terrainwarp.io.files.output_set`): a failure leaves the folder's previous set whole."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    with output_set(out):
+        return _write_report(scene, cameras, rows, out, path)
+
+
+def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Path, path: dict | None) -> list[Path]:
     summ = summarise(rows)
     hm = scene.heightmap
     paths = [write_text(out / "frames.csv", rows_to_csv(rows)),

@@ -24,8 +24,9 @@ Faults:
 - with ``out=PATH`` every row is appended, as it arrives (rows are collected at most 0.5 s, the time
   between two asks to the scheduler for retry counts), to ``PATH.partial`` (CSV, each cell JSON-encoded
   so floats and strings read back exactly); at the end the sorted table is written to a temporary name and
-  renamed to ``PATH`` and the partial file removed. A sweep interrupted before that resumes from the
-  partial file: jobs whose id is there are not run again (the file's first line holds the sweep's
+  renamed to ``PATH`` and the partial file removed (inside a :func:`terrainwarp.io.files.output_set`: both
+  once the whole set is written, so a run that fails later still resumes). A sweep interrupted before that
+  resumes from the partial file: jobs whose id is there are not run again (the file's first line holds the sweep's
   ``fingerprint``; a partial file of another sweep is ignored).
 
 Warp compiles a kernel module on first use in each process (cached in ``~/.cache/warp``, so workers reuse
@@ -49,8 +50,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..io.files import write_text
+from ..io.files import remove_when_written, write_text
 from ..kernels.parallel import set_threads
+from .dask_worker import PRELOAD
 
 __all__ = ["Job", "Runner", "SweepResult", "SchedulerUnreachableError", "close_local_clusters", "pending_jobs",
            "RUN_COLUMNS", "pickled_nbytes"]
@@ -149,7 +151,8 @@ def _local_client(n: int):
         return c
     close_local_clusters()  # one local cluster at a time: its workers hold a core each
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           silence_logs=logging.CRITICAL)  # faults are in the table
+                           silence_logs=logging.CRITICAL,  # faults are in the table
+                           preload=[PRELOAD])  # workers ignore Ctrl-C (the driver handles it), Warp quiet
     c = Client(cluster, set_as_default=False)
     _LOCAL[n] = c
     return c
@@ -422,8 +425,7 @@ class Runner:
         rows = _table(jobs, done, cols)
         if out is not None:
             write_text(out, (to_csv or _default_csv)(rows))
-            with contextlib.suppress(FileNotFoundError):
-                _partial_path(out).unlink()
+            remove_when_written(_partial_path(out))  # inside an output set: once the table is in place
         res = SweepResult(rows=rows, n_jobs=len(jobs), n_run=len(todo), n_resumed=n_resumed,
                           n_failed=tally.n_failed, n_retried=tally.n_retried, workers=self.n_workers,
                           wall_s=time.perf_counter() - t0, bytes_shared=self.bytes_shared, bytes_jobs=bytes_jobs,

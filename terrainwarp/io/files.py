@@ -1,18 +1,30 @@
 """File output helpers: every file is written to a temporary name in its folder and renamed into
-place, so an interrupted or failed write never leaves a partial file behind. Also the one digest of
-arrays that determinism checks compare, and the one way figures are saved."""
+place, so an interrupted or failed write never leaves a partial file behind; and a set of files written
+together (a frame's images and report, a sweep's table, plot and summary) is renamed into place only
+when every one of them is written (:func:`output_set`), so a failure leaves the previous set whole. Also
+the one digest of arrays that determinism checks compare, and the one way figures are saved.
+
+A write that runs out of space says so, naming the file and the size it needed: ``OSError(ENOSPC,
+"no space left on device writing depth.exr (8.3 MB)", path)``."""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
+import itertools
 import json
 import os
+import shutil
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from .memory import format_bytes
+from .native import native_stderr_silenced
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -20,20 +32,145 @@ if TYPE_CHECKING:
 _IMAGE_EXTS = {".png", ".tif", ".tiff", ".exr", ".jpg", ".jpeg", ".bmp"}
 
 
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+_SEQ = itertools.count()
+_SETS: list[OutputSet] = []  # the output sets open now, innermost last
+_SETS_LOCK = threading.Lock()
+
+
+def no_space_error(path: Path, nbytes: int | None) -> OSError:
+    """The error of a write that ran out of space, naming the file and what it needed."""
+    size = f" ({format_bytes(nbytes)})" if nbytes else ""
+    return OSError(errno.ENOSPC, f"no space left on device writing {path.name}{size}", str(path))
+
+
+class OutputSet:
+    """Files written under ``folder`` as one set (see :func:`output_set`): each write goes to a temporary name
+    beside its file, and every one is renamed into place by :meth:`commit`, or removed by :meth:`abort`."""
+
+    def __init__(self, folder: str | os.PathLike) -> None:
+        self.folder = Path(folder).absolute()
+        self.pending: dict[Path, Path] = {}  # final path -> temporary file holding it
+        self.removals: list[Path] = []  # files removed only when the set is in place (a sweep's journal)
+
+    def covers(self, path: Path) -> bool:
+        return Path(path).absolute().is_relative_to(self.folder)
+
+    def add(self, path: Path, tmp: Path) -> None:
+        old = self.pending.pop(Path(path).absolute(), None)
+        if old is not None and old != tmp:
+            with contextlib.suppress(OSError):
+                old.unlink()
+        self.pending[Path(path).absolute()] = tmp
+
+    def commit(self) -> list[Path]:
+        """Rename every pending file into place (an outer set takes them over instead), then make the deferred
+        removals. Returns the paths put in place."""
+        outer = _outer(self)
+        done = list(self.pending)
+        for final, tmp in self.pending.items():
+            if outer is not None and outer.covers(final):
+                outer.add(final, tmp)
+            else:
+                os.replace(tmp, final)
+        self.pending.clear()
+        for p in self.removals:
+            if outer is not None and outer.covers(p):
+                outer.removals.append(p)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    p.unlink()
+        self.removals.clear()
+        return done
+
+    def abort(self) -> None:
+        """Remove every pending temporary file: the files in place stay as they were."""
+        for tmp in self.pending.values():
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+        self.pending.clear()
+        self.removals.clear()
+
+
+def _outer(s: OutputSet) -> OutputSet | None:
+    with _SETS_LOCK:
+        i = _SETS.index(s) if s in _SETS else len(_SETS)
+        return next((o for o in reversed(_SETS[:i]) if o.covers(s.folder)), None)
+
+
+def _set_for(path: Path) -> OutputSet | None:
+    with _SETS_LOCK:
+        return next((s for s in reversed(_SETS) if s.covers(path)), None)
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``path`` (same extension); rename it to ``path`` on success,
-    remove it on failure."""
+def output_set(folder: str | os.PathLike) -> Iterator[OutputSet]:
+    """Write a set of files under ``folder`` as a whole: inside the block, every write through
+    :func:`atomic_path` (so every ``write_*`` here and :func:`save_figure`) to a path under ``folder`` goes to a
+    temporary name, and all of them are renamed into place when the block ends without an error (into an
+    enclosing set's care, when sets are nested). When it raises (an error, a full disk, Ctrl-C), the temporary
+    files are removed and the files in ``folder`` are left as they were: the previous set stays whole and
+    nothing new is left."""
+    s = OutputSet(folder)
+    with _SETS_LOCK:
+        _SETS.append(s)
+    try:
+        yield s
+    except BaseException:
+        s.abort()
+        raise
+    else:
+        s.commit()
+    finally:
+        with _SETS_LOCK:
+            _SETS.remove(s)
+
+
+def remove_when_written(path: str | os.PathLike) -> None:
+    """Remove ``path`` now, or, inside an :func:`output_set` that covers it, once the set is in place (a sweep's
+    journal goes only when its table is written, so an interrupted run can resume)."""
+    p = Path(path)
+    s = _set_for(p)
+    if s is not None:
+        s.removals.append(p)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, nbytes: int | None = None) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same extension); rename it to ``path`` on success (inside an
+    :func:`output_set` covering ``path``: when the set is written), remove it on failure. A write that runs out
+    of space raises :func:`no_space_error` (``nbytes``: what it needed, when known)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f".{p.stem}.tmp{os.getpid()}{p.suffix}")
+    tmp = p.with_name(f".{p.stem}.tmp{os.getpid()}-{next(_SEQ)}{p.suffix}")
+    s = _set_for(p)
     try:
         yield tmp
-        os.replace(tmp, p)
+        if s is not None:
+            s.add(p, tmp)
+            tmp = None
+        else:
+            os.replace(tmp, p)
+    except OSError as e:
+        if e.errno in _NO_SPACE:
+            raise no_space_error(p, nbytes) from None
+        raise
     finally:
         # the cleanup never hides the real error (a read-only filesystem fails the unlink too)
-        with contextlib.suppress(OSError):
-            tmp.unlink()
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+
+def _out_of_space(p: Path, nbytes: int) -> bool:
+    """After a library's write failed with no error number (OpenImageIO): is the folder out of space for it?"""
+    try:
+        return shutil.disk_usage(p.parent).free < nbytes
+    except OSError:
+        return False
 
 
 def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
@@ -57,29 +194,35 @@ def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
     spec.attribute("DateTime", "")
     if ext == ".exr":
         spec.attribute("compression", "zip")
-    with atomic_path(p) as tmp:
+    with atomic_path(p, a.nbytes) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None:
             raise ValueError(f"path: cannot write {p}: {oiio.geterror()}")
-        ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(a).reshape(a.shape[0], a.shape[1], nch))
-        err = out.geterror()
-        out.close()
-        if not ok:
-            raise OSError(f"path: writing {p} failed: {err}")
+        try:
+            ok = out.open(str(tmp), spec) and out.write_image(np.ascontiguousarray(a).reshape(a.shape[0], a.shape[1],
+                                                                                                nch))
+            err = out.geterror()
+        except BaseException:  # interrupted (Ctrl-C): libpng would complain of the unfinished file on stderr
+            with native_stderr_silenced():
+                out.close()
+            raise
+        closed = out.close()
+        if not ok or not closed:
+            if _out_of_space(p, a.nbytes):
+                raise no_space_error(p, a.nbytes)
+            raise OSError(errno.EIO, f"writing {p.name} failed: {err or out.geterror() or 'OpenImageIO error'}", str(p))
     return p
 
 
 def write_json(path: str | os.PathLike, obj: object) -> Path:
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
-    return p
+    return write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
     p = Path(path)
-    with atomic_path(p) as tmp:
-        tmp.write_text(text)
+    data = text.encode()
+    with atomic_path(p, len(data)) as tmp:
+        tmp.write_bytes(data)
     return p
 
 
@@ -123,6 +266,6 @@ def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: float = 100, **sav
     if fmt in undated:
         savefig_kw.setdefault("metadata", undated[fmt])
     with atomic_path(p) as tmp, plt.rc_context({"svg.hashsalt": "terrainwarp"}):
-        fig.savefig(tmp, format=fmt, dpi=dpi, **savefig_kw)
+        fig.savefig(tmp, format=fmt, dpi=dpi, **savefig_kw)  # (ENOSPC from savefig: named by atomic_path)
     plt.close(fig)
     return p

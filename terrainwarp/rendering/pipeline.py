@@ -60,7 +60,7 @@ import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
-from ..io.files import atomic_path, write_image, write_json
+from ..io.files import atomic_path, output_set, write_image, write_json
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
 from ..kernels.raster import clip_coordinates, rasterize
@@ -218,9 +218,14 @@ class Frame:
         ``mesh.vtp``, ``patches.csv``, with the error ``error_px.exr`` (the primary error per heightmap
         sample, rows x cols, NaN where not measured) and ``image_error_px.exr`` (the per-pixel grid-image
         error, H x W, NaN on background), and ``report.json`` (each written to a temporary name and
-        renamed)."""
+        renamed, and all renamed into place only once every one is written: a failure leaves the folder's
+        previous set whole)."""
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        with output_set(out):
+            return self._save(out)
+
+    def _save(self, out: Path) -> list[Path]:
         written = []
         if self.image is not None:
             written.append(write_image(out / "frame.png", self.image))

@@ -58,3 +58,88 @@ def test_saved_figures_are_byte_identical_across_runs(tmp_path, fmt):
     a = one(tmp_path / f"a.{fmt}")
     time.sleep(1.1)
     assert one(tmp_path / f"b.{fmt}") == a
+
+
+# -- output sets: renamed into place only when every file is written -------------------------------------------
+
+
+def _state(d):
+    return {p.name: p.read_bytes() for p in sorted(d.iterdir())}
+
+
+def test_an_output_set_appears_whole_or_not_at_all(tmp_path):
+    from terrainwarp.io.files import output_set, write_json, write_text
+
+    d = tmp_path / "out"
+    with output_set(d):
+        write_text(d / "a.txt", "one\n")
+        write_json(d / "b.json", {"v": 1})
+        assert not (d / "a.txt").exists()  # pending under a temporary name until the set is written
+    before = _state(d)
+    assert before == {"a.txt": b"one\n", "b.json": b'{\n  "v": 1\n}\n'}
+    with pytest.raises(RuntimeError, match="boom"), output_set(d):  # the second file's write fails
+        write_text(d / "a.txt", "two\n")
+        raise RuntimeError("boom")
+    assert _state(d) == before  # the previous set is whole, no temporary file is left
+    with pytest.raises(KeyboardInterrupt), output_set(d):
+        write_text(d / "c.txt", "new\n")
+        raise KeyboardInterrupt
+    assert _state(d) == before  # nothing new either
+
+
+def test_nested_sets_are_written_by_the_outermost_and_deferred_removals_wait(tmp_path):
+    from terrainwarp.io.files import output_set, remove_when_written, write_text
+
+    d = tmp_path / "o"
+    d.mkdir()
+    (d / "journal.partial").write_text("rows\n")
+    with output_set(d):
+        with output_set(d / "sub"):
+            write_text(d / "sub" / "x.txt", "x")
+        assert not (d / "sub" / "x.txt").exists()  # the outer set holds it
+        write_text(d / "t.csv", "table")
+        remove_when_written(d / "journal.partial")
+        assert (d / "journal.partial").exists()  # removed only once the table is in place
+    assert (d / "sub" / "x.txt").read_text() == "x" and (d / "t.csv").read_text() == "table"
+    assert not (d / "journal.partial").exists()
+    (d / "journal.partial").write_text("rows\n")
+    with pytest.raises(OSError), output_set(d):
+        remove_when_written(d / "journal.partial")
+        raise OSError("disk")
+    assert (d / "journal.partial").exists()  # a failed set keeps the journal: a rerun resumes
+
+
+def test_a_full_disk_names_the_file_and_the_size(tmp_path, monkeypatch):
+    import errno
+    import pathlib
+
+    from terrainwarp.io.files import write_image, write_text
+
+    def full(self, data):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(pathlib.Path, "write_bytes", full)
+    with pytest.raises(OSError, match=r"no space left on device writing report.json \(12 B\)") as e:
+        write_text(tmp_path / "report.json", "x" * 12)
+    assert e.value.errno == errno.ENOSPC and e.value.filename == str(tmp_path / "report.json")
+    monkeypatch.undo()
+    monkeypatch.setattr("terrainwarp.io.files._out_of_space", lambda p, n: True)
+    import OpenImageIO as oiio
+
+    class _Failing:  # OpenImageIO reports a failed write with a message, no error number
+        def open(self, *a):
+            return True
+
+        def write_image(self, *a):
+            return False
+
+        def geterror(self):
+            return "Failed OpenEXR write"
+
+        def close(self):
+            return True
+
+    monkeypatch.setattr(oiio.ImageOutput, "create", staticmethod(lambda path: _Failing()))
+    with pytest.raises(OSError, match=r"no space left on device writing depth.exr \(3.2 kB\)"):
+        write_image(tmp_path / "depth.exr", np.zeros((20, 40), np.float32))
+    assert not list(tmp_path.iterdir())

@@ -1,0 +1,126 @@
+"""A command that fails or is interrupted leaves ``--out`` as it was (issue 31, defects 4-6): the previous
+set of files whole, nothing new but a sweep's resumable journal, one line on stderr.
+
+* a full disk while overwriting an earlier run (a 2 MiB tmpfs, mounted in a private mount namespace with
+  ``unshare``): the error names the file, its size and the cause; the earlier 1920x1080 set stays whole;
+* SIGINT while ``render`` writes its files: exit 130, one line, nothing new in ``--out``;
+* Ctrl-C (SIGINT to the process group, as a terminal sends it) during ``report`` on Dask workers: one line,
+  exit 130, the journal kept, and a rerun resumes from it to the uninterrupted table.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+CLI = [sys.executable, "-m", "terrainwarp.cli"]
+ENV = {k: v for k, v in os.environ.items() if k != "TERRAINWARP_VERBOSE"}
+
+_FULL_DISK = r"""
+import hashlib, json, os, subprocess, sys
+d = sys.argv[1]
+subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", d], check=True)
+cli = [sys.executable, "-m", "terrainwarp.cli", "demo", "--out", d + "/y"]
+state = lambda: {f: hashlib.sha256(open(os.path.join(d, "y", f), "rb").read()).hexdigest()
+                 for f in sorted(os.listdir(d + "/y"))}
+first = subprocess.run(cli + ["--width", "1920", "--height", "1080"], capture_output=True, text=True)
+before = state()
+second = subprocess.run(cli + ["--width", "2200", "--height", "1240"], capture_output=True, text=True)
+print(json.dumps({"first": first.returncode, "before": before, "rc": second.returncode, "err": second.stderr,
+                  "after": state()}))
+"""
+
+
+def _private_mount_namespace() -> list[str] | None:
+    """A command prefix that runs a program in a private mount namespace where it may mount a tmpfs."""
+    if shutil.which("unshare") is None:
+        return None
+    for prefix in (["unshare", "-m"], ["unshare", "-rm"]):  # as root; else in a user namespace
+        if subprocess.run([*prefix, "true"], capture_output=True).returncode == 0:
+            return prefix
+    return None
+
+
+def test_a_full_disk_while_overwriting_leaves_the_earlier_set_whole(tmp_path):
+    prefix = _private_mount_namespace()
+    if prefix is None:
+        pytest.skip("no private mount namespace here to mount a small tmpfs in (the ENOSPC path itself is "
+                    "tested in tests/io/test_files.py)")
+    (tmp_path / "m").mkdir()
+    r = subprocess.run([*prefix, sys.executable, "-c", _FULL_DISK, str(tmp_path / "m")], capture_output=True,
+                       text=True, env=ENV, timeout=600)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got["first"] == 0 and sorted(got["before"]) == ["depth.exr", "frame.png", "report.json"]
+    assert got["rc"] == 2
+    lines = got["err"].strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in got["err"]
+    assert "no space left on device writing depth.exr (10.9 MB)" in lines[0], lines  # 2200 x 1240 float32
+    assert got["after"] == got["before"]  # the 1920x1080 set, whole; no temporary file left either
+
+
+def _files(d: Path) -> dict[str, str]:
+    return {str(p.relative_to(d)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def _wait_for(pred, timeout: float, proc: subprocess.Popen) -> bool:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if pred():
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.005)
+    return False
+
+
+def test_sigint_while_render_writes_leaves_nothing_new(tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "mine.txt").write_text("kept\n")
+    before = _files(out)
+    p = subprocess.Popen([*CLI, "demo", "--width", "3840", "--height", "2160", "--out", str(out)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV)
+    # the moment the issue saw frame.png left alone: its files being written (temporary names in --out)
+    started = _wait_for(lambda: any(f.name.startswith(".") for f in out.iterdir()), 300, p)
+    p.send_signal(signal.SIGINT)
+    err = p.communicate(timeout=120)[1]
+    assert started, err
+    assert p.returncode == 130, err
+    assert err.strip().splitlines() == ["terrainwarp: interrupted"]
+    assert _files(out) == before
+
+
+def test_ctrl_c_during_report_on_workers_prints_one_line_and_keeps_the_journal(tmp_path):
+    scene = tmp_path / "s.toml"
+    scene.write_text('[heightmap]\nfbm = { rows = 65, seed = 3 }\n[camera]\nwidth = 64\nheight = 48\n')
+    out = tmp_path / "r"
+    argv = [*CLI, "report", str(scene), "--out", str(out), "--frames", "3", "--quick", "--no-images",
+            "--no-progress", "--workers", "2", "--policies", "sse,distance,grid"]
+    p = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV,
+                         start_new_session=True)  # its own process group, as a terminal's job
+    journal = out / "frames.csv.partial"
+    rows = lambda: journal.exists() and journal.read_text().count("\n") >= 3  # noqa: E731 - header + one row
+    started = _wait_for(rows, 300, p)
+    os.killpg(p.pid, signal.SIGINT)  # the terminal's Ctrl-C: the driver and every worker get it
+    err = p.communicate(timeout=120)[1]
+    assert started, err
+    assert p.returncode == 130, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("terrainwarp: interrupted (a rerun resumes from "), err
+    assert sorted(_files(out)) == ["frames.csv.partial"]  # the journal, and nothing else
+    kept = [ln.split(",", 1)[0] for ln in journal.read_text().splitlines()[2:]]  # job ids finished before
+    assert kept
+    r = subprocess.run(argv[:-2] + ["--workers", "0"], capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert {"frames.csv", "pareto.png", "report.md"} <= set(_files(out)) and not journal.exists()
