@@ -25,8 +25,8 @@ Sources:
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
-import json
 import math
 import os
 import threading
@@ -38,7 +38,7 @@ import numpy as np
 
 from ..kernels import noise
 from . import geotiff
-from .files import write_text
+from .cache import CacheFolder
 
 __all__ = ["TILE", "DEFAULT_CACHE_MB", "TileSource", "ArraySource", "FbmSource", "GeoTiffSource", "TileCache",
            "cache_mb_from_env", "cache_dir_for"]
@@ -272,22 +272,21 @@ class GeoTiffSource(TileSource):
             h.update(f.read(65536))
         return f"file:{self.path.resolve()}:{st.st_size}:{st.st_mtime_ns}:band{self.band}:{h.hexdigest()[:24]}"
 
+    def cache(self) -> CacheFolder:
+        """The file's cache folder (:func:`cache_dir_for`), keyed on :meth:`fingerprint`: its pyramids and
+        overviews (:mod:`terrainwarp.lod.streaming`) and its height range."""
+        return CacheFolder(cache_dir_for(self.path), self.fingerprint())
+
     def height_range(self, tiles: TileCache) -> tuple[float, float]:
-        """Scanned once, then kept in the cache folder beside the file (``range.json``, with the fingerprint)."""
-        f = cache_dir_for(self.path) / "range.json"
-        fp = self.fingerprint()
-        try:
-            got = json.loads(f.read_text())
-            if got.get("fingerprint") == fp:
-                return (float(got["min"]), float(got["max"]))
-        except (OSError, ValueError, KeyError):
-            pass
+        """Scanned once, then kept in the file's cache folder (the manifest's ``height_range``)."""
+        cache = self.cache()
+        got = cache.value("height_range")
+        if isinstance(got, list) and len(got) == 2 and all(isinstance(v, float) for v in got):
+            return (got[0], got[1])
         lo, hi = _scan_range(self, tiles)
-        try:
-            f.parent.mkdir(parents=True, exist_ok=True)
-            write_text(f, json.dumps({"fingerprint": fp, "min": lo, "max": hi}) + "\n")
-        except OSError:
-            pass  # a read-only place: scanned again next time
+        with contextlib.suppress(OSError):  # a read-only place: scanned again next time
+            with cache.building() as b:
+                b.set_value("height_range", [lo, hi])
         return lo, hi
 
 

@@ -9,7 +9,10 @@ in memory, in one of two ways:
   value is bit for bit the in-memory one. For a file the result is kept in a cache beside it
   (``<file>.twcache/``, or ``~/.cache/terrainwarp/tiles/`` when that folder is read-only), reused across
   runs and rebuilt when the file changes (size, modification time and a hash of its first and last
-  64 KiB). The same pass writes the point-sampled overviews (steps 2, 4, ...) that far patches read.
+  64 KiB). The same pass writes the point-sampled overviews (steps 2, 4, ...) that far patches read. The
+  cache checks itself (:mod:`terrainwarp.io.cache`): a file is used only if its size and checksum equal
+  the manifest's; a missing, truncated or corrupt one is rebuilt (or the error names it), and threads and
+  processes that open a new file at once build its cache once, under a lock, the others waiting.
 * **on demand** (procedural sources, whose overviews have a known :meth:`detail_bound`): the nodes a
   selection visits are worked out in blocks of ``BLOCK`` x ``BLOCK`` nodes from the overview whose step
   is 1/8 of the node's vertex spacing (each node seen through an (8T + 1)^2 window), and widened by the
@@ -23,26 +26,22 @@ the patches whose vertex spacing is at least that step, so memory follows the fr
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from ..heightmap import StreamedHeightmap
-from ..io.files import atomic_path, write_text
-from ..io.tiles import GeoTiffSource, TileCache, cache_dir_for
+from ..io.cache import CacheError, CacheFolder
+from ..io.tiles import GeoTiffSource, TileCache
 from ..kernels.pyramid import node_stats
 
-__all__ = ["StreamedPyramid", "overview_windows", "root_pyramid", "CACHE_VERSION", "BLOCK", "MAX_BLOCKS"]
+__all__ = ["StreamedPyramid", "overview_windows", "root_pyramid", "BLOCK", "MAX_BLOCKS"]
 
 BLOCK = 4  # nodes per side of an on-demand stats block
 MAX_BLOCKS = 65536  # on-demand blocks kept (3 x 4 x 4 float32 each: 12 MiB in all)
-CACHE_VERSION = 1
 FINEST = 8  # the finest step a node is measured at: 1/8 of its vertex spacing (1 at the finest levels)
 WINDOW_MARGIN = 2  # overview samples around a window's patches (bilinear footprint and central differences)
 
@@ -172,30 +171,59 @@ class StreamedPyramid:
     # -- the exact pyramid, root by root -------------------------------------------------------------
     def _exact(self, progress: Callable[[int], None] | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         src = self.hm.source
-        cfg = {"version": CACHE_VERSION, "roots": list(self.roots), "root_cells": self.root_cells,
-               "depth": self.depth, "tess": self.tess}
-        folder = cache_dir_for(src.path) if isinstance(src, GeoTiffSource) else None
-        if folder is not None:
-            cfg["fingerprint"] = src.fingerprint()
-            got = self._load_cached(folder, cfg)
-            if got is not None:
-                self.counters["cache"] = "reused"
-                return got
-        levels = self._build(progress, folder)
-        if folder is not None:
-            self._save(folder, cfg, levels)
-            self.counters["cache"] = "built"
+        if not isinstance(src, GeoTiffSource):
+            return self._build(progress, {})
+        cache = src.cache()
+        names = [self._stats_name(lv) for lv in range(self.depth + 1)]
+        steps = self._overview_steps()
+        wanted = names + [_overview_name(st) for st in steps]
+        if not cache.check(wanted):
+            self.counters["cache"] = "reused"
+            return self._load(cache, names, steps)
+        levels = None
+        try:
+            with cache.building() as b:  # one builder; the others wait here, then find the files built
+                todo = b.todo(wanted)
+                if todo:
+                    overviews = {st: np.lib.format.open_memmap(b.path(_overview_name(st)), mode="w+",
+                                                              dtype=np.float32, shape=src.level_shape(st))
+                                 for st in steps if _overview_name(st) in todo}
+                    levels = self._build(progress, overviews)
+                    for name, arrs in zip(names, levels, strict=True):
+                        if name in todo:
+                            with open(b.path(name), "wb") as f:
+                                np.save(f, np.stack(arrs))
+                    self.counters["cache"] = "built" if set(todo) == set(wanted) else "repaired"
+                else:
+                    self.counters["cache"] = "reused"
+        except OSError as e:
+            bad = cache.check(wanted)
+            name = next(iter(bad), wanted[0])
+            raise CacheError(f"{cache.path / name}: {bad.get(name, 'not built')}, and the pyramid cache cannot be "
+                             f"(re)built there: {e.strerror or e}") from None
+        got = self._load(cache, names, steps)
+        return got if levels is None else levels
+
+    def _load(self, cache: CacheFolder, names: list[str], steps: list[int]) -> list:
+        """The layout's pyramid memory-mapped from the checked files, and the overviews handed to the source
+        (memory-mapped: pages are read when tiles touch them)."""
+        try:
+            levels = [tuple(np.load(cache.path / n, mmap_mode="r")) for n in names]
+            for st in steps:
+                self.hm.source.levels[st] = np.load(cache.path / _overview_name(st), mmap_mode="r")
+        except (OSError, ValueError) as e:  # checked just now: changed on disk since (by something else)
+            raise CacheError(f"{cache.path}: a pyramid cache file changed on disk while it was opened: {e}") from None
         return levels
 
     def _build(self, progress: Callable[[int], None] | None,
-               folder: Path | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+               overviews: dict[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Every root's window through the in-memory kernel (:func:`root_pyramid`), here or on the workers of
-        ``map``, then placed; each root's values are the same wherever it ran."""
+        ``map``, then placed; each root's values are the same wherever it ran. The point-sampled overviews in
+        ``overviews`` (step -> an array of the overview's shape) are filled in the same pass."""
         nx, nz = self.roots
         s0 = self.root_cells
         whole = s0 != int(s0)  # fractional roots: node origins are not integer shifts; one window, the grid
         levels = [tuple(np.zeros((nz << lv, nx << lv), np.float32) for _ in range(3)) for lv in range(self.depth + 1)]
-        overviews = self._overview_files(folder)
         ranges = [(0, 0, nz, nx)] if whole else [(y, x, 1, 1) for y in range(nz) for x in range(nx)]
         spec = (self.hm.source, s0, self.depth, self.tess, tuple(overviews))
         if self.map is not None:
@@ -222,16 +250,14 @@ class StreamedPyramid:
             arr.flush()
         return levels
 
-    def _overview_files(self, folder: Path | None) -> dict[int, np.ndarray]:
-        """Memory-mapped point-sampled overviews to fill while building (a file's cache only): steps 2, 4,
-        ... dividing S_0, down to 2 samples a side."""
-        if folder is None or self.root_cells != int(self.root_cells):
-            return {}
-        folder.mkdir(parents=True, exist_ok=True)
-        out, step = {}, 2
+    def _overview_steps(self) -> list[int]:
+        """The point-sampled overviews a file's cache holds: steps 2, 4, ... dividing S_0, down to 2 samples a
+        side (none with fractional roots)."""
+        if self.root_cells != int(self.root_cells):
+            return []
+        out, step = [], 2
         while int(self.root_cells) % step == 0 and min(self.hm.source.level_shape(step)) >= 2:
-            out[step] = np.lib.format.open_memmap(folder / f"overview_{step}.npy.part", mode="w+", dtype=np.float32,
-                                                  shape=self.hm.source.level_shape(step))
+            out.append(step)
             step *= 2
         return out
 
@@ -239,40 +265,9 @@ class StreamedPyramid:
         nx, nz = self.roots
         return f"stats_r{nx}x{nz}_t{self.tess}_d{self.depth}_L{lv}.npy"
 
-    def _save(self, folder: Path, cfg: dict[str, Any], levels: list) -> None:
-        for lv, arrs in enumerate(levels):
-            with atomic_path(folder / self._stats_name(lv)) as tmp:
-                np.save(tmp, np.stack(arrs))
-        for part in folder.glob("overview_*.npy.part"):
-            part.replace(folder / part.name[:-len(".part")])
-        self._attach(folder)
-        write_text(folder / "cache.json", json.dumps({"fingerprint": cfg["fingerprint"], "version": CACHE_VERSION},
-                                                     indent=1) + "\n")
 
-    def _load_cached(self, folder: Path, cfg: dict[str, Any]) -> list | None:
-        """This layout's pyramid from the folder, or None (a folder made for another version of the file is
-        emptied: nothing in it is valid)."""
-        try:
-            old = json.loads((folder / "cache.json").read_text())
-        except (OSError, ValueError):
-            old = None
-        if old is None or old.get("fingerprint") != cfg["fingerprint"] or old.get("version") != CACHE_VERSION:
-            for f in folder.glob("*.npy*") if folder.exists() else ():
-                f.unlink(missing_ok=True)
-            (folder / "cache.json").unlink(missing_ok=True)
-            return None
-        try:
-            levels = [tuple(np.load(folder / self._stats_name(lv), mmap_mode="r")) for lv in range(self.depth + 1)]
-        except (OSError, ValueError):
-            return None  # another layout (roots, tess, depth) of the same file: built now, beside the others
-        self._attach(folder)
-        return levels
-
-    def _attach(self, folder: Path) -> None:
-        """Hand the cache's overviews to the source (memory-mapped: pages are read when tiles touch them)."""
-        for f in sorted(folder.glob("overview_*.npy")):
-            step = int(f.stem.split("_")[1].split(".")[0])
-            self.hm.source.levels[step] = np.load(f, mmap_mode="r")
+def _overview_name(step: int) -> str:
+    return f"overview_{step}.npy"
 
 
 def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *,

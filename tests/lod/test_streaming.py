@@ -95,7 +95,7 @@ def test_file_pyramid_is_cached_beside_the_file_and_rebuilt_when_it_changes(tmp_
     t1 = Terrain.prepare(Heightmap.open(p), roots=4, tess=16)
     assert t1.provider.counters["cache"] == "built"
     folder = tmp_path / "t.tif.twcache"
-    assert (folder / "cache.json").exists() and sorted(f.name for f in folder.glob("overview_*.npy"))
+    assert (folder / "manifest.json").exists() and sorted(f.name for f in folder.glob("overview_*.npy"))
     st = Heightmap.open(p)
     t2 = Terrain.prepare(st, roots=4, tess=16)
     assert t2.provider.counters["cache"] == "reused"
