@@ -1,9 +1,9 @@
 """Shared helpers for benchmarks: markdown tables, result files, timing.
 
 Importing this module configures the process as the ``terrainwarp`` command does
-(:func:`terrainwarp.runtime.configure_from_env`). Each benchmark prints its table and writes it to benchmarks/results/<stage>.md together with the
-command that made it and the machine it ran on. ``python benchmarks/collect.py`` rebuilds the root
-BENCHMARKS.md from those files.
+(:func:`terrainwarp.runtime.configure_from_env`). Each benchmark prints its table and writes it to
+benchmarks/results/<stage>.md together with the command that made it and the machine it ran on.
+``python benchmarks/collect.py`` rebuilds the root BENCHMARKS.md from those files.
 """
 
 from __future__ import annotations

@@ -46,6 +46,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .checks import check_int
 from .normals import (
     CPU_ONLY,
     END_CPU_ONLY,
@@ -710,8 +711,7 @@ def directional_curvature(heights: np.ndarray, dx: float, dz: float, method: str
         raise ValueError(f"method: expected one of {list(CURVATURE_METHODS)}, got {method!r}")
     if normals not in NORMAL_METHODS:
         raise ValueError(f"normals: expected one of {list(NORMAL_METHODS)}, got {normals!r}")
-    if isinstance(distance, bool) or not isinstance(distance, int | np.integer) or distance < 1:
-        raise ValueError(f"distance: expected an integer >= 1, got {distance!r}")
+    check_int("distance", distance, 1)
     sc = float(scale)
     if not (np.isfinite(sc) and sc > 0.0):
         raise ValueError(f"scale: expected a positive finite number, got {scale!r}")

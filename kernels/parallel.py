@@ -31,6 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import warp as wp
 
+from .checks import check_int
 from .pool import host_layout
 
 THREADS_ENV = "TERRAINWARP_THREADS"
@@ -113,10 +114,7 @@ def set_threads(n: int | None) -> None:
     """Set the number of CPU threads each kernel launch is split across (``None``: back to the default,
     ``TERRAINWARP_THREADS`` or the cores this process may use). Outputs do not depend on it."""
     if n is not None:
-        if isinstance(n, bool) or not isinstance(n, int):
-            raise TypeError(f"n: expected an integer or None, got {n!r}")
-        if n < 1:
-            raise ValueError(f"n: expected at least 1 thread, got {n}")
+        n = check_int("n", n, 1)
     with _lock:
         _state["threads"] = n
 
@@ -135,8 +133,8 @@ def threads() -> int:
 def set_min_items(n: int | None) -> None:
     """Override every launch's ``min_items`` (``1``: split even the smallest launch as finely as the threads
     allow, as the determinism tests do; ``None``: each launch's own)."""
-    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
-        raise ValueError(f"n: expected a positive integer or None, got {n!r}")
+    if n is not None:
+        n = check_int("n", n, 1)
     _state["min_items"] = n
 
 

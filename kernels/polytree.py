@@ -54,6 +54,7 @@ import time
 import numpy as np
 import warp as wp
 
+from .checks import check_int
 from .parallel import launch, threads
 
 FLAG_LOW_J = 1  # a merge across (part of) the polygon's j0 side was tried and failed
@@ -1202,8 +1203,7 @@ class MergeState:
         (P, 4) int32 in the paper's order and father (P,) int64, the index in level m+1's rects of the
         polygon each one is part of (-1 at the root). For inspection: undoes the higher levels' merges on a
         host copy."""
-        if isinstance(m, bool) or not isinstance(m, int | np.integer) or not 0 <= m <= self.depth:
-            raise ValueError(f"m: expected a level in [0, {self.depth}], got {m!r}")
+        m = check_int("m", m, 0, self.depth)
         a = self.arrays
         nb, nodes, u = self.node_base, a.nodes.numpy(), a.u.numpy()
         u_base = a.u_base.numpy()

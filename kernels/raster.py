@@ -44,6 +44,7 @@ Output images have row 0 at the top (window y is flipped once, here).
 import numpy as np
 import warp as wp
 
+from .checks import is_int
 from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import host_layout, pooled, take
@@ -887,7 +888,7 @@ def _check_triangles(triangles: object, n: int) -> np.ndarray:
 
 def _check_size(width: object, height: object) -> tuple[int, int]:
     for nm, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, int | np.integer):
+        if not is_int(v):
             raise TypeError(f"{nm}: expected an integer, got {v!r}")
         if not 1 <= int(v) <= 16384:
             raise ValueError(f"{nm}: expected 1..16384 pixels, got {v}")

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .heightmap import Heightmap
+from .kernels.checks import check_number, is_int
 
 __all__ = ["Camera", "orbit", "flyover", "relative_origin"]
 
@@ -51,7 +52,7 @@ def _vec3(name: str, v: object) -> tuple[float, float, float]:
 
 
 def _pixels(name: str, v: object) -> int:
-    if isinstance(v, bool) or not isinstance(v, int | np.integer):
+    if not is_int(v):
         raise TypeError(f"{name}: expected a positive integer number of pixels, got {v!r}")
     if not 1 <= int(v) <= 16384:
         raise ValueError(f"{name}: expected 1..16384 pixels, got {v}")
@@ -59,11 +60,7 @@ def _pixels(name: str, v: object) -> int:
 
 
 def _finite(name: str, v: object) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float | np.floating | np.integer):
-        raise TypeError(f"{name}: expected a number, got {v!r}")
-    if not math.isfinite(float(v)):
-        raise ValueError(f"{name}: expected a finite number, got {v}")
-    return float(v)
+    return check_number(name, v)
 
 
 def _fov(v: object) -> float:

@@ -68,9 +68,7 @@ def _scene(args: argparse.Namespace) -> Scene:
     if getattr(args, "width", None) is not None or getattr(args, "height", None) is not None:
         w = cam.width if args.width is None else args.width
         h = cam.height if args.height is None else args.height
-        cam = Camera.default_for(sc.heightmap, w, h, cam.fov_y_deg) if not sc.source.get("camera") \
-            else cam.with_(width=w, height=h)
-        sc = sc.with_(camera=cam)
+        sc = sc.with_(camera=cam.with_(width=w, height=h))  # (the default view does not depend on the viewport)
     return sc
 
 

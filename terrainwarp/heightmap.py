@@ -25,6 +25,7 @@ from .io.memory import check_heightmap_fits
 from .io.native import native_stderr_silenced
 from .io.tiles import TILE, ArraySource, FbmSource, GeoTiffSource, TileCache, TileSource
 from .kernels import noise, sampling
+from .kernels.checks import check_int, is_number
 
 # metres_per_degree lives in io.geodesy; re-exported as before
 __all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree"]
@@ -33,7 +34,7 @@ EXAMPLES = ("jacksboro", "topobathy")
 
 
 def _positive(name: str, v: object) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+    if not is_number(v):
         raise TypeError(f"{name}: expected a positive number of metres, got {v!r}")
     f = float(v)
     if not (math.isfinite(f) and f > 0.0):
@@ -261,8 +262,7 @@ class Heightmap:
         """
         cols = rows if cols is None else cols
         for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
-                raise ValueError(f"{nm}: expected a positive integer, got {v!r}")
+            check_int(nm, v, 1)
         n = _positive("max_height", max_height)
         fs = _positive("feature_size", feature_size)
         check_heightmap_fits("rows" if rows >= cols else "cols", rows, cols)

@@ -25,10 +25,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from .camera import Camera, flyover, orbit
 from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
+from .kernels.checks import check_bool, check_choice, check_int, check_number, is_int
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 
 __all__ = ["Scene", "LodConfig", "PolicySpec", "POLICY_TABLE", "OUTPUTS", "MESH_POLICIES", "LOD_POLICIES",
@@ -111,16 +110,14 @@ def check_policy_numbers(policy: str, value: float, hysteresis: float, level: in
         raise ValueError(f"level: expected >= 0, got {level}")
 
 
-def _is_int(v: object) -> bool:
-    return not isinstance(v, bool) and isinstance(v, int | np.integer)
-
-
 def check_tess(tess: object, policy: str | None = None) -> int:
     """The one rule for a tessellation level T: an integer in 1..``MAX_TESS``; for a quadtree policy
     (every policy of ``POLICY_TABLE`` but ``"continuous"``, whose uniform patch grid has no doubled edges)
     a power of two in ``QUADTREE_TESS``. ``policy=None``: the terrain's own rule (no policy yet; the
     quadtree refuses a doubled edge above ``MAX_TESS`` when it selects). Returns ``int(tess)``."""
-    if not _is_int(tess) or not 1 <= int(tess) <= MAX_TESS:
+    if not is_int(tess):
+        raise TypeError(f"tess: expected an integer level in 1..{MAX_TESS}, got {tess!r}")
+    if not 1 <= int(tess) <= MAX_TESS:
         raise ValueError(f"tess: expected an integer level in 1..{MAX_TESS}, got {tess!r}")
     if policy is not None and policy != "continuous" and int(tess) not in QUADTREE_TESS:
         raise ValueError(f"tess: expected a power of two in 1..{QUADTREE_TESS[-1]} for the quadtree policy "
@@ -132,11 +129,11 @@ def check_tess(tess: object, policy: str | None = None) -> int:
 def check_roots(roots: object) -> None:
     """The one rule for root nodes: an integer >= 1, or a pair (nx, nz) of integers >= 1."""
     if isinstance(roots, tuple | list):
-        if len(roots) != 2 or not all(_is_int(r) for r in roots):
+        if len(roots) != 2 or not all(is_int(r) for r in roots):
             raise TypeError(f"roots: expected an int or (nx, nz), got {roots!r}")
         if min(int(r) for r in roots) < 1:
             raise ValueError(f"roots: expected positive counts, got {tuple(int(r) for r in roots)}")
-    elif not _is_int(roots):
+    elif not is_int(roots):
         raise TypeError(f"roots: expected an int or (nx, nz), got {roots!r}")
     elif int(roots) < 1:
         raise ValueError(f"roots: expected >= 1 root nodes, got {int(roots)}")
@@ -175,22 +172,27 @@ class LodConfig:
     filter: str = "bilinear"
 
     def __post_init__(self) -> None:
-        if self.policy not in LOD_POLICIES:
-            raise ValueError(f"lod.policy: expected one of {list(LOD_POLICIES)}, got {self.policy!r}")
-        if self.spacing not in SPACINGS:
-            raise ValueError(f"lod.spacing: expected one of {list(SPACINGS)}, got {self.spacing!r}")
-        if self.filter not in FILTERS:
-            raise ValueError(f"lod.filter: expected one of {list(FILTERS)}, got {self.filter!r}")
-        if self.policy != "continuous" and self.spacing == "fractional_odd":
-            # doubled edges (2L) are even: see QUADTREE_TESS
-            raise ValueError("lod.spacing: fractional_odd cannot stitch doubled edges (2L is even); use "
-                             "'equal' or 'fractional_even' with a quadtree, or policy 'continuous'")
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: the checked, converted values
         try:
-            check_tess(self.tess, self.policy)
+            for k in ("tolerance_px", "k", "target_px", "hysteresis"):
+                set_(k, check_number(k, getattr(self, k)))
+            set_("level", check_int("level", self.level, 0))
+            check_choice("policy", self.policy, LOD_POLICIES)
+            check_choice("spacing", self.spacing, SPACINGS)
+            check_choice("filter", self.filter, FILTERS)
+            if self.policy != "continuous" and self.spacing == "fractional_odd":
+                # doubled edges (2L) are even: see QUADTREE_TESS
+                raise ValueError("spacing: fractional_odd cannot stitch doubled edges (2L is even); use "
+                                 "'equal' or 'fractional_even' with a quadtree, or policy 'continuous'")
+            set_("tess", check_tess(self.tess, self.policy))
             check_roots(self.roots)
+            if isinstance(self.roots, list | tuple):
+                set_("roots", tuple(int(r) for r in self.roots))
+            else:
+                set_("roots", int(self.roots))
+            check_policy_numbers(self.policy, float(self.value), float(self.hysteresis), int(self.level))
         except (TypeError, ValueError) as e:
             raise type(e)(f"lod.{e}") from None
-        check_policy_numbers(self.policy, float(self.value), float(self.hysteresis), int(self.level))
 
     @property
     def spec(self) -> PolicySpec:
@@ -215,6 +217,76 @@ class LodConfig:
         return replace(self, policy=policy, spacing=spacing, **{spec.field: float(value)})
 
 
+_PATH_KEYS = {"kind", "waypoints", "clearance", "preset", "n", "radius", "elevation", "units", "fov_y_deg"}
+_DEFAULT_WAYPOINTS = ((0.15, 0.85), (0.5, 0.55), (0.85, 0.15))
+
+
+@dataclass(frozen=True)
+class CameraPath:
+    """A scene's camera path (its ``[path]`` table), checked once when made.
+
+    Attributes:
+        kind: ``"flyover"`` (along ``waypoints``, ``clearance`` metres or a ``preset`` fraction of the extent
+            above the ground, looking 25% of the extent ahead) or ``"orbit"`` (a circle of ``radius`` around
+            the terrain's centre, ``elevation`` above its highest point, looking at the centre).
+        n: cameras (>= 1).
+        waypoints: flyover: (x, z) pairs, >= 2 of them; fractions of the extent in [0, 1] (``units =
+            "fraction"``) or metres (``units = "m"``).
+        preset: flyover: ``"ground"`` or ``"high"`` (``PATH_PRESETS``); None: ``clearance``, else ``"ground"``.
+        clearance: flyover: metres above the ground (> 0), instead of a preset.
+        radius, elevation: orbit: fractions of the extent, or metres (> 0 and >= 0).
+        units: ``"fraction"`` or ``"m"``.
+        fov_y_deg: the cameras' field of view, in (0, 180).
+    """
+
+    kind: str = "flyover"
+    n: int = 8
+    waypoints: tuple[tuple[float, float], ...] = _DEFAULT_WAYPOINTS
+    preset: str | None = None
+    clearance: float | None = None
+    radius: float = 0.9
+    elevation: float = 0.5
+    units: str = "fraction"
+    fov_y_deg: float = PATH_FOV_Y_DEG
+
+    def __post_init__(self) -> None:
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: the checked values
+        check_choice("path.kind", self.kind, ("flyover", "orbit"))
+        check_choice("path.units", self.units, ("fraction", "m"))
+        set_("n", check_int("path.n", self.n, 1))
+        set_("fov_y_deg", check_number("path.fov_y_deg", self.fov_y_deg, 0.0, 180.0, lo_open=True, hi_open=True))
+        if self.preset is not None:
+            check_choice("path.preset", self.preset, PATH_PRESETS)
+        if self.clearance is not None:
+            set_("clearance", check_number("path.clearance", self.clearance, 0.0, lo_open=True))
+            if self.preset is not None:
+                raise ValueError("path.clearance: give a clearance in metres or a preset, not both")
+        set_("radius", check_number("path.radius", self.radius, 0.0, lo_open=True))
+        set_("elevation", check_number("path.elevation", self.elevation, 0.0))
+        set_("waypoints", _waypoints(self.waypoints, self.units))
+
+    @classmethod
+    def from_table(cls, d: object) -> CameraPath:
+        """A ``[path]`` table: every key is applied or refused (an orbit's keys on a flyover, and the reverse,
+        are refused too)."""
+        _check_keys("path", d, _PATH_KEYS)
+        kind = d.get("kind", "flyover")
+        wrong = ({"radius", "elevation"} if kind == "flyover" else {"waypoints", "clearance", "preset"}) & set(d)
+        if wrong:
+            raise ValueError(f"path.{sorted(wrong)[0]}: does not apply to kind = {kind!r}")
+        return cls(**d)
+
+
+def _waypoints(w: object, units: str) -> tuple[tuple[float, float], ...]:
+    if not isinstance(w, list | tuple) or len(w) < 2 or not all(isinstance(p, list | tuple) and len(p) == 2
+                                                                for p in w):
+        raise ValueError(f"path.waypoints: expected at least 2 [x, z] pairs, got {w!r}")
+    hi = 1.0 if units == "fraction" else None
+    lo = 0.0 if units == "fraction" else None
+    return tuple((check_number(f"path.waypoints[{i}][0]", a, lo, hi), check_number(f"path.waypoints[{i}][1]", b, lo,
+                                                                                   hi)) for i, (a, b) in enumerate(w))
+
+
 @dataclass(frozen=True, eq=False)
 class Scene:
     """A heightmap, a camera, a mesh policy and the outputs asked for.
@@ -232,6 +304,8 @@ class Scene:
             ``"level"`` / ``"patch"`` (LOD level / patch colours), ``"wireframe"`` (triangle edges over
             the hillshade), ``"splat"`` (splat-map multi-texturing, deaconu2021), ``"cracks"`` (background
             seen through the terrain in magenta).
+        name: the scene's name (a scene file's stem).
+        path: the :class:`CameraPath` that :meth:`camera_path` flies (a scene file's ``[path]`` table).
     """
 
     heightmap: Heightmap
@@ -244,7 +318,7 @@ class Scene:
     cull_back: bool = False
     shading: str = "hillshade"
     name: str = "scene"
-    source: dict[str, Any] = field(default_factory=dict)
+    path: CameraPath = field(default_factory=CameraPath)
 
     def __post_init__(self) -> None:
         if not isinstance(self.heightmap, Heightmap | StreamedHeightmap):
@@ -267,6 +341,15 @@ class Scene:
             object.__setattr__(self, "lod", LodConfig(**self.lod))
         if not isinstance(self.lod, LodConfig):
             raise TypeError(f"lod: expected a LodConfig, got {type(self.lod).__name__}")
+        for k in ("light_azimuth_deg", "light_elevation_deg"):
+            object.__setattr__(self, k, check_number(k, getattr(self, k)))
+        object.__setattr__(self, "cull_back", check_bool("cull_back", self.cull_back))
+        if not isinstance(self.name, str):
+            raise TypeError(f"name: expected a string, got {self.name!r}")
+        if isinstance(self.path, dict):
+            object.__setattr__(self, "path", CameraPath.from_table(self.path))
+        if not isinstance(self.path, CameraPath):
+            raise TypeError(f"path: expected a CameraPath, got {type(self.path).__name__}")
 
     def with_(self, **changes: Any) -> Scene:
         return replace(self, **changes)
@@ -309,30 +392,26 @@ class Scene:
         flyover, ``preset`` (the preset used, or ``"custom"`` for a clearance in metres),
         ``clearance_m``, ``clearance_fraction`` (of the extent) and ``waypoints_m``; for an orbit
         ``radius_m`` and ``elevation_m``; and ``text``, one line describing it."""
-        d = dict(self.source.get("path", {}))
-        _check_keys("path", d, {"kind", "waypoints", "clearance", "preset", "n", "radius", "elevation", "units",
-                                "fov_y_deg"})
-        for name, p in (("preset", preset), ("path.preset", d.get("preset"))):
-            if p is not None and p not in PATH_PRESETS:
-                raise ValueError(f"{name}: expected one of {list(PATH_PRESETS)}, got {p!r}")
+        d = self.path
+        n = d.n if n is None else check_int("n", n, 1)
+        if preset is not None:
+            check_choice("preset", preset, PATH_PRESETS)
         hm = self.heightmap
         (x0, z0), (x1, z1) = hm.bounds_xz
         ext = max(x1 - x0, z1 - z0, 1e-9)
-        metres = d.get("units", "fraction") == "m"
-        info: dict[str, Any] = {"kind": d.get("kind", "flyover"), "n": int(n if n is not None else d.get("n", 8)),
-                                "fov_y_deg": float(d.get("fov_y_deg", PATH_FOV_Y_DEG)), "extent_m": ext}
+        metres = d.units == "m"
+        info: dict[str, Any] = {"kind": d.kind, "n": n, "fov_y_deg": d.fov_y_deg, "extent_m": ext}
         if info["kind"] == "orbit":
-            info["radius_m"] = float(d.get("radius", 0.9)) * (1.0 if metres else ext)
-            info["elevation_m"] = float(d.get("elevation", 0.5)) * (1.0 if metres else ext)
+            info["radius_m"] = d.radius * (1.0 if metres else ext)
+            info["elevation_m"] = d.elevation * (1.0 if metres else ext)
             info["text"] = (f"orbit of {info['n']} cameras, radius {info['radius_m']:.0f} m, "
                             f"{info['elevation_m']:.0f} m above the highest point, {info['fov_y_deg']:g} degree fov")
             return info
-        wps = d.get("waypoints", [[0.15, 0.85], [0.5, 0.55], [0.85, 0.15]])
-        info["waypoints_m"] = [(a, b) if metres else (x0 + a * (x1 - x0), z0 + b * (z1 - z0)) for a, b in wps]
-        if preset is None and "clearance" in d:
-            info["preset"], info["clearance_m"] = "custom", float(d["clearance"])
+        info["waypoints_m"] = [(a, b) if metres else (x0 + a * (x1 - x0), z0 + b * (z1 - z0)) for a, b in d.waypoints]
+        if preset is None and d.clearance is not None:
+            info["preset"], info["clearance_m"] = "custom", d.clearance
         else:
-            info["preset"] = preset or d.get("preset", "ground")
+            info["preset"] = preset or d.preset or "ground"
             info["clearance_m"] = PATH_PRESETS[info["preset"]] * ext
         info["clearance_fraction"] = info["clearance_m"] / ext
         info["text"] = (f"flyover of {info['n']} cameras at {info['clearance_m']:.0f} m above the ground "
@@ -363,17 +442,7 @@ class Scene:
         hm_d = data.get("heightmap", {"example": "jacksboro"})
         _check_keys("heightmap", hm_d, {"example", "path", "dx", "dz", "max_height", "fbm", "stream"})
         hm = _heightmap_from(hm_d, Path(base_dir))
-        cam_d = data.get("camera")
-        cam = None
-        if cam_d is not None:
-            _check_keys("camera", cam_d, {"position", "target", "up", "fov_y_deg", "width", "height", "near", "far"})
-            if "position" in cam_d or "target" in cam_d:
-                if not ("position" in cam_d and "target" in cam_d):
-                    raise ValueError("camera: give both 'position' and 'target', or neither")
-                cam = Camera(**cam_d)
-            else:
-                cam = Camera.default_for(hm, cam_d.get("width", 640), cam_d.get("height", 480),
-                                         cam_d.get("fov_y_deg", 45.0))
+        cam = _camera_from(data.get("camera"), hm)
         r = data.get("render", {})
         _check_keys("render", r, {"outputs", "mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back",
                                   "shading"})
@@ -384,21 +453,48 @@ class Scene:
         if "lod" in data:
             _check_keys("lod", data["lod"], set(LodConfig.__dataclass_fields__))
             kw["lod"] = LodConfig(**data["lod"])
-        return cls(heightmap=hm, camera=cam, name=name, source=data, **kw)
+        if "path" in data:
+            kw["path"] = CameraPath.from_table(data["path"])
+        return cls(heightmap=hm, camera=cam, name=name, **kw)
+
+
+def _camera_from(cam_d: object, hm: Heightmap | StreamedHeightmap) -> Camera | None:
+    """A scene file's ``[camera]`` table: a camera at ``position`` looking at ``target``, or, with neither, the
+    default three-quarter view of the terrain; either way with every other key given applied."""
+    if cam_d is None:
+        return None
+    _check_keys("camera", cam_d, {"position", "target", "up", "fov_y_deg", "width", "height", "near", "far"})
+    if "position" in cam_d or "target" in cam_d:
+        if not ("position" in cam_d and "target" in cam_d):
+            raise ValueError("camera: give both 'position' and 'target', or neither")
+        return Camera(**cam_d)
+    cam = Camera.default_for(hm, cam_d.get("width", 640), cam_d.get("height", 480), cam_d.get("fov_y_deg", 45.0))
+    rest = {k: cam_d[k] for k in ("up", "near", "far") if k in cam_d}
+    return cam.with_(**rest) if rest else cam
 
 
 def _heightmap_from(hm_d: dict, base_dir: Path) -> Heightmap | StreamedHeightmap:
-    """A scene file's ``[heightmap]`` table: ``example``, ``path`` or ``fbm``; ``stream = true`` opens a GeoTIFF
-    path (:meth:`Heightmap.open`) or generates the fBm (:meth:`StreamedHeightmap.fbm`) tile by tile."""
-    stream = hm_d.get("stream", False)
-    if not isinstance(stream, bool):
-        raise ValueError(f"heightmap.stream: expected true or false, got {stream!r}")
-    if "example" in hm_d:
-        if hm_d["example"] not in EXAMPLES:
-            raise ValueError(f"heightmap.example: expected one of {list(EXAMPLES)}, got {hm_d['example']!r}")
-        hm = Heightmap.example(hm_d["example"])
+    """A scene file's ``[heightmap]`` table: one of ``example``, ``path`` or ``fbm``; ``stream = true`` opens a
+    GeoTIFF path (:meth:`Heightmap.open`) or generates the fBm (:meth:`StreamedHeightmap.fbm`) tile by tile.
+    ``dx``, ``dz`` and ``max_height`` go with ``path`` only (an example has its own; the fBm takes its own in its
+    table): a key that would not be applied is refused."""
+    stream = check_bool("heightmap.stream", hm_d.get("stream", False))
+    kinds = [k for k in ("example", "path", "fbm") if k in hm_d]
+    if len(kinds) != 1:
+        raise ValueError("heightmap: expected one of the keys 'example', 'path' or 'fbm'" +
+                         (f", got {kinds}" if kinds else ""))
+    for k in ("dx", "dz", "max_height"):
+        if k in hm_d and kinds[0] != "path":
+            where = "its own spacing and heights" if kinds[0] == "example" else f"it in its own table (fbm.{k})"
+            raise ValueError(f"heightmap.{k}: applies to a 'path' heightmap only; an {kinds[0]} takes {where}")
+        if k in hm_d:
+            check_number(f"heightmap.{k}", hm_d[k], 0.0, lo_open=True)
+    if kinds[0] == "example":
+        hm = Heightmap.example(check_choice("heightmap.example", hm_d["example"], EXAMPLES))
         return StreamedHeightmap.of(hm) if stream else hm
-    if "path" in hm_d:
+    if kinds[0] == "path":
+        if not isinstance(hm_d["path"], str):
+            raise TypeError(f"heightmap.path: expected a file path string, got {hm_d['path']!r}")
         hp = Path(hm_d["path"])
         if not hp.is_absolute():
             hp = base_dir / hp
@@ -407,13 +503,12 @@ def _heightmap_from(hm_d: dict, base_dir: Path) -> Heightmap | StreamedHeightmap
                 raise ValueError("heightmap.max_height: a streamed GeoTIFF's heights come from the file")
             return Heightmap.open(hp, hm_d.get("dx"), hm_d.get("dz"))
         return Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"))
-    if "fbm" in hm_d:
-        f = dict(hm_d["fbm"])
-        _check_keys("heightmap.fbm", f, {"rows", "cols", "seed", "max_height", "dx", "dz", "feature_size",
-                                         "octaves", "gain", "lacunarity", "ridged"})
-        rows = f.pop("rows", 257)
-        return StreamedHeightmap.fbm(rows, **f) if stream else Heightmap.fbm(rows, **f)
-    raise ValueError("heightmap: expected one of the keys 'example', 'path' or 'fbm'")
+    f = hm_d["fbm"]
+    _check_keys("heightmap.fbm", f, {"rows", "cols", "seed", "max_height", "dx", "dz", "feature_size",
+                                     "octaves", "gain", "lacunarity", "ridged"})
+    f = dict(f)
+    rows = f.pop("rows", 257)
+    return StreamedHeightmap.fbm(rows, **f) if stream else Heightmap.fbm(rows, **f)
 
 
 def _check_keys(where: str, d: object, allowed: set[str]) -> None:

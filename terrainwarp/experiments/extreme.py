@@ -30,6 +30,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
+from ..kernels.checks import check_int
 from ..scene import Scene
 
 __all__ = ["ExtremeCase", "CASES", "case_names", "get_case", "TESS_FACTORS"]
@@ -56,9 +57,7 @@ class ExtremeCase:
     factor: float | None = None
 
     def build(self, n: int = 33) -> Scene:
-        if isinstance(n, bool) or not isinstance(n, int | np.integer) or int(n) < 2:
-            raise ValueError(f"n: expected an integer grid size >= 2, got {n!r}")
-        return self.make(int(n))
+        return self.make(check_int("n", n, 2))
 
 
 def _rough(n: int, amp: float = 100.0, seed: int = 7) -> np.ndarray:

@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Any
 
 from ..io.files import remove_when_written, write_text
+from ..kernels.checks import check_int
 from ..kernels.parallel import set_threads
 from .dask_worker import PRELOAD
 
@@ -301,10 +302,8 @@ class Runner:
 
     def __init__(self, scheduler: str | None = None, workers: int | None = None, *,
                  connect_timeout_s: float = _CONNECT_TIMEOUT_S):
-        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)):
-            raise TypeError(f"workers: expected an int, got {type(workers).__name__}")
-        if workers is not None and workers < 0:
-            raise ValueError(f"workers: expected >= 0, got {workers}")
+        if workers is not None:
+            workers = check_int("workers", workers, 0)
         self.bytes_shared = 0
         self.client = None
         if scheduler is not None:

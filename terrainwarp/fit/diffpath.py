@@ -71,6 +71,7 @@ from jax.scipy.special import logsumexp
 from ..camera import Camera
 from ..diff import clip_positions, interpolate
 from ..heightmap import Heightmap
+from ..kernels.checks import check_number
 from ..kernels.raster import rasterize
 from ..kernels.tessellator import tessellate_patches
 from ..lod.policies import EDGE_PX_MAX, ContinuousPolicy, continuous_factors, edge_pixels
@@ -288,9 +289,7 @@ def prepare(heightmap: Heightmap, camera: Camera, target_px: float, level: int =
         raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a Camera, got {type(camera).__name__}")
-    if isinstance(target_px, bool) or not isinstance(target_px, int | float | np.floating) \
-            or not math.isfinite(target_px) or target_px <= 0:
-        raise ValueError(f"target_px: expected a positive finite number of pixels, got {target_px!r}")
+    check_number("target_px", target_px, 0.0, lo_open=True)
     if terrain is None:
         terrain = Terrain.prepare(heightmap, roots=roots, tess=8, device=device)
     elif terrain.heightmap is not heightmap:

@@ -74,6 +74,7 @@ import numpy as np
 from ..camera import Camera
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import save_figure
+from ..kernels.checks import check_int, check_number
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import Terrain, node_metrics, select
 from ..rendering.pipeline import Frame, pop_stats, render
@@ -338,8 +339,7 @@ def grid_search(scene: Scene, terrain: Terrain | None, cameras: list[Camera], po
     own terrain and references; the table is the same. ``on_frame()`` is called once per frame evaluated
     (progress; after the evaluator returns when there is one).
     """
-    if isinstance(points, bool) or not isinstance(points, int | np.integer) or points < 1:
-        raise ValueError(f"points: expected an integer >= 1, got {points!r}")
+    check_int("points", points, 1)
     kn = knob(policy, scene.heightmap, cache)
     t0 = time.perf_counter()
     values = list(dict.fromkeys(kn.snap(v) for v in np.geomspace(*kn.fit_range, points)))
@@ -467,9 +467,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     if isinstance(scene.heightmap, StreamedHeightmap):
         raise ValueError("scene.heightmap: fit_lod measures every frame against the full-resolution grid and its "
                          "pyramids; fit on StreamedHeightmap.load() (or a part of the terrain that fits)")
-    if max_pop_px is not None and (isinstance(max_pop_px, bool) or not isinstance(max_pop_px, int | float)
-                                   or not math.isfinite(max_pop_px) or max_pop_px < 0):
-        raise ValueError(f"max_pop_px: expected None or a finite number of pixels >= 0, got {max_pop_px!r}")
+    if max_pop_px is not None:
+        check_number("max_pop_px", max_pop_px, 0.0)
     t_start = time.perf_counter()
     cams = cameras if cameras is not None else scene.camera_path()
     if not cams:
@@ -557,15 +556,12 @@ def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: in
                          grid_points: int) -> None:
     for name, n, least in (("steps", steps, 1), ("max_validations", max_validations, 1),
                            ("grid_points", grid_points, 0)):
-        if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < least:
-            raise ValueError(f"{name}: expected an integer >= {least}, got {n!r}")
+        check_int(name, n, least)
     if policy not in LOD_POLICIES and policy not in SCHEMES:
         raise ValueError(f"policy: expected one of {[*LOD_POLICIES, *SCHEMES]}, got {policy!r}")
     if gradient not in ("relaxed", "pixels") or (gradient == "pixels" and policy != "continuous"):
         raise ValueError(f"gradient: expected 'relaxed', or 'pixels' with the continuous policy, got {gradient!r}")
-    if isinstance(budget_px, bool) or not isinstance(budget_px, int | float) or not math.isfinite(budget_px) \
-            or budget_px <= 0:
-        raise ValueError(f"budget_px: expected a positive finite number of pixels, got {budget_px!r}")
+    check_number("budget_px", budget_px, 0.0, lo_open=True)
 
 
 @dataclass

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
+from ..kernels.checks import check_int
 from .files import atomic_path
 from .geodesy import WGS84_A, WGS84_INV_F, metres_per_degree
 from .memory import check_heightmap_fits
@@ -144,9 +145,7 @@ def _crs_name(crs: CRS) -> str:
 
 
 def _int_arg(name: str, v: object, lo: int) -> int:
-    if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < lo:
-        raise ValueError(f"{name}: expected an integer >= {lo}, got {v!r}")
-    return int(v)
+    return check_int(name, v, lo)
 
 
 def _pixel_window(src: DatasetReader, window: object, bounds: object) -> tuple[int, int, int, int]:

@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from ..kernels import noise
+from ..kernels.checks import check_int, check_number, is_number
 from . import geotiff
 from .cache import CacheFolder
 
@@ -62,8 +63,7 @@ def cache_mb_from_env(cache_mb: float | None) -> float:
         name = "TERRAINWARP_TILE_CACHE_MB"
     else:
         name = "cache_mb"
-    if isinstance(cache_mb, bool) or not isinstance(cache_mb, int | float) or not math.isfinite(cache_mb) \
-            or cache_mb <= 0:
+    if not is_number(cache_mb) or not math.isfinite(cache_mb) or cache_mb <= 0:
         raise ValueError(f"{name}: expected a positive number of MiB, got {cache_mb!r}")
     return float(cache_mb)
 
@@ -158,15 +158,13 @@ class FbmSource(TileSource):
                  gain: float = 0.5, lacunarity: float = 2.0, ridged: bool = False):
         cols = rows if cols is None else cols
         for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
-            if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < 1:
-                raise ValueError(f"{nm}: expected a positive integer, got {v!r}")
+            check_int(nm, v, 1)
         if max(rows, cols) > 2**24:
             raise ValueError(f"rows, cols: at most 2^24 samples per side (float32 noise coordinates), got "
                              f"{rows} x {cols}")
         for nm, v in (("max_height", max_height), ("dx", dx), ("feature_size", feature_size),
                       ("gain", gain), ("lacunarity", lacunarity)) + ((("dz", dz),) if dz is not None else ()):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"{nm}: expected a positive finite number, got {v!r}")
+            check_number(nm, v, 0.0, lo_open=True)
         self.shape = (int(rows), int(cols))
         self.dx, self.dz = float(dx), float(dz if dz is not None else dx)
         self.max_height, self.feature_size = float(max_height), float(feature_size)

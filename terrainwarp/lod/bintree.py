@@ -36,6 +36,7 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels import bintree as _k
+from ..kernels.checks import check_int
 from ..kernels.lod import frustum_planes
 from ..mesh import Mesh
 
@@ -109,10 +110,7 @@ class Bintree:
         rows, cols = heightmap.shape
         if depth is None:
             depth = 2 * max(1, math.ceil(math.log2(max(rows, cols, 2) - 1))) + 1
-        if isinstance(depth, bool) or not isinstance(depth, int | np.integer):
-            raise TypeError(f"depth: expected an integer, got {depth!r}")
-        if not 1 <= int(depth) <= MAX_DEPTH:
-            raise ValueError(f"depth: expected 1..{MAX_DEPTH}, got {depth}")
+        depth = check_int("depth", depth, 1, MAX_DEPTH)
         (x0, z0), (x1, z1) = heightmap.bounds_xz
         side = max(x1 - x0, z1 - z0)
         if not side > 0:

@@ -52,6 +52,7 @@ import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
+from ..kernels.checks import check_int, check_number
 from ..kernels.lod import select_level
 from ..kernels.schemes import cdlod_mesh
 from ..mesh import Mesh
@@ -126,20 +127,18 @@ class Cdlod(SelectThenMesh):
             raise TypeError(f"heightmap: expected a Heightmap, got {type(self.heightmap).__name__}")
         if np.isnan(self.heightmap.heights).any():
             raise ValueError("heightmap: CDLOD here expects no NaN (no-data) heights")
-        if not (math.isfinite(self.first_range) and self.first_range > 0):
-            raise ValueError(f"first_range: expected a positive finite distance in metres, got {self.first_range}")
-        if not (math.isfinite(self.ratio) and self.ratio > 1):
-            raise ValueError(f"ratio: expected a finite number > 1, got {self.ratio}")
-        if not 0 < self.morph_start_ratio < 1:
-            raise ValueError(f"morph_start_ratio: expected a number in (0, 1), got {self.morph_start_ratio}")
-        if isinstance(self.grid, bool) or not isinstance(self.grid, int) or self.grid % 2 or not 2 <= self.grid <= 64:
+        self.first_range = check_number("first_range", self.first_range, 0.0, lo_open=True)
+        self.ratio = check_number("ratio", self.ratio, 1.0, lo_open=True)
+        self.morph_start_ratio = check_number("morph_start_ratio", self.morph_start_ratio, 0.0, 1.0, lo_open=True,
+                                              hi_open=True)
+        self.grid = check_int("grid", self.grid, 2, 64)
+        if self.grid % 2:
             raise ValueError(f"grid: expected an even integer in 2..64, got {self.grid!r}")
         hh, ww = self.heightmap.shape
         longest = max(ww - 1, hh - 1, 1)
         if self.levels is None:
             self.levels = max(1, math.ceil(math.log2(max(longest / self.grid, 1.0)) - 1e-12) + 1)
-        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or not 1 <= self.levels <= 20:
-            raise ValueError(f"levels: expected an integer in 1..20, got {self.levels!r}")
+        self.levels = check_int("levels", self.levels, 1, 20)
         root = self.grid * 2 ** (self.levels - 1)
         roots = (max(1, math.ceil((ww - 1) / root)), max(1, math.ceil((hh - 1) / root)))
         self.terrain = Terrain.prepare(self.heightmap, roots=roots, tess=self.grid, depth=self.levels - 1,

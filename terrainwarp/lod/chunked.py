@@ -36,13 +36,13 @@ the way Cesium's quantized-mesh terrain hides cracks).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
+from ..kernels.checks import check_number
 from ..kernels.lod import select_level
 from ..kernels.schemes import chunk_mesh
 from ..mesh import Mesh
@@ -107,10 +107,9 @@ class ChunkedLod(SelectThenMesh):
             raise TypeError(f"heightmap: expected a Heightmap, got {type(self.heightmap).__name__}")
         if np.isnan(self.heightmap.heights).any():
             raise ValueError("heightmap: chunked LOD here expects no NaN (no-data) heights")
-        if not (math.isfinite(self.max_sse_px) and self.max_sse_px >= 0):
-            raise ValueError(f"max_sse_px: expected a finite number of pixels >= 0, got {self.max_sse_px}")
-        if self.skirt_depth is not None and not (math.isfinite(self.skirt_depth) and self.skirt_depth >= 0):
-            raise ValueError(f"skirt_depth: expected None or a finite depth >= 0 in metres, got {self.skirt_depth}")
+        self.max_sse_px = check_number("max_sse_px", self.max_sse_px, 0.0)
+        if self.skirt_depth is not None:
+            self.skirt_depth = check_number("skirt_depth", self.skirt_depth, 0.0)
         self.terrain = Terrain.prepare(self.heightmap, roots=self.roots, tess=self.tile, device=self.device)
         lo, hi = self.heightmap.height_range
         self._slack = 1e-6 * max(hi - lo, 1.0)

@@ -42,6 +42,7 @@ import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
+from ..kernels.checks import check_int, check_number
 from ..kernels.lod import frustum_planes
 from ..kernels.schemes import clipmap_mesh
 from ..mesh import Mesh
@@ -99,20 +100,19 @@ class Clipmap(SelectThenMesh):
             raise TypeError(f"heightmap: expected a Heightmap, got {type(self.heightmap).__name__}")
         if np.isnan(self.heightmap.heights).any():
             raise ValueError("heightmap: clipmaps here expect no NaN (no-data) heights")
-        if isinstance(self.n, bool) or not isinstance(self.n, int) or self.n < 15 or self.n % 2 == 0:
+        self.n = check_int("n", self.n, 15)
+        if self.n % 2 == 0:
             raise ValueError(f"n: expected an odd integer >= 15, got {self.n!r}")
         m = (self.n - 1) // 2
         if self.transition is None:
             self.transition = self.n / 10.0
-        if not (math.isfinite(self.transition) and 0 < self.transition <= (m - 1) / 2):
-            raise ValueError(f"transition: expected a width in (0, {(m - 1) / 2}] grid units, got {self.transition}")
+        self.transition = check_number("transition", self.transition, 0.0, (m - 1) / 2, lo_open=True)
         hh, ww = self.heightmap.shape
         if self.levels is None:
             self.levels = max(1, math.ceil(math.log2(max(max(ww - 1, hh - 1) / (m - 1), 1.0)) - 1e-12) + 1)
-        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or not 1 <= self.levels <= 24:
-            raise ValueError(f"levels: expected an integer in 1..24, got {self.levels!r}")
-        if self.active_height_ratio is not None and not self.active_height_ratio > 0:
-            raise ValueError(f"active_height_ratio: expected None or > 0, got {self.active_height_ratio}")
+        self.levels = check_int("levels", self.levels, 1, 24)
+        if self.active_height_ratio is not None:
+            self.active_height_ratio = check_number("active_height_ratio", self.active_height_ratio, 0.0, lo_open=True)
         self._h = np.ascontiguousarray(self.heightmap.heights, np.float32)
 
     @property

@@ -36,6 +36,7 @@ import numpy as np
 from ..camera import relative_origin
 from ..heightmap import Heightmap
 from ..kernels import polytree as _k
+from ..kernels.checks import check_int, check_number, is_int, is_number
 from ..mesh import Mesh
 
 __all__ = ["PolygonArray", "Polytree", "TinMorph", "build_polytree", "default_tolerances", "merge_rectangles",
@@ -76,7 +77,7 @@ class PolygonArray:
         return int(len(self.tolerances))
 
     def _check(self, t: int) -> int:
-        if isinstance(t, bool) or not isinstance(t, int | np.integer):
+        if not is_int(t):
             raise TypeError(f"t: expected an integer level index, got {t!r}")
         if not 0 <= int(t) < self.n_levels:
             raise ValueError(f"t: expected a level in [0, {self.n_levels}), got {t}")
@@ -261,9 +262,7 @@ class Polytree:
     def morph_mesh(self, x: float, eye=None) -> Mesh:
         """The mesh at continuous level ``x`` in [0, T-1]: level floor(x) morphed by s = x - floor(x)
         towards the next level; at an integer x < T-1, the split level floor(x) (see :class:`TinMorph`)."""
-        if isinstance(x, bool) or not isinstance(x, int | float | np.integer | np.floating):
-            raise TypeError(f"x: expected a number, got {x!r}")
-        x = float(x)
+        x = check_number("x", x)
         if not 0.0 <= x <= self.n_levels - 1:
             raise ValueError(f"x: expected a continuous level in [0, {self.n_levels - 1}], got {x}")
         t = min(int(np.floor(x)), self.n_levels - 2)
@@ -274,11 +273,7 @@ class Polytree:
     def morph_at(self, t: int, s: float, eye=None) -> Mesh:
         """The morph from level t to t+1 at parameter ``s`` in [0, 1] (same vertices and triangles for
         every s; at s = 1 every vertex sits on a level t+1 vertex)."""
-        if isinstance(s, bool) or not isinstance(s, int | float | np.integer | np.floating):
-            raise TypeError(f"s: expected a number, got {s!r}")
-        s = float(s)
-        if not 0.0 <= s <= 1.0:
-            raise ValueError(f"s: expected a morph parameter in [0, 1], got {s}")
+        s = check_number("s", s, 0.0, 1.0)
         mo = self.morph(t)
         eye3, rel = self._rel(eye)
         hm = self.heightmap
@@ -301,8 +296,7 @@ def default_tolerances(heightmap: Heightmap, n: int = 100) -> np.ndarray:
     """(n,) float32 tolerances from 0 to 8x the height range (the largest possible ``|dXgr| + |dYgr|``),
     spaced quadratically so most of them fall where the merging changes."""
     hm = _check_heightmap(heightmap)
-    if isinstance(n, bool) or not isinstance(n, int | np.integer) or int(n) < 1:
-        raise ValueError(f"n: expected a positive integer, got {n!r}")
+    n = check_int("n", n, 1)
     lo, hi = hm.height_range
     span = max(8.0 * (hi - lo), 1e-6)
     k = np.arange(int(n), dtype=np.float64) / max(int(n) - 1, 1)
@@ -342,6 +336,6 @@ def build_polytree(heightmap: Heightmap, tolerances: object, *, stop_at_one: boo
 
 def merge_rectangles(heightmap: Heightmap, tolerance: float, device: str = "cpu") -> np.ndarray:
     """The single-resolution polygonalisation at one tolerance: (P, 4) int32 rectangles (i0, i1, j0, j1)."""
-    if isinstance(tolerance, bool) or not isinstance(tolerance, int | float | np.integer | np.floating):
+    if not is_number(tolerance):
         raise TypeError(f"tolerance: expected a number of metres, got {tolerance!r}")
     return build_polytree(heightmap, [float(tolerance)], device=device).polygons.level(0)

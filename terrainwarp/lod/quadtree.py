@@ -45,6 +45,7 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import write_text
+from ..kernels.checks import check_int
 from ..kernels.lod import (
     TreeMapHost,
     frustum_planes,
@@ -132,9 +133,7 @@ def layout(shape: tuple[int, int], roots: int | tuple[int, int], tess: int,
     need = max((ww - 1) / nx, (hh - 1) / nz, 1e-9)
     if depth is None:
         depth = max(0, math.ceil(math.log2(max(need / tess, 1.0)) - 1e-12))
-    if isinstance(depth, bool) or not isinstance(depth, int | np.integer) or not 0 <= int(depth) <= 20:
-        raise ValueError(f"depth: expected an integer in 0..20, got {depth!r}")
-    depth = int(depth)
+    depth = check_int("depth", depth, 0, 20)
     root_cells = float(tess) * 2.0 ** depth
     if root_cells < need:  # an explicit, too-small depth: grow the patches to cover the grid
         root_cells = need

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..kernels.checks import check_int
 from ..kernels.visibility import cell_node_visibility
 from .bintree import Bintree
 
@@ -33,9 +34,7 @@ EYE_HEIGHT = 1.8
 
 
 def _pos_int(name: str, v: object, lo: int = 1) -> int:
-    if isinstance(v, bool) or not isinstance(v, int | np.integer) or int(v) < lo:
-        raise ValueError(f"{name}: expected an integer >= {lo}, got {v!r}")
-    return int(v)
+    return check_int(name, v, lo)
 
 
 @dataclass(frozen=True, eq=False)

@@ -35,6 +35,7 @@ import numpy as np
 
 from ..heightmap import Heightmap
 from ..io.files import save_figure
+from ..kernels.checks import check_int
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -173,8 +174,7 @@ def line_strokes(heightmap: Heightmap, *, method: str = "three_normal", scale: f
     from scipy.sparse.csgraph import connected_components
 
     hm = _check_heightmap(heightmap)
-    if isinstance(min_length, bool) or not isinstance(min_length, int | np.integer) or min_length < 2:
-        raise ValueError(f"min_length: expected an integer >= 2, got {min_length!r}")
+    check_int("min_length", min_length, 2)
     thr = float(threshold)
     if not np.isfinite(thr):
         raise ValueError(f"threshold: expected a finite number, got {threshold!r}")

@@ -47,7 +47,7 @@ def test_scene_files_stream_with_stream_true(tmp_path):
     assert np.array_equal(sc.heightmap.load().heights, Heightmap.fbm(513, seed=2).heights)
     assert isinstance(Scene.from_dict({"heightmap": {"example": "jacksboro", "stream": True}}).heightmap,
                       StreamedHeightmap)
-    with pytest.raises(ValueError, match="heightmap.stream"):
+    with pytest.raises(TypeError, match="heightmap.stream: expected true or false"):
         Scene.from_dict({"heightmap": {"example": "jacksboro", "stream": "yes"}})
     p = tmp_path / "h.tif"
     Heightmap.example().save(p)

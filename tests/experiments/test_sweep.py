@@ -130,7 +130,7 @@ def test_a_raising_job_is_recorded_and_the_sweep_goes_on(small, capsys):
     # a report setting that raises in the workers (invalid tolerance) is recorded the same way
     sc, cams = small
     res = run_sweep(sc, cams, [Setting("sse", -1.0), Setting("sse", 4.0)], workers=2, progress=False)
-    assert [r["error"].startswith("ValueError: tolerance_px") for r in res.rows] == [True] * 3 + [False] * 3
+    assert [r["error"].startswith("ValueError: lod.tolerance_px") for r in res.rows] == [True] * 3 + [False] * 3
     assert all(r["p99_px"] >= 0 for r in res.rows[3:])
 
 
@@ -196,7 +196,7 @@ def test_unreachable_scheduler_is_a_clear_error_within_seconds(tmp_path, capsys)
     assert err.count("\n") == 0 and err.startswith("terrainwarp: error: scheduler: no Dask scheduler answered")
     with pytest.raises(ValueError, match="scheduler: expected an address like tcp://HOST:PORT"):
         Runner(scheduler="localhost")
-    with pytest.raises(ValueError, match="workers: expected >= 0"):
+    with pytest.raises(ValueError, match="workers: expected an integer >= 0"):
         Runner(workers=-1)
 
 

@@ -212,7 +212,9 @@ def test_deterministic_and_bad_input(hm, cam, terrain):
         return digest(np.asarray(err), g)
 
     assert run() == run()
-    for bad in (0.0, -1.0, float("nan"), float("inf"), "3"):
+    with pytest.raises(TypeError, match="target_px: expected a number"):  # the wrong type: TypeError
+        dp.prepare(hm, cam, "3")
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="target_px"):
             dp.prepare(hm, cam, bad)
     with pytest.raises(TypeError, match="camera"):

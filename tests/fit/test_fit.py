@@ -77,9 +77,11 @@ def test_impossible_and_bad_budgets(scene, monkeypatch):
     assert not res.met
     assert "cannot be met" in res.message
     monkeypatch.undo()
-    for bad in (0.0, -1.0, float("nan"), float("inf"), "1"):
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="budget_px"):
             fit_lod(sc, bad, cameras=cams)
+    with pytest.raises(TypeError, match="budget_px: expected a number, got '1'"):
+        fit_lod(sc, "1", cameras=cams)
     with pytest.raises(ValueError, match="policy"):
         fit_lod(sc, 1.0, policy="magic", cameras=cams)
 
@@ -115,9 +117,11 @@ def test_bad_counts_are_refused_before_any_work(scene, monkeypatch):
     sc, cams = scene
     monkeypatch.setattr(lod_fit, "render", lambda *a, **k: pytest.fail("rendered before validating"))
     for kw, name in (({"grid_points": -1}, "grid_points"), ({"steps": 0}, "steps"),
-                     ({"max_validations": -2}, "max_validations"), ({"grid_points": 2.5}, "grid_points")):
+                     ({"max_validations": -2}, "max_validations")):
         with pytest.raises(ValueError, match=name):
             fit_lod(sc, 1.0, cameras=cams, **kw)
+    with pytest.raises(TypeError, match="grid_points: expected an integer, got 2.5"):
+        fit_lod(sc, 1.0, cameras=cams, grid_points=2.5)
 
 
 def test_fit_progress_bar_counts_every_step(scene, capsys):

@@ -374,7 +374,7 @@ def test_bad_arguments():
         compute_curvature(h, "two_normal", normals="hex")
     with pytest.raises(ValueError, match="distance"):
         compute_curvature(h, "three_normal", distance=0)
-    with pytest.raises(ValueError, match="distance"):
+    with pytest.raises(TypeError, match="distance: expected an integer"):
         compute_curvature(h, "three_normal", distance=1.5)
     with pytest.raises(ValueError, match="scale"):
         compute_curvature(h, "three_vertex", scale=-1.0)
