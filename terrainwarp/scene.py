@@ -1,11 +1,13 @@
 """Scenes: what to render (heightmap, camera, mesh policy) and which outputs are asked for.
 
-A scene file is TOML::
+A scene file is TOML; every key given is applied or refused, and every value is checked by type and range
+(:mod:`terrainwarp.kernels.checks`)::
 
     [heightmap]
-    example = "jacksboro"        # or: path = "dem.png", with optional dx, dz, max_height
+    example = "jacksboro"        # or: path = "dem.png" (with optional dx, dz, max_height),
+                                 # or: fbm = { rows = 513, seed = 1 }; stream = true to stream it
     [camera]                      # optional; default: a three-quarter view framing the terrain
-    position = [x, y, z]
+    position = [x, y, z]          # with target; without both, the default view with the keys given
     target = [x, y, z]
     fov_y_deg = 45
     width = 640
@@ -14,7 +16,11 @@ A scene file is TOML::
     far = 100000.0
     [render]
     outputs = ["image", "depth", "report"]
-    mesh = "grid"
+    mesh = "grid"                 # or "lod"
+    [lod]                         # LodConfig's fields: policy, tolerance_px, k, target_px, level, ...
+    policy = "sse"
+    [path]                        # CameraPath's fields: kind, n, waypoints, preset or clearance, ...
+    kind = "flyover"
 """
 
 from __future__ import annotations
