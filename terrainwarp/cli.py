@@ -1,12 +1,14 @@
 """The ``terrainwarp`` command line.
 
 Every command that takes a scene file uses the demo scene (the bundled SRTM DEM, default camera) when
-none is given. Outputs go under ``--out DIR``, written as one set (:func:`terrainwarp.io.files.output_set`):
-renamed into place only when every file is written. Bad arguments, paths and scene files, a full disk or
-any other failure print one line on stderr and exit 2; Ctrl-C prints one line and exits 130. Either way
-``--out`` is left as it was (the previous run's files whole, nothing new) except for a sweep's partial
-journal, from which a rerun resumes. A run that succeeds says which files in ``--out`` it did not write
-(left from an earlier run; never deleted).
+none is given. ``--plugin FILE.py`` (or a module name; before or after the command, repeatable) runs a plugin
+first, so the LOD schemes it registers (:func:`terrainwarp.schemes.register_scheme`) are names that
+``report --policies`` and ``fit --policy`` take. Outputs go under ``--out DIR``, written as one set
+(:func:`terrainwarp.io.files.output_set`): renamed into place only when every file is written. Bad arguments,
+paths and scene files, a full disk or any other failure print one line on stderr and exit 2; Ctrl-C prints one
+line and exits 130. Either way ``--out`` is left as it was (the previous run's files whole, nothing new)
+except for a sweep's partial journal, from which a rerun resumes. A run that succeeds says which files in
+``--out`` it did not write (left from an earlier run; never deleted).
 """
 
 from __future__ import annotations
@@ -33,7 +35,6 @@ from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
-from .rendering.sources import SCHEMES
 from .runtime import configure_from_env
 from .scene import (
     LOD_POLICIES,
@@ -46,6 +47,7 @@ from .scene import (
     Scene,
     check_tess,
 )
+from .schemes import SCHEMES, load_plugin
 
 __all__ = ["main", "sweep_evaluator"]
 
@@ -321,6 +323,7 @@ class _Help(argparse.ArgumentDefaultsHelpFormatter):
 def _command(sub, name: str, help: str, func) -> _Parser:
     c = sub.add_parser(name, help=help, description=help[:1].upper() + help[1:] + ".", formatter_class=_Help)
     c.set_defaults(func=func)
+    _add_plugin(c)  # also after the command; the plugins run before parsing (main)
     return c
 
 
@@ -388,8 +391,8 @@ def _add_report_fit(sub) -> None:
     rp.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     rp.add_argument("--policies", default=None,
-                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree,"
-                         + ",".join(SCHEMES) + " (default: all)")
+                    help="comma-separated subset of grid,sse,distance,continuous,martini,delatin,polytree,bintree "
+                         "and the schemes " + ",".join(SCHEMES) + " (default: all)")
     _add_path(rp)
     rp.add_argument("--quick", action="store_true", help="two settings per policy")
     rp.add_argument("--no-images", action="store_true", help="skip shading (no PSNR/SSIM)")
@@ -403,7 +406,7 @@ def _add_report_fit(sub) -> None:
     _add_scene(ft, "out/fit")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
     ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=_LOD.policy,
-                    help="LOD policy or scheme to fit")
+                    help="LOD policy or registered scheme to fit")
     ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     _add_path(ft)
@@ -439,10 +442,18 @@ def _add_stability_tessellate_bench(sub) -> None:
     b.add_argument("--list", action="store_true", help="list the benchmarks' names and exit")
 
 
+def _add_plugin(c: argparse.ArgumentParser) -> None:
+    c.add_argument("--plugin", action="append", default=None, metavar="FILE.py|MODULE",
+                   help="run this plugin first (repeatable): the LOD schemes it registers become policy names")
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``terrainwarp`` parser; its scheme names are those registered when it is built (:func:`main` runs the
+    ``--plugin`` files first)."""
     p = _Parser(prog="terrainwarp", description="A deterministic CPU simulator of the GPU terrain pipeline.",
                 epilog="'terrainwarp COMMAND --help' shows a command's options.")
     p.add_argument("--version", action="version", version=f"terrainwarp {__version__}")
+    _add_plugin(p)
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser, metavar="COMMAND")
     _add_demo_render_lod(sub)
     _add_report_fit(sub)
@@ -453,9 +464,23 @@ def build_parser() -> argparse.ArgumentParser:
 # ------------------------------------------------------------------------------------------------
 # main: one line and exit 2 on bad input, and --out left as it was found
 # ------------------------------------------------------------------------------------------------
+def _run_plugins(argv: list[str]) -> None:
+    """Run the ``--plugin`` files and modules of ``argv`` (before the parser is built: what they register are
+    choices of its options); ValueError with the plugin's error."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--plugin", action="append", default=[])
+    for plugin in pre.parse_known_args(argv)[0].plugin:
+        load_plugin(plugin)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        _run_plugins(argv)
+    except ValueError as e:
+        print(f"terrainwarp: error: --plugin: {_one_line(e).removeprefix('plugin: ')}", file=sys.stderr)
+        return 2
+    parser = build_parser()
     if not argv:  # bare `terrainwarp`: the usage and the commands, on stderr, exit 2 (as for a missing argument)
         parser.print_help(sys.stderr)
         return 2

@@ -36,7 +36,8 @@ MAX_FUNCTION_LINES = 80
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("terrainwarp.kernels",),
     ("terrainwarp.io",),
-    ("terrainwarp.heightmap", "terrainwarp.camera", "terrainwarp.mesh", "terrainwarp.scene", "terrainwarp.runtime"),
+    ("terrainwarp.heightmap", "terrainwarp.camera", "terrainwarp.mesh", "terrainwarp.scene", "terrainwarp.runtime",
+     "terrainwarp.schemes"),
     ("terrainwarp.lod", "terrainwarp.surface"),
     ("terrainwarp.measure",),
     ("terrainwarp.rendering",),

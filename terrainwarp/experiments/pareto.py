@@ -17,9 +17,9 @@ time, and their measured vertical error beside the setting), and the other mesh 
 papers: ``polytree`` (taylor-barrett bottom-up merging; param = tolerance level of 64; built once) and
 ``bintree`` (mrbsp right-triangle bisection with the apparent-size LOD rule, hole fixing and forced
 splits; param = tree depth M; selected per frame); and the schemes engines ship,
-:data:`terrainwarp.rendering.sources.SCHEMES` (``cdlod``: first range in metres; ``clipmaps``: ring size
-n; ``chunked``: Cesium's maximum screen-space error in px), selected per frame, their pyramids built once
-per worker (reported as ``peer_mesh_ms``).
+:data:`terrainwarp.schemes.SCHEMES` (``cdlod``: first range in metres; ``clipmaps``: ring size
+n; ``chunked``: Cesium's maximum screen-space error in px; and any scheme registered since), selected per
+frame, their pyramids built once per worker (reported as ``peer_mesh_ms``).
 
 Every frame is made by :func:`terrainwarp.render`: the grid and the LOD policies from the scene, the
 peers, polytree and bintree as prebuilt mesh sources (:mod:`terrainwarp.rendering.sources`). Frame cost
@@ -34,8 +34,10 @@ import csv
 import hashlib
 import io
 import math
+import pickle
+import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +50,21 @@ from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
 from ..lod.quadtree import Terrain
 from ..rendering.pipeline import Frame, MeshSource, Report, pop_stats, render
-from ..rendering.sources import SCHEMES, BintreeSource, PeerSource, PolytreeSource, scheme_range, scheme_source
+from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import LOD_POLICIES, Scene
+from ..schemes import PLUGIN_FLAG, SCHEMES, register_scheme, scheme_source, sweep_values
 from .runner import Job, Runner, SweepResult, pending_jobs
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
            "TIMING_COLUMNS", "image_floor"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
-_BUILT = (*_PEERS, "polytree", "bintree", *SCHEMES)  # built once per worker, apart from frames: mesh sources
+_FAMILIES = (*_PEERS, "polytree", "bintree")  # mesh families built once per worker, apart from frames
+
+
+def _built(policy: str) -> bool:
+    """Whether ``policy`` is drawn as a mesh source built apart from frames: a family, or a registered scheme."""
+    return policy in _FAMILIES or policy in SCHEMES
 TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
 
 
@@ -92,21 +100,11 @@ def default_settings(heightmap: Heightmap, quick: bool = False) -> list[Setting]
 
 
 def _scheme_settings(heightmap: Heightmap, quick: bool) -> list[Setting]:
-    """A few settings of each scheme (:data:`SCHEMES`), fine to coarse, inside its range on ``heightmap``:
-    CDLOD's first range at 8, 4, 2, 1 times its seam-free minimum, clipmaps' n from 255 down to 31, chunked's
-    pixel threshold from 1 to 8 (Cesium's default 2 among them)."""
-    steps = (8.0, 4.0, 2.0, 1.0) if not quick else (4.0, 1.0)  # finer by each step's factor
-    out = []
-    for name, spec in SCHEMES.items():
-        lo, hi = scheme_range(name, heightmap)
-        if name == "cdlod":
-            vals = [min(lo * f, hi) for f in steps]
-        elif spec.integer:  # clipmaps' n: odd, 2^k - 1 as GPU Gems'
-            vals = [min(max(32 * f - 1, lo), hi) for f in steps]
-        else:
-            vals = [min(max(8.0 / f, lo), hi) for f in steps]
-        out += [Setting(name, round(float(v), 2)) for v in dict.fromkeys(vals)]
-    return out
+    """A few settings of each registered scheme (:data:`terrainwarp.schemes.SCHEMES`), fine to coarse, inside
+    its range on ``heightmap`` (:func:`terrainwarp.schemes.sweep_values`): for the built-ins CDLOD's first
+    range at 8, 4, 2, 1 times its seam-free minimum, clipmaps' n from 255 down to 31, chunked's pixel threshold
+    from 1 to 8 (Cesium's default 2 among them)."""
+    return [Setting(name, v) for name in SCHEMES for v in sweep_values(name, heightmap, quick)]
 
 
 @dataclass(frozen=True)
@@ -122,6 +120,7 @@ class SweepContext:
     images: bool
     device: str
     need_lod: bool
+    schemes: dict = field(default_factory=dict)  # user schemes the sweep draws: name -> pickled SchemeSpec
 
 
 _STATE: dict = {}  # per worker process: the context's Terrain, mesh sources and normal map, made once
@@ -133,6 +132,7 @@ def _state(ctx: SweepContext) -> dict:
         # the first copy of the scene this process received: a later copy (same token, same content) is
         # another object, and a Terrain belongs to the heightmap object it was prepared from
         _STATE.update(token=ctx.token, scene=ctx.scene, terrain=None, prepare_ms=0.0, sources={}, cache={})
+        _register_user_schemes(ctx.schemes)
     if ctx.need_lod and _STATE["terrain"] is None:
         t0 = time.perf_counter()
         hm, lod = _STATE["scene"].heightmap, ctx.scene.lod
@@ -179,6 +179,38 @@ def _peer_job(ctx: SweepContext, setting: Setting) -> tuple:
     return peer, mesh_vertical_error(hm, peer)
 
 
+def _user_schemes(settings: list[Setting]) -> dict[str, bytes]:
+    """The specs of the schemes registered by the user that ``settings`` draw, each pickled for the workers (which
+    only know the built-in ones): by value for a plugin run from a file (:func:`terrainwarp.schemes.load_plugin`:
+    a worker cannot import it by name), by reference for an importable module."""
+    specs = [SCHEMES[n] for n in dict.fromkeys(s.policy for s in settings) if n in SCHEMES and not SCHEMES[n].builtin]
+    if not specs:
+        return {}
+    import cloudpickle  # lazy: heavy optional dependency
+
+    for spec in specs:
+        module = sys.modules.get(getattr(spec.make, "__module__", ""))
+        if module is not None and getattr(module, PLUGIN_FLAG, False):
+            cloudpickle.register_pickle_by_value(module)
+    return {spec.name: cloudpickle.dumps(spec) for spec in specs}
+
+
+_RECEIVED: dict[str, bytes] = {}  # per worker process: the user schemes registered from a sweep's context
+
+
+def _register_user_schemes(sent: dict[str, bytes]) -> None:
+    """Register the user schemes a sweep sent (:func:`_user_schemes`) that this process does not know, or knows
+    from an earlier sweep in another version; a scheme registered in this process (an in-process sweep) stays."""
+    for name, blob in sent.items():
+        if (name in SCHEMES and name not in _RECEIVED) or _RECEIVED.get(name) == blob:
+            continue
+        spec = pickle.loads(blob)
+        register_scheme(name, spec.make, parameter=spec.parameter, lo=spec.lo, hi=spec.hi,
+                        larger_is_finer=spec.larger_is_finer, odd_integer=spec.odd_integer, sweep=spec.sweep,
+                        fit_range=spec.fit_range, replace=name in SCHEMES, doc=spec.doc)
+        _RECEIVED[name] = blob
+
+
 def _timed_build(make):
     t0 = time.perf_counter()
     value = make()
@@ -204,7 +236,7 @@ def _source(ctx: SweepContext, refs: dict, setting: Setting) -> MeshSource:
             st_["polytree"] = _timed_build(lambda: build_polytree(hm, default_tolerances(hm, 64), device=device))
         tree, ms = st_["polytree"]
         src = PolytreeSource(tree, int(setting.param), ms, cache=cache)
-    elif setting.policy in SCHEMES:  # selected per frame by the scheme's own rule
+    elif setting.policy in SCHEMES:  # selected per frame by the scheme's own rule (built-in or registered)
         src = scheme_source(setting.policy, hm, setting.param, cache=cache, device=device)
     else:  # mrbsp bintree: the paper's apparent-size rule at tree depth M = param, per frame
         key = ("bintree", int(setting.param))
@@ -226,10 +258,10 @@ def _frame_job(ctx: SweepContext, refs: dict, setting: Setting, k: int) -> dict:
     ref = Frame(scene.with_(camera=cam, mesh="grid"), Report(), image=image, depth=depth, triangle_id=tri)
     sc = scene.with_(camera=cam, outputs=_outputs(ctx))
     built_ms, peer_err, src, terrain = 0.0, math.nan, None, None
-    if setting.policy in _BUILT:
+    if _built(setting.policy):
         src = _source(ctx, refs, setting)
         f = render(sc, reference=ref, device=device, source=src)
-        built_ms, peer_err = src.build_ms, getattr(src, "error_m", math.nan)
+        built_ms, peer_err = src.build_ms, src.error_m
     elif setting.policy == "grid":
         sc = sc.with_(mesh="grid")
         f = render(sc, reference=ref, device=device)
@@ -304,7 +336,7 @@ def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: li
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device)
     ctx = SweepContext(_scene_token(scene, device), scene, tuple(cameras), images, device,
-                   any(s.policy in LOD_POLICIES for s in settings))
+                       any(s.policy in LOD_POLICIES for s in settings), _user_schemes(settings))
     ctx_h = runner.share(ctx)
     todo = pending_jobs(jobs, out, fp)
     need = sorted({j.args[1] for j in todo})  # references only for frames still to do
@@ -394,7 +426,7 @@ def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0)) -> list[list
                 continue
             r = min(ok, key=lambda r: r["triangles"])
             rows.append([b, pol, r["setting"], round(r["p99_px"], 3), int(r["triangles"]), round(r["frame_ms"], 2),
-                         round(r["peer_mesh_ms"], 1) if r["policy"] in _BUILT else "-",
+                         round(r["peer_mesh_ms"], 1) if _built(r["policy"]) else "-",
                          round(r.get("image_err_p99_px", math.nan), 3), round(r.get("pop_p99_px", math.nan), 3)])
     return rows
 

@@ -48,11 +48,11 @@ between the previous camera's selection (held) and the current one, both drawn f
 (:func:`terrainwarp.rendering.pipeline.pop_stats`), and accepts a value only if the worst pair's pop p99 is
 within ``P`` as well. Coarser settings pop more, so the constraint moves the fit toward finer settings.
 
-The schemes engines ship (:data:`terrainwarp.rendering.sources.SCHEMES`: ``cdlod``'s first range,
-``clipmaps``' ring size n, odd, ``chunked``'s pixel threshold) are fitted by the same exact validation, but
-with no relaxed model (it exists only for the quadtree policies): the budget is bracketed directly on the
-exact pipeline, by bisection in log space over the scheme's range
-(:func:`terrainwarp.rendering.sources.scheme_range`) until a feasible and an infeasible value are known, then
+The schemes (:data:`terrainwarp.schemes.SCHEMES`: the ones engines ship, ``cdlod``'s first range,
+``clipmaps``' ring size n, odd, ``chunked``'s pixel threshold, and any registered since) are fitted by the
+same exact validation, but with no relaxed model (it exists only for the quadtree policies): the budget is
+bracketed directly on the exact pipeline, by bisection in log space over the scheme's range
+(:func:`terrainwarp.schemes.scheme_range`) until a feasible and an infeasible value are known, then
 by the same log-log interpolation; clipmaps' n is snapped to odd integers.
 
 Baseline: a grid search over the same parameter on the exact pipeline, in the same run.
@@ -78,8 +78,8 @@ from ..kernels.checks import check_int, check_number
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import Terrain, node_metrics, select
 from ..rendering.pipeline import Frame, pop_stats, render
-from ..rendering.sources import SCHEMES, scheme_range, scheme_source
 from ..scene import LOD_POLICIES, POLICY_TABLE, LodConfig, Scene
+from ..schemes import SCHEMES, scheme_range, scheme_source
 
 __all__ = ["LodParams", "FitResult", "Evaluation", "Knob", "knob", "fit_lod", "evaluate", "grid_search",
            "evaluations_from_rows", "relaxed_model", "plot_fit"]
@@ -113,13 +113,13 @@ class Knob(NamedTuple):
 
 def knob(policy: str, heightmap: Heightmap | None = None, cache: dict | None = None) -> Knob:
     """The fitted parameter of ``policy``: a quadtree policy's ``POLICY_TABLE`` row, or a scheme's
-    :data:`SCHEMES` row with its range on ``heightmap`` (:func:`terrainwarp.rendering.sources.scheme_range`)."""
+    :data:`SCHEMES` row with its range on ``heightmap`` (:func:`terrainwarp.schemes.scheme_range`)."""
     if policy in SCHEMES:
         if heightmap is None:
             raise ValueError(f"heightmap: the scheme {policy!r} has a range that depends on the heightmap")
         spec = SCHEMES[policy]
         return Knob(spec.parameter, scheme_range(policy, heightmap, cache=cache), not spec.larger_is_finer,
-                    spec.integer)
+                    spec.odd_integer)
     spec = POLICY_TABLE[policy]
     return Knob(spec.field, spec.fit_range, spec.coarser_up)
 
@@ -236,7 +236,7 @@ def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], polic
     cameras are taken as they are, not drawn again (completing a provisional try).
 
     A scheme (``policy`` in :data:`SCHEMES`; ``terrain`` unused) is drawn as its mesh source
-    (:func:`terrainwarp.rendering.sources.scheme_source`, its pyramids kept in ``cache`` across values)."""
+    (:func:`terrainwarp.schemes.scheme_source`, its pyramids kept in ``cache`` across values)."""
     if pops and (order is not None or stop_above is not None or measure is not None or known is not None):
         raise ValueError("order / stop_above / measure / known: popping is measured between consecutive frames of "
                          "the path")
@@ -440,8 +440,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         scene: the scene (heightmap, LOD config: roots, tess); its camera path unless ``cameras``.
         budget_px: the screen-space error budget, pixels (> 0).
         policy: ``"sse"``, ``"distance"`` or ``"continuous"`` (a row of ``terrainwarp.scene.POLICY_TABLE``), or
-            a scheme, ``"cdlod"``, ``"clipmaps"`` or ``"chunked"`` (:data:`SCHEMES`, with the schemes' default
-            settings: no relaxed fit, the budget bracketed on the exact pipeline; see the module docstring).
+            a registered scheme, ``"cdlod"``, ``"clipmaps"``, ``"chunked"`` or yours (:data:`SCHEMES`, with the
+            schemes' default settings: no relaxed fit, the budget bracketed on the exact pipeline; see the
+            module docstring).
         steps: optax Adam steps of the relaxed fit (quadtree policies).
         max_validations: exact-pipeline validations (each runs every camera) for the correction.
         rel_tol: stop when the validated p99 lies within ``[budget * (1 - rel_tol), budget]``, or when a feasible

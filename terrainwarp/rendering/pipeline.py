@@ -54,7 +54,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -73,7 +73,7 @@ from ..measure.sample_error import PopStats, popping, sample_error
 from ..mesh import Mesh
 from ..scene import Scene
 from ..surface.differential import compute_curvature
-from .sources import StreamedSource
+from .sources import MeshSource, StreamedSource, missing_members
 
 __all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource", "pop_stats"]
 
@@ -109,26 +109,6 @@ def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool 
     else:
         need.discard("select")
     return [s for s in STAGE_ORDER if s in need]
-
-
-class MeshSource(Protocol):
-    """A mesh made outside the quadtree LOD path (a peer mesher's static mesh, a polytree level, a bintree
-    selection), drawn by ``render(scene, source=...)`` in place of the scene's ``mesh`` policy.
-
-    The source is an object the caller holds across frames, like a Terrain: what persists between frames
-    (the built mesh or tree, the heightmap's normal map) lives in it."""
-
-    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
-        """The mesh to draw from ``camera`` (positions relative to ``camera.position``) and the ms of the call
-        spent selecting (0.0 for a static mesh: the whole call is meshing)."""
-        ...
-
-    def cached(self, key: object, make: Callable[[], Any]) -> Any:
-        """The value kept under ``key``, made by ``make()`` on first use (as :meth:`Terrain.cached`)."""
-        ...
-
-    def is_cached(self, key: object) -> bool:
-        ...
 
 
 @dataclass
@@ -305,8 +285,9 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
             raise TypeError(f"terrain: expected a Terrain, got {type(terrain).__name__}")
         if terrain.heightmap is not hm:
             raise ValueError("terrain: prepared for another heightmap than the scene's")
-    if source is not None and not callable(getattr(source, "mesh_for", None)):
-        raise TypeError(f"source: expected a MeshSource (with mesh_for(camera)), got {type(source).__name__}")
+    if source is not None and missing_members(source):
+        raise TypeError(f"source: expected a MeshSource (terrainwarp.rendering.SourceBase has the defaults), got "
+                        f"{type(source).__name__} without {', '.join(missing_members(source))}")
     if isinstance(hm, StreamedHeightmap):
         source = _streamed_source(scene, terrain, source, patches, device)
         if state is not None and isinstance(source, StreamedSource):
@@ -318,7 +299,7 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         if kind != "lod":
             raise ValueError(f"patches: a held PatchList is drawn by a LOD scene (mesh='lod'), got {kind!r}")
     stages = stages_for(scene.outputs, kind, have_terrain=terrain is not None, have_patches=patches is not None)
-    if getattr(source, "provides_normals", False):  # the source's mesh carries its normals
+    if source is not None and source.provides_normals:  # the source's mesh carries its normals
         stages = [st for st in stages if st != "normal_map"]
     report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
                           "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
@@ -387,10 +368,10 @@ def _stage_select(run: _Run, rec: StageRecord) -> float | None:
         t0 = time.perf_counter()
         run.frame.mesh, select_ms = run.source.mesh_for(run.cam)
         run.source_mesh_ms = max((time.perf_counter() - t0) * 1e3 - select_ms, 0.0)
-        if isinstance(run.source, StreamedSource):  # what the frame read: tiles, bytes, cache hits
+        if run.source.patches is not None:  # a source of quadtree patches (a streamed terrain's)
             run.frame.patches = run.source.patches
-            rec.counters.update(run.source.last)
-            run.frame.report.info["tiles"] = {k: run.source.last[k] for k in ("tiles_read", "bytes_read", "hits")}
+        rec.counters.update(run.source.last)  # e.g. what a streamed frame read: tiles, bytes, cache hits
+        run.frame.report.info.update(run.source.report_info())
         return select_ms
     patches = select(run.terrain, run.cam, make_policy(run.scene.lod), run.state, device=run.device)
     run.frame.patches = patches
@@ -535,10 +516,10 @@ def pop_stats(scene: Scene, previous: Camera, current: Frame, reference: Frame, 
         reference: the full-resolution grid frame of ``scene.camera`` with ``depth`` (visibility).
         terrain: the caller's Terrain (LOD scenes).
         source: the :class:`MeshSource` ``current`` was drawn from; its held mesh is
-            ``source.held_mesh_for(previous, scene.camera)`` when it has one (the selection of ``previous``
-            drawn by the vertex stage of ``scene.camera``: a scheme's per-frame morph or snapping is not a
-            pop, as a held PatchList is tessellated for ``scene.camera``), else ``mesh_for(previous)``
-            (a static mesh does not pop).
+            ``source.held_mesh_for(previous, scene.camera)`` (the selection of ``previous`` drawn by the
+            vertex stage of ``scene.camera``: a scheme's per-frame morph or snapping is not a pop, as a held
+            PatchList is tessellated for ``scene.camera``; :class:`SourceBase`'s default is
+            ``mesh_for(previous)``, and a static mesh does not pop).
         held: the PatchList selected at ``previous`` (e.g. with hysteresis state); None re-selects it
             here, statelessly.
 
@@ -548,10 +529,8 @@ def pop_stats(scene: Scene, previous: Camera, current: Frame, reference: Frame, 
     """
     if current.mesh is None or reference.depth is None:
         raise ValueError("current, reference: expected a frame with a mesh and a reference frame with depth")
-    if source is not None and callable(getattr(source, "held_mesh_for", None)):
+    if source is not None:
         held_mesh = source.held_mesh_for(previous, scene.camera)
-    elif source is not None:
-        held_mesh = source.mesh_for(previous)[0]
     elif scene.mesh == "lod":
         if held is None:
             held = render(scene.with_(camera=previous, outputs=("patches",)), terrain, device=device).patches

@@ -1,16 +1,22 @@
-"""Prebuilt meshes as :class:`terrainwarp.rendering.pipeline.MeshSource` s, so ``render`` draws them too.
+"""Mesh sources: what ``render(scene, source=...)`` draws in place of the scene's quadtree policy.
+
+:class:`MeshSource` is the protocol: every member the pipeline reads. :class:`SourceBase` gives each one but
+``mesh_for`` a default; subclass it (a dataclass) and write ``mesh_for(camera)`` for a new LOD scheme, then
+register it by name (:func:`terrainwarp.schemes.register_scheme`) to have the report and the fit take it.
+``examples/custom_scheme.py`` does both in under 80 lines. The sources here:
 
 * :class:`StreamedSource`: a streamed heightmap's quadtree frames (``render`` makes one for a scene whose
-  heightmap is a :class:`terrainwarp.StreamedHeightmap`): selection on its pyramids, then the patches
-  tessellated and displaced from the overview windows they need (:mod:`terrainwarp.lod.streaming`).
+  heightmap is a :class:`terrainwarp.heightmap.StreamedHeightmap`): selection on its pyramids, then the
+  patches tessellated and displaced from the overview windows they need (:mod:`terrainwarp.lod.streaming`).
 * :class:`PeerSource`: a Martini/Delatin mesh (:mod:`terrainwarp.lod.peers`) made camera-relative; no
   selection (0 ms).
 * :class:`PolytreeSource`: level ``level`` of a taylor-barrett polytree; no selection (0 ms).
 * :class:`BintreeSource`: the mrbsp apparent-size selection of a bintree; the whole call is selection.
 * :class:`CdlodSource`, :class:`ClipmapSource`, :class:`ChunkedSource`: the schemes engines ship (CDLOD,
   geometry clipmaps, Chunked LOD with skirts; :mod:`terrainwarp.lod.cdlod`, ``.clipmaps``, ``.chunked``),
-  selected per frame (select_ms: their selection) and meshed by their vertex stage. :data:`SCHEMES` names
-  each one's fittable parameter, its range and which way is finer; :func:`scheme_source` makes one.
+  selected per frame (select_ms: their selection) and meshed by their vertex stage; registered as the
+  schemes ``cdlod``, ``clipmaps`` and ``chunked`` (:data:`terrainwarp.schemes.SCHEMES`: each one's fittable
+  parameter, its range and which way is finer); :func:`terrainwarp.schemes.scheme_source` makes one.
 
 Each holds what it was built from, the time that took (``build_ms``, kept apart from frame cost), and a
 cache (the heightmap's normal map) that sources of the same heightmap may share::
@@ -25,9 +31,10 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
-from typing import Any, NamedTuple
+from types import MappingProxyType
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import warp as wp
@@ -49,17 +56,97 @@ from ..lod.quadtree import LodState, PatchList, Terrain, select
 from ..lod.streaming import overview_windows
 from ..mesh import Mesh
 from ..scene import LodConfig
+from ..schemes import SCHEMES, SchemeSpec, register_scheme, scheme_range, scheme_source
 
-__all__ = ["SourceBase", "StreamedSource", "PeerSource", "PolytreeSource", "BintreeSource", "CdlodSource",
-           "ClipmapSource", "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source", "scheme_range"]
+__all__ = ["MeshSource", "SourceBase", "missing_members", "StreamedSource", "PeerSource", "PolytreeSource",
+           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source",
+           "scheme_range"]
+
+
+# ------------------------------------------------------------------------------------------------
+# the protocol and its defaults
+# ------------------------------------------------------------------------------------------------
+@runtime_checkable
+class MeshSource(Protocol):
+    """A mesh made outside the quadtree LOD path (a LOD scheme, a peer mesher's static mesh, a polytree level, a
+    bintree selection, a streamed terrain's frames), drawn by ``render(scene, source=...)`` in place of the
+    scene's ``mesh`` policy. The source is an object the caller holds across frames, like a Terrain: what
+    persists between frames (the built mesh or tree, the heightmap's normal map) lives in it.
+
+    What the pipeline reads of it, per frame: ``mesh_for`` in the ``select`` stage (its selection time is the
+    stage's, the rest of the call is the ``mesh`` stage's), then ``last``, ``patches`` and ``report_info()``;
+    ``provides_normals`` when it plans the stages, ``cached``/``is_cached`` for the normal map;
+    :func:`terrainwarp.rendering.pop_stats` calls ``held_mesh_for``; the report sweep reads ``build_ms`` and
+    ``error_m``. :class:`SourceBase` has a default for every member but ``mesh_for``.
+
+    Attributes:
+        provides_normals: the meshes carry vertex normals (``Mesh.normals``), so no heightmap normal map is
+            made; False: shading fetches the heightmap's normal map where each vertex lies.
+        build_ms: what building the source took (ms), reported apart from frame cost (``peer_mesh_ms``).
+        error_m: the mesh's measured vertical error (metres), NaN when not measured (``peer_error_m``).
+        patches: the :class:`terrainwarp.lod.PatchList` the latest ``mesh_for`` drew (``Frame.patches``), or
+            None for a mesh that is not made of quadtree patches.
+        last: counters of the latest ``mesh_for`` (added to the ``select`` stage's counters in the report).
+    """
+
+    provides_normals: bool
+    build_ms: float
+    error_m: float
+    patches: PatchList | None
+    last: Mapping[str, Any]
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:
+        """The mesh to draw from ``camera`` (positions relative to ``camera.position``, float32 (n, 3);
+        triangles int32 (m, 3), counter-clockwise seen from above) and the ms of the call spent selecting (0.0
+        for a static mesh: the whole call is meshing)."""
+        ...
+
+    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
+        """The selection made for ``previous`` drawn for ``camera``: the held LOD that popping compares with
+        ``mesh_for(camera)`` (a scheme's per-frame morph or snapping is then not counted as a pop)."""
+        ...
+
+    def cached(self, key: object, make: Callable[[], Any]) -> Any:
+        """The value kept under ``key``, made by ``make()`` on first use (as :meth:`Terrain.cached`)."""
+        ...
+
+    def is_cached(self, key: object) -> bool:
+        """Whether ``key`` is kept (the report says a normal map was cached rather than made)."""
+        ...
+
+    def report_info(self) -> dict[str, Any]:
+        """Entries for the frame's ``Report.info`` after each ``mesh_for`` (a streamed terrain's tiles read)."""
+        ...
+
+
+def missing_members(source: object) -> list[str]:
+    """The :class:`MeshSource` members ``source`` lacks (empty for a complete source)."""
+    names = ["mesh_for", "held_mesh_for", "cached", "is_cached", "report_info", "provides_normals", "build_ms",
+             "error_m", "patches", "last"]
+    return [n for n in names if not hasattr(source, n)]
 
 
 @dataclass(eq=False)
 class SourceBase:
-    """What every source carries: a cache (a dict the caller may share between sources of one heightmap).
-    Subclass it and add ``mesh_for(camera)`` for a new kind of source."""
+    """The defaults of every :class:`MeshSource` member but ``mesh_for``: a cache (a dict the caller may share
+    between sources of one heightmap), no vertex normals, nothing built (0 ms), the error not measured, no
+    patches, no counters, the held mesh re-made for the previous camera. Subclass it (a dataclass) and write
+    ``mesh_for(camera)``; a subclass may declare any of the attributes as its own fields or properties."""
 
     cache: dict = field(default_factory=dict, kw_only=True, repr=False)
+    provides_normals = False
+    build_ms = 0.0
+    error_m = math.nan
+    patches = None
+    last = MappingProxyType({})  # class attributes, not fields: a subclass may declare them as its own
+
+    def mesh_for(self, camera: Camera) -> tuple[Mesh, float]:  # pragma: no cover - every source defines it
+        raise NotImplementedError(f"{type(self).__name__}.mesh_for(camera): a MeshSource makes the frame's mesh")
+
+    def held_mesh_for(self, previous: Camera, camera: Camera) -> Mesh:
+        """The mesh made for ``previous`` (right for a static mesh, and for a scheme whose vertices do not
+        depend on the camera once selected; a scheme that morphs or snaps per frame overrides it)."""
+        return self.mesh_for(previous)[0]
 
     def cached(self, key: object, make: Callable[[], Any]) -> Any:
         if key not in self.cache:
@@ -68,6 +155,9 @@ class SourceBase:
 
     def is_cached(self, key: object) -> bool:
         return key in self.cache
+
+    def report_info(self) -> dict[str, Any]:
+        return {}
 
 
 @dataclass(eq=False)
@@ -124,6 +214,10 @@ class StreamedSource(SourceBase):
                          pyramid_blocks_built=self.terrain.provider.counters["blocks_built"] - blocks["blocks_built"])
         self.patches = patches
         return mesh, select_ms
+
+    def report_info(self) -> dict[str, Any]:
+        """``{"tiles": {"tiles_read", "bytes_read", "hits"}}``: what the latest frame read."""
+        return {"tiles": {k: self.last[k] for k in ("tiles_read", "bytes_read", "hits")}}
 
     def mesh_of(self, patches: PatchList, camera: Camera) -> tuple[Mesh, list[tuple[int, int, int, int, int]]]:
         """The patches tessellated for ``camera`` and displaced from their overview windows."""
@@ -254,80 +348,58 @@ class ChunkedSource(_SchemeSource):
         return self.scheme.terrain.time_ms
 
 
-class SchemeSpec(NamedTuple):
-    """A scheme's fittable parameter: the keyword of its class, the range a fit searches, whether a larger value
-    is finer, and whether it is an integer (``n`` is odd besides)."""
+# ------------------------------------------------------------------------------------------------
+# the built-in schemes, registered by name (terrainwarp.schemes)
+# ------------------------------------------------------------------------------------------------
+def _builtin(scheme_cls: type, source_cls: type, parameter: str) -> Callable[..., MeshSource]:
+    """The ``make`` of a built-in scheme: with a ``cache``, the schemes with pyramids (a
+    :class:`terrainwarp.lod.Terrain` field, which does not depend on the parameter: CDLOD and chunked) are
+    prepared once per keyword ``params`` and kept there; each source holds a copy with its own value."""
+    shares = "terrain" in {f.name for f in fields(scheme_cls)}
 
-    scheme: type
-    source: type
-    parameter: str
-    lo: float
-    hi: float
-    larger_is_finer: bool
-    integer: bool
+    def make(heightmap: Heightmap, value: float, *, cache: dict, **params: Any) -> MeshSource:
+        if not shares:
+            return source_cls(scheme=scheme_cls(heightmap, **{parameter: value}, **params), cache=cache)
+        scheme = copy.copy(_base_scheme(scheme_cls, parameter, heightmap, cache, params))
+        setattr(scheme, parameter, value)
+        return source_cls(scheme=scheme, cache=cache)
 
-
-SCHEMES: dict[str, SchemeSpec] = {
-    # first_range in metres; its lower end is the scheme's own min_first_range (seams below it), its upper end
-    # any distance past the farthest visible point (everything at full detail)
-    "cdlod": SchemeSpec(Cdlod, CdlodSource, "first_range", 0.0, math.inf, True, False),
-    "clipmaps": SchemeSpec(Clipmap, ClipmapSource, "n", 15, 4095, True, True),
-    "chunked": SchemeSpec(ChunkedLod, ChunkedSource, "max_sse_px", 0.0, 64.0, False, False),
-}
+    return make
 
 
-def _spec(name: str) -> SchemeSpec:
-    if name not in SCHEMES:
-        raise ValueError(f"name: expected one of {sorted(SCHEMES)}, got {name!r}")
-    return SCHEMES[name]
-
-
-def _base_scheme(name: str, heightmap: Heightmap, cache: dict, params: dict) -> Cdlod | ChunkedLod:
-    """The scheme ``name`` with ``params`` whose pyramids every value shares (kept in ``cache``)."""
-    spec = SCHEMES[name]
-    key = ("scheme", name, tuple(sorted(params.items())))
+def _base_scheme(scheme_cls: type, parameter: str, heightmap: Heightmap, cache: dict, params: dict) -> Any:
+    """The scheme with ``params`` whose pyramids every value shares (kept in ``cache``)."""
+    key = ("scheme", scheme_cls.__name__, tuple(sorted(params.items())))
     if key not in cache:
-        start = spec.hi if math.isfinite(spec.hi) else 1.0  # any valid value: it is replaced per source
-        cache[key] = spec.scheme(heightmap, **{spec.parameter: start}, **params)
+        cache[key] = scheme_cls(heightmap, **{parameter: 1.0}, **params)  # any valid value: replaced per source
     return cache[key]
 
 
-def scheme_source(name: str, heightmap: Heightmap, value: float, *, cache: dict | None = None,
-                  **params: Any) -> CdlodSource | ClipmapSource | ChunkedSource:
-    """The source of scheme ``name`` (a :data:`SCHEMES` key) with its fittable parameter set to ``value``
-    (rounded to the next odd integer for clipmaps' ``n``) and the scheme's other keyword ``params``.
-
-    With a ``cache``, the schemes with pyramids (CDLOD and chunked: a :class:`terrainwarp.lod.Terrain`, which
-    does not depend on the parameter) are prepared once per (name, params) and kept there; each source holds
-    a copy of that scheme with its own ``value``, the pyramids shared. The clipmaps build nothing ahead."""
-    spec = _spec(name)
-    if spec.integer:
-        value = int(math.ceil(value)) | 1
-    if cache is None or "terrain" not in {f.name for f in fields(spec.scheme)}:
-        scheme = spec.scheme(heightmap, **{spec.parameter: value}, **params)
-        return spec.source(scheme=scheme, cache={} if cache is None else cache)
-    zero_ok = not spec.larger_is_finer  # a zero threshold is full detail; a zero range is no range
-    if not (math.isfinite(value) and spec.lo <= value <= spec.hi and (value > spec.lo or zero_ok)):
-        raise ValueError(f"value: expected a finite {spec.parameter} in the range of {name!r} "
-                         f"({spec.lo:g}..{spec.hi:g}), got {value}")
-    scheme = copy.copy(_base_scheme(name, heightmap, cache, params))
-    setattr(scheme, spec.parameter, value)
-    return spec.source(scheme=scheme, cache=cache)
-
-
-def scheme_range(name: str, heightmap: Heightmap, *, cache: dict | None = None,
-                 **params: Any) -> tuple[float, float]:
-    """The finite range a sweep or a fit searches for scheme ``name``'s parameter on ``heightmap``: the
-    :data:`SCHEMES` range, with CDLOD's ends made concrete: from its seam-free
-    :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range` (at least one sample spacing) to twice the diagonal of
-    the terrain's box (every point within the first range from any eye over the terrain: full detail), and a
-    zero lower end (chunked's 0 px: full detail) raised to ``hi / 4096``, so the range can be searched in log
-    space."""
-    spec = _spec(name)
-    if name != "cdlod":
-        return (float(spec.lo) if spec.lo > 0 else spec.hi / 4096.0), float(spec.hi)
-    base = _base_scheme(name, heightmap, {} if cache is None else cache, params)
+def _cdlod_range(heightmap: Heightmap, cache: dict, params: dict) -> tuple[float, float]:
+    """CDLOD's first range on ``heightmap``: from its seam-free :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range`
+    (at least one sample spacing) to twice the diagonal of the terrain's box (every point within the first range
+    from any eye over the terrain: full detail)."""
+    base = _base_scheme(Cdlod, "first_range", heightmap, cache, params)
     (x0, z0), (x1, z1) = heightmap.bounds_xz
     lo_h, hi_h = heightmap.height_range
     lo = max(base.min_first_range, min(heightmap.dx, heightmap.dz))
     return lo, max(2.0 * math.sqrt((x1 - x0) ** 2 + (z1 - z0) ** 2 + (hi_h - lo_h) ** 2), 2.0 * lo)
+
+
+_STEPS = (8.0, 4.0, 2.0, 1.0)  # a report's settings of a built-in scheme: finer by each step's factor
+# first_range in metres: its lower end is the scheme's own min_first_range (seams below it), its upper end any
+# distance past the farthest visible point (everything at full detail); a report sweeps 8, 4, 2, 1 times the minimum
+register_scheme("cdlod", _builtin(Cdlod, CdlodSource, "first_range"), parameter="first_range", lo=0.0,
+                hi=math.inf, larger_is_finer=True, fit_range=_cdlod_range, builtin=True,
+                sweep=lambda lo, hi: [min(lo * f, hi) for f in _STEPS],
+                doc="CDLOD: distance-range quadtree selection with per-vertex morphing; first range, m")
+# n odd, 2^k - 1 as GPU Gems': a report sweeps 255, 127, 63, 31
+register_scheme("clipmaps", _builtin(Clipmap, ClipmapSource, "n"), parameter="n", lo=15, hi=4095,
+                larger_is_finer=True, odd_integer=True, builtin=True,
+                sweep=lambda lo, hi: [min(max(32 * f - 1, lo), hi) for f in _STEPS],
+                doc="geometry clipmaps: nested rings around the snapped viewer; ring size n, odd")
+# a report sweeps 1, 2, 4, 8 px (Cesium's default 2 among them)
+register_scheme("chunked", _builtin(ChunkedLod, ChunkedSource, "max_sse_px"), parameter="max_sse_px", lo=0.0,
+                hi=64.0, larger_is_finer=False, builtin=True,
+                sweep=lambda lo, hi: [min(max(8.0 / f, lo), hi) for f in _STEPS],
+                doc="Chunked LOD with skirts: screen-space-error chunk selection; maximum error, px")
