@@ -16,9 +16,10 @@ import time
 import numpy as np
 from _common import md_table, write_result
 
-from terrainwarp import Camera, Heightmap, rasterize
+from terrainwarp import Camera, Heightmap
 from terrainwarp.lod.bintree import Bintree, select_bintree
 from terrainwarp.lod.visibility import precompute_visibility
+from terrainwarp.rendering import rasterize
 
 W, H = 800, 600
 

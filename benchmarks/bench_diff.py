@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=None)
     a = ap.parse_args(argv)
     if a.threads:
-        tw.set_threads(a.threads)
+        tw.kernels.parallel.set_threads(a.threads)
     sizes = [(129, 320, 240)] if a.quick else [(129, 320, 240), (257, 640, 480), (513, 1920, 1080)]
     rows = []
     for size, w, h in sizes:

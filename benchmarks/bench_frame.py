@@ -8,7 +8,8 @@ import time
 
 from _common import best_of, md_table, write_result
 
-from terrainwarp import Camera, Heightmap, LodConfig, Scene, Terrain, render
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
+from terrainwarp.lod import Terrain
 
 
 def vtk_time(frame, cam: Camera) -> float | str:

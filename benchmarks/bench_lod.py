@@ -20,8 +20,10 @@ from types import ModuleType
 import numpy as np
 from _common import md_table, write_result
 
-from terrainwarp import Camera, Heightmap, flyover, set_threads
+from terrainwarp import Camera, Heightmap
+from terrainwarp.camera import flyover
 from terrainwarp.io.files import digest
+from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.lod import DistancePolicy, LodState, ScreenErrorPolicy, Terrain, select
 
 PAPER = {  # deaconu2021 Table 1: processed vertices (CPU), frames per second on a GTX 1050

@@ -72,7 +72,7 @@ def run_path(hm, width: int, height: int) -> dict:
         t0 = time.perf_counter()
         if isinstance(hm, tw.Heightmap) and terrain is None:
             lod = tw.LodConfig()
-            terrain = tw.Terrain.prepare(hm, roots=lod.roots, tess=lod.tess)
+            terrain = tw.lod.Terrain.prepare(hm, roots=lod.roots, tess=lod.tess)
         f = tw.render(tw.Scene(hm, camera=cam, mesh="lod", outputs=("image", "depth")), terrain=terrain)
         s = time.perf_counter() - t0
         tiles = f.report.info.get("tiles", {})
@@ -96,7 +96,7 @@ def case(name: str) -> dict:
     width, height = (int(v) for v in (rest[0] if rest else "1920x1080").split("x"))
     t0 = time.perf_counter()
     if kind == "fbm":
-        hm = tw.StreamedHeightmap.fbm(int(arg), **FBM)
+        hm = tw.heightmap.StreamedHeightmap.fbm(int(arg), **FBM)
     elif kind == "tif-stream":
         hm = tw.Heightmap.open(arg)
     else:
@@ -104,7 +104,7 @@ def case(name: str) -> dict:
     open_s = time.perf_counter() - t0
     out = run_path(hm, width, height)
     out.update(open_s=open_s, width=width, height=height, samples=hm.shape[0] * hm.shape[1])
-    if isinstance(hm, tw.StreamedHeightmap):
+    if isinstance(hm, tw.heightmap.StreamedHeightmap):
         out["cache"] = hm.counters()
         src = next(v for k, v in hm.held.items() if k[0] == "streamed_source")
         out["pyramid"] = dict(src.terrain.provider.counters, build_s=src.build_ms / 1e3)
@@ -150,7 +150,7 @@ def error_rows() -> list[list[object]]:
                         dx=10.0)
         for label, hm, st in (("jacksboro DEM 344x403", tw.Heightmap.example(), None),
                               ("fBm 2049^2 GeoTIFF", tw.Heightmap.load(p), tw.Heightmap.open(p))):
-            st = st if st is not None else tw.StreamedHeightmap.of(hm)
+            st = st if st is not None else tw.heightmap.StreamedHeightmap.of(hm)
             for cam in tw.Scene(hm).camera_path(3):
                 cam = cam.with_(width=640, height=360)
                 fr = [tw.render(tw.Scene(h, camera=cam, mesh="lod", outputs=("error",))) for h in (hm, st)]

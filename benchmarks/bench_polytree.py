@@ -15,13 +15,14 @@ import matplotlib.tri as mtri
 import numpy as np
 from _common import best_of, md_table, write_result
 
-from terrainwarp import Camera, Heightmap, Scene, rasterize, render, set_threads
+from terrainwarp import Camera, Heightmap, Scene, render
 from terrainwarp.experiments.pareto import Setting, pareto, summarise, sweep
-from terrainwarp.kernels.parallel import threads
+from terrainwarp.kernels.parallel import set_threads, threads
 from terrainwarp.kernels.polytree import MergeState
 from terrainwarp.lod.peers import delatin_mesh, martini_mesh
 from terrainwarp.lod.polytree import Polytree, build_polytree, default_tolerances
 from terrainwarp.mesh import Mesh
+from terrainwarp.rendering import rasterize
 from terrainwarp.rendering.sources import PolytreeSource, SourceBase
 from terrainwarp.surface.differential import compute_curvature, max_curvature
 

@@ -21,8 +21,8 @@ import numpy as np
 from _common import md_table, write_result
 from bench_polytree import MorphSource
 
-from terrainwarp import Camera, Heightmap, LodConfig, LodState, Scene, render
-from terrainwarp.lod import Terrain
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
+from terrainwarp.lod import LodState, Terrain
 from terrainwarp.lod.polytree import build_polytree, default_tolerances
 from terrainwarp.rendering.pipeline import pop_stats
 from terrainwarp.rendering.sources import SourceBase

@@ -122,7 +122,7 @@ class VTKFrame:
 
     def load(self, hm, cam, pos, tri):
         self.p.clear()
-        mesh = tw.Mesh(positions=pos, eye=cam.position, triangles=tri, uv=np.zeros((len(pos), 2), np.float32),
+        mesh = tw.mesh.Mesh(positions=pos, eye=cam.position, triangles=tri, uv=np.zeros((len(pos), 2), np.float32),
                        level=np.zeros(len(pos), np.int32), patch_id=np.zeros(len(pos), np.int32)).to_pyvista()
         self.p.add_mesh(mesh, color="white", lighting=False, show_scalar_bar=False)
         c = self.p.camera
@@ -265,7 +265,7 @@ def main(argv=None):
                     "full run; a --quick run is printed only, so it never replaces the full table)")
     ap.add_argument("--threads", type=int, default=None, help="our CPU threads (default: every core we may use)")
     a = ap.parse_args(argv)
-    tw.set_threads(a.threads)
+    tw.kernels.parallel.set_threads(a.threads)
     sizes = ["1e4", "1e5"] if a.quick else ["1e4", "1e5", "1e6"] + ([] if a.no_1e7 else ["1e7"])
     out = a.out if a.out else (None if a.quick else str(ROOT / "benchmarks" / "results" / "raster.md"))
     run(sizes, out_md=out)

@@ -26,9 +26,10 @@ from dataclasses import dataclass
 import numpy as np
 from _common import RESULTS, md_table, write_result
 
-from terrainwarp import Heightmap, LodConfig, Scene, Terrain, render
+from terrainwarp import Heightmap, LodConfig, Scene, render
 from terrainwarp.camera import Camera, flyover
 from terrainwarp.kernels.lod import select_level
+from terrainwarp.lod import Terrain
 from terrainwarp.lod.cdlod import Cdlod
 from terrainwarp.lod.chunked import ChunkedLod
 from terrainwarp.lod.clipmaps import Clipmap

@@ -27,8 +27,7 @@ import time
 import numpy as np
 from _common import best_of, md_table, write_result
 
-from terrainwarp import set_threads
-from terrainwarp.kernels.parallel import threads
+from terrainwarp.kernels.parallel import set_threads, threads
 from terrainwarp.kernels.pool import release_buffers
 from terrainwarp.kernels.tessellator import (
     SPACING_CODES,

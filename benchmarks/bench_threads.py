@@ -106,16 +106,16 @@ def measure(timers: dict[str, Callable[[], float]], counts: list[int], reps: int
     out: dict[str, dict[int, float]] = {k: dict.fromkeys(counts, float("inf")) for k in timers}
     try:
         for n in counts:  # warm-up (and compile, on the first count)
-            tw.set_threads(n)
+            tw.kernels.parallel.set_threads(n)
             for fn in timers.values():
                 fn()
         for _ in range(reps):
             for name, fn in timers.items():
                 for n in counts:
-                    tw.set_threads(n)
+                    tw.kernels.parallel.set_threads(n)
                     out[name][n] = min(out[name][n], fn())
     finally:
-        tw.set_threads(None)
+        tw.kernels.parallel.set_threads(None)
     return out
 
 

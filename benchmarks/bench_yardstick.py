@@ -9,8 +9,9 @@ import time
 
 from _common import md_table, write_result
 
-from terrainwarp import Heightmap, LodConfig, Scene, Terrain, render
+from terrainwarp import Heightmap, LodConfig, Scene, render
 from terrainwarp.camera import flyover
+from terrainwarp.lod import Terrain
 from terrainwarp.lod.bintree import Bintree, select_bintree
 from terrainwarp.lod.peers import delatin_mesh, martini_mesh
 from terrainwarp.lod.polytree import build_polytree

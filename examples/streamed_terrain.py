@@ -23,7 +23,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     ap.add_argument("--width", type=int, default=960)
     ap.add_argument("--height", type=int, default=540)
     a = ap.parse_args(argv)
-    hm = tw.StreamedHeightmap.fbm(a.size, seed=1, max_height=2000.0, dx=10.0)   # never held in memory
+    hm = tw.heightmap.StreamedHeightmap.fbm(a.size, seed=1, max_height=2000.0, dx=10.0)   # never held in memory
     (x0, z0), (x1, z1) = hm.bounds_xz
     rows = []
     for k in range(a.frames):

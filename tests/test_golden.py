@@ -26,7 +26,7 @@ from terrainwarp.io.files import digest
 from terrainwarp.kernels.displacement import grid_mesh
 from terrainwarp.kernels.noise import fbm
 from terrainwarp.kernels.normals import sobel_normals
-from terrainwarp.rendering.reference_tessellator import tessellate_patch
+from terrainwarp.rendering.reference_tessellator import reference_tessellate_patch
 
 
 def compute() -> dict[str, str]:
@@ -37,7 +37,7 @@ def compute() -> dict[str, str]:
     tess = []
     for outer, inner, sp in (([3, 5, 7, 2], [4, 6], "equal"), ([2.5, 7.3, 1.1, 9.9], [5.5, 3.2], "fractional_odd"),
                              ([63.99, 1, 64, 17], [30.5, 2.2], "fractional_even")):
-        tess += list(tessellate_patch(outer, inner, sp))
+        tess += list(reference_tessellate_patch(outer, inner, sp))
     return {
         "heights": digest(hm.heights, np.array([hm.dx, hm.dz])),
         "camera": digest(cam.view_matrix(relative=True), cam.proj_matrix()),
@@ -45,7 +45,7 @@ def compute() -> dict[str, str]:
         "curvature": digest(tw.compute_curvature(hm, "three_normal")),
         "grid_mesh": digest(pos, uv, tri),
         "fbm": digest(fbm(64, 48, seed=5, row0=1000, col0=-300)),
-        "tessellate_patch": digest(*tess),
+        "reference_tessellate_patch": digest(*tess),
     }
 
 
@@ -57,7 +57,7 @@ GOLDEN = {
     "curvature": "6978eb095c6127978e99a2ac92859adae6422ba596b3c6e98b85df5af8ac33dd",
     "grid_mesh": "7de11fc97edeb3763c571f210e9f9cdff4882185abb53853b87df6ecb1373fae",
     "fbm": "eca3b63d593761e3d9362e914e1659958cf26124f790a4135e95bfbf7e6e582e",
-    "tessellate_patch": "b4d0029bf43673f31484953152a14583a5bd504021839554c0b22d2ea1b9bde8",
+    "reference_tessellate_patch": "b4d0029bf43673f31484953152a14583a5bd504021839554c0b22d2ea1b9bde8",
 }
 # END GOLDEN
 

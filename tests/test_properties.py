@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import terrainwarp as tw
-from terrainwarp.rendering.reference_tessellator import SPACINGS, tessellate_patch
+from terrainwarp.rendering.reference_tessellator import SPACINGS, reference_tessellate_patch
 from terrainwarp.rendering.watertight import check_watertight, check_watertight_domain
 
 SETTINGS = settings(max_examples=15, deadline=None, derandomize=True,
@@ -94,7 +94,7 @@ factor = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=32),
 @given(outer=st.lists(factor, min_size=4, max_size=4), inner=st.lists(factor, min_size=2, max_size=2),
        spacing=st.sampled_from(SPACINGS))
 def test_random_factors_cull_or_tessellate_watertight(outer, inner, spacing):
-    uv, tri = tessellate_patch(outer, inner, spacing)
+    uv, tri = reference_tessellate_patch(outer, inner, spacing)
     culled = any(not (o > 0) for o in outer)  # <= 0 or NaN on any outer edge discards the patch (GL 11.2.2)
     if culled:
         assert len(uv) == 0 and len(tri) == 0

@@ -16,7 +16,7 @@ uses, so the benefit is a number, not a claim:
   whose visible triangle changes when the naive positions are rasterized.
 
 Stages: ``sampling``, ``select`` (:func:`terrainwarp.lod.select`), ``tessellate``
-(:func:`terrainwarp.rendering.reference_tessellator.tessellate_patch` against the frame kernel
+(:func:`terrainwarp.rendering.reference_tessellator.reference_tessellate_patch` against the frame kernel
 ``terrainwarp.kernels.tessellator.tessellate_domains``; cases without a factor: a LOD frame, watertight by
 :func:`terrainwarp.rendering.watertight.check_watertight`), ``normals``, ``curvature``
 (:mod:`terrainwarp.surface.differential`), ``raster`` (:func:`terrainwarp.render`, grid mesh), ``error``
@@ -53,7 +53,7 @@ from ..kernels.tessellator import tessellate_domains
 from ..lod.policies import ScreenErrorPolicy
 from ..lod.quadtree import Terrain, select
 from ..rendering.pipeline import render
-from ..rendering.reference_tessellator import SPACINGS, tessellate_patch
+from ..rendering.reference_tessellator import SPACINGS, reference_tessellate_patch
 from ..rendering.watertight import check_watertight, check_watertight_domain, lod_boundary
 from ..scene import LodConfig, Scene
 from ..surface.differential import compute_curvature, compute_normals
@@ -220,7 +220,7 @@ def _stage_tessellate(case: ExtremeCase, scene) -> Row:
     f = case.factor
     notes, hashes = [], []
     for sp in SPACINGS:
-        uv, tri = tessellate_patch([f] * 4, [f] * 2, sp)
+        uv, tri = reference_tessellate_patch([f] * 4, [f] * 2, sp)
         _check(bool(np.all(np.isfinite(uv))) and bool(np.all((uv >= 0) & (uv <= 1))), f"{sp}: uv outside [0, 1]")
         culled = not (f > 0)  # <= 0 or NaN: the GPU discards the patch
         if culled:
@@ -237,7 +237,7 @@ def _stage_tessellate(case: ExtremeCase, scene) -> Row:
             _check(len(tri) <= 2 * 64 * 64 + 4 * 64, f"{sp}: {len(tri)} triangles exceed the level-64 maximum")
         d = tessellate_domains(np.full((1, 4), f, _F32), np.full((1, 2), f, _F32), sp)
         _check(np.array_equal(d["uv"], uv) and np.array_equal(d["triangles"], tri),
-               f"{sp}: frame kernel differs from tessellate_patch")
+               f"{sp}: frame kernel differs from reference_tessellate_patch")
         notes.append(f"{sp} {len(tri)}")
         hashes += [uv, tri]
     return Row(case.name, "tessellate", PASS, "", "",

@@ -64,6 +64,7 @@ ring, edge by edge), though only the set of triangles is observable on a GPU.
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +72,7 @@ import numpy as np
 from ..io.files import save_figure
 from ..kernels.tessellator import SPACING_CODES
 
-__all__ = ["tessellate_patch", "patch_counts", "SPACINGS"]
+__all__ = ["reference_tessellate_patch", "patch_counts", "SPACINGS"]
 
 SPACINGS = tuple(SPACING_CODES)  # the spacing names, from the Warp tessellator's codes
 
@@ -422,8 +423,9 @@ def patch_counts(outer, inner, spacing: str) -> tuple[int, int]:
     return sum(lay.n_out) - 4 + (nu - 2) * (nv - 2), tris
 
 
-def tessellate_patch(outer, inner, spacing: str) -> tuple[np.ndarray, np.ndarray]:
-    """Tessellate one quad patch as the GPU's fixed-function tessellator does.
+def reference_tessellate_patch(outer, inner, spacing: str) -> tuple[np.ndarray, np.ndarray]:
+    """Tessellate one quad patch as the GPU's fixed-function tessellator does: the pure-Python reference that
+    :func:`terrainwarp.rendering.tessellate_patches` (one Warp launch for a whole frame) is tested against.
 
     Args:
         outer: 4 outer levels in ``gl_TessLevelOuter`` order (u=0, v=0, u=1, v=1 edges), float32.
@@ -458,7 +460,7 @@ def tessellate_patch(outer, inner, spacing: str) -> tuple[np.ndarray, np.ndarray
 
 def tessellation_json(outer, inner, spacing: str) -> dict:
     """One patch as a JSON-ready dict: levels, spacing, points (u, v) and triangles (ccw indices)."""
-    uv, tri = tessellate_patch(outer, inner, spacing)
+    uv, tri = reference_tessellate_patch(outer, inner, spacing)
     lv = lambda a: [None if not np.isfinite(x) else float(x) for x in np.asarray(a, np.float32)]  # noqa: E731
     return {"outer": lv(outer), "inner": lv(inner), "spacing": spacing, "n_points": int(uv.shape[0]),
             "n_triangles": int(tri.shape[0]), "points": uv.tolist(), "triangles": tri.tolist()}
@@ -469,7 +471,7 @@ def write_tessellation_picture(path: str | Path, outer, inner, spacing: str, siz
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: heavy optional dependency
     from matplotlib.figure import Figure
 
-    uv, tri = tessellate_patch(outer, inner, spacing)
+    uv, tri = reference_tessellate_patch(outer, inner, spacing)
     fig = Figure(figsize=(size_px / 100, size_px / 100), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -491,3 +493,11 @@ def write_tessellation_picture(path: str | Path, outer, inner, spacing: str, siz
     ax.set_xlabel("u")
     ax.set_ylabel("v")
     return save_figure(fig, path, dpi=100)
+
+
+def __getattr__(name: str):
+    if name == "tessellate_patch":  # the name before it said that it is the reference
+        warnings.warn("terrainwarp.rendering.reference_tessellator.tessellate_patch is deprecated and goes in the "
+                      "next release; use reference_tessellate_patch", DeprecationWarning, stacklevel=2)
+        return reference_tessellate_patch
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

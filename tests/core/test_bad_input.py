@@ -12,7 +12,8 @@ import rasterio
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
-from terrainwarp import Camera, Heightmap, flyover, orbit
+from terrainwarp import Camera, Heightmap
+from terrainwarp.camera import flyover, orbit
 from terrainwarp.io import memory
 from terrainwarp.io.files import write_image
 from terrainwarp.scene import Scene

@@ -3,7 +3,8 @@ import math
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, flyover, orbit
+from terrainwarp import Camera, Heightmap
+from terrainwarp.camera import flyover, orbit
 
 
 def test_view_matrix_hand_computed():

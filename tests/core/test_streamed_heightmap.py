@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from terrainwarp import Heightmap, Scene, StreamedHeightmap
+from terrainwarp import Heightmap, Scene
+from terrainwarp.heightmap import StreamedHeightmap
 
 
 def test_sampling_and_loading_match_the_in_memory_heightmap():

@@ -340,8 +340,8 @@ def test_gradients_are_bit_identical_across_runs_and_thread_counts():
     set_min_items(1)  # split even these tiny launches as finely as the threads allow
     try:
         for n in (1, 2, 3):
-            tw.set_threads(n)
+            tw.kernels.parallel.set_threads(n)
             assert _pipeline_grads()[0] == base, n
     finally:
-        tw.set_threads(None)
+        tw.kernels.parallel.set_threads(None)
         set_min_items(None)

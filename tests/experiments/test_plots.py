@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 
-from terrainwarp import Camera, Heightmap, Terrain, select
+from terrainwarp import Camera, Heightmap
 from terrainwarp.experiments.plots import OVERHANG_NOTE, patches_figure, plot_patches
-from terrainwarp.lod import ScreenErrorPolicy
+from terrainwarp.lod import ScreenErrorPolicy, Terrain, select
 
 pytest.importorskip("matplotlib")
 

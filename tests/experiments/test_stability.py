@@ -30,7 +30,8 @@ from terrainwarp.kernels.displacement import drop_nonfinite_triangles, grid_mesh
 from terrainwarp.kernels.noise import fbm
 from terrainwarp.lod import Terrain
 from terrainwarp.rendering import pipeline
-from terrainwarp.rendering.reference_tessellator import tessellate_patch
+from terrainwarp.rendering import rasterize as tw_rasterize
+from terrainwarp.rendering.reference_tessellator import reference_tessellate_patch
 from terrainwarp.rendering.watertight import check_watertight, lod_boundary
 
 FIT_CASES = ["everest", "cam_on_surface", "nan_holes", "grid_1x1"]  # the JAX fit compiles per case (~1.3 s)
@@ -215,9 +216,9 @@ def test_fbm_tiles_equal_the_whole():
     (lambda: tw.Scene("not a heightmap"), "heightmap"),
     (lambda: tw.Scene(tw.Heightmap.from_array(np.ones((3, 3))), outputs=("image", "bogus")), "outputs"),
     (lambda: tw.render("scene"), "scene"),
-    (lambda: tw.rasterize(np.zeros((3, 2), np.float32), np.zeros((1, 3), np.int32), np.eye(4), np.eye(4), 8, 8),
+    (lambda: tw_rasterize(np.zeros((3, 2), np.float32), np.zeros((1, 3), np.int32), np.eye(4), np.eye(4), 8, 8),
      "positions"),
-    (lambda: tw.rasterize(np.full((3, 3), np.inf, np.float32), np.zeros((1, 3), np.int32), np.eye(4), np.eye(4),
+    (lambda: tw_rasterize(np.full((3, 3), np.inf, np.float32), np.zeros((1, 3), np.int32), np.eye(4), np.eye(4),
                           8, 8), "positions"),
     (lambda: tw.compute_normals(tw.Heightmap.from_array(np.ones((3, 3))), "bogus"), "method"),
     (lambda: tw.compute_normals(np.zeros((0, 3))), "heightmap"),
@@ -230,13 +231,13 @@ def test_api_bad_input_names_the_argument(call, arg):
 
 def test_tessellator_and_lod_bad_input():
     with pytest.raises(ValueError, match="outer"):
-        tessellate_patch([1, 2, 3], [1, 1], "equal")
+        reference_tessellate_patch([1, 2, 3], [1, 1], "equal")
     with pytest.raises(ValueError, match="inner"):
-        tessellate_patch([1, 1, 1, 1], [1], "equal")
+        reference_tessellate_patch([1, 1, 1, 1], [1], "equal")
     with pytest.raises(ValueError, match="spacing"):
-        tessellate_patch([1, 1, 1, 1], [1, 1], "odd")
+        reference_tessellate_patch([1, 1, 1, 1], [1, 1], "odd")
     with pytest.raises(TypeError, match="outer"):
-        tessellate_patch(["x"] * 4, [1, 1], "equal")
+        reference_tessellate_patch(["x"] * 4, [1, 1], "equal")
     hm = tw.Heightmap.from_array(np.ones((9, 9)))
     with pytest.raises(ValueError, match="tess"):
         Terrain.prepare(hm, tess=0)

@@ -17,7 +17,7 @@ from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
 from terrainwarp.fit import diffpath as dp
 from terrainwarp.kernels.tessellator import tessellate_domains
 from terrainwarp.lod import Terrain
-from terrainwarp.rendering.reference_tessellator import num_points, place, tessellate_patch
+from terrainwarp.rendering.reference_tessellator import num_points, place, reference_tessellate_patch
 
 LEVEL, ROOTS = 2, 4
 
@@ -83,7 +83,7 @@ def test_model_points_equal_the_warp_and_python_tessellators():
     assert d > 0  # and it is a float formula, not a copy
     for p in (0, 2, 3, 7):  # and the pure-Python reference tessellator, patch by patch
         a, b = ref["vertex_offsets"][p], ref["vertex_offsets"][p + 1]
-        uv_p, _ = tessellate_patch(outer[p], inner[p], "fractional_odd")
+        uv_p, _ = reference_tessellate_patch(outer[p], inner[p], "fractional_odd")
         assert np.array_equal(uv_p, ref["uv"][a:b])
         assert np.abs(uv[a:b] - uv_p).max() <= 2.0**-16 + 1e-6
     # the vectorised fixed-point placement is the reference's PlacePointIn1D

@@ -71,11 +71,11 @@ def by_threads():
     try:
         parallel.set_min_items(1)
         for n in THREADS:
-            tw.set_threads(n)
+            tw.kernels.parallel.set_threads(n)
             got[n] = digests()
     finally:
         parallel.set_min_items(None)
-        tw.set_threads(None)
+        tw.kernels.parallel.set_threads(None)
     return got
 
 
@@ -89,14 +89,14 @@ def test_outputs_identical_for_any_thread_count(by_threads, n):
 
 def test_chunks_cover_the_range_in_order():
     try:
-        tw.set_threads(3)
+        tw.kernels.parallel.set_threads(3)
         assert parallel.chunks(10, min_items=1) == [(0, 4), (4, 8), (8, 10)]
         assert parallel.chunks(10, min_items=1, oversplit=2) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 10)]
         assert parallel.chunks(2, min_items=1) == [(0, 1), (1, 2)]
         assert parallel.chunks(100, min_items=4096) == [(0, 100)]  # too little work to split
         assert parallel.chunks(0) == []
     finally:
-        tw.set_threads(None)
+        tw.kernels.parallel.set_threads(None)
 
 
 @wp.kernel(enable_backward=False)
@@ -108,10 +108,10 @@ def _probe_kernel(offset: int, part: int, out_part: wp.array2d(dtype=wp.int32)):
 def test_launch_gives_each_chunk_its_offset_and_part():
     out = wp.full((9, 2), value=-1, dtype=wp.int32)
     try:
-        tw.set_threads(3)
+        tw.kernels.parallel.set_threads(3)
         parallel.launch(_probe_kernel, (9, 2), [], [out], "cpu", parts=True, min_items=1)
     finally:
-        tw.set_threads(None)
+        tw.kernels.parallel.set_threads(None)
     got = out.numpy()
     assert np.array_equal(got % 1000, np.repeat(np.arange(9), 2).reshape(9, 2))
     assert np.array_equal(got // 1000, np.repeat([0, 0, 0, 1, 1, 1, 2, 2, 2], 2).reshape(9, 2))
@@ -120,7 +120,7 @@ def test_launch_gives_each_chunk_its_offset_and_part():
 def test_set_threads_validates():
     for bad, err in ((0, ValueError), (-2, ValueError), (1.5, TypeError), (True, TypeError), ("2", TypeError)):
         with pytest.raises(err, match="n: expected"):
-            tw.set_threads(bad)
+            tw.kernels.parallel.set_threads(bad)
 
 
 def test_thread_count_from_environment():

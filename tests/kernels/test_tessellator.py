@@ -12,8 +12,10 @@ import warp as wp
 from conftest import digest
 from gl_oracle import GLOracle, OracleUnavailable, triangle_set  # noqa: E402
 
-from terrainwarp import Heightmap, Mesh, check_watertight, tessellate_patch, tessellate_patches
+from terrainwarp import Heightmap, check_watertight
 from terrainwarp.kernels.tessellator import SPACING_CODES, tessellate_domains
+from terrainwarp.mesh import Mesh
+from terrainwarp.rendering import reference_tessellate_patch, tessellate_patches
 from terrainwarp.rendering.reference_tessellator import FINAL_POINT_POSITION, patch_counts
 
 SPACINGS = list(SPACING_CODES)
@@ -44,7 +46,7 @@ def _area(uv, tri):
 
 def test_closed_form_counts_integer_levels_1_to_64():
     for lv in range(1, 65):
-        uv, tri = tessellate_patch([lv] * 4, [lv] * 2, "equal")
+        uv, tri = reference_tessellate_patch([lv] * 4, [lv] * 2, "equal")
         assert uv.shape == ((lv + 1) ** 2, 2) and tri.shape == (2 * lv * lv, 3)
         assert np.all(_area(uv, tri) > 0) and math.isclose(_area(uv, tri).sum(), 1.0, abs_tol=1e-9)
     # mixed integer levels: V = sum(outer) + (I_u - 1)(I_v - 1), T = sum(outer) + 2(I_u + I_v - 4) +
@@ -69,9 +71,9 @@ def test_closed_form_counts_integer_levels_1_to_64():
 @pytest.mark.parametrize("spacing", SPACINGS)
 def test_levels_above_64_clamp(spacing):
     top = 63.0 if spacing == "fractional_odd" else 64.0
-    ref = tessellate_patch([top] * 4, [top] * 2, spacing)
+    ref = reference_tessellate_patch([top] * 4, [top] * 2, spacing)
     for big in (64.5, 65.0, 1000.0, np.inf):
-        got = tessellate_patch([big] * 4, [big] * 2, spacing)
+        got = reference_tessellate_patch([big] * 4, [big] * 2, spacing)
         assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
 
 
@@ -81,13 +83,13 @@ def test_outer_level_zero_negative_or_nan_discards_the_patch(spacing):
         for e in range(4):
             o = [5.0] * 4
             o[e] = bad
-            uv, tri = tessellate_patch(o, [5.0, 5.0], spacing)
+            uv, tri = reference_tessellate_patch(o, [5.0, 5.0], spacing)
             assert uv.shape == (0, 2) and tri.shape == (0, 3)
     # NaN or negative INNER levels do not discard: they become the lower bound
     lo = 2.0 if spacing == "fractional_even" else 1.0
     for bad in (np.nan, -3.0, 0.0):
-        got = tessellate_patch([5.0] * 4, [bad, 7.0], spacing)
-        ref = tessellate_patch([5.0] * 4, [lo, 7.0], spacing)
+        got = reference_tessellate_patch([5.0] * 4, [bad, 7.0], spacing)
+        ref = reference_tessellate_patch([5.0] * 4, [lo, 7.0], spacing)
         if spacing != "fractional_odd":  # fractional_odd forces 1 + 2^-16 either way
             assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
         assert got[1].shape[0] > 0
@@ -130,14 +132,14 @@ def test_fixed_point_details():
         k = (j & -j).bit_length() - 1
         assert table[i] == (16 >> k) + (j >> (k + 1))
     # 16.16 rounding ties to even: 1 + 2^-17 is exactly 1.0 in fixed point
-    assert tessellate_patch([1 + 2**-17] * 4, [1.0, 1.0], "fractional_odd")[1].shape == (2, 3)
+    assert reference_tessellate_patch([1 + 2**-17] * 4, [1.0, 1.0], "fractional_odd")[1].shape == (2, 3)
     assert place(3 << 16, True, 1) == 0x5555  # one third, rounded
 
 
 @pytest.mark.parametrize("spacing", SPACINGS)
 def test_triangles_are_ccw_and_cover_the_domain(spacing):
     for lv in _random_levels(40, 5, hi=20.0):
-        uv, tri = tessellate_patch(lv[:4], lv[4:], spacing)
+        uv, tri = reference_tessellate_patch(lv[:4], lv[4:], spacing)
         assert patch_counts(lv[:4], lv[4:], spacing) == (uv.shape[0], tri.shape[0])
         if tri.shape[0] == 0:
             continue
@@ -148,13 +150,13 @@ def test_triangles_are_ccw_and_cover_the_domain(spacing):
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="spacing"):
-        tessellate_patch([1] * 4, [1] * 2, "pow2")
+        reference_tessellate_patch([1] * 4, [1] * 2, "pow2")
     with pytest.raises(ValueError, match="outer"):
-        tessellate_patch([1] * 3, [1] * 2, "equal")
+        reference_tessellate_patch([1] * 3, [1] * 2, "equal")
     with pytest.raises(ValueError, match="inner"):
-        tessellate_patch([1] * 4, [1] * 3, "equal")
+        reference_tessellate_patch([1] * 4, [1] * 3, "equal")
     with pytest.raises(TypeError, match="outer"):
-        tessellate_patch(["a"] * 4, [1] * 2, "equal")
+        reference_tessellate_patch(["a"] * 4, [1] * 2, "equal")
     with pytest.raises(ValueError, match="outer"):
         tessellate_domains(np.ones((3, 3)), np.ones((3, 2)), "equal")
     with pytest.raises(ValueError, match="inner"):
@@ -199,7 +201,7 @@ def _oracle_grid(spacing, seed):
 @pytest.mark.parametrize("spacing", SPACINGS)
 def test_agrees_with_llvmpipe_bit_exactly(oracle, spacing):
     levels = _oracle_grid(spacing, SPACINGS.index(spacing))
-    mine = [tessellate_patch(lv[:4], lv[4:], spacing) for lv in levels]
+    mine = [reference_tessellate_patch(lv[:4], lv[4:], spacing) for lv in levels]
     gl = oracle.triangles(levels, spacing, [max(m[1].shape[0], 1) for m in mine])
     bad = [(lv.tolist(), len(g), m[1].shape[0]) for lv, g, m in zip(levels, gl, mine) if g != triangle_set(*m)]
     assert not bad, f"{len(bad)} of {len(levels)} patches differ from {oracle.renderer}, e.g. {bad[:3]}"
@@ -218,7 +220,7 @@ def test_kernel_equals_tessellate_patch_for_every_patch(spacing, device):
     d = tessellate_domains(levels[:, :4], levels[:, 4:], spacing, device=device)
     vo, to = d["vertex_offsets"], d["triangle_offsets"]
     for p, lv in enumerate(levels):
-        uv, tri = tessellate_patch(lv[:4], lv[4:], spacing)
+        uv, tri = reference_tessellate_patch(lv[:4], lv[4:], spacing)
         assert np.array_equal(d["uv"][vo[p]:vo[p + 1]], uv)
         assert np.array_equal(d["triangles"][to[p]:to[p + 1]], tri + vo[p])
         assert np.all(d["patch_id"][vo[p]:vo[p + 1]] == p)
@@ -346,7 +348,7 @@ def test_cli_tessellate(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "wrote:" in printed and "tessellation.json" in printed
     doc = json.loads((tmp_path / "tessellation.json").read_text())
-    uv, tri = tessellate_patch([3, 5, 1, 7], [4, 4], "fractional_odd")
+    uv, tri = reference_tessellate_patch([3, 5, 1, 7], [4, 4], "fractional_odd")
     assert doc["triangles"] == tri.tolist() and doc["points"] == uv.tolist()
     assert (tmp_path / "tessellation.png").stat().st_size > 1000
     assert json.loads((tmp_path / "tessellation.json").read_text())["n_triangles"] == tri.shape[0]

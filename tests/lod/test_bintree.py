@@ -283,7 +283,7 @@ def test_mesh_is_camera_relative_and_rasterizable(dem_tree):
     p = m.positions.astype(np.float64)[m.triangles]
     u, w = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     assert np.all(u[:, 2] * w[:, 0] - u[:, 0] * w[:, 2] > 0)  # ccw seen from above
-    fr = tw.rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width,
+    fr = tw.rendering.rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width,
                       cam.height)
     assert np.count_nonzero(fr.triangle_id >= 0) > 0.3 * cam.width * cam.height
 
@@ -294,7 +294,7 @@ def test_frustum_culling_keeps_every_triangle_the_rasterizer_shows(fbm_tree):
         full = select_bintree(t, cam, lod=False, frustum=False)
         culled = select_bintree(t, cam, lod=False, frustum=True)
         assert culled.stats["triangles"] < 0.6 * full.stats["triangles"]
-        fr = tw.rasterize(full.mesh.positions, full.mesh.triangles, cam.view_matrix(relative=True),
+        fr = tw.rendering.rasterize(full.mesh.positions, full.mesh.triangles, cam.view_matrix(relative=True),
                           cam.proj_matrix(), cam.width, cam.height)
         seen = full.node[np.unique(fr.triangle_id[fr.triangle_id >= 0])]
         assert np.all(np.isin(seen, culled.node))

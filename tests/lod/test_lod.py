@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, LodConfig, Scene, render, set_threads
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
 from terrainwarp.io.files import digest
 from terrainwarp.kernels import parallel
+from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.kernels.tessellator import SPACING_CODES
 from terrainwarp.lod import (
     POLICY_CLASSES,

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, rasterize
+from terrainwarp import Camera, Heightmap
 from terrainwarp.lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
+from terrainwarp.rendering import rasterize
 
 
 @pytest.fixture(scope="module")

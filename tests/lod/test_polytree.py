@@ -9,7 +9,7 @@ import pytest
 import warp as wp
 from conftest import digest
 
-from terrainwarp import Camera, Heightmap, check_watertight, rasterize
+from terrainwarp import Camera, Heightmap, check_watertight
 from terrainwarp.kernels.polytree import FLAG_HIGH_J, FLAG_LOW_J
 from terrainwarp.lod.polytree import (
     build_polytree,
@@ -17,6 +17,7 @@ from terrainwarp.lod.polytree import (
     gradients,
     merge_rectangles,
 )
+from terrainwarp.rendering import rasterize
 
 # ------------------------------------------------------------------------------------------------
 # references
@@ -578,7 +579,7 @@ def test_passes_split_across_threads_equal_the_per_tolerance_algorithm(monkeypat
     # every pass through the subtree launch (a pass of a small grid merges too few nodes for it otherwise):
     # on 2, 3 and 8 threads the subtrees' undo and merge run on different threads; the passes (polygons, flags,
     # counters) must equal the per-tolerance algorithm and the one-thread run, bit for bit
-    from terrainwarp import set_threads
+    from terrainwarp.kernels.parallel import set_threads
     from terrainwarp.kernels.polytree import MergeState
 
     monkeypatch.setattr(MergeState, "PARALLEL_MIN_NODES", 0)

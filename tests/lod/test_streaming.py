@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import terrainwarp.kernels.lod as klod
-from terrainwarp import Camera, Heightmap, StreamedHeightmap
+from terrainwarp import Camera, Heightmap
+from terrainwarp.heightmap import StreamedHeightmap
 from terrainwarp.io.geotiff import write_tiled
 from terrainwarp.io.tiles import FbmSource
 from terrainwarp.kernels.pyramid import node_stats

@@ -10,6 +10,7 @@ from conftest import digest
 import terrainwarp as tw
 from terrainwarp.lod.bintree import Bintree, select_bintree
 from terrainwarp.lod.visibility import VisibilityState, encode, expand, precompute_visibility
+from terrainwarp.rendering import rasterize as tw_rasterize
 
 # six 90-degree views: everything around the observer
 _CUBE = [((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, 1, 0)), ((0, 0, 1), (0, 1, 0)), ((0, 0, -1), (0, 1, 0)),
@@ -34,7 +35,7 @@ def _seen_nodes(tree: Bintree, full, eye: np.ndarray) -> np.ndarray:
     for d, up in _CUBE:
         cam = tw.Camera(position=eye, target=eye + np.asarray(d, float), up=up, fov_y_deg=90.0, width=_PX,
                         height=_PX, near=0.05, far=1e6)
-        fr = tw.rasterize(rel, full.mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), _PX, _PX)
+        fr = tw_rasterize(rel, full.mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), _PX, _PX)
         seen.append(full.node[np.unique(fr.triangle_id[fr.triangle_id >= 0])])
     return np.unique(np.concatenate(seen))
 

@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, rasterize
+from terrainwarp import Camera, Heightmap
 from terrainwarp.kernels.displacement import grid_mesh
 from terrainwarp.measure.error import frame_error, reference_height
+from terrainwarp.rendering import rasterize
 
 
 def _grid(hm, cam, dy=0.0):

@@ -164,7 +164,7 @@ def test_known_deviation_seen_straight_down():
     cam = Camera(position=(32.0, hc, 32.0), target=(32.0, 0.0, 32.0), up=(0.0, 0.0, -1.0), fov_y_deg=60.0,
                  width=200, height=200, near=0.1, far=100.0)
     ref = _grid_mesh(hm, cam)
-    depth = tw.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+    depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
                          cam.width, cam.height).depth
     e = sample_error(hm, cam, _grid_mesh(hm, cam, dy=d), depth, keep_map=True)
     jj, ii = np.meshgrid(np.arange(65.0), np.arange(65.0))
@@ -184,7 +184,7 @@ def test_known_deviation_seen_horizontally():
                  near=0.1, far=500.0)
     d = 0.25
     ref = _grid_mesh(hm, cam)
-    depth = tw.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+    depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
                          cam.width, cam.height).depth
     e = sample_error(hm, cam, _grid_mesh(hm, cam, dy=d), depth, keep_map=True)
     vis = ~np.isnan(e.error_map)
@@ -204,7 +204,7 @@ def test_hidden_samples_are_those_behind_the_terrain():
     cam = Camera(position=(16.0, 5.0, 60.0), target=(16.0, 5.0, 0.0), fov_y_deg=90, width=128, height=128,
                  near=0.1, far=200.0)
     ref = _grid_mesh(hm, cam)
-    depth = tw.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+    depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
                          cam.width, cam.height).depth
     e = sample_error(hm, cam, ref, depth, keep_map=True)
     vis = ~np.isnan(e.error_map)
@@ -220,7 +220,7 @@ def test_no_data_and_missing_surface_are_excluded_and_counted():
     cam = Camera(position=(16.0, 40.0, 16.1), target=(16.0, 0.0, 16.0), fov_y_deg=60, width=96, height=96,
                  near=0.1, far=200.0)
     ref = _grid_mesh(hm, cam)
-    depth = tw.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
+    depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
                          cam.width, cam.height).depth
     e = sample_error(hm, cam, ref, depth)
     assert e.no_data == 9 and e.missing == 0 and e.max_px == 0.0

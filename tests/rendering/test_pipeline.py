@@ -3,23 +3,15 @@ import pytest
 from conftest import digest
 from scipy import ndimage
 
-from terrainwarp import (
-    Bintree,
-    Camera,
-    Heightmap,
-    LodConfig,
-    Scene,
-    Terrain,
-    build_polytree,
-    check_watertight,
-    rasterize,
-    render,
-)
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, check_watertight, render
 from terrainwarp.camera import flyover
+from terrainwarp.lod import Terrain
+from terrainwarp.lod.bintree import Bintree
 from terrainwarp.lod.cdlod import Cdlod
 from terrainwarp.lod.peers import delatin_mesh
-from terrainwarp.lod.polytree import default_tolerances
+from terrainwarp.lod.polytree import build_polytree, default_tolerances
 from terrainwarp.measure.sample_error import popping
+from terrainwarp.rendering import rasterize
 from terrainwarp.rendering.pipeline import pop_stats, stages_for
 from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource, scheme_source
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from conftest import digest
 
-from terrainwarp import Camera, Heightmap, Scene, StreamedHeightmap, render
+from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp.heightmap import StreamedHeightmap
 from terrainwarp.io.geotiff import write_tiled
 from terrainwarp.io.tiles import FbmSource
 from terrainwarp.rendering.sources import StreamedSource
@@ -100,7 +101,7 @@ def test_a_terrain_larger_than_memory_renders_from_the_tiles_it_needs():
 
 
 def test_hysteresis_state_reaches_a_streamed_selection(fbm_tif):
-    from terrainwarp import LodState
+    from terrainwarp.lod import LodState
 
     p, hm = fbm_tif
     st = Heightmap.open(p)

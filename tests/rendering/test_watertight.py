@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from conftest import digest
 
-from terrainwarp import Camera, Heightmap, LodConfig, LodState, Mesh, Scene, check_watertight, render
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, check_watertight, render
 from terrainwarp.kernels.tessellator import tessellate_patches
-from terrainwarp.lod import ContinuousPolicy, DistancePolicy, ScreenErrorPolicy, Terrain, select
+from terrainwarp.lod import ContinuousPolicy, DistancePolicy, LodState, ScreenErrorPolicy, Terrain, select
+from terrainwarp.mesh import Mesh
 
 SPACINGS = ["equal", "fractional_even", "fractional_odd"]
 

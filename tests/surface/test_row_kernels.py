@@ -7,9 +7,10 @@ import pytest
 import warp as wp
 from conftest import digest
 
-from terrainwarp import Heightmap, compute_curvature, compute_normals, set_threads
+from terrainwarp import Heightmap, compute_curvature, compute_normals
 from terrainwarp.kernels import parallel
 from terrainwarp.kernels.normals import vertex_normals_device
+from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.surface.differential import surface_curvature
 
 NORMALS = ["sobel", "edge"]  # the row kernels; triangle and quad keep the per-sample kernel
