@@ -1,6 +1,6 @@
-"""Your own LOD scheme beside CDLOD, fitted to a budget: distance-banded uniform grids. Tiles of 32 cells keep
-every sample within ``near_m`` of the eye; each doubling of the distance past that halves their sample rate
-(no skirts: the report counts the cracks where bands meet). Registered, "bands" is a policy name:
+"""Your own LOD scheme beside CDLOD, fitted to a budget: distance-banded grids. Tiles of 32 cells keep every sample
+within ``near_m`` of the eye, each doubling of the distance halves their sample rate (no skirts: the report counts
+the cracks where bands meet). Registered, "bands" is a policy name:
 
     python examples/custom_scheme.py --out out/custom_scheme      # report beside CDLOD, then fit 2 px
     terrainwarp report --plugin examples/custom_scheme.py --policies bands,cdlod --quick
@@ -29,18 +29,16 @@ class BandsSource(tw.rendering.SourceBase):
     def mesh_for(self, camera: tw.Camera) -> tuple[tw.mesh.Mesh, float]:
         t0, hm, eye = time.perf_counter(), self.heightmap, np.asarray(camera.position)
         (rows, cols), (x0, z0) = hm.shape, hm.origin
-        r0, c0 = (g.ravel() for g in np.meshgrid(np.arange(0, rows - 1, TILE), np.arange(0, cols - 1, TILE),
-                                                 indexing="ij"))
+        r0, c0 = np.mgrid[0:rows - 1:TILE, 0:cols - 1:TILE].reshape(2, -1)  # each tile's first sample
         dist = np.hypot(x0 + (c0 + TILE / 2) * hm.dx - eye[0], z0 + (r0 + TILE / 2) * hm.dz - eye[2])
         band = np.clip(np.floor(np.log2(np.maximum(dist, self.near_m) / self.near_m)), 0, np.log2(TILE))
         step, select_ms = (2 ** band).astype(np.int64), (time.perf_counter() - t0) * 1e3
         pos, tri, level, n = [], [], [], 0
         for s in np.unique(step):  # one vectorised grid per band
             k = TILE // s + 1
-            i, j = (g.ravel() * s for g in np.meshgrid(np.arange(k), np.arange(k), indexing="ij"))
+            i, j = np.mgrid[0:k, 0:k].reshape(2, -1) * s
             rr, cc = np.minimum(r0[step == s, None] + i, rows - 1), np.minimum(c0[step == s, None] + j, cols - 1)
-            world = np.stack([x0 + cc * hm.dx, hm.heights[rr, cc], z0 + rr * hm.dz], -1).reshape(-1, 3)
-            pos.append(world - eye)
+            pos.append(np.stack([x0 + cc * hm.dx, hm.heights[rr, cc], z0 + rr * hm.dz], -1).reshape(-1, 3) - eye)
             a = (np.arange(k - 1)[:, None] * k + np.arange(k - 1)).ravel()  # each quad's corner (i, j)
             quads = np.concatenate([np.stack([a, a + k, a + 1], 1), np.stack([a + 1, a + k, a + k + 1], 1)])
             tri.append((quads[None] + (n + k * k * np.arange(len(rr)))[:, None, None]).reshape(-1, 3))
@@ -74,7 +72,8 @@ def main(argv: list[str] | None = None) -> tuple[list[dict], object]:
     for r in summarise(rows):
         print(f"{r['setting']:>18}  p99 {r['p99_px']:7.3f} px  {r['triangles']:9.0f} tris  {r['cracks']} cracks")
     fit = tw.fit_lod(scene, a.budget_px, policy="bands", cameras=cams)
-    return rows, print(fit.message) or fit
+    print(fit.message)
+    return rows, fit
 
 
 if __name__ == "__main__":

@@ -1,7 +1,16 @@
 """Every example runs, with tiny settings."""
 
+import csv
 import importlib.util
+import json
+import sys
 from pathlib import Path
+
+import pytest
+
+from terrainwarp import Heightmap, schemes
+from terrainwarp.cli import main
+from terrainwarp.experiments.pareto import summarise
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
@@ -9,6 +18,7 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 def _load(name):
     spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod  # as an import does: a dataclass looks its module up by name
     spec.loader.exec_module(mod)
     return mod
 
@@ -37,3 +47,45 @@ def test_streamed_terrain(tmp_path):
                                            "160", "--height", "90"])
     assert (tmp_path / "walk_1.png").exists() and rows[0]["tiles_read"] > 0
     assert rows[1]["hits"] > 0 and rows[1]["tiles_read"] < rows[0]["tiles_read"]
+
+
+@pytest.fixture
+def bands():
+    """examples/custom_scheme.py registers "bands" process-wide: removed again after the test, with any copy of
+    the example run as a plugin (so a later --plugin runs it anew)."""
+    yield
+    if "bands" in schemes.SCHEMES:
+        schemes.unregister_scheme("bands")
+    for name in [m for m in sys.modules if m.endswith("custom_scheme")]:
+        del sys.modules[name]
+
+
+def test_custom_scheme_is_at_most_80_lines_reported_beside_cdlod_and_fitted(tmp_path, bands):
+    assert len((EXAMPLES / "custom_scheme.py").read_text().splitlines()) <= 80
+    rows, fit = _load("custom_scheme").main(["--out", str(tmp_path), "--frames", "2", "--width", "64", "--height",
+                                             "48", "--workers", "0"])
+    assert {r["policy"] for r in rows} == {"bands", "cdlod"} and not any(r["error"] for r in rows)
+    summ = {r["setting"]: r for r in summarise(rows)}
+    fine, coarse = (summ[f"bands={v:g}"] for v in schemes.sweep_values("bands", Heightmap.example(), quick=True))
+    assert fine["p99_px"] < coarse["p99_px"] and fine["triangles"] > 10 * coarse["triangles"]
+    assert coarse["cracks"] > 0 and fine["cracks"] == 0  # the bands meet without skirts once they differ
+    assert {p.name for p in tmp_path.iterdir()} >= {"frames.csv", "pareto.png", "report.md"}
+    assert fit.met and fit.policy == "bands" and fit.validated.worst_p99 <= 2.0
+    assert schemes.scheme_range("bands", Heightmap.example())[0] <= fit.value
+
+
+def test_custom_scheme_as_a_plugin_of_report_on_a_worker_process_and_of_fit(tmp_path, capsys, bands):
+    """The command line runs the example as a plugin: the report's worker process (which cannot import a file
+    run by path) gets the scheme by value, and the fit takes the name."""
+    plugin = str(EXAMPLES / "custom_scheme.py")
+    small = ["--frames", "2", "--width", "64", "--height", "48", "--no-progress"]
+    assert main(["report", "--plugin", plugin, "--policies", "bands,cdlod", "--quick", "--workers", "1",
+                 "--no-images", "--out", str(tmp_path / "r"), *small]) == 0
+    with open(tmp_path / "r" / "frames.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["policy"] for r in rows} == {"bands", "cdlod"} and all(r["error"] == "" for r in rows)
+    assert "bands=" in (tmp_path / "r" / "report.md").read_text()
+    assert main(["--plugin", plugin, "fit", "--policy", "bands", "--budget-px", "2", "--out", str(tmp_path / "f"),
+                 *small]) == 0
+    assert json.loads((tmp_path / "f" / "fit.json").read_text())["policy"] == "bands"
+    assert "met: worst-frame p99" in capsys.readouterr().out
