@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+import nbclient
+import nbformat
 import pytest
 
 from terrainwarp import Heightmap, schemes
@@ -89,3 +91,23 @@ def test_custom_scheme_as_a_plugin_of_report_on_a_worker_process_and_of_fit(tmp_
                  *small]) == 0
     assert json.loads((tmp_path / "f" / "fit.json").read_text())["policy"] == "bands"
     assert "met: worst-frame p99" in capsys.readouterr().out
+
+
+def test_the_notebook_runs_with_tiny_settings_and_shows_pictures_and_tables(tmp_path):
+    """examples/terrainwarp.ipynb executed in a Jupyter kernel (nbclient): its parameters cell replaced by tiny
+    sizes; every cell runs, the frames come back as PNG pictures, the report, error and fit as HTML tables."""
+    nb = nbformat.read(EXAMPLES / "terrainwarp.ipynb", as_version=4)
+    nbformat.validate(nb)
+    params = [c for c in nb.cells if "parameters" in c.metadata.get("tags", [])]
+    assert len(params) == 1 and all(not c.get("outputs") for c in nb.cells if c.cell_type == "code")
+    params[0].source = "WIDTH, HEIGHT = 96, 64\nFRAMES = 2\nBUDGET_PX = 2.0"
+    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                            resources={"metadata": {"path": str(tmp_path)}}).execute()
+    shown = [[k for o in c.outputs for k in o.get("data", {})] for c in nb.cells if c.cell_type == "code"]
+    html = [o["data"]["text/html"] for c in nb.cells if c.cell_type == "code" for o in c.outputs
+            if "text/html" in o.get("data", {})]
+    assert sum("image/png" in s for s in shown) >= 3  # the frame, the CDLOD frame, the plot
+    assert len(html) == 3 and all(h.startswith("<table>") for h in html)  # report, error, fit
+    assert "frame cost" in html[0] and "primary" in html[1] and "met: worst-frame p99" in html[2]
+    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
+    assert "cdlod 4000 m:" in text and "chunked 4 px:" in text

@@ -73,6 +73,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap, StreamedHeightmap
+from ..io.display import html_table
 from ..io.files import save_figure
 from ..kernels.checks import check_int, check_number
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
@@ -198,6 +199,18 @@ class FitResult:
     grid: dict | None = None
     max_pop_px: float | None = None
     mesh_only_frames: int = 0
+
+    def _repr_html_(self) -> str:
+        """The fit in one HTML table (Jupyter): the message, then each camera of the validated value."""
+        v = self.validated
+        head = html_table(("policy", "budget_px", "met", "value", "worst p99 px", "triangles/frame",
+                           "pipeline evaluations", "wall s"),
+                          [(self.policy, self.budget_px, self.met, self.value, v.worst_p99 if v else math.nan,
+                            v.cost if v else math.nan, self.evaluations, self.wall_s)], caption=self.message)
+        if v is None or not v.complete:
+            return head
+        return head + html_table(("camera", "p99_px", "max_px", "triangles", "frame_ms"),
+                                 [(k, *r) for k, r in enumerate(zip(v.p99_px, v.max_px, v.triangles, v.frame_ms))])
 
     def to_dict(self) -> dict:
         v = self.validated

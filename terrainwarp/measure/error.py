@@ -38,6 +38,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
+from ..io.display import html_table
 from ..kernels.metrics import pixel_error
 from .sample_error import SampleError
 
@@ -161,6 +162,15 @@ class FrameError:
                    mismatched=image.mismatched, silhouette=image.silhouette, cracks=image.cracks,
                    max_depth_diff=image.max_depth_diff, psnr_db=image.psnr_db, ssim=image.ssim,
                    error_map=samples.error_map, image_error_map=image.error_map, crack_mask=image.crack_mask)
+
+    def _repr_html_(self) -> str:
+        """The primary error, the secondary image error and the coverage as an HTML table (Jupyter)."""
+        rows = [("primary (at the samples)", self.p99_px, self.max_px, self.mean_px,
+                 f"{self.samples_visible} samples visible, {self.samples_hidden} hidden"),
+                ("image (against the grid; floor)", self.image_err_p99_px, self.image_err_max_px,
+                 self.image_err_mean_px, f"{self.cracks} crack pixels, {self.covered} covered"
+                 + ("" if self.psnr_db is None else f", PSNR {self.psnr_db:.1f} dB, SSIM {self.ssim:.3f}"))]
+        return html_table(("error", "p99_px", "max_px", "mean_px", "counted"), rows)
 
     def row(self) -> dict[str, float | int | None]:
         """The numbers (no maps), for tables and report.json."""

@@ -60,6 +60,7 @@ import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
+from ..io.display import depth_picture, html_table, id_picture, png_bytes
 from ..io.files import atomic_path, output_set, write_image, write_json
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
@@ -158,6 +159,12 @@ class Report:
         w1 = max(len(r[1]) for r in rows)
         return "\n".join(f"{a:<{w0}}  {b:>{w1}}  {c}" for a, b, c in rows)
 
+    def _repr_html_(self) -> str:
+        """The :meth:`table` as HTML (Jupyter), the frame cost under it."""
+        rows = [(s.name, s.time_ms, s.counters) for s in self.stages] + [("total", self.total_ms, {})]
+        return html_table(("stage", "time_ms", "counters"), rows,
+                          caption=f"frame cost (select + mesh + raster): {self.frame_ms:.3g} ms")
+
 
 @dataclass
 class Frame:
@@ -192,6 +199,24 @@ class Frame:
     patches: PatchList | None = None
     error: FrameError | None = None
     curvature: np.ndarray | None = None
+
+    def __repr__(self) -> str:
+        """One line: the scene, the viewport, the outputs the frame holds, the mesh and the error."""
+        cam, held = self.scene.camera, [n for n in ("image", "depth", "normals", "curvature", "patches")
+                                        if getattr(self, n) is not None]
+        mesh = "" if self.mesh is None else f", {self.mesh.n_triangles} triangles"
+        err = "" if self.error is None else f", error p99 {self.error.p99_px:.3g} px"
+        return (f"Frame({self.scene.name!r}, {cam.width}x{cam.height}, {'+'.join(held) or 'no images'}{mesh}{err}, "
+                f"{self.report.frame_ms:.3g} ms)")
+
+    def _repr_png_(self) -> bytes | None:
+        """What Jupyter shows of a frame: its image, else a picture of its depth (near bright), else of its
+        triangle ids (one colour each); None (the repr) for a frame without any of them."""
+        if self.image is not None:
+            return png_bytes(self.image)
+        if self.depth is not None:
+            return png_bytes(depth_picture(self.depth))
+        return None if self.triangle_id is None else png_bytes(id_picture(self.triangle_id))
 
     def save(self, out_dir: str | Path) -> list[Path]:
         """Write what the frame has: ``frame.png``, ``depth.exr``, ``normals.exr``, ``curvature.exr``,
