@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.terrainwarp-installed
 OUT    ?= out/demo
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint docs bench clean
 setup: $(STAMP)
 
 $(STAMP): pyproject.toml scripts/system-deps.sh
@@ -18,13 +18,18 @@ demo: $(STAMP)
 	$(VENV)/bin/terrainwarp demo --out $(OUT)
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check terrainwarp kernels tests benchmarks examples
+	$(VENV)/bin/ruff check terrainwarp kernels tests benchmarks examples docs
 
 test: lint
 	$(PY) -m pytest -q
+
+# the API reference, warnings as errors (tests/test_docs.py builds it too, so make test fails on a broken one)
+docs: $(STAMP)
+	$(PY) -m sphinx -E -a -W --keep-going -q -b html docs out/docs
+	@echo "wrote: out/docs/index.html"
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
 
 clean:
-	rm -rf out build *.egg-info
+	rm -rf out build *.egg-info docs/api

@@ -11,7 +11,7 @@ triangle ids:
    vertices, the homogeneous facing test, so edges of triangles crossing w = 0 are classed right too).
 3. The first silhouette edge of T (in edge order 0: v0-v1, 1: v1-v2, 2: v2-v0) whose segment crosses the
    segment between the two pixel centres, both edge vertices at w > 0, gives the crossing position alpha
-   in [0, 1] from A's centre to B's (pixel units). A horizontal pair takes only steep edges (|dx| <= |dy|
+   in [0, 1] from A's centre to B's (pixel units). A horizontal pair takes only steep edges (``|dx| <= |dy|``
    on screen) and a vertical pair only the others, so each edge is filtered once, along the axis it
    crosses most: moving an edge by d pixels across it then changes the image by d per pixel row (or
    column) it spans, as it changes the covered area.

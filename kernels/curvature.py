@@ -4,7 +4,7 @@ geomorphometry, each one kernel over the whole grid.
 Directional curvature (curtis2004, "Determining curvature"), in the four directions ``DIRECTIONS``:
 x (+column), z (+row), diagonal (+x, +z) and diagonal (+x, -z), with step lengths dx, dz and
 sqrt(dx^2 + dz^2) (= dx*sqrt(2) when dx = dz). Along a direction the terrain is a plane curve y(t) and
-Equation 1 gives k = |y''| / (1 + y'^2)^(3/2) (1/m). Methods (``CURVATURE_METHODS``):
+Equation 1 gives ``k = |y''| / (1 + y'^2)^(3/2)`` (1/m). Methods (``CURVATURE_METHODS``):
 
 * ``two_normal``: y' = slope of the tangent at the vertex, from its normal (s = -(n.u)/n.y for the unit
   horizontal direction u); y'' = (s_next - s_vertex) / L.

@@ -1,7 +1,9 @@
 """Scenes: what to render (heightmap, camera, mesh policy) and which outputs are asked for.
 
 A scene file is TOML; every key given is applied or refused, and every value is checked by type and range
-(:mod:`terrainwarp.kernels.checks`)::
+(:mod:`terrainwarp.kernels.checks`). Every table and key it may hold is in :data:`SCENE_FILE` (``[lod]``:
+:class:`LodConfig`'s fields, ``[path]``: :class:`CameraPath`'s), the table the loader checks a file against and
+the API reference's scene-file page is made from::
 
     [heightmap]
     example = "jacksboro"        # or: path = "dem.png" (with optional dx, dz, max_height),
@@ -25,20 +27,22 @@ A scene file is TOML; every key given is applied or refused, and every value is 
 
 from __future__ import annotations
 
+import inspect
+import json
 import math
 import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from .camera import Camera, flyover, orbit
 from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
 from .kernels.checks import check_bool, check_choice, check_int, check_number, is_int
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 
-__all__ = ["Scene", "LodConfig", "PolicySpec", "POLICY_TABLE", "OUTPUTS", "MESH_POLICIES", "LOD_POLICIES",
-           "SPACINGS", "FILTERS", "MAX_TESS", "QUADTREE_TESS", "check_policy_numbers", "check_tess", "check_roots",
-           "PATH_PRESETS", "GROUND_CLEARANCE", "HIGH_CLEARANCE", "PATH_FOV_Y_DEG"]
+__all__ = ["Scene", "LodConfig", "CameraPath", "SceneKey", "SCENE_FILE", "PolicySpec", "POLICY_TABLE", "OUTPUTS",
+           "MESH_POLICIES", "LOD_POLICIES", "SPACINGS", "FILTERS", "MAX_TESS", "QUADTREE_TESS", "check_policy_numbers",
+           "check_tess", "check_roots", "PATH_PRESETS", "GROUND_CLEARANCE", "HIGH_CLEARANCE", "PATH_FOV_Y_DEG"]
 
 OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error")
 MESH_POLICIES = ("grid", "lod")
@@ -58,6 +62,75 @@ GROUND_CLEARANCE = 0.02
 HIGH_CLEARANCE = 0.10
 PATH_PRESETS = {"ground": GROUND_CLEARANCE, "high": HIGH_CLEARANCE}
 PATH_FOV_Y_DEG = 60.0  # every path's field of view unless its [path] table gives fov_y_deg
+
+
+# ------------------------------------------------------------------------------------------------
+# the scene file's keys
+# ------------------------------------------------------------------------------------------------
+class SceneKey(NamedTuple):
+    """One key of a scene file's table: its TOML type, its default (as the file would say it, or what happens
+    when it is left out) and what it means."""
+
+    type: str
+    default: str
+    doc: str
+
+
+#: Every table of a scene file and its keys (``[lod]``: :class:`LodConfig`'s fields, its own table). The loader
+#: refuses any other key, naming the table and the keys it expects.
+SCENE_FILE: dict[str, dict[str, SceneKey]] = {
+    "heightmap": {
+        "example": SceneKey("string", '"jacksboro" (no [heightmap] table)',
+                            "a bundled DEM: " + ", ".join(f'``"{e}"``' for e in EXAMPLES)),
+        "path": SceneKey("string", "-", "a heightmap file (image, .npy, GeoTIFF or any GDAL raster), relative to "
+                                        "the scene file's folder"),
+        "dx": SceneKey("number", "the file's spacing, else 1", "sample spacing along x (columns), metres"),
+        "dz": SceneKey("number", "dx", "sample spacing along z (rows), metres"),
+        "max_height": SceneKey("number", "-", "an 8/16-bit image's heights scaled to 0..max_height metres "
+                                              "(left out: its integer values are metres)"),
+        "fbm": SceneKey("table", "-", "procedural fBm terrain: the [heightmap.fbm] table"),
+        "stream": SceneKey("boolean", "false", "read the terrain tile by tile (a GeoTIFF path, or the fBm "
+                                               "generated window by window) instead of loading it"),
+    },
+    "heightmap.fbm": {
+        "rows": SceneKey("integer", "257", "samples along z"),
+        "cols": SceneKey("integer", "rows", "samples along x"),
+        "seed": SceneKey("integer", "0", "the noise's seed: the same seed, the same terrain"),
+        "max_height": SceneKey("number", "1000", "heights lie in [0, max_height] metres"),
+        "dx": SceneKey("number", "10", "sample spacing along x, metres"),
+        "dz": SceneKey("number", "dx", "sample spacing along z, metres"),
+        "feature_size": SceneKey("number", "256", "wavelength of the first octave, samples"),
+        "octaves": SceneKey("integer", "8", "octaves of noise"),
+        "gain": SceneKey("number", "0.5", "amplitude factor from one octave to the next"),
+        "lacunarity": SceneKey("number", "2", "frequency factor from one octave to the next"),
+        "ridged": SceneKey("boolean", "false", "ridged noise (1 - abs) instead of plain fBm"),
+    },
+    "camera": {
+        "position": SceneKey("array of 3 numbers", "a three-quarter view framing the terrain",
+                             "the eye (x, y, z), metres; give target with it (without both: the default view, "
+                             "with the other keys given applied)"),
+        "target": SceneKey("array of 3 numbers", "-", "the point looked at (x, y, z), metres"),
+        "up": SceneKey("array of 3 numbers", "[0, 1, 0]", "the up direction (y up: OpenGL's convention)"),
+        "fov_y_deg": SceneKey("number", "45", "vertical field of view, degrees"),
+        "width": SceneKey("integer", "640", "viewport width, pixels"),
+        "height": SceneKey("integer", "480", "viewport height, pixels"),
+        "near": SceneKey("number", "1", "near clip distance, metres"),
+        "far": SceneKey("number", "100000", "far clip distance, metres"),
+    },
+    "render": {
+        "outputs": SceneKey("array of strings", '["image", "depth", "report"]',
+                            "what to compute, a subset of " + ", ".join(f'``"{o}"``' for o in OUTPUTS)),
+        "mesh": SceneKey("string", '"grid"', '``"grid"`` (the full-resolution grid) or ``"lod"`` (the [lod] '
+                                             "policy's patches, tessellated)"),
+        "light_azimuth_deg": SceneKey("number", "315", "the hillshade's sun, degrees clockwise from north"),
+        "light_elevation_deg": SceneKey("number", "45", "the hillshade's sun above the horizon, degrees"),
+        "cull_back": SceneKey("boolean", "false", "cull back-facing triangles"),
+        "shading": SceneKey("string", '"hillshade"', "how the image is coloured: "
+                                                     + ", ".join(f'``"{h}"``' for h in SHADINGS)),
+    },
+    "lod": {},  # LodConfig's fields: filled in below the class
+    "path": {},  # CameraPath's fields: filled in below the class
+}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -223,7 +296,6 @@ class LodConfig:
         return replace(self, policy=policy, spacing=spacing, **{spec.field: float(value)})
 
 
-_PATH_KEYS = {"kind", "waypoints", "clearance", "preset", "n", "radius", "elevation", "units", "fov_y_deg"}
 _DEFAULT_WAYPOINTS = ((0.15, 0.85), (0.5, 0.55), (0.85, 0.15))
 
 
@@ -275,7 +347,7 @@ class CameraPath:
     def from_table(cls, d: object) -> CameraPath:
         """A ``[path]`` table: every key is applied or refused (an orbit's keys on a flyover, and the reverse,
         are refused too)."""
-        _check_keys("path", d, _PATH_KEYS)
+        _check_keys("path", d, set(SCENE_FILE["path"]))
         kind = d.get("kind", "flyover")
         wrong = ({"radius", "elevation"} if kind == "flyover" else {"waypoints", "clearance", "preset"}) & set(d)
         if wrong:
@@ -291,6 +363,42 @@ def _waypoints(w: object, units: str) -> tuple[tuple[float, float], ...]:
     lo = 0.0 if units == "fraction" else None
     return tuple((check_number(f"path.waypoints[{i}][0]", a, lo, hi), check_number(f"path.waypoints[{i}][1]", b, lo,
                                                                                    hi)) for i, (a, b) in enumerate(w))
+
+
+def _attribute_docs(cls: type) -> dict[str, str]:
+    """The ``Attributes:`` section of a Google-style class docstring: name -> text (names that share an entry,
+    ``a, b: text``, share its text)."""
+    out: dict[str, str] = {}
+    names: list[str] = []
+    inside = False
+    for line in inspect.cleandoc(cls.__doc__ or "").splitlines():
+        if line.strip() == "Attributes:":
+            inside = True
+        elif inside and line and not line.startswith(" "):
+            break  # the section ends at the next unindented paragraph
+        elif inside and line.startswith("    ") and not line.startswith("     ") and ": " in line:
+            head, _, text = line.strip().partition(": ")
+            names = [n.strip() for n in head.split(",")]
+            out.update(dict.fromkeys(names, text))
+        elif inside and line.strip():
+            for n in names:
+                out[n] += " " + line.strip()
+    return out
+
+
+_TOML_TYPES = {"bool": "boolean", "int": "integer", "float": "number", "str": "string", "str | None": "string",
+               "float | None": "number", "tuple[tuple[float, float], ...]": "array of [x, z] pairs"}
+
+
+def _keys_of(cls: type) -> dict[str, SceneKey]:
+    """A config dataclass's fields as a scene table's keys: TOML type, default (None: left out), docstring text."""
+    docs = _attribute_docs(cls)
+    return {f.name: SceneKey(_TOML_TYPES.get(f.type, f.type), "-" if f.default is None else json.dumps(f.default),
+                             docs.get(f.name, "")) for f in fields(cls)}
+
+
+SCENE_FILE["lod"] = _keys_of(LodConfig)
+SCENE_FILE["path"] = _keys_of(CameraPath)
 
 
 @dataclass(frozen=True, eq=False)
@@ -444,20 +552,19 @@ class Scene:
 
     @classmethod
     def from_dict(cls, data: dict, base_dir: str | Path = ".", name: str = "scene") -> Scene:
-        _check_keys("scene", data, {"heightmap", "camera", "render", "lod", "path"})
+        _check_keys("scene", data, {t for t in SCENE_FILE if "." not in t})
         hm_d = data.get("heightmap", {"example": "jacksboro"})
-        _check_keys("heightmap", hm_d, {"example", "path", "dx", "dz", "max_height", "fbm", "stream"})
+        _check_keys("heightmap", hm_d, set(SCENE_FILE["heightmap"]))
         hm = _heightmap_from(hm_d, Path(base_dir))
         cam = _camera_from(data.get("camera"), hm)
         r = data.get("render", {})
-        _check_keys("render", r, {"outputs", "mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back",
-                                  "shading"})
+        _check_keys("render", r, set(SCENE_FILE["render"]))
         kw = {k: r[k] for k in ("mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back", "shading")
               if k in r}
         if "outputs" in r:
             kw["outputs"] = tuple(r["outputs"])
         if "lod" in data:
-            _check_keys("lod", data["lod"], set(LodConfig.__dataclass_fields__))
+            _check_keys("lod", data["lod"], set(SCENE_FILE["lod"]))
             kw["lod"] = LodConfig(**data["lod"])
         if "path" in data:
             kw["path"] = CameraPath.from_table(data["path"])
@@ -469,7 +576,7 @@ def _camera_from(cam_d: object, hm: Heightmap | StreamedHeightmap) -> Camera | N
     default three-quarter view of the terrain; either way with every other key given applied."""
     if cam_d is None:
         return None
-    _check_keys("camera", cam_d, {"position", "target", "up", "fov_y_deg", "width", "height", "near", "far"})
+    _check_keys("camera", cam_d, set(SCENE_FILE["camera"]))
     if "position" in cam_d or "target" in cam_d:
         if not ("position" in cam_d and "target" in cam_d):
             raise ValueError("camera: give both 'position' and 'target', or neither")
@@ -510,8 +617,7 @@ def _heightmap_from(hm_d: dict, base_dir: Path) -> Heightmap | StreamedHeightmap
             return Heightmap.open(hp, hm_d.get("dx"), hm_d.get("dz"))
         return Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"))
     f = hm_d["fbm"]
-    _check_keys("heightmap.fbm", f, {"rows", "cols", "seed", "max_height", "dx", "dz", "feature_size",
-                                     "octaves", "gain", "lacunarity", "ridged"})
+    _check_keys("heightmap.fbm", f, set(SCENE_FILE["heightmap.fbm"]))
     f = dict(f)
     rows = f.pop("rows", 257)
     return StreamedHeightmap.fbm(rows, **f) if stream else Heightmap.fbm(rows, **f)

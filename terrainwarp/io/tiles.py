@@ -108,7 +108,7 @@ class TileSource:
         raise NotImplementedError
 
     def detail_bound(self, step: int) -> float:
-        """A bound on |height - bilinear interpolation of the step-``step`` overview| anywhere (metres): 0 at
+        """A bound on ``|height - bilinear interpolation of the step-step overview|`` anywhere (metres): 0 at
         step 1, inf where nothing bounds it (a file: its pyramids are exact instead)."""
         return 0.0 if step == 1 else math.inf
 
@@ -183,7 +183,7 @@ class FbmSource(TileSource):
 
     def detail_bound(self, step: int) -> float:
         """Octave by octave, the smallest of three bounds on bilinear interpolation over cells of side r =
-        ``step`` of an octave of frequency f (per sample): its curvature, (r^2 / 8)(|f_xx| + |f_zz|) <=
+        ``step`` of an octave of frequency f (per sample): its curvature, ``(r^2 / 8)(|f_xx| + |f_zz|)`` <=
         C2 (f r)^2 / 4; its slope, C1 f r; and its whole range. Ridged noise has kinks: slope and range
         only. The constants bound the measured extremes of the noise with a 25-50% margin."""
         if step <= 1:

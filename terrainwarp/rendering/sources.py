@@ -56,11 +56,11 @@ from ..lod.quadtree import LodState, PatchList, Terrain, select
 from ..lod.streaming import overview_windows
 from ..mesh import Mesh
 from ..scene import LodConfig
-from ..schemes import SCHEMES, SchemeSpec, register_scheme, scheme_range, scheme_source
+from ..schemes import SCHEMES, SchemeSpec, register_scheme, scheme_range, scheme_source  # noqa: F401
 
+# SCHEMES, SchemeSpec, scheme_source and scheme_range are terrainwarp.schemes', importable here as before
 __all__ = ["MeshSource", "SourceBase", "missing_members", "StreamedSource", "PeerSource", "PolytreeSource",
-           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource", "SchemeSpec", "SCHEMES", "scheme_source",
-           "scheme_range"]
+           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource"]
 
 
 # ------------------------------------------------------------------------------------------------

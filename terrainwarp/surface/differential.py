@@ -95,7 +95,7 @@ def compute_curvature(heightmap: Heightmap | np.ndarray, method: str = "three_no
         normals: vertex normals used by the normal-based methods (``"quad"``, as the paper).
 
     Returns:
-        (H, W, 4) float32 >= 0 (NaN at NaN heights): Equation 1, |y''| / (1 + y'^2)^(3/2), in 1/m times
+        (H, W, 4) float32 >= 0 (NaN at NaN heights): Equation 1, ``|y''| / (1 + y'^2)^(3/2)``, in 1/m times
         ``scale`` (1/m^2 when reinforced), or 1 - cos(angle) in [0, 1] times ``scale`` for
         ``edge_angle``. Not differentiable.
     """
