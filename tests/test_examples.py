@@ -8,6 +8,7 @@ from pathlib import Path
 
 import nbclient
 import nbformat
+import numpy as np
 import pytest
 
 from terrainwarp import Heightmap, schemes
@@ -111,3 +112,39 @@ def test_the_notebook_runs_with_tiny_settings_and_shows_pictures_and_tables(tmp_
     assert "frame cost" in html[0] and "primary" in html[1] and "met: worst-frame p99" in html[2]
     text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
     assert "cdlod 4000 m:" in text and "chunked 4 px:" in text
+
+
+def test_lod_flyover_holds_its_state_and_every_frame_is_watertight(tmp_path):
+    rows = _load("lod_flyover").main(["--out", str(tmp_path), "--frames", "3", "--width", "96", "--height", "64"])
+    assert [r["frame"] for r in rows] == [0, 1, 2]
+    assert all(r["cracks"] == 0 and r["t_junctions"] == 0 and r["triangles"] > 0 for r in rows)
+    assert len({r["patches"] for r in rows}) > 1  # the selection follows the camera
+    assert (tmp_path / "frame_02.png").exists() and len((tmp_path / "flyover.csv").read_text().splitlines()) == 4
+
+
+def test_fit_budget_meets_its_budget_beside_the_grid_search(tmp_path):
+    res = _load("fit_budget").main(["--out", str(tmp_path), "--frames", "2", "--width", "96", "--height", "64",
+                                    "--budget-px", "2", "--grid-points", "3"])
+    assert res.met and res.validated.worst_p99 <= 2.0 and res.grid["points"] == 3
+    assert json.loads((tmp_path / "fit.json").read_text())["met"] is True and (tmp_path / "fit.png").exists()
+
+
+def test_scheme_comparison_names_each_schemes_cheapest_setting_per_budget(tmp_path):
+    table = _load("scheme_comparison").main(["--out", str(tmp_path), "--frames", "2", "--width", "96", "--height",
+                                             "64", "--workers", "0"])
+    assert {row[1] for row in table} == {"sse", "cdlod", "clipmaps", "chunked"}
+    for budget, _, setting, p99, *_ in table:
+        assert setting == "-" or p99 <= budget
+    assert (tmp_path / "pareto.png").exists() and "cdlod" in (tmp_path / "report.md").read_text()
+
+
+def test_real_geotiff_reads_the_srtm_tile_with_its_crs_holes_and_a_decimated_part(tmp_path):
+    got = _load("real_geotiff").main(["--out", str(tmp_path), "--width", "96", "--height", "64"])
+    ref = Heightmap.example()
+    assert got["shape"] == ref.shape and got["no_data"] == 20 * 30
+    assert abs(got["dx"] - ref.dx) / ref.dx < 1e-3 and abs(got["dz"] - ref.dz) / ref.dz < 1e-3
+    hm = Heightmap.load(tmp_path / "srtm.tif")
+    holes = np.isnan(hm.heights)
+    assert holes[100:120, 200:230].all() and np.array_equal(hm.heights[~holes], ref.heights[~holes])
+    assert got["part_shape"] == (86, 101) and abs(got["part_dx"] - 2 * got["dx"]) / got["dx"] < 1e-2
+    assert (tmp_path / "frame.png").exists() and (tmp_path / "part.png").exists()
