@@ -1,7 +1,7 @@
 """The rasterizer: a visibility pass (coverage + depth test) and a resolve pass, as Warp kernels.
 
 The rules are OpenGL's as Mesa's llvmpipe implements them (checked pixel for pixel against llvmpipe
-through EGL in tests/test_raster.py, with the same clip-space vertices):
+through EGL in tests/kernels/test_raster.py, with the same clip-space vertices):
 
 1. Vertices go to clip space in one kernel (``clip = (proj @ view) @ (p, 1)``, the matrix product
    rounded to float32 first, like a uniform); :func:`rasterize_clip` starts from clip coordinates.

@@ -197,3 +197,20 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     md = (fit / "report.md").read_text()
     assert "Camera path: flyover of 2 cameras" in md and "2.0% of the" in md and "grid-image error" in md
     assert "pop p99" in md
+
+
+def test_cli_stability_writes_report_and_rejects_bad_args(tmp_path):
+    out = tmp_path / "stab"
+    r = subprocess.run([sys.executable, "-m", "terrainwarp.cli", "stability", "--out", str(out), "--cases",
+                        "tess_nan,tess_64", "--no-progress"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    text = (out / "stability.md").read_text()
+    assert "| tess_64 | tessellate | pass |" in text and "| tess_nan | tessellate | pass |" in text
+    assert sorted(p.name for p in out.iterdir()) == ["stability.md"]
+    for argv in (["stability"], ["stability", "--out", str(tmp_path / "x"), "--cases", "atlantis"],
+                 ["stability", "--out", str(tmp_path / "x"), "--fast"]):
+        r = subprocess.run([sys.executable, "-m", "terrainwarp.cli", *argv], capture_output=True, text=True)
+        assert r.returncode == 2
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("terrainwarp: error:"), r.stderr
+        assert not (tmp_path / "x").exists()

@@ -279,3 +279,30 @@ def test_entry_point_one_line_no_traceback(argv, bad_scenes, tmp_path):
     lines = [ln for ln in r.stderr.splitlines() if ln.startswith("terrainwarp: error:")]
     assert len(lines) == 1, r.stderr
     assert not (tmp_path / "out").exists()
+
+
+def _scene_files(tmp_path):
+    files = {}
+    (tmp_path / "bin.toml").write_bytes(b"\xff\xfe\x00binary")
+    files["not_toml"] = tmp_path / "bin.toml"
+    (tmp_path / "unk.toml").write_text('[heightmap]\nexample = "jacksboro"\n[render]\nspeed = 3\n')
+    files["unknown_key"] = tmp_path / "unk.toml"
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\ngarbage")
+    (tmp_path / "corrupt.toml").write_text('[heightmap]\npath = "corrupt.png"\n')
+    files["corrupt_image"] = tmp_path / "corrupt.toml"
+    (tmp_path / "neg.toml").write_text('[heightmap]\nexample = "jacksboro"\n[camera]\nwidth = -3\n')
+    files["negative_size"] = tmp_path / "neg.toml"
+    (tmp_path / "nan.toml").write_text('[heightmap]\nexample = "jacksboro"\n[camera]\nposition = [nan, 1, 2]\n'
+                                       'target = [0, 0, 0]\n')
+    files["nan_camera"] = tmp_path / "nan.toml"
+    return files
+
+
+@pytest.mark.parametrize("which", ["not_toml", "unknown_key", "corrupt_image", "negative_size", "nan_camera"])
+def test_cli_bad_scene_files_one_line_exit_2_no_output(tmp_path, capsys, which):
+    f = _scene_files(tmp_path)[which]
+    out = tmp_path / "out"
+    assert main(["render", str(f), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("terrainwarp: error:") and "Traceback" not in err[0]
+    assert not out.exists() or not any(out.iterdir())

@@ -377,7 +377,7 @@ def _stage_error(case: ExtremeCase, scene) -> Row:
     vals = (e.max_px, e.p99_px, e.mean_px)
     _check(all(math.isfinite(x) and x >= 0 for x in vals), f"error: non-finite or negative {vals}")
     if case.name == "flat":
-        # Exactly 0 needs camera-relative heights that float32 represents exactly (tests/test_stability.py
+        # Exactly 0 needs camera-relative heights that float32 represents exactly (tests/experiments/test_stability.py
         # checks that with an eye at y = 32 m); with this eye (y = 27.47... m) every height rounds by up
         # to ulp/2 = 9.5e-7 m, which is all the reprojection error may be.
         _check(e.max_px <= 1e-4, f"flat plane: grid error {e.max_px} px, expected float32 rounding only")

@@ -15,7 +15,7 @@ distance from the eye to its furthest vertex. With per-vertex thresholds ``t(v) 
 S))`` that is the smallest threshold of its vertices; descending from the root, a node is displayed at
 the first level ``L >= min t``. Hole fixing (the paper): a displayed triangle whose right-angle vertex
 alone has the lowest threshold is rendered one level finer. That fix does not close every crack (a
-counter-example is in tests/test_bintree.py), so ``propagate=True`` adds ROAM's forced split
+counter-example is in tests/lod/test_bintree.py), so ``propagate=True`` adds ROAM's forced split
 propagation: every split node's base neighbour (the node of the same level across its hypotenuse) is
 split too, repeated until stable, which makes the mesh conforming (no T-junctions).
 

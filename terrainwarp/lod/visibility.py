@@ -260,7 +260,7 @@ def precompute_visibility(tree: Bintree, cells: int | tuple[int, int] = 16, coar
         raised: True (default): eye samples at the cell's highest surface point + eye height and targets
             at the node's highest subtree point (each tested segment is then only lifted, see the module
             docstring); False: the paper's vertex-to-vertex sampling at the surface, tighter but it can
-            miss a visible triangle (tests/test_visibility.py has a DEM viewpoint where it does).
+            miss a visible triangle (tests/lod/test_visibility.py has a DEM viewpoint where it does).
 
     Returns:
         :class:`VisibilityTable` (only the base set and the changes kept).

@@ -314,9 +314,11 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         raise TypeError(f"source: expected a MeshSource (terrainwarp.rendering.SourceBase has the defaults), got "
                         f"{type(source).__name__} without {', '.join(missing_members(source))}")
     if isinstance(hm, StreamedHeightmap):
+        held = source is None  # the source the heightmap holds for this configuration, made by render
         source = _streamed_source(scene, terrain, source, patches, device)
-        if state is not None and isinstance(source, StreamedSource):
-            source.state = state  # hysteresis across frames, as for an in-memory LOD scene
+        if isinstance(source, StreamedSource) and (held or state is not None):
+            # hysteresis across frames, as for an in-memory LOD scene; the held source keeps no earlier call's state
+            source.state = state
     kind = "source" if source is not None else scene.mesh
     if patches is not None:
         if not isinstance(patches, PatchList):

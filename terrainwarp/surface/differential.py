@@ -16,7 +16,7 @@ allow_nan=True)``) are no-data holes: normals stay finite everywhere; curvature 
 holes and finite everywhere else (see the kernels' module docstrings for the rules).
 
 Measured on the real DEM ``Heightmap.example()`` (SRTM, 344 x 403, heights 236..1076 m, dx 74.6 m,
-dz 92.5 m; tests/test_normals.py re-measures it): Sobel normals with the paper's constant-0 border and
+dz 92.5 m; tests/surface/test_normals.py re-measures it): Sobel normals with the paper's constant-0 border and
 with clamp-to-edge are bit-identical inside and differ on every sample of the border ring, by 47.9 to
 91.0 degrees (median 69.8): a 0 m outside sample beside 500 m of terrain is a 500 m cliff. Clamp itself
 halves the edge-normal slope (clamp vs one-sided ``"skip"``: up to 16.5 degrees, median 3.6). Use

@@ -12,10 +12,12 @@ import rasterio
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
+import terrainwarp as tw
 from terrainwarp import Camera, Heightmap
 from terrainwarp.camera import flyover, orbit
 from terrainwarp.io import memory
 from terrainwarp.io.files import write_image
+from terrainwarp.rendering import rasterize as tw_rasterize
 from terrainwarp.scene import Scene
 
 # rasterio 1.4 composes affine transforms with `*`, which affine 3 marks as pending deprecation
@@ -199,3 +201,36 @@ def test_corrupt_png_gives_one_line_and_no_libpng_noise(tmp_path, capfd, cut):
     # stderr works again afterwards, at the descriptor level too
     os.write(2, b"still here\n")
     assert capfd.readouterr().err == "still here\n"
+
+
+# -- bad input across the public API ----------------------------------------------------------------
+@pytest.mark.parametrize("call, arg", [
+    (lambda: tw.Heightmap.from_array(np.array([["a", "b"]])), "a"),
+    (lambda: tw.Heightmap.from_array(np.zeros((2, 3, 4))), "a"),
+    (lambda: tw.Heightmap.from_array(np.zeros((0, 4))), "a"),
+    (lambda: tw.Heightmap.from_array(np.array([[1.0, np.nan]])), "a"),
+    (lambda: tw.Heightmap.from_array(np.array([[1.0, np.inf]])), "a"),
+    (lambda: tw.Heightmap.from_array(np.ones((3, 3)), -1.0), "dx"),
+    (lambda: tw.Heightmap.from_array(np.ones((3, 3)), 1.0, 0.0), "dz"),
+    (lambda: tw.Heightmap.from_array(np.ones((3, 3)), float("nan")), "dx"),
+    (lambda: tw.Heightmap.fbm(-4), "rows"),
+    (lambda: tw.Camera((0, 0, 0), (0, 0, -1), width=-5), "width"),
+    (lambda: tw.Camera((0, 0, 0), (0, 0, -1), height=0), "height"),
+    (lambda: tw.Camera((np.nan, 0, 0), (0, 0, -1)), "position"),
+    (lambda: tw.Camera((0, 0, 0), (0, 0, -1), near=-1.0), "near"),
+    (lambda: tw.Camera((0, 0, 0), (0, 0, -1), fov_y_deg=180.0), "fov_y_deg"),
+    (lambda: tw.Camera((0, 0, 0), (0, -1, 0)), "up"),
+    (lambda: tw.Scene("not a heightmap"), "heightmap"),
+    (lambda: tw.Scene(tw.Heightmap.from_array(np.ones((3, 3))), outputs=("image", "bogus")), "outputs"),
+    (lambda: tw.render("scene"), "scene"),
+    (lambda: tw_rasterize(np.zeros((3, 2), np.float32), np.zeros((1, 3), np.int32), np.eye(4), np.eye(4), 8, 8),
+     "positions"),
+    (lambda: tw_rasterize(np.full((3, 3), np.inf, np.float32), np.zeros((1, 3), np.int32), np.eye(4), np.eye(4),
+                          8, 8), "positions"),
+    (lambda: tw.compute_normals(tw.Heightmap.from_array(np.ones((3, 3))), "bogus"), "method"),
+    (lambda: tw.compute_normals(np.zeros((0, 3))), "heightmap"),
+])
+def test_api_bad_input_names_the_argument(call, arg):
+    with pytest.raises((ValueError, TypeError)) as ei:
+        call()
+    assert str(ei.value).startswith(arg) or f"{arg}:" in str(ei.value) or f"{arg} " in str(ei.value), str(ei.value)

@@ -185,3 +185,21 @@ def test_smoothing_spares_mountains():
     s = hm.designed(smoothing=3, mountain_height=100.0)
     assert s.heights[16, 16] == 500.0
     assert s.heights[4:12, 4:12].std() < 0.5 * h[4:12, 4:12].std()
+
+
+@pytest.mark.parametrize("content, arg", [(b"", "path"), (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00", "path"),
+                                          (b"not an image at all" * 10, "path")])
+def test_corrupt_and_truncated_images(tmp_path, content, arg):
+    p = tmp_path / "h.png"
+    p.write_bytes(content)
+    with pytest.raises(ValueError, match=arg):
+        Heightmap.load(p)
+
+
+def test_truncated_valid_png(tmp_path):
+    p = tmp_path / "h.png"
+    Heightmap.from_array(np.arange(64 * 64, dtype=np.uint16).reshape(64, 64)).save(p)
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="path"):
+        Heightmap.load(p)

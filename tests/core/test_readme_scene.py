@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+import terrainwarp as tw
 from terrainwarp.scene import GROUND_CLEARANCE, HIGH_CLEARANCE, PATH_FOV_Y_DEG, PATH_PRESETS, Scene
 
 README = Path(__file__).resolve().parents[2] / "README.md"
@@ -59,3 +60,18 @@ def test_a_path_table_without_a_field_of_view_uses_sixty_degrees_like_no_table()
     without = Scene.from_dict(data).camera_path(2)
     with_table = Scene.from_dict({**data, "path": {"n": 2}}).camera_path()
     assert with_table == without and {c.fov_y_deg for c in with_table} == {PATH_FOV_Y_DEG} == {60.0}
+
+
+def test_scene_files_bad(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[heightmap\nexample = ")
+    with pytest.raises(ValueError, match="scene"):
+        tw.Scene.load(bad)
+    unk = tmp_path / "unk.toml"
+    unk.write_text('[heightmap]\nexample = "jacksboro"\ncolour = 3\n')
+    with pytest.raises(ValueError, match="heightmap: unknown key"):
+        tw.Scene.load(unk)
+    ex = tmp_path / "ex.toml"
+    ex.write_text('[heightmap]\nexample = "atlantis"\n')
+    with pytest.raises(ValueError, match="heightmap.example"):
+        tw.Scene.load(ex)

@@ -124,13 +124,30 @@ def test_bad_counts_are_refused_before_any_work(scene, monkeypatch):
         fit_lod(sc, 1.0, cameras=cams, grid_points=2.5)
 
 
-def test_fit_progress_bar_counts_every_step(scene, capsys):
+def test_fit_progress_bar_counts_every_step(scene, capsys, monkeypatch):
+    """The bar ends full, at a total that is every step the fit took: the reference frames, the relaxed fit's
+    steps, the frames the exact tries measured, the grid search's frames and (with more than one camera) the
+    fitted value's popping pass."""
+    import tqdm
+
+    bars = {}
+
+    class Counted(tqdm.tqdm):
+        def close(self):  # tqdm may close a bar twice (its own __del__)
+            bars[id(self)] = (self.desc, self.n, self.total)
+            super().close()
+
+    monkeypatch.setattr(tqdm, "tqdm", Counted)
     sc, cams = scene
-    fit_lod(sc, 2.0, policy="sse", cameras=cams[:1], steps=4, max_validations=1, grid_points=2, progress=True)
-    err = capsys.readouterr().err
-    assert "fit sse 2 px" in err and "step" in err
+    for cameras, steps, grid in ((cams[:1], 4, 2), (cams, 5, 3)):
+        res = fit_lod(sc, 2.0, policy="sse", cameras=cameras, steps=steps, max_validations=3, grid_points=grid,
+                      progress=True)
+        expected = len(cameras) + steps + res.evaluations + res.grid["evaluations"] + \
+            (len(cameras) if len(cameras) > 1 else 0)
+        assert list(bars.values())[-1] == ("fit sse 2 px", expected, expected)
+    assert "fit sse 2 px" in capsys.readouterr().err
     fit_lod(sc, 2.0, policy="sse", cameras=cams[:1], steps=4, max_validations=1)  # progress off by default
-    assert capsys.readouterr().err == ""
+    assert capsys.readouterr().err == "" and len(bars) == 2
 
 
 def _fit_figure(monkeypatch, tmp_path, result, curve=None):

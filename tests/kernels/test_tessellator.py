@@ -358,3 +358,14 @@ def test_cli_tessellate(tmp_path, capsys):
             main(["tessellate", *bad, "--out", str(tmp_path)])
         assert e.value.code == 2
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_reference_tessellator_bad_input_names_the_argument():
+    with pytest.raises(ValueError, match="outer"):
+        reference_tessellate_patch([1, 2, 3], [1, 1], "equal")
+    with pytest.raises(ValueError, match="inner"):
+        reference_tessellate_patch([1, 1, 1, 1], [1], "equal")
+    with pytest.raises(ValueError, match="spacing"):
+        reference_tessellate_patch([1, 1, 1, 1], [1, 1], "odd")
+    with pytest.raises(TypeError, match="outer"):
+        reference_tessellate_patch(["x"] * 4, [1, 1], "equal")

@@ -386,3 +386,11 @@ def test_select_is_identical_for_any_thread_count(policy):
         parallel.set_min_items(None)
         set_threads(None)
     assert len(seen) == 1
+
+
+def test_terrain_bad_input_names_the_argument():
+    hm = Heightmap.from_array(np.ones((9, 9)))
+    with pytest.raises(ValueError, match="tess"):
+        Terrain.prepare(hm, tess=0)
+    with pytest.raises(ValueError, match="roots"):
+        Terrain.prepare(hm, roots=-2)

@@ -100,16 +100,27 @@ def test_a_terrain_larger_than_memory_renders_from_the_tiles_it_needs():
     assert sel.counters["coarsest_step"] >= 64 and sel.counters["finest_step"] == 1
 
 
-def test_hysteresis_state_reaches_a_streamed_selection(fbm_tif):
+def test_hysteresis_state_changes_a_streamed_selection_as_it_does_in_memory(fbm_tif):
+    """A frame at tolerance 1 px, then one at 1.25 px (hysteresis 0.3): with the state held, the nodes split at
+    1 px stay split (merge threshold 1.25 * 0.7 px), as in memory; without it, the second frame is coarser. A
+    render without a state after one with it is stateless (the heightmap's held source keeps no state)."""
     from terrainwarp.lod import LodState
 
     p, hm = fbm_tif
     st = Heightmap.open(p)
-    state = LodState()
-    lod = LodConfig(hysteresis=0.2)
-    for cam in Scene(hm).camera_path(3)[:2]:
-        render(Scene(st, camera=cam, mesh="lod", lod=lod, outputs=("depth",)), state=state)
-    assert state.frames == 2 and len(state.split_keys) > 0
+    cam = Scene(hm).camera_path(8)[2]
+    first, second = LodConfig(hysteresis=0.3, tolerance_px=1.0), LodConfig(hysteresis=0.3, tolerance_px=1.25)
+    keys = {}
+    for name, h in (("streamed", st), ("memory", hm)):
+        state = LodState()
+        for lod in (first, second):
+            f = render(Scene(h, camera=cam, mesh="lod", lod=lod, outputs=("patches",)), state=state)
+        keys[name] = sorted(f.patches.key.tolist())
+        assert state.frames == 2 and len(state.split_keys) > 0
+        keys[name + " stateless"] = sorted(render(Scene(h, camera=cam, mesh="lod", lod=second,
+                                                        outputs=("patches",))).patches.key.tolist())
+    assert keys["streamed"] == keys["memory"] and keys["streamed stateless"] == keys["memory stateless"]
+    assert len(keys["streamed"]) > len(keys["streamed stateless"])  # hysteresis kept the finer selection
 
 
 def test_streamed_scenes_refuse_what_they_cannot_draw(fbm_tif):
