@@ -16,7 +16,7 @@ from terrainwarp.experiments.pareto import (
     sweep,
     write_report,
 )
-from terrainwarp.rendering.sources import SCHEMES, scheme_range
+from terrainwarp.schemes import SCHEMES, scheme_range
 
 
 @pytest.fixture(scope="module")

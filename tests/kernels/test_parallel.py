@@ -173,7 +173,7 @@ def test_freed_frame_memory_is_reused_without_page_faults_when_asked():
 _FORK = """
 import os, sys, numpy as np
 import terrainwarp as tw
-tw.set_threads(2)
+tw.configure(threads=2)
 h = np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32)
 want = tw.compute_normals(tw.Heightmap.from_array(h, 1.0, 1.0), "sobel")  # the pool's threads exist now
 pid = os.fork()

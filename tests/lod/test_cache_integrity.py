@@ -58,7 +58,7 @@ def clean(tmp_path_factory):
 def _copy(clean, tmp_path: Path) -> Path:
     """A copy of the GeoTIFF with its own cache built (the cache is keyed on the file's path and contents)."""
     q = Path(shutil.copy2(clean[0], tmp_path / clean[0].name))
-    assert tw.Terrain.prepare(tw.Heightmap.open(q), roots=8, tess=16).provider.counters["cache"] == "built"
+    assert tw.lod.Terrain.prepare(tw.Heightmap.open(q), roots=8, tess=16).provider.counters["cache"] == "built"
     return q
 
 
@@ -84,7 +84,7 @@ def test_a_damaged_cache_file_is_rebuilt_and_the_frame_is_the_clean_one(clean, t
     else:
         f.unlink()
     hm = tw.Heightmap.open(p)
-    t = tw.Terrain.prepare(hm, roots=8, tess=16)
+    t = tw.lod.Terrain.prepare(hm, roots=8, tess=16)
     assert t.provider.counters["cache"] == "repaired"
     assert file_digest(f) == want_digest  # rebuilt bit for bit
     assert _frame(p) == clean[1]
@@ -95,7 +95,7 @@ def test_a_corrupt_manifest_rebuilds_the_cache(clean, tmp_path):
     p = _copy(clean, tmp_path)
     m = p.with_name(p.name + ".twcache") / "manifest.json"
     m.write_text(m.read_text().replace('"bytes": ', '"bytes": 1', 1))
-    t = tw.Terrain.prepare(tw.Heightmap.open(p), roots=8, tess=16)
+    t = tw.lod.Terrain.prepare(tw.Heightmap.open(p), roots=8, tess=16)
     assert t.provider.counters["cache"] == "built"
     assert _frame(p) == clean[1]
 
@@ -111,7 +111,7 @@ def test_a_damaged_file_that_cannot_be_rebuilt_is_named(clean, tmp_path, monkeyp
     monkeypatch.setattr(CacheFolder, "building", read_only)
     with pytest.raises(CacheError, match=r"overview_8\.npy: its checksum does not match the manifest's \(corrupt\), "
                                          r"and the pyramid cache cannot be \(re\)built there: Read-only file system"):
-        tw.Terrain.prepare(tw.Heightmap.open(p), roots=8, tess=16)
+        tw.lod.Terrain.prepare(tw.Heightmap.open(p), roots=8, tess=16)
 
 
 def _fresh(clean, tmp_path: Path, k: int) -> Path:
