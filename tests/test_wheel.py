@@ -47,10 +47,13 @@ def test_the_wheel_installs_offline_into_a_fresh_venv_and_runs(tmp_path):
     assert "wrote:" in out and {p.name for p in (tmp_path / "demo").iterdir()} == {"frame.png", "depth.exr",
                                                                                    "report.json"}
     snippet = ("import terrainwarp as tw\n"
+               "tw.configure(quiet=True)\n"
                "hm = tw.Heightmap.fbm(33, seed=1)\n"
                "f = tw.render(tw.Scene(hm, camera=tw.Camera.default_for(hm, 32, 24)))\n"
-               "print(tw.__file__, tw.kernels.__file__, f.image.shape, len(f._repr_png_()) > 100,\n"
+               "print('installed:', tw.__file__, tw.kernels.__file__, f.image.shape, len(f._repr_png_()) > 100,\n"
                "      ','.join(tw.schemes.scheme_names()))\n")
-    where, kernels, *rest = _run([venv / "bin" / "python", "-c", snippet], tmp_path).split()
+    line = next(ln for ln in _run([venv / "bin" / "python", "-c", snippet], tmp_path).splitlines()
+                if ln.startswith("installed: "))
+    where, kernels, *rest = line.removeprefix("installed: ").split()
     assert where.startswith(str(site)) and kernels.startswith(str(site / "terrainwarp" / "kernels"))
     assert rest == ["(24,", "32,", "3)", "True", "cdlod,clipmaps,chunked"]
