@@ -76,8 +76,9 @@ class SceneKey(NamedTuple):
     doc: str
 
 
-#: Every table of a scene file and its keys (``[lod]``: :class:`LodConfig`'s fields, its own table). The loader
-#: refuses any other key, naming the table and the keys it expects.
+#: Every table of a scene file and its keys (``[lod]`` and ``[path]``: the fields of :class:`LodConfig` and
+#: :class:`CameraPath`, with their docstrings' text). The loader refuses any other key, naming the table and the
+#: keys it expects.
 SCENE_FILE: dict[str, dict[str, SceneKey]] = {
     "heightmap": {
         "example": SceneKey("string", '"jacksboro" (no [heightmap] table)',
