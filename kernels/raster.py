@@ -47,7 +47,7 @@ import warp as wp
 from .checks import is_int
 from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import host_layout, pooled, take
+from .pool import Lease, host_layout, pooled, pooled_array, take
 
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
@@ -65,6 +65,32 @@ _OVERSPLIT = 4  # chunks per thread where the work per item is uneven (near and 
 poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
 vec9f = wp.types.vector(length=9, dtype=wp.float32)
+vec8l = wp.types.vector(length=8, dtype=wp.int64)
+_LISTED = 32  # records of a pixel's list sorted in place by the staircase pass
+vec_listed = wp.types.vector(length=_LISTED, dtype=wp.uint64)
+
+
+@wp.struct
+class Counting:
+    """What the drawing functions count besides drawing (the pipeline statistics of :func:`rasterize` with
+    ``counters=True``).
+
+    ``mode`` 0: nothing. 1: each (fan) triangle's 2x2 quads and 4x4 blocks (window-aligned) with a covered
+    pixel centre, the clipper's output triangles, and every fragment (depth < 1) that reaches a pixel holding
+    a key: it appends itself and the holder, two ``rec_key`` records (its depth|id key and the one it found),
+    to the pixel's list (``head[p]``: the latest record, -1 when none; ``rec_next``: the one before), the
+    pixel's first pair adding the pixel to ``pixels``. ``count`` = (records asked for, pixels listed); records
+    past ``cap`` are left out (the caller draws again with room for them). Every fragment at a pixel that two
+    reach is then listed at least once, whatever the arrival order: the second to arrive lists the first."""
+
+    mode: int
+    cap: int
+    head: wp.array(dtype=wp.int32)
+    rec_key: wp.array(dtype=wp.uint64)
+    rec_next: wp.array(dtype=wp.int32)
+    pixels: wp.array(dtype=wp.int32)
+    count: wp.array(dtype=wp.int32)
+
 
 # ------------------------------------------------------------------------------------------------
 # functions
@@ -104,6 +130,43 @@ def bits_float(x: wp.uint32) -> float: ...
 
 @wp.func_native("""return fmaf(a, b, c);""")
 def _fma(a: float, b: float, c: float) -> float: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return __popc((unsigned)x);
+#else
+return __builtin_popcount((unsigned)x);
+#endif
+""")
+def _popcount(x: int) -> int: ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+return atomicExch(wp::address(a, i), v);
+#else
+return __atomic_exchange_n(wp::address(a, i), v, __ATOMIC_RELAXED);
+#endif
+""")
+def _exchange_i32(a: wp.array(dtype=wp.int32), i: int, v: int) -> int:
+    """``a[i] = v`` atomically; returns the old value."""
+    ...
+
+
+@wp.func
+def _record_overlap(cnt: Counting, p: int, key: wp.uint64, held: wp.uint64):
+    """A fragment (depth|id ``key``) found ``held`` at pixel p (:class:`Counting` mode 1): both appended to the
+    pixel's list."""
+    i = atomic_add_i32(cnt.count, 0, 2)
+    if i + 2 <= cnt.cap:
+        cnt.rec_key[i] = key
+        cnt.rec_key[i + 1] = held
+        cnt.rec_next[i + 1] = i
+        prev = _exchange_i32(cnt.head, p, i + 1)
+        cnt.rec_next[i] = prev
+        if prev < 0:
+            cnt.pixels[atomic_add_i32(cnt.count, 1, 1)] = p
 
 
 @wp.func
@@ -327,10 +390,11 @@ def _tri_rect(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int
 @wp.func
 def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
                 fa: wp.vec3, fb: wp.vec3, fc: wp.vec3, t: int, r: wp.vec4i, width: int, height: int,
-                out_key: wp.array(dtype=wp.uint64)) -> wp.vec3l:
+                out_key: wp.array(dtype=wp.uint64), cnt: Counting) -> vec8l:
     """Cover the pixel centres of rectangle r = (x0, x1, y0, y1) inside the CCW triangle; depth-test
-    with a 64-bit atomic min (a true one: chunks of a launch run on several CPU threads).
-    Returns (fragments tested, fragments inside, pixels written)."""
+    with a 64-bit atomic min (a true one: chunks of a launch run on several CPU threads); with ``cnt.mode``
+    1, count as :class:`Counting` says. Returns (0, fragments tested, fragments inside, pixels written, 2x2
+    quads touched, 4x4 blocks touched, 0, 0) (quads and blocks with counting only)."""
     half = wp.int64(SUBPIXEL_HALF)
     one = wp.int64(SUBPIXEL)
     xmin = wp.min(ax, wp.min(bx, cx))
@@ -341,11 +405,8 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
     px1 = wp.min(r[1], _pixel_hi(xmax))
     py0 = wp.max(r[2], _pixel_lo(ymin))
     py1 = wp.min(r[3], _pixel_hi(ymax))
-    tested = wp.int64(0)
-    inside = wp.int64(0)
-    written = wp.int64(0)
     if px0 > px1 or py0 > py1:
-        return wp.vec3l(tested, inside, written)
+        return vec8l()
     bias0 = _edge_bias(cx - bx, cy - by)
     bias1 = _edge_bias(ax - cx, ay - cy)
     bias2 = _edge_bias(bx - ax, by - ay)
@@ -374,40 +435,71 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
     dzdy = (dx01 * dz20 - dx20 * dz01) * ooa
     z00 = fa[2] - (dzdx * (fa[0] - (float(px0) + 0.5)) + dzdy * (fa[1] - (float(py0) + 0.5)))
     tid = wp.uint64(t)
-    for j in range(py1 - py0 + 1):
+    counting = cnt.mode == 1
+    tested = wp.int64(0)
+    inside = wp.int64(0)
+    written = wp.int64(0)
+    quads = wp.int64(0)
+    blocks = wp.int64(0)
+    qmask = int(0)  # noqa: UP018 -- the 2x2 quads touched in the current quad row (bit: quad column - px0 / 2)
+    bmask = int(0)  # noqa: UP018 -- likewise the 4x4 blocks in the current block row
+    for y in range(py0, py1 + 1):
         e0 = e0r
         e1 = e1r
         e2 = e2r
-        row = (height - 1 - (py0 + j)) * width + px0
-        zr = z00 + dzdy * float(j)
-        for i in range(px1 - px0 + 1):
+        row = (height - 1 - y) * width
+        zr = z00 + dzdy * float(y - py0)
+        first = px1 + 1  # the row's covered pixels: a run (the triangle is convex), first..last
+        last = px0 - 1
+        for x in range(px0, px1 + 1):
             if (e0 | e1 | e2) >= wp.int64(0):
                 inside += wp.int64(1)
+                first = wp.min(first, x)
+                last = x
                 # coverage is geometric (the polygon is clipped to near and far); depth is clamped
                 # to [0, 1] as GL does, so a rounding excursion below 0 at the near plane stays drawn;
                 # the depth test is GL_LESS against a buffer cleared to 1.0: depth 1.0 is never drawn
-                d = wp.clamp(zr + dzdx * float(i), 0.0, 1.0)
+                d = wp.clamp(zr + dzdx * float(x - px0), 0.0, 1.0)
                 if d < 1.0:
                     key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | tid
-                    old = atomic_min_u64(out_key, row + i, key)
+                    old = atomic_min_u64(out_key, row + x, key)
                     if key < old:
                         written += wp.int64(1)
+                    if counting and old != wp.uint64(0xFFFFFFFFFFFFFFFF):
+                        _record_overlap(cnt, row + x, key, old)
             e0 += e0dx
             e1 += e1dx
             e2 += e2dx
+        if counting:
+            if first <= last:
+                qmask = qmask | _run_bits((first >> 1) - (px0 >> 1), (last >> 1) - (px0 >> 1))
+                bmask = bmask | _run_bits((first >> 2) - (px0 >> 2), (last >> 2) - (px0 >> 2))
+            if (y & 1) == 1 or y == py1:
+                quads += wp.int64(_popcount(qmask))
+                qmask = 0
+            if (y & 3) == 3 or y == py1:
+                blocks += wp.int64(_popcount(bmask))
+                bmask = 0
         tested += wp.int64(px1 - px0 + 1)
         e0r += e0dy
         e1r += e1dy
         e2r += e2dy
-    return wp.vec3l(tested, inside, written)
+    return vec8l(wp.int64(0), tested, inside, written, quads, blocks, wp.int64(0), wp.int64(0))
+
+
+@wp.func
+def _run_bits(lo: int, hi: int) -> int:
+    """Bits lo..hi set (0 <= lo <= hi < 31)."""
+    return ((1 << (hi - lo + 1)) - 1) << lo
 
 
 @wp.func
 def _raster_poly(n: int, xs: vec9l, ys: vec9l, fxs: vec9f, fys: vec9f, zs: vec9f, t: int, r: wp.vec4i,
-                 cull_back: int, width: int, height: int, out_key: wp.array(dtype=wp.uint64)) -> wp.vec4l:
+                 cull_back: int, width: int, height: int, out_key: wp.array(dtype=wp.uint64),
+                 cnt: Counting) -> vec8l:
     """Draw the polygon's fan, each triangle on its own as llvmpipe does after clipping.
-    Returns (fan triangles drawn, fragments tested, inside, written)."""
-    acc = wp.vec4l()
+    Returns (fan triangles drawn, then :func:`_raster_tri`'s counts summed over them)."""
+    acc = vec8l()
     for k in range(1, n - 1):
         ok, swap = _fan_tri(xs, ys, k, cull_back)
         if ok:
@@ -418,8 +510,9 @@ def _raster_poly(n: int, xs: vec9l, ys: vec9l, fxs: vec9f, fys: vec9f, zs: vec9f
                 kc = k
             c = _raster_tri(xs[0], ys[0], xs[kb], ys[kb], xs[kc], ys[kc], wp.vec3(fxs[0], fys[0], zs[0]),
                             wp.vec3(fxs[kb], fys[kb], zs[kb]), wp.vec3(fxs[kc], fys[kc], zs[kc]), t, r,
-                            width, height, out_key)
-            acc = acc + wp.vec4l(wp.int64(1), c[0], c[1], c[2])
+                            width, height, out_key, cnt)
+            acc = acc + c
+            acc[0] += wp.int64(1)
     return acc
 
 
@@ -503,6 +596,58 @@ def _transform_kernel(
     out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
 
 
+@wp.func
+def _fast_setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int):
+    """The setup of a triangle inside every clip plane (most triangles: no clipping, no polygon arrays), the
+    same arithmetic as :func:`_setup` and :func:`_raster_poly` for n = 3. Returns (drawn: not zero-area nor a
+    culled back face, small: drawn at once, the CCW vertices in fixed point (ax, ay, bx, by, cx, cy) and in
+    float (fa, fb, fc), its pixel box clamped to the viewport)."""
+    hw = 0.5 * float(width)
+    hh = 0.5 * float(height)
+    fa = _window(c0, hw, hh)
+    fb = _window(c1, hw, hh)
+    fc = _window(c2, hw, hh)
+    ax = _snap(fa[0])
+    ay = _snap(fa[1])
+    bx = _snap(fb[0])
+    by = _snap(fb[1])
+    cx = _snap(fc[0])
+    cy = _snap(fc[1])
+    area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
+    drawn = not (area == wp.int64(0) or (cull_back != 0 and area < wp.int64(0)))
+    if area < wp.int64(0):
+        qx = bx
+        qy = by
+        qf = fb
+        bx = cx
+        by = cy
+        fb = fc
+        cx = qx
+        cy = qy
+        fc = qf
+    xmin = wp.min(ax, wp.min(bx, cx))
+    xmax = wp.max(ax, wp.max(bx, cx))
+    ymin = wp.min(ay, wp.min(by, cy))
+    ymax = wp.max(ay, wp.max(by, cy))
+    small = xmax - xmin < wp.int64((SMALL_PX - 1) * SUBPIXEL) and ymax - ymin < wp.int64((SMALL_PX - 1) * SUBPIXEL)
+    box = wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
+                   wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
+    return drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box
+
+
+@wp.func
+def _add_stats(out_stats: wp.array2d(dtype=wp.int64), part: int, acc: vec8l, mode: int):
+    """A drawn triangle's counts (:func:`_raster_poly`'s) into row ``part``: triangles, tested, inside, written;
+    with counting (mode 1) the quads and blocks too (columns 8 and 9)."""
+    wp.atomic_add(out_stats, part, 0, wp.int64(1))
+    wp.atomic_add(out_stats, part, 1, acc[1])
+    wp.atomic_add(out_stats, part, 2, acc[2])
+    wp.atomic_add(out_stats, part, 3, acc[3])
+    if mode == 1:
+        wp.atomic_add(out_stats, part, 8, acc[4])
+        wp.atomic_add(out_stats, part, 9, acc[5])
+
+
 @wp.kernel(enable_backward=False)
 def _small_count_kernel(
     offset: int,
@@ -514,6 +659,7 @@ def _small_count_kernel(
     cull_back: int,
     gb: wp.vec2,
     tiles_x: int,
+    cnt: Counting,
     # outputs
     out_key: wp.array(dtype=wp.uint64),
     out_dirty: wp.array(dtype=wp.int32),
@@ -523,71 +669,43 @@ def _small_count_kernel(
 ):
     """Per triangle: set up; draw it at once when its pixel box spans at most SMALL_PX pixels each
     way, else count the screen tiles it may cover (out_big[t] = 1). Counters go to row ``part``; the
-    tiles where a key was written are flagged in ``out_dirty``."""
+    tiles where a key was written are flagged in ``out_dirty``. With counting (``cnt.mode`` 1) the
+    clipper's output triangles go to column 10, the quads and blocks to columns 8 and 9."""
     t = wp.tid() + offset
     out_big[t] = 0
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
     c2 = clip[tris[t, 2]]
-    if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb):
-        # fast path, no clipping needed (most triangles): the same arithmetic as _setup and
-        # _raster_poly for n = 3, without the polygon arrays
-        hw = 0.5 * float(width)
-        hh = 0.5 * float(height)
-        fa = _window(c0, hw, hh)
-        fb = _window(c1, hw, hh)
-        fc = _window(c2, hw, hh)
-        ax = _snap(fa[0])
-        ay = _snap(fa[1])
-        bx = _snap(fb[0])
-        by = _snap(fb[1])
-        cx = _snap(fc[0])
-        cy = _snap(fc[1])
-        area = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
-        if area == wp.int64(0) or (cull_back != 0 and area < wp.int64(0)):
+    mode = cnt.mode
+    inside3 = _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb)
+    if inside3:
+        if mode == 1:  # the clipper passes it on as it is
+            wp.atomic_add(out_stats, part, 10, wp.int64(1))
+        drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box = _fast_setup(c0, c1, c2, width, height, cull_back)
+        if not drawn:
             return
-        if area < wp.int64(0):
-            qx = bx
-            qy = by
-            qf = fb
-            bx = cx
-            by = cy
-            fb = fc
-            cx = qx
-            cy = qy
-            fc = qf
-        xmin = wp.min(ax, wp.min(bx, cx))
-        xmax = wp.max(ax, wp.max(bx, cx))
-        ymin = wp.min(ay, wp.min(by, cy))
-        ymax = wp.max(ay, wp.max(by, cy))
-        if xmax - xmin < wp.int64((SMALL_PX - 1) * SUBPIXEL) and ymax - ymin < wp.int64((SMALL_PX - 1) * SUBPIXEL):
+        if small:
             c = _raster_tri(ax, ay, bx, by, cx, cy, fa, fb, fc, t, wp.vec4i(0, width - 1, 0, height - 1),
-                            width, height, out_key)
-            if c[2] > wp.int64(0):  # a key written: somewhere in the triangle's pixel box
-                box = wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
-                               wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
+                            width, height, out_key, cnt)
+            if c[3] > wp.int64(0):  # a key written: somewhere in the triangle's pixel box
                 _mark_tiles(out_dirty, tiles_x, box)
-            if c[0] > wp.int64(0):
-                wp.atomic_add(out_stats, part, 0, wp.int64(1))
-                wp.atomic_add(out_stats, part, 1, c[0])
-                wp.atomic_add(out_stats, part, 2, c[1])
-                wp.atomic_add(out_stats, part, 3, c[2])
+            if c[1] > wp.int64(0):
+                _add_stats(out_stats, part, c, mode)
             return
     n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
+    if mode == 1 and not inside3 and n >= 3:  # a clipped polygon goes on as a fan of n - 2 triangles
+        wp.atomic_add(out_stats, part, 10, wp.int64(n - 2))
     if n == 0:
         return
     box = _poly_pixels(n, xs, ys, width, height)
     if box[0] > box[1] or box[2] > box[3]:
         return
     if box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX:
-        acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key)
+        acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key, cnt)
         if acc[3] > wp.int64(0):
             _mark_tiles(out_dirty, tiles_x, box)
         if acc[0] > wp.int64(0):
-            wp.atomic_add(out_stats, part, 0, wp.int64(1))
-            wp.atomic_add(out_stats, part, 1, acc[1])
-            wp.atomic_add(out_stats, part, 2, acc[2])
-            wp.atomic_add(out_stats, part, 3, acc[3])
+            _add_stats(out_stats, part, acc, mode)
         return
     ntiles = int(0)  # noqa: UP018 -- a mutable Warp int
     for ty in range(box[2] / TILE, box[3] / TILE + 1):
@@ -600,6 +718,85 @@ def _small_count_kernel(
         wp.atomic_add(out_stats, part, 0, wp.int64(1))
         wp.atomic_add(out_stats, part, 4, wp.int64(1))
         wp.atomic_add(out_stats, part, 5, wp.int64(ntiles))
+
+
+@wp.func
+def _order_key(k: wp.uint64) -> wp.uint64:
+    """A depth|id key as id|depth: ordered by submission (triangle id), then depth."""
+    return (k << wp.uint64(32)) | (k >> wp.uint64(32))
+
+
+@wp.func
+def _passes_listed(head: int, rec_key: wp.array(dtype=wp.uint64), rec_next: wp.array(dtype=wp.int32)) -> wp.int64:
+    """The fragments of one pixel's list (each counted once, however often listed) that pass ``GL_LESS`` in
+    submission order: those whose depth is below that of every fragment of an earlier triangle. Up to
+    ``_LISTED`` records are sorted in place by (triangle, depth) and scanned once; a longer list is compared
+    pair by pair."""
+    buf = vec_listed()
+    n = int(0)  # noqa: UP018 -- a mutable Warp int
+    i = head
+    while i >= 0 and n < _LISTED:
+        k = _order_key(rec_key[i])
+        m = n  # insertion sort: the lists are short (2 records per fragment after the first)
+        while m > 0 and buf[m - 1] > k:
+            buf[m] = buf[m - 1]
+            m -= 1
+        buf[m] = k
+        n += 1
+        i = rec_next[i]
+    passed = wp.int64(0)
+    if i < 0:  # all of it sorted: a fragment passes when its depth is below every earlier one's
+        best = wp.uint64(0xFFFFFFFF)  # the smallest depth bits so far (above any depth's bits: none yet)
+        for m in range(n):
+            if m == 0 or buf[m] != buf[m - 1]:
+                d = buf[m] & wp.uint64(0xFFFFFFFF)
+                if d < best:
+                    passed += wp.int64(1)
+                    best = d
+        return passed
+    i = head
+    pos = int(0)  # noqa: UP018 -- i's place in the list
+    while i >= 0:
+        ki = rec_key[i]
+        ti = wp.uint32(ki & wp.uint64(0xFFFFFFFF))
+        di = wp.uint32(ki >> wp.uint64(32))  # depth bits: non-negative floats order like their bits
+        ok = wp.bool(True)
+        j = head
+        q = int(0)  # noqa: UP018
+        while j >= 0 and ok:
+            kj = rec_key[j]
+            if kj == ki:
+                if q < pos:  # listed before: counted there
+                    ok = False
+            elif wp.uint32(kj & wp.uint64(0xFFFFFFFF)) < ti and wp.uint32(kj >> wp.uint64(32)) <= di:
+                ok = False  # an earlier triangle's fragment at the same or a smaller depth: fails GL_LESS
+            j = rec_next[j]
+            q += 1
+        if ok:
+            passed += wp.int64(1)
+        i = rec_next[i]
+        pos += 1
+    return passed
+
+
+@wp.kernel(enable_backward=False)
+def _staircase_kernel(
+    offset: int,
+    part: int,
+    pixels: wp.array(dtype=wp.int32),
+    rec_key: wp.array(dtype=wp.uint64),
+    rec_next: wp.array(dtype=wp.int32),
+    # outputs
+    out_head: wp.array(dtype=wp.int32),
+    out_stats: wp.array2d(dtype=wp.int64),
+):
+    """Per pixel that two fragments reached (``pixels``, :class:`Counting`): the fragments listed there that
+    pass in submission order (:func:`_passes_listed`), less the first (which always passes), added to
+    ``out_stats[part, 0]``; the pixel's list is then emptied (``out_head[p] = -1``)."""
+    p = pixels[wp.tid() + offset]
+    passed = _passes_listed(out_head[p], rec_key, rec_next)
+    out_head[p] = -1
+    wp.atomic_add(out_stats, part, 0, passed - wp.int64(1))
 
 
 @wp.kernel(enable_backward=False)
@@ -650,6 +847,7 @@ def _tile_kernel(
     tile_start: wp.array(dtype=wp.int32),
     tile_count: wp.array(dtype=wp.int32),
     tri_list: wp.array(dtype=wp.int32),
+    cnt: Counting,
     # outputs
     out_key: wp.array(dtype=wp.uint64),
     out_dirty: wp.array(dtype=wp.int32),
@@ -661,7 +859,7 @@ def _tile_kernel(
     ty = tile / tiles_x
     tx = tile - ty * tiles_x
     r = _tile_rect(tx, ty, width, height)
-    acc = wp.vec4l()
+    acc = vec8l()
     s = tile_start[tile]
     for i in range(s, s + tile_count[tile]):
         t = tri_list[i]
@@ -669,13 +867,16 @@ def _tile_kernel(
         c1 = clip[tris[t, 1]]
         c2 = clip[tris[t, 2]]
         n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
-        acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key)
+        acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key, cnt)
     if acc[3] > wp.int64(0):
         out_dirty[tile] = 1
     if tile_count[tile] > 0:
         wp.atomic_add(out_stats, part, 1, acc[1])
         wp.atomic_add(out_stats, part, 2, acc[2])
         wp.atomic_add(out_stats, part, 3, acc[3])
+        if cnt.mode == 1:
+            wp.atomic_add(out_stats, part, 8, acc[4])
+            wp.atomic_add(out_stats, part, 9, acc[5])
 
 
 @wp.kernel(enable_backward=False)
@@ -821,17 +1022,32 @@ class Fragments:
             pixels_covered (non-background pixels in the end). pixels_written alone depends on the
             order of the depth tests, so, as on a GPU, it may differ between runs with more than one
             thread (``terrainwarp.set_threads``); the images and every other counter never do.
+        counters: the pipeline statistics of the draw, as OpenGL's ARB_pipeline_statistics_query names them,
+            when asked for (``counters=True``; None otherwise), bit-identical for any thread count:
+            ``clipping_input_primitives`` (the triangles), ``clipping_output_primitives`` (1 per triangle
+            inside every clip plane, n - 2 per clipped n-gon, 0 rejected; zero-area and back faces included,
+            as they are culled after the clipper), ``fragment_shader_invocations`` (4 per 2x2 quad with a
+            covered pixel centre, per triangle, helper lanes included: model ``quad2x2``, as desktop GPUs
+            shade), ``fragment_shader_invocations_llvmpipe`` (16 per 4x4 block with a covered centre, per
+            triangle: llvmpipe's count), ``samples_passed`` (fragments that pass ``GL_LESS`` against a depth
+            buffer cleared to 1.0 in submission order: triangle by triangle in index order, a clipped
+            triangle's fan in order, as an occlusion query counts them), ``samples_covered`` (covered pixel
+            centres, every triangle's) and ``pixels_covered``. Triangles are counted as drawn after clipping:
+            each fan triangle of a clipped one on its own, as llvmpipe draws them; quads and blocks are
+            aligned in window coordinates (origin at the bottom left).
 
     Iterating yields (triangle_id, depth, barycentrics, stats), as the earlier NamedTuple did.
     """
 
-    __slots__ = ("triangle_id", "depth", "stats", "_bary", "_clip", "_tris", "_device", "_ids", "_rows", "_tiles")
+    __slots__ = ("triangle_id", "depth", "stats", "counters", "_bary", "_clip", "_tris", "_device", "_ids",
+                 "_rows", "_tiles")
 
     def __init__(self, triangle_id, depth, barycentrics, stats, *, clip=None, tris=None, device="cpu", ids=None,
                  rows=None, tiles=None):
         self.triangle_id = triangle_id
         self.depth = depth
         self.stats = stats
+        self.counters: dict[str, int] | None = None
         self._bary = barycentrics
         self._clip, self._tris, self._device = clip, tris, device
         self._ids = ids  # the triangle ids as a device array (on the CPU: triangle_id's own memory)
@@ -980,8 +1196,64 @@ def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: st
     return ids, depth, out_id, flags, int(covered.numpy().sum())
 
 
+# Counting: the lists' heads of a frame of that size, all -1, on scratch leases of the frame-buffer pool (pool.take)
+# by (device, pixels): the staircase pass empties every list it reads (as the resolve empties the keys), so a buffer
+# is given back all -1; and the records a frame of that size has needed at most (the room the next one is given; a
+# frame that needs more is drawn again with room for them).
+_RECORDS: dict[tuple[str, int], int] = {}
+_NO_COUNTING: dict[str, Counting] = {}  # the Counting argument with counting off, per device
+
+
+def _take_heads(npx: int, device: str) -> Lease:
+    """A scratch lease of an all -1 heads buffer of ``npx`` pixels (``lease.buffer``)."""
+    return take(("raster_heads", str(wp.get_device(device)), npx),
+                lambda: wp.full(npx, value=-1, dtype=wp.int32, device=device), keep=_KEYS_KEPT)
+
+
+def _counting(npx: int, device: str) -> tuple[Counting, Lease]:
+    """A :class:`Counting` in mode 1 for a frame of ``npx`` pixels, with room for the records such a frame has
+    needed so far (at least a quarter of the pixels), and the lease of its heads."""
+    cnt = Counting()
+    cnt.mode = 1
+    cnt.cap = max(_RECORDS.get((str(wp.get_device(device)), npx), 0), npx // 4, 1 << 12)
+    heads = _take_heads(npx, device)
+    cnt.head = heads.buffer
+    cnt.rec_key = pooled_array(cnt.cap, wp.uint64, device)
+    cnt.rec_next = pooled_array(cnt.cap, wp.int32, device)
+    cnt.pixels = pooled_array(cnt.cap // 2 + 1, wp.int32, device)
+    cnt.count = wp.zeros(2, dtype=wp.int32, device=device)
+    return cnt, heads
+
+
+def _no_counting(device: str) -> Counting:
+    key = str(wp.get_device(device))
+    if key not in _NO_COUNTING:
+        cnt = Counting()
+        cnt.mode = 0
+        cnt.cap = 0
+        cnt.head = wp.zeros(1, dtype=wp.int32, device=device)
+        cnt.rec_key = wp.zeros(1, dtype=wp.uint64, device=device)
+        cnt.rec_next = wp.zeros(1, dtype=wp.int32, device=device)
+        cnt.pixels = wp.zeros(1, dtype=wp.int32, device=device)
+        cnt.count = wp.zeros(2, dtype=wp.int32, device=device)
+        _NO_COUNTING[key] = cnt
+    return _NO_COUNTING[key]
+
+
+def _passed_after_first(cnt: Counting, heads: Lease, npx: int, device: str) -> tuple[int, int]:
+    """The fragments that pass the depth test in submission order after the first at their pixel
+    (:func:`_staircase_kernel` over the listed pixels, which empties their lists), and the records the frame
+    asked for (more than ``cnt.cap``: some were left out, the count is short). Gives the heads back."""
+    asked, listed = (int(v) for v in cnt.count.numpy())
+    stats = wp.zeros((max_parts(_OVERSPLIT), 1), dtype=wp.int64, device=device)
+    launch(_staircase_kernel, listed, [cnt.pixels, cnt.rec_key, cnt.rec_next], [cnt.head, stats], device,
+           parts=True, min_items=_MIN_PIXELS // 8, oversplit=_OVERSPLIT)
+    heads.give_back()  # every list read is empty again
+    return int(stats.numpy().sum()), asked
+
+
 def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
-                    device: str) -> Fragments:
+                    device: str, counters: bool = False) -> Fragments:
     npx = width * height
     lease = _take_keys(npx, device)
     key = lease.buffer
@@ -991,12 +1263,13 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
     tiles_x = _tiles_x(width)
     tiles_y = (height + TILE - 1) // TILE
     dirty = as_warp(np.zeros(tiles_x * tiles_y, np.int32), wp.int32, device)  # flags of the tiles with keys written
+    cnt, heads = _counting(npx, device) if counters else (_no_counting(device), None)
     if n and m:
         gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
         cb = int(bool(cull_back))
         big = wp.empty(m, dtype=wp.int32, device=device)
         tile_count = wp.zeros(tiles_x * tiles_y, dtype=wp.int32, device=device)
-        launch(_small_count_kernel, m, [clip, tri_wp, width, height, cb, gb, tiles_x],
+        launch(_small_count_kernel, m, [clip, tri_wp, width, height, cb, gb, tiles_x, cnt],
                [key, dirty, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES,
                oversplit=_OVERSPLIT)
         total = int(stats.numpy()[:, 5].sum())
@@ -1008,20 +1281,31 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
             launch(_bin_kernel, m, [clip, tri_wp, big, width, height, cb, gb, tiles_x, tile_start],
                    [cursor, tri_list], device, min_items=_MIN_TRIANGLES)
             launch(_tile_kernel, tiles_x * tiles_y,
-                   [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list],
+                   [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list, cnt],
                    [key, dirty, stats], device, parts=True, min_items=_MIN_TILES,
                    oversplit=_OVERSPLIT)
     ids, depth, ids_wp, tiles, covered = _resolve(key, dirty, width, height, device)
     lease.give_back()  # every key drawn is empty again
-    c = stats.numpy()[:, :8].sum(axis=0)  # integer sums: the same whatever the chunks
+    if counters:
+        extra, asked = _passed_after_first(cnt, heads, npx, device)
+        if asked > cnt.cap:  # records left out: the frame again, with room for them (the buffers are clear)
+            _RECORDS[(str(wp.get_device(device)), npx)] = asked
+            return _rasterize_clip(clip, n, tri, width, height, cull_back, device, counters)
+    c = stats.numpy()[:, :11].sum(axis=0)  # integer sums: the same whatever the chunks
     stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
                "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
                "pixels_written": int(c[3]), "pixels_covered": covered}
-    return Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp, tiles=tiles)
+    frag = Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp, tiles=tiles)
+    if counters:
+        frag.counters = {"clipping_input_primitives": m, "clipping_output_primitives": int(c[10]),
+                         "fragment_shader_invocations": 4 * int(c[8]),
+                         "fragment_shader_invocations_llvmpipe": 16 * int(c[9]),
+                         "samples_passed": covered + extra, "samples_covered": int(c[2]), "pixels_covered": covered}
+    return frag
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
-              *, cull_back: bool = False, device: str = "cpu") -> Fragments:
+              *, cull_back: bool = False, counters: bool = False, device: str = "cpu") -> Fragments:
     """Rasterize a triangle mesh with any matrices (no assumption about which axis is up).
 
     Args:
@@ -1031,6 +1315,8 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         view, proj: (4, 4) matrices (OpenGL conventions, clip z in [-w, w]).
         width, height: viewport in pixels (1..16384).
         cull_back: drop clockwise (back-facing) triangles, as ``glEnable(GL_CULL_FACE)``.
+        counters: also count the draw's pipeline statistics (:attr:`Fragments.counters`); the images are the
+            same either way.
 
     Returns:
         :class:`Fragments`. Deterministic: bit-identical on every run.
@@ -1043,7 +1329,7 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
     tri = _check_triangles(triangles, len(pos))
     width, height = _check_size(width, height)
     clip = _transform(pos, view, proj, device)
-    return _rasterize_clip(clip, len(pos), tri, width, height, cull_back, device)
+    return _rasterize_clip(clip, len(pos), tri, width, height, cull_back, device, _flag("counters", counters))
 
 
 def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.array:
@@ -1068,13 +1354,14 @@ def clip_coordinates(positions: object, view: object, proj: object, *, device: s
 
 
 def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, cull_back: bool = False,
-                   device: str = "cpu") -> Fragments:
+                   counters: bool = False, device: str = "cpu") -> Fragments:
     """Rasterize triangles given clip-space vertices, as a GPU does after the vertex shader.
 
     Args:
         clip: (n, 4) float32 clip-space positions (x, y, z, w), OpenGL conventions.
         triangles: (m, 3) int32 vertex indices; width, height: viewport in pixels (1..16384).
         cull_back: drop clockwise triangles.
+        counters: also count the pipeline statistics (:attr:`Fragments.counters`).
 
     Returns:
         :class:`Fragments`, as :func:`rasterize`.
@@ -1090,7 +1377,13 @@ def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, 
     if not np.all(np.isfinite(c32)):
         raise ValueError("clip: expected finite coordinates")
     clip_wp = wp.array(c32 if len(c32) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
-    return _rasterize_clip(clip_wp, len(c32), tri, width, height, cull_back, device)
+    return _rasterize_clip(clip_wp, len(c32), tri, width, height, cull_back, device, _flag("counters", counters))
+
+
+def _flag(name: str, v: object) -> bool:
+    if not isinstance(v, bool | np.bool_):
+        raise TypeError(f"{name}: expected True or False, got {v!r}")
+    return bool(v)
 
 
 def transform_warp(positions: wp.array, view: object, proj: object) -> wp.array:

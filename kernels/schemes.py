@@ -526,7 +526,10 @@ def clipmap_mesh(heights: np.ndarray | wp.array, origin: np.ndarray, spacing: np
         planes: (6, 4) float32 camera-relative frustum planes; block: quads per culling block side.
 
     Returns:
-        positions (L n^2, 3) float32 camera-relative, uv, level, level index, triangles (m, 3) int32.
+        positions (L n^2, 3) float32 camera-relative, uv, level, level index, triangles (m, 3) int32, and the draws
+        a GPU issues for them: (D, 2) int32 triangle ranges, one per block with a quad drawn and one per level's
+        stitches, level by level (a level's blocks, then its stitches), and (L, 2) int32 the draw range of each
+        level (draws of a level share its lattice vertices; levels share none).
     """
     nl = len(spacing)
     hh, ww = np.shape(heights)
@@ -559,4 +562,25 @@ def clipmap_mesh(heights: np.ndarray | wp.array, origin: np.ndarray, spacing: np
            min_items=1)
     if n_stitch:
         launch(_clipmap_stitch_kernel, dim=n_stitch, inputs=[int(n), n_quad_tri], outputs=[tri], device=device)
-    return _to_numpy(verts, nv, tri, nt)
+    return (*_to_numpy(verts, nv, tri, nt), *_clipmap_draws(cnt.numpy(), start.numpy(), np.asarray(coarser), n,
+                                                           n_quad_tri))
+
+
+def _clipmap_draws(cnt: np.ndarray, start: np.ndarray, coarser: np.ndarray, n: int,
+                   first_stitch: int) -> tuple[np.ndarray, np.ndarray]:
+    """(draws (D, 2), groups (L, 2)) of :func:`clipmap_mesh`: per level its drawn blocks, then its stitches (the
+    stitch triangles of the levels with a coarser one follow the quads, 2 (n - 1) each, finest first)."""
+    nl = len(coarser)
+    per_level = cnt.reshape(nl, -1) if nl else cnt.reshape(0, 1)
+    first = start.reshape(nl, -1) if nl else start.reshape(0, 1)
+    draws, groups = [], []
+    stitch = first_stitch
+    for li in range(nl):
+        g0 = len(draws)
+        drawn = np.flatnonzero(per_level[li])
+        draws += [(int(first[li, b]), int(first[li, b] + per_level[li, b])) for b in drawn]
+        if coarser[li]:
+            draws.append((stitch, stitch + 2 * (n - 1)))
+            stitch += 2 * (n - 1)
+        groups.append((g0, len(draws)))
+    return np.asarray(draws, np.int32).reshape(-1, 2), np.asarray(groups, np.int32).reshape(-1, 2)

@@ -41,6 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from .counters import patch_draw_counters
 from .parallel import empty, launch, view
 from .pool import pooled_rows_array
 from .sampling import sample_height
@@ -52,6 +53,7 @@ __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_
 # kernels take: the one list of spacing names (terrainwarp.scene.SPACINGS and the reference tessellator derive theirs)
 SPACING_CODES = {"equal": 0, "fractional_even": 1, "fractional_odd": 2}
 FILTER_CODES = {"bilinear": 0, "bicubic": 1}
+FILTER_TEXELS = {"bilinear": 4, "bicubic": 16}  # heightmap texels a domain point fetches
 FXP_ONE = 65536
 FXP_HALF = 32768
 
@@ -769,6 +771,9 @@ class Tessellation(NamedTuple):
             (a, b, c) is stored as (a, c, b).
         vertex_offsets, triangle_offsets: (P+1,) int32 per-patch ranges.
         eye: the float64 world point positions are relative to.
+        counters: the pipeline statistics of drawing the patches as one ``GL_PATCHES`` draw
+            (:func:`terrainwarp.kernels.counters.patch_draw_counters`: control points, patches, domain points,
+            triangles generated, bytes read).
     """
 
     positions: np.ndarray
@@ -780,6 +785,7 @@ class Tessellation(NamedTuple):
     vertex_offsets: np.ndarray
     triangle_offsets: np.ndarray
     eye: tuple[float, float, float]
+    counters: dict[str, int] | None = None
 
 
 def _get(patches, name: str, required: bool = True):
@@ -838,7 +844,8 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
         patch_id=field(W_PATCH_ID, out.pid, 1), level=field(W_LEVEL, out.lev, 1),
         triangles=out.tri.numpy()[:m].reshape(-1, 3),
         vertex_offsets=v_off.numpy().copy(), triangle_offsets=t_off.numpy().copy(),
-        eye=(float(e[0]), float(e[1]), float(e[2])))
+        eye=(float(e[0]), float(e[1]), float(e[2])),
+        counters=patch_draw_counters(len(args[0]), n, m, FILTER_TEXELS[filter]))
 
 
 def _flags(need: Iterable[str] | None) -> int:

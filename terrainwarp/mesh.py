@@ -10,7 +10,32 @@ import numpy as np
 if TYPE_CHECKING:
     import pyvista as pv
 
-__all__ = ["Mesh"]
+__all__ = ["Mesh", "Draws"]
+
+
+@dataclass(frozen=True, eq=False)
+class Draws:
+    """How a GPU draws an indexed mesh: the draw calls its family issues and what each vertex reads
+    (:func:`terrainwarp.kernels.counters.indexed_draw_counters` counts them).
+
+    Attributes:
+        ranges: (D, 2) int32 triangle ranges [first, stop) of ``order``, one draw call each, in submission
+            order; None: one draw of every triangle.
+        order: (m,) int32 the triangles in the order the draws take them (None: as the mesh lists them).
+        groups: (G, 2) int32 ranges of draws that may share vertices (draws of different groups never do);
+            None: no two draws share a vertex.
+        vertex_invocations: the vertex shader invocations of the family's own vertex layout when it differs from
+            the mesh's (None: the distinct vertices of each draw).
+        vertex_bytes: vertex attribute bytes fetched per invocation; texels_per_vertex: 4-byte heightmap texels
+            the vertex shader fetches (displacement in the vertex stage).
+    """
+
+    ranges: np.ndarray | None = None
+    order: np.ndarray | None = None
+    groups: np.ndarray | None = None
+    vertex_invocations: int | None = None
+    vertex_bytes: int = 12
+    texels_per_vertex: int = 0
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,6 +53,10 @@ class Mesh:
         patch_id: (n,) int32 index of the patch each vertex came from (0 for the full grid), or None
             likewise.
         normals: (n, 3) float32 unit vertex normals, or None when nothing asked for them.
+        draws: how a GPU draws it as indexed triangles (:class:`Draws`; None: one draw, 12-byte positions).
+        counters: the draw's pipeline statistics when the stage that made the mesh knows them (tessellated
+            patches: :attr:`terrainwarp.kernels.tessellator.Tessellation.counters`); None: an indexed draw,
+            counted from ``draws`` when a frame asks for counters.
     """
 
     positions: np.ndarray
@@ -37,6 +66,8 @@ class Mesh:
     level: np.ndarray | None
     patch_id: np.ndarray | None
     normals: np.ndarray | None = None
+    draws: Draws | None = None
+    counters: dict[str, int] | None = None
 
     def __post_init__(self) -> None:
         # the per-vertex arrays must describe the same vertices: a mismatch is a pipeline bug, caught here

@@ -44,7 +44,7 @@ __all__ = ["Scene", "LodConfig", "CameraPath", "SceneKey", "SCENE_FILE", "Policy
            "MESH_POLICIES", "LOD_POLICIES", "SPACINGS", "FILTERS", "MAX_TESS", "QUADTREE_TESS", "check_policy_numbers",
            "check_tess", "check_roots", "PATH_PRESETS", "GROUND_CLEARANCE", "HIGH_CLEARANCE", "PATH_FOV_Y_DEG"]
 
-OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error")
+OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error", "counters")
 MESH_POLICIES = ("grid", "lod")
 SHADINGS = ("hillshade", "level", "patch", "wireframe", "splat", "cracks")
 SPACINGS = tuple(SPACING_CODES)  # the tessellator's spacing names, in its code order

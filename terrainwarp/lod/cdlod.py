@@ -55,13 +55,17 @@ from ..heightmap import Heightmap
 from ..kernels.checks import check_int, check_number
 from ..kernels.lod import select_level
 from ..kernels.schemes import cdlod_mesh
-from ..mesh import Mesh
+from ..mesh import Draws, Mesh
 from .quadtree import Terrain, tile_key
 from .scheme import SelectThenMesh, root_nodes, view_of
 
 __all__ = ["Cdlod", "CdlodSelection", "cdlod_ranges"]
 
 MORPH_FUDGE = 0.01  # the reference's errorFudge: morph_end pulled 1% toward morph_start
+# how the reference draws a node (pipeline statistics): one grid of (grid + 1)^2 vertices per draw, each a 2D grid
+# position (8 bytes) whose height is sampled bilinearly twice (unmorphed and morphed: 8 texels)
+VERTEX_BYTES = 8
+TEXELS_PER_VERTEX = 8
 
 
 def cdlod_ranges(first_range: float, ratio: float, morph_start_ratio: float,
@@ -89,7 +93,10 @@ class CdlodSelection:
         origin: (Q, 2) float32 corner in heightmap cells (column, row); size: (Q,) float32 side in cells.
         step: (Q,) float32 vertex spacing in cells; lod: (Q,) int32 CDLOD level (0 finest).
         stats: nodes visited, quadrants, culled, too_small (nodes whose farthest point lies past the next
-            coarser level's morph start), levels.
+            coarser level's morph start), levels, whole_nodes and quadrant_draws.
+        draws: (D, 2) int32 ranges [first, stop) of ``order`` drawn by each of the reference's draw calls: a
+            whole node's four quadrants, or a parent's quadrant alone; order: (Q,) int32 the quadrants in the
+            order of those draws.
     """
 
     origin: np.ndarray
@@ -97,6 +104,8 @@ class CdlodSelection:
     step: np.ndarray
     lod: np.ndarray
     stats: dict = field(default_factory=dict)
+    draws: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
+    order: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
 
 @dataclass(eq=False)
@@ -220,30 +229,47 @@ class Cdlod(SelectThenMesh):
         return int((np.sqrt(fx * fx + fy * fy + fz * fz) > start[lod + 1]).sum())
 
     def _quadrants(self, parts: list, stats: dict) -> CdlodSelection:
-        """Each drawn node as its four quadrants, each parent quadrant as itself (cells, float32)."""
+        """Each drawn node as its four quadrants, each parent quadrant as itself (cells, float32). ``stats``:
+        ``whole_nodes`` and ``quadrant_draws``; ``draws``: the reference's draw calls, a whole node's four
+        quadrants together, a parent's quadrant alone (the reference draws a partly selected node quadrant by
+        quadrant)."""
         t = self.terrain
-        org, size, step, lods = [], [], [], []
+        org, size, step, lods, calls = [], [], [], [], []
+        whole = single = 0
+        base = 0
         for x, y, lvl, lod in parts:
             s = t.root_cells / 2.0 ** lvl
             st = t.root_cells / 2.0 ** (t.depth - lod) / self.grid  # the drawn level's vertex spacing
+            k = len(x)
             if lod == t.depth - lvl:  # a whole node: its four quadrants
                 q = s / 2
                 for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
                     org.append(np.stack([x * s + dx * q, y * s + dy * q], 1))
-                    size.append(np.full(len(x), q))
-                    step.append(np.full(len(x), st))
-                    lods.append(np.full(len(x), lod))
+                    size.append(np.full(k, q))
+                    step.append(np.full(k, st))
+                    lods.append(np.full(k, lod))
+                calls.append(base + np.arange(k)[:, None] + k * np.arange(4)[None, :])  # node by node
+                whole += k
+                base += 4 * k
             else:  # a quadrant of the parent, drawn with the parent's grid
                 org.append(np.stack([x * s, y * s], 1))
-                size.append(np.full(len(x), s))
-                step.append(np.full(len(x), st))
-                lods.append(np.full(len(x), lod))
+                size.append(np.full(k, s))
+                step.append(np.full(k, st))
+                lods.append(np.full(k, lod))
+                calls.append(base + np.arange(k)[:, None])
+                single += k
+                base += k
+        stats.update(whole_nodes=whole, quadrant_draws=single)
         if not org:
             z = np.zeros(0, np.float32)
             return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
         stats["quadrants"] = int(sum(len(a) for a in size))
+        order = np.concatenate([c.reshape(-1) for c in calls]).astype(np.int32)
+        per = np.concatenate([np.full(len(c), c.shape[1]) for c in calls])
+        ends = np.cumsum(per)
         return CdlodSelection(np.concatenate(org).astype(np.float32), np.concatenate(size).astype(np.float32),
-                              np.concatenate(step).astype(np.float32), np.concatenate(lods).astype(np.int32), stats)
+                              np.concatenate(step).astype(np.float32), np.concatenate(lods).astype(np.int32), stats,
+                              np.stack([ends - per, ends], 1).astype(np.int32), order)
 
     # -- mesh -----------------------------------------------------------------------------------------
     def mesh(self, camera: Camera, selection: CdlodSelection) -> Mesh:
@@ -258,5 +284,13 @@ class Cdlod(SelectThenMesh):
         pos, uv, lev, item, tri = cdlod_mesh(self._h, selection.origin, selection.step, selection.lod, self.grid // 2,
                                              ms, inv, relative_origin(hm.origin, camera.position), hm.dx, hm.dz,
                                              device=self.device)
-        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
+        n = self.grid // 2
+        st = selection.stats
+        per = 2 * n * n  # triangles per quadrant
+        order = (selection.order[:, None] * per + np.arange(per)[None, :]).reshape(-1).astype(np.int32)
+        draws = Draws(ranges=(selection.draws * per).astype(np.int32), order=order,
+                      vertex_invocations=st.get("whole_nodes", 0) * (self.grid + 1) ** 2
+                      + st.get("quadrant_draws", 0) * (n + 1) ** 2, vertex_bytes=VERTEX_BYTES,
+                      texels_per_vertex=TEXELS_PER_VERTEX)
+        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item, draws=draws)
 

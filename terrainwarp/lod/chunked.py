@@ -45,7 +45,7 @@ from ..heightmap import Heightmap
 from ..kernels.checks import check_number
 from ..kernels.lod import select_level
 from ..kernels.schemes import chunk_mesh
-from ..mesh import Mesh
+from ..mesh import Draws, Mesh
 from .quadtree import Terrain, tile_key
 from .scheme import SelectThenMesh, root_nodes, view_of
 
@@ -199,13 +199,19 @@ class ChunkedLod(SelectThenMesh):
 
     # -- mesh -----------------------------------------------------------------------------------------
     def mesh(self, camera: Camera, selection: ChunkSelection) -> Mesh:
-        """The chunks' grids and skirts (one launch each for vertices and triangles), as a Mesh."""
+        """The chunks' grids and skirts (one launch each for vertices and triangles), as a Mesh; drawn as a GPU
+        draws Chunked LOD: one draw per chunk (its grid and skirts, from its own vertex buffer of positions)."""
         hm = self.heightmap
         pos, uv, lev, item, tri = chunk_mesh(self._h, selection.origin, selection.step, selection.level,
                                              selection.skirt, selection.skirt_mask, self.tile,
                                              relative_origin(hm.origin, camera.position), hm.dx, hm.dz,
                                              device=self.device)
-        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
+        n = self.tile
+        edges = np.array([bin(int(m)).count("1") for m in selection.skirt_mask], np.int64)
+        ends = np.cumsum(2 * n * n + 2 * n * edges)
+        draws = Draws(ranges=np.stack([ends - (2 * n * n + 2 * n * edges), ends], 1).astype(np.int32),
+                      vertex_invocations=int(((n + 1) ** 2 + (n + 1) * edges).sum()))
+        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item, draws=draws)
 
 
     def skirt_triangles(self, selection: ChunkSelection) -> int:

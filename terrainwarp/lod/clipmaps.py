@@ -45,12 +45,17 @@ from ..heightmap import Heightmap
 from ..kernels.checks import check_int, check_number
 from ..kernels.lod import frustum_planes
 from ..kernels.schemes import clipmap_mesh
-from ..mesh import Mesh
+from ..mesh import Draws, Mesh
 from .scheme import SelectThenMesh
 
 __all__ = ["Clipmap", "ClipmapLevels", "ACTIVE_HEIGHT_RATIO"]
 
 ACTIVE_HEIGHT_RATIO = 0.4  # Losasso & Hoppe: level l is active while the viewer height <= 0.4 n g_l
+# how GPU Gems 2 ch. 2 draws a block (pipeline statistics): one draw per block (and per level's stitches) from a
+# vertex buffer of 2D grid positions (8 bytes), the vertex shader fetching the fine and coarse heights from the
+# level's elevation texture (one 2-float texel: 2 x 4 bytes)
+VERTEX_BYTES = 8
+TEXELS_PER_VERTEX = 2
 
 
 @dataclass(frozen=True)
@@ -166,9 +171,11 @@ class Clipmap(SelectThenMesh):
         m = (self.n - 1) // 2
         planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
         viewer = ((camera.position[0] - hm.origin[0]) / hm.dx, (camera.position[2] - hm.origin[1]) / hm.dz)
-        pos, uv, lev, item, tri = clipmap_mesh(self._h, sel.origin, sel.spacing, sel.coarser, sel.level, sel.hole,
-                                               self.n, viewer, m - self.transition - 1.0, self.transition,
-                                               planes, relative_origin(hm.origin, camera.position), hm.dx, hm.dz,
-                                               self.block, device=self.device)
-        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item)
+        pos, uv, lev, item, tri, draws, groups = clipmap_mesh(
+            self._h, sel.origin, sel.spacing, sel.coarser, sel.level, sel.hole, self.n, viewer,
+            m - self.transition - 1.0, self.transition, planes, relative_origin(hm.origin, camera.position), hm.dx,
+            hm.dz, self.block, device=self.device)
+        return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=lev, patch_id=item,
+                    draws=Draws(ranges=draws, groups=groups, vertex_bytes=VERTEX_BYTES,
+                                texels_per_vertex=TEXELS_PER_VERTEX))
 

@@ -37,10 +37,16 @@ mesh       mesh
 patches    select (LOD scenes)
 error      mesh, raster, reference, error
 curvature  curvature
+counters   mesh, raster (each counts its pipeline statistics: ``Report.counters``)
 report     (none: the report of whatever ran)
 =========  ==================================================
 
-Frame cost (:attr:`Report.frame_ms`) is select + mesh + raster, for every kind of mesh.
+Frame cost (:attr:`Report.frame_ms`) is select + mesh + raster, for every kind of mesh: this simulator's CPU time.
+What a GPU would pay is :attr:`Report.counters` (a scene that asks for ``"counters"``): the pipeline statistics of
+the frame's draws as the family issues them (the mesh stage: the tessellator's patch draw, or the mesh's indexed
+draws, :class:`terrainwarp.mesh.Draws`) and of the rasterizer (:attr:`terrainwarp.kernels.raster.Fragments.
+counters`), named as OpenGL's ARB_pipeline_statistics_query names them
+(:data:`terrainwarp.kernels.counters.PIPELINE_COUNTERS`); a scene that does not ask counts nothing.
 
 A held selection: ``render(scene, terrain, patches=held)`` skips ``select`` (and ``prepare``) and tessellates
 the given :class:`terrainwarp.lod.PatchList` (its levels and edge factors as they were selected) for
@@ -62,6 +68,7 @@ from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.display import depth_picture, html_table, id_picture, png_bytes
 from ..io.files import atomic_path, output_set, write_image, write_json
+from ..kernels.counters import frame_counters, indexed_draw_counters
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
 from ..kernels.raster import clip_coordinates, rasterize
@@ -71,7 +78,7 @@ from ..lod.policies import make_policy
 from ..lod.quadtree import LodState, PatchList, Terrain, select
 from ..measure.error import FrameError, frame_error
 from ..measure.sample_error import PopStats, popping, sample_error
-from ..mesh import Mesh
+from ..mesh import Draws, Mesh
 from ..scene import Scene
 from ..surface.differential import compute_curvature
 from .sources import MeshSource, StreamedSource, missing_members
@@ -88,6 +95,7 @@ _NEEDS = {
     "error": {"mesh", "raster", "reference", "error"},
     "curvature": {"curvature"},
     "report": set(),
+    "counters": {"mesh", "raster"},
 }
 
 
@@ -121,10 +129,13 @@ class StageRecord:
 
 @dataclass
 class Report:
-    """What each stage cost: wall time (ms) and counters, in the order they ran."""
+    """What each stage cost: wall time (ms) and counters, in the order they ran; ``counters``, the frame's
+    pipeline statistics (:data:`terrainwarp.kernels.counters.PIPELINE_COUNTERS`) when the scene asked for them
+    (None otherwise): bit-identical across runs and thread counts."""
 
     stages: list[StageRecord] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    counters: dict[str, int | float] | None = None
 
     @property
     def total_ms(self) -> float:
@@ -147,14 +158,20 @@ class Report:
         return self.stage_ms("select") + self.stage_ms("mesh") + self.stage_ms("raster")
 
     def to_dict(self) -> dict:
-        return {"info": self.info, "total_ms": self.total_ms,
-                "stages": [{"name": s.name, "time_ms": s.time_ms, **s.counters} for s in self.stages]}
+        out = {"info": self.info, "total_ms": self.total_ms,
+               "stages": [{"name": s.name, "time_ms": s.time_ms, **s.counters} for s in self.stages]}
+        if self.counters is not None:
+            out["counters"] = dict(self.counters)
+        return out
 
     def table(self) -> str:
         rows = [("stage", "time_ms", "counters")]
         for s in self.stages:
             rows.append((s.name, f"{s.time_ms:.1f}", ", ".join(f"{k}={v}" for k, v in s.counters.items())))
         rows.append(("total", f"{self.total_ms:.1f}", ""))
+        if self.counters is not None:
+            rows.append(("counters", "", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                                   for k, v in self.counters.items())))
         w0 = max(len(r[0]) for r in rows)
         w1 = max(len(r[1]) for r in rows)
         return "\n".join(f"{a:<{w0}}  {b:>{w1}}  {c}" for a, b, c in rows)
@@ -277,6 +294,12 @@ class _Run:
     source_mesh_ms: float = 0.0  # the part of the source's call not spent selecting
     ref_tri: np.ndarray | None = None
     ref_depth: np.ndarray | None = None
+    draw_counters: dict[str, int] | None = None  # the mesh's draws' pipeline statistics (when asked)
+    raster_counters: dict[str, int] | None = None  # the rasterizer's (when asked)
+
+    @property
+    def counting(self) -> bool:
+        return "counters" in self.scene.outputs
 
     @property
     def kind(self) -> str:
@@ -418,14 +441,31 @@ def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
         mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
     frame.mesh = mesh
     rec.counters.update(patches=n_patches, vertices=mesh.n_vertices, triangles=mesh.n_triangles)
+    if run.counting:  # the draws' statistics, counted as part of the stage
+        t0 = time.perf_counter()
+        run.draw_counters = _draw_counters(mesh, run.device)
+        if ms is not None:
+            ms += (time.perf_counter() - t0) * 1e3
     return ms
+
+
+def _draw_counters(mesh: Mesh, device: str) -> dict[str, int]:
+    """The pipeline statistics of a mesh's draws: the tessellator's (``mesh.counters``) or its indexed draws'."""
+    if mesh.counters is not None:
+        return mesh.counters
+    d = mesh.draws if mesh.draws is not None else Draws()
+    tri = mesh.triangles if d.order is None or d.vertex_invocations is not None else mesh.triangles[d.order]
+    return indexed_draw_counters(tri, mesh.n_vertices, d.ranges, groups=d.groups,
+                                 vertex_invocations=d.vertex_invocations, vertex_bytes=d.vertex_bytes,
+                                 texels_per_vertex=d.texels_per_vertex, device=device)
 
 
 def _stage_raster(run: _Run, rec: StageRecord) -> None:
     frame, cam, mesh = run.frame, run.cam, run.frame.mesh
     frags = rasterize(mesh.positions, mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                      cam.width, cam.height, cull_back=run.scene.cull_back, device=run.device)
+                      cam.width, cam.height, cull_back=run.scene.cull_back, counters=run.counting, device=run.device)
     rec.counters.update(frags.stats)
+    run.raster_counters = frags.counters
     # the perspective-correct barycentric image (computed on first access) is part of the visibility pass
     # only when a later stage interpolates with it: depth alone leaves it out
     if "shade" in run.stages or "error" in run.stages:
@@ -525,6 +565,8 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
         ms = _STAGES[name](run, rec)
         rec.time_ms = (time.perf_counter() - t0) * 1e3 if ms is None else ms
         run.frame.report.stages.append(rec)
+    if run.counting:
+        run.frame.report.counters = frame_counters(run.draw_counters or {}, run.raster_counters or {})
     if "depth" not in scene.outputs:
         run.frame.depth = None
     return run.frame
@@ -618,4 +660,4 @@ def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, device:
     if hm.has_nodata:  # no-data holes: no triangle may touch a vertex that sampled NaN
         positions, triangles = drop_nonfinite_triangles(positions, triangles, device=device)
     return Mesh(positions=positions, eye=cam.position, triangles=triangles, uv=t.uv, level=t.level,
-                patch_id=t.patch_id, normals=normals)
+                patch_id=t.patch_id, normals=normals, counters=t.counters)

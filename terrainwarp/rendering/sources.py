@@ -237,7 +237,7 @@ class StreamedSource(SourceBase):
                                need=("uv", "level", "patch_id"), uv_cells=True)
         if not stack:
             return Mesh(positions=t.positions, eye=camera.position, triangles=t.triangles, uv=t.uv, level=t.level,
-                        patch_id=t.patch_id, normals=np.zeros_like(t.positions)), windows
+                        patch_id=t.patch_id, normals=np.zeros_like(t.positions), counters=t.counters), windows
         pos, nrm, _ = stack_displace(t.uv, t.positions, stack, [hm.source.level_shape(1 << w[0]) for w in stack],
                                      float(camera.position[1]), hm.dx, hm.dz, device=self.device)
         tri = t.triangles
@@ -252,7 +252,7 @@ class StreamedSource(SourceBase):
                                lambda: sobel_normals(grid, hm.dx, hm.dz, border="clamp", device=self.device))
             nrm = sample_normal_map(nmap, uv, device=self.device)
         return Mesh(positions=pos, eye=camera.position, triangles=tri, uv=uv, level=t.level, patch_id=t.patch_id,
-                    normals=nrm), windows
+                    normals=nrm, counters=t.counters), windows
 
 
 @dataclass(eq=False)
