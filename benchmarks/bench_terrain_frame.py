@@ -138,7 +138,7 @@ def measure(label: str, hm, cam, terrain, cfg: LodConfig, children: bool, reps: 
             if best is None or run[0] < best[0]:
                 best = run
             c_ours = min(c_ours, ours_cpu(hm, cam, terrain, cfg, view, proj))
-            gids, gdep, dt, dc = g.draw(rec, ranges)
+            gids, gdep, dt, dc, _ = g.draw(rec, ranges)
             t_gl, c_gl = min(t_gl, dt), min(c_gl, dc)
         one = g.draw(rec, [(0, len(pl))]) if unbatched else None  # why the batches: one draw of everything
     finally:

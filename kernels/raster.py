@@ -597,6 +597,16 @@ def _transform_kernel(
 
 
 @wp.func
+def _front_facing(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4) -> wp.bool:
+    """Counter-clockwise in homogeneous coordinates: det[(x, y, w) of the three vertices] > 0 (the sign of the
+    window-space area when every w > 0, and defined for any w), in float64."""
+    a = wp.vec3d(wp.float64(c0[0]), wp.float64(c0[1]), wp.float64(c0[3]))
+    b = wp.vec3d(wp.float64(c1[0]), wp.float64(c1[1]), wp.float64(c1[3]))
+    c = wp.vec3d(wp.float64(c2[0]), wp.float64(c2[1]), wp.float64(c2[3]))
+    return wp.dot(a, wp.cross(b, c)) > wp.float64(0.0)
+
+
+@wp.func
 def _fast_setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int):
     """The setup of a triangle inside every clip plane (most triangles: no clipping, no polygon arrays), the
     same arithmetic as :func:`_setup` and :func:`_raster_poly` for n = 3. Returns (drawn: not zero-area nor a
@@ -693,7 +703,9 @@ def _small_count_kernel(
                 _add_stats(out_stats, part, c, mode)
             return
     n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
-    if mode == 1 and not inside3 and n >= 3:  # a clipped polygon goes on as a fan of n - 2 triangles
+    if mode == 1 and not inside3 and n >= 3 and (cull_back == 0 or _front_facing(c0, c1, c2)):
+        # a clipped polygon goes on as a fan of n - 2 triangles; with culling, llvmpipe's draw pipeline culls a
+        # triangle it must clip before the clipper (the others after it, in triangle setup)
         wp.atomic_add(out_stats, part, 10, wp.int64(n - 2))
     if n == 0:
         return

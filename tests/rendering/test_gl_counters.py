@@ -1,0 +1,111 @@
+"""A frame's pipeline statistics (``Report.counters``) against a real driver's: whole LOD frames drawn by Mesa's
+llvmpipe with real tessellation shaders (:class:`terrainwarp.experiments.gl.GLTerrain`) and the same meshes as
+plain indexed triangles of the same clip-space vertices (:class:`terrainwarp.experiments.gl.GLMesh`), in the three
+spacings, read back through ARB_pipeline_statistics_query.
+
+What must be equal and why the rest may differ:
+
+* patches, control points, domain points (evaluation shader invocations), primitives generated and the clipper's
+  input: the tessellator is llvmpipe's, bit for bit (tests/kernels/test_tessellator.py), so they are equal;
+* the clipper's output and the llvmpipe fragment model (16 per 4x4 block a triangle touches) of the indexed draw:
+  the rasterizer covers llvmpipe's pixels on the same vertices, so they are equal;
+* samples passed of the indexed draw is within 0.5% (a few fragments in 100,000 here): a pixel's window depth is
+  llvmpipe's to within a few float32 ulps (its depth plane is set up and stepped in its own order), so where two
+  fragments lie that close the depth test may go either way;
+* the tessellated draw's clipper output, fragment model and samples passed are within 0.5%: llvmpipe's
+  evaluation shader computes each
+  vertex's clip position with its own float rounding (a few pixels' coverage differs, tests/kernels/
+  test_raster.py), and its primitive generator emits a patch's triangles in another order than ours (samples
+  passed counts overdraw in draw order: a patch hiding part of itself counts other fragments).
+"""
+
+from __future__ import annotations
+
+import gl_raster_oracle as gl  # noqa: E402
+import numpy as np
+import pytest
+
+from terrainwarp import Camera, Heightmap, Scene, render
+from terrainwarp.experiments.gl import GLMesh, GLTerrain, batches, patch_records
+from terrainwarp.kernels.raster import clip_coordinates
+from terrainwarp.lod import PatchList, Terrain
+from terrainwarp.scene import LodConfig
+
+pytestmark = pytest.mark.skipif(not gl.available(), reason="no EGL / OpenGL 4.5 context (llvmpipe) on this machine")
+W, H = 640, 360
+TESS = ("vertices_submitted", "primitives_submitted", "vertex_shader_invocations", "tess_control_shader_patches",
+        "tess_evaluation_shader_invocations", "primitives_generated", "clipping_input_primitives")
+RASTER = ("clipping_output_primitives", "fragment_shader_invocations_llvmpipe", "samples_passed")
+
+
+@pytest.fixture(scope="module")
+def dem():
+    hm = Heightmap.example()
+    cams = Scene(hm, camera=Camera.default_for(hm, W, H)).camera_path(4)
+    return hm, [Camera.default_for(hm, W, H), cams[2]], Terrain.prepare(hm)
+
+
+def _frames(dem, spacing):
+    """LOD frames of ``spacing``: the policy's own selection (sse; continuous for fractional_odd) from a camera
+    seeing all the terrain and from a flyover camera (clipped at the near plane and the viewport), and the
+    flyover's patches with random fractional levels (some patches culled by a level of 0)."""
+    hm, cams, terrain = dem
+    lod = LodConfig(policy="continuous", spacing="fractional_odd") if spacing == "fractional_odd" else \
+        LodConfig(spacing=spacing)
+    out = []
+    for cam in cams:
+        sc = Scene(hm, camera=cam, mesh="lod", lod=lod, outputs=("depth", "counters", "mesh", "patches"))
+        out.append(render(sc, terrain=terrain))
+    pl = out[-1].patches
+    rng = np.random.default_rng(len(spacing))
+    outer = rng.uniform(1.0, 20.0, pl.outer.shape).astype(np.float32)
+    outer[rng.random(len(pl)) < 0.1, 0] = 0.0
+    held = PatchList(**{**{k: getattr(pl, k) for k in PatchList._fields}, "outer": outer,
+                        "inner": rng.uniform(1.0, 20.0, pl.inner.shape).astype(np.float32)})
+    out.append(render(out[-1].scene, terrain=terrain, patches=held))
+    return out
+
+
+def _gl_tessellated(frame):
+    hm, cam, mesh, pl = frame.scene.heightmap, frame.scene.camera, frame.mesh, frame.patches
+    t_off = np.concatenate([[0], np.cumsum(np.bincount(mesh.patch_id[mesh.triangles[:, 0]], minlength=len(pl)))])
+    g = GLTerrain(W, H, hm.heights, hm.dx, hm.dz, frame.scene.lod.spacing)
+    try:
+        g.set_camera(cam.position, hm.origin, cam.view_matrix(relative=True), cam.proj_matrix())
+        return g.draw(patch_records(pl.origin, pl.size, pl.outer, pl.inner, hm.origin, hm.dx, hm.dz),
+                      batches(t_off), counters=True)[4]
+    finally:
+        g.close()
+
+
+def _gl_indexed(frame):
+    cam, mesh = frame.scene.camera, frame.mesh
+    clip = clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix())
+    g = GLMesh(W, H)
+    try:
+        up = g.upload(clip, mesh.triangles)
+        got = g.draw(up, counters=True)[4]
+        g.release(up)
+        return got
+    finally:
+        g.close()
+
+
+@pytest.mark.parametrize("spacing", ["equal", "fractional_even", "fractional_odd"])
+def test_frame_counters_equal_llvmpipes(dem, spacing):
+    clipped = 0
+    for f in _frames(dem, spacing):
+        ours = f.report.counters
+        tess = _gl_tessellated(f)
+        for name in TESS:
+            assert ours[name] == tess[name], (spacing, name, ours[name], tess[name])
+        flat = _gl_indexed(f)
+        flat["fragment_shader_invocations_llvmpipe"] = flat["fragment_shader_invocations"]
+        tess["fragment_shader_invocations_llvmpipe"] = tess["fragment_shader_invocations"]
+        for name in RASTER[:2]:
+            assert ours[name] == flat[name], (spacing, name, ours[name], flat[name])
+        for name, theirs in (("samples_passed", flat["samples_passed"]), *((n, tess[n]) for n in RASTER)):
+            assert abs(ours[name] - theirs) <= 0.005 * theirs, (spacing, name, ours[name], theirs)
+        clipped += ours["clipping_output_primitives"] != ours["clipping_input_primitives"]
+        assert ours["draw_calls"] == 1 and ours["tess_evaluation_shader_invocations"] == f.mesh.n_vertices
+    assert clipped >= 2  # the flyover frames were clipped
