@@ -25,6 +25,8 @@ import numpy as np
 
 from . import __version__
 from .camera import Camera
+from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
+from .experiments.calibrate import calibrate
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
 from .experiments.plots import plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
@@ -421,6 +423,35 @@ def _add_report_fit(sub) -> None:
     ft.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _add_calibrate(sub) -> None:
+    c = _command(sub, "calibrate", "fit the cost model's weights to a real driver's frame times: weights.json, "
+                 "calibration.csv, calibration.md", _cmd_calibrate)
+    c.add_argument("--gl", action="store_true", help="measure the OpenGL driver EGL finds (Mesa's llvmpipe here; a "
+                   "GPU's where there is one): the only driver kind so far, required")
+    _add_out(c, "out/calibrate")
+    c.add_argument("--frames-per-family", type=lambda s: _int_at_least(s, 2), default=50, metavar="N",
+                   help="frames of every family")
+    c.add_argument("--seed", type=_nonnegative_int, default=0, help="seed of the frames' choice and the held-out split")
+    c.add_argument("--reps", type=_positive_int, default=3, help="timed draws per frame (the least counts)")
+    c.add_argument("--families", default=None, help="comma-separated subset of " + ",".join(CALIBRATION_FAMILIES)
+                   + " (default: all)")
+    c.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    if not args.gl:
+        raise ValueError("--gl: calibrate measures a driver through OpenGL; give --gl")
+    fams = tuple(args.families.split(",")) if args.families else CALIBRATION_FAMILIES
+    command = (f"terrainwarp calibrate --gl --out {args.out} --frames-per-family {args.frames_per_family} --seed "
+               f"{args.seed} --reps {args.reps}" + (f" --families {args.families}" if args.families else ""))
+    model, paths = calibrate(args.out, frames_per_family=args.frames_per_family, seed=args.seed, reps=args.reps,
+                             families=fams, progress=not args.no_progress, command=command)
+    print(model.describe())
+    print("wrote: " + ", ".join(str(p) for p in paths))
+    print(f"use it: terrainwarp report --cost {paths[0]}")
+    return 0
+
+
 def _add_stability_tessellate_bench(sub) -> None:
     st = _command(sub, "stability", "run the extreme-case stability suite through every stage: stability.md",
                   _cmd_stability)
@@ -457,6 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser, metavar="COMMAND")
     _add_demo_render_lod(sub)
     _add_report_fit(sub)
+    _add_calibrate(sub)
     _add_stability_tessellate_bench(sub)
     return p
 

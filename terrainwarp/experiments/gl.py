@@ -15,9 +15,9 @@ counters are checked against (tests) and the driver the cost model is fitted to 
   as one ``glDrawElements`` per draw range (the draws a family issues).
 
 Both draw into a framebuffer with an ``R32I`` id target (the patch or triangle number, -1 background) and a
-32-bit float depth attachment (``GL_LESS``, cleared to 1.0), in a context of their own: create one, use it,
-``close()`` it (another library that makes its own EGL context current, as VTK does, must not run in
-between). Readback is flipped once so that images have row 0 at the top.
+32-bit float depth attachment (``GL_LESS``, cleared to 1.0), in a context of their own, made current for each
+call (several may be open at once): create one, use it, ``close()`` it. Readback is flipped once so that images
+have row 0 at the top.
 
 llvmpipe (Mesa 22.3) draws wrong geometry once one tessellated draw call generates more than about 65,536
 vertices: :class:`GLTerrain` draws the patches in consecutive batches of fewer than ``BATCH_VERTICES``
@@ -60,7 +60,7 @@ _GL_SPACING = {"equal": "equal_spacing", "fractional_even": "fractional_even_spa
                "fractional_odd": "fractional_odd_spacing"}
 
 
-class GLUnavailable(RuntimeError):
+class GLUnavailable(OSError):
     """No OpenGL 4.5 context through EGL here (or moderngl is not installed: ``pip install moderngl``)."""
 
 
@@ -173,13 +173,14 @@ class _Target:
         return got, time.perf_counter() - t0, time.process_time() - c0
 
     def close(self) -> None:
-        for o in self._objects():
-            if o is not None:
-                o.release()
-        self.stats.release()
-        self.fbo.release()
-        self.color.release()
-        self.depth.release()
+        with self.ctx:
+            for o in self._objects():
+                if o is not None:
+                    o.release()
+            self.stats.release()
+            self.fbo.release()
+            self.color.release()
+            self.depth.release()
         self.ctx.release()
 
     def _objects(self) -> list:
@@ -303,6 +304,10 @@ class GLTerrain(_Target):
 
     def set_camera(self, eye, grid_origin, view: np.ndarray, proj: np.ndarray) -> None:
         """Eye (world x, y, z, float64), the grid's world (x, z) origin and the OpenGL matrices (relative view)."""
+        with self.ctx:
+            self._set_camera(eye, grid_origin, view, proj)
+
+    def _set_camera(self, eye, grid_origin, view: np.ndarray, proj: np.ndarray) -> None:
         e = np.asarray(eye, np.float64)
         ec = (e[[0, 2]] - np.asarray(grid_origin, np.float64)) / (self.dx, self.dz)
         ei = np.floor(ec)
@@ -321,6 +326,10 @@ class GLTerrain(_Target):
             the top; the seconds from the upload to the end of ``glFinish`` and the CPU seconds this process
             (every llvmpipe thread) spent meanwhile; the pipeline statistics of the draws (``counters``).
         """
+        with self.ctx:
+            return self._draw(records, ranges, counters)
+
+    def _draw(self, records: np.ndarray, ranges: list[tuple[int, int]], counters: bool):
         ctx, mgl = self.ctx, self._mgl
         data = np.ascontiguousarray(records, np.float32).tobytes()
         if self.ssbo is None or self.ssbo.size != max(len(data), 48):
@@ -370,14 +379,19 @@ class GLMesh(_Target):
 
     def upload(self, clip: np.ndarray, triangles: np.ndarray) -> tuple:
         """Vertex and index buffers (kept apart from the timed draws; :meth:`release` them)."""
+        with self.ctx:
+            return self._upload(clip, triangles)
+
+    def _upload(self, clip: np.ndarray, triangles: np.ndarray) -> tuple:
         vbo = self.ctx.buffer(np.ascontiguousarray(clip, dtype=np.float32).tobytes())
         ibo = self.ctx.buffer(np.ascontiguousarray(triangles, dtype=np.int32).tobytes())
         vao = self.ctx.vertex_array(self.prog, [(vbo, "4f", "in_clip")], index_buffer=ibo, index_element_size=4)
         return vbo, ibo, vao
 
     def release(self, uploaded: tuple) -> None:
-        for o in reversed(uploaded):
-            o.release()
+        with self.ctx:
+            for o in reversed(uploaded):
+                o.release()
 
     def draw(self, uploaded: tuple, draws: np.ndarray | None = None, *, cull_back: bool = False,
              counters: bool = False) -> tuple[np.ndarray, np.ndarray, float, float, dict[str, int] | None]:
@@ -392,6 +406,10 @@ class GLMesh(_Target):
             triangle ids (H, W) int32 (-1 background) and depth (H, W) float32, row 0 at the top; the wall and
             CPU seconds of the draws and ``glFinish``; the pipeline statistics (``counters``).
         """
+        with self.ctx:
+            return self._draw(uploaded, draws, cull_back, counters)
+
+    def _draw(self, uploaded: tuple, draws: np.ndarray | None, cull_back: bool, counters: bool):
         ctx, mgl = self.ctx, self._mgl
         vao = uploaded[2]
         n = uploaded[1].size // 12

@@ -454,7 +454,7 @@ def _draw_counters(mesh: Mesh, device: str) -> dict[str, int]:
     if mesh.counters is not None:
         return mesh.counters
     d = mesh.draws if mesh.draws is not None else Draws()
-    tri = mesh.triangles if d.order is None or d.vertex_invocations is not None else mesh.triangles[d.order]
+    tri = mesh.triangles if d.order is None else mesh.triangles[d.order]  # in the order the draws take them
     return indexed_draw_counters(tri, mesh.n_vertices, d.ranges, groups=d.groups,
                                  vertex_invocations=d.vertex_invocations, vertex_bytes=d.vertex_bytes,
                                  texels_per_vertex=d.texels_per_vertex, device=device)
