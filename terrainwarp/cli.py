@@ -35,6 +35,7 @@ from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
+from .measure.cost import Cost, cost
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
 from .runtime import configure_from_env
@@ -162,32 +163,38 @@ def _cmd_report(args: argparse.Namespace) -> int:
         if bad:
             raise ValueError(f"--policies: unknown {sorted(bad)}")
         settings = [s for s in settings if s.policy in want]
+    ranking = cost(args.cost)  # checked before the sweep runs
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
     rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
-                 scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv")
+                 scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv",
+                 cost_model=ranking.model)
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
-    paths = write_report(sc, cams, rows, args.out, path=path)
+    paths = write_report(sc, cams, rows, args.out, path=path, cost_of=ranking)
     print(f"path: {path['text']}")
-    for r in summarise(rows):
+    print(f"cost: {ranking.label}")
+    for r in summarise(rows, ranking):
         print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  image p99 {r['image_err_p99_px']:8.3f} px  "
-              f"pop p99 {r['pop_p99_px']:7.3f} px  {r['frame_ms']:9.2f} ms  {int(r['triangles']):>9} tris")
+              f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {int(r['triangles']):>9} tris  "
+              f"{r['frame_ms']:9.2f} CPU ms")
     print("wrote: " + ", ".join(str(p) for p in paths))
     return 0
 
 
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
-                    scheduler: str | None = None, device: str = "cpu"):
+                    scheduler: str | None = None, device: str = "cpu", cost_of: Cost | None = None):
     """A grid-search evaluator (:func:`terrainwarp.fit.grid_search`) that runs the evaluations as jobs of the
     sweep runner (:func:`terrainwarp.experiments.pareto.sweep`, dask.distributed): ``workers`` local worker
     processes (None: one per core) or an existing ``scheduler``; the workers prepare their own terrain and
-    references, and the table is the same as in-process."""
+    references, and the table is the same as in-process. ``cost_of``: the fit's cost (None: triangles)."""
     def run(values: list[float]) -> list[Evaluation]:
         rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
-                     device=device, scheduler=scheduler, workers=workers)
-        return evaluations_from_rows(rows, policy, values)
+                     device=device, scheduler=scheduler, workers=workers,
+                     cost_model=None if cost_of is None else cost_of.model)
+        return evaluations_from_rows(rows, policy, values, None if cost_of is None or cost_of.name == "triangles"
+                                     else cost_of)
 
     return run
 
@@ -196,15 +203,18 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     sc = _scene(args)
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
-    grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers)
+    fit_cost = cost(args.cost)  # checked before the fit runs
+    grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
+                                                                    cost_of=fit_cost)
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points,
-                  grid_evaluator=grid_evaluator, progress=not args.no_progress, max_pop_px=args.max_pop_px)
+                  grid_evaluator=grid_evaluator, progress=not args.no_progress, max_pop_px=args.max_pop_px,
+                  cost=fit_cost)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
     for b in args.curve_budgets:
         r = fit_lod(sc, b, policy=args.policy, cameras=cams, progress=not args.no_progress,
-                    max_pop_px=args.max_pop_px)
+                    max_pop_px=args.max_pop_px, cost=fit_cost)
         if r.met:
             curve.append((b, r.validated.cost))
     write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"}})
@@ -228,16 +238,16 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
              f"worst frame {max(v.image_p99_px, default=float('nan')):.3g} px"
              + ("" if not v.pop_p99_px else f"; popping: the worst consecutive pair's pop p99 {v.worst_pop:.3g} px, "
                 f"max over pairs of the pop p99 (the previous camera's selection held)") + ".", "",
-             "| method | value | worst p99 px | triangles/frame | pipeline evaluations | wall s |",
+             f"| method | value | worst p99 px | {res.cost}/frame | pipeline evaluations | wall s |",
              "|---|---|---|---|---|---|",
-             f"| fit | {res.value:.4g} | {v.worst_p99:.3g} | {v.cost:.0f} | {res.evaluations} | {res.wall_s:.1f} |"]
+             f"| fit | {res.value:.4g} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} | {res.wall_s:.1f} |"]
     if g:
         if g["value"] is None:
             lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} | "
                          f"{g['wall_s']:.1f} |")
         else:
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
-                         f"{g['cost']:.0f} | {g['evaluations']} | {g['wall_s']:.1f} |")
+                         f"{g['cost']:.4g} | {g['evaluations']} | {g['wall_s']:.1f} |")
     lines += ["", res.message, ""]
     if res.mesh_only_frames:
         lines += [f"Frames only selected and meshed for their triangle count (not in the evaluations): "
@@ -403,6 +413,9 @@ def _add_report_fit(sub) -> None:
                     help="run the jobs on this Dask scheduler's cluster (default: a local cluster)")
     rp.add_argument("--workers", type=_nonnegative_int, default=None,
                     help="local worker processes (default: one per core; 0: in this process)")
+    rp.add_argument("--cost", default="llvmpipe", metavar="COST",
+                    help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), triangles, a "
+                         "counter name (e.g. fragment_shader_invocations) or a weights file of terrainwarp calibrate")
     ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
                   _cmd_fit)
     _add_scene(ft, "out/fit")
@@ -420,6 +433,9 @@ def _add_report_fit(sub) -> None:
                     help="grid search on the sweep runner with N worker processes (0: in this process)")
     ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[], metavar="PX",
                     help="also fit these budgets for the cost-against-budget curve")
+    ft.add_argument("--cost", default="triangles", metavar="COST",
+                    help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model) or a "
+                         "weights file of terrainwarp calibrate")
     ft.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -22,9 +22,16 @@ n; ``chunked``: Cesium's maximum screen-space error in px; and any scheme regist
 frame, their pyramids built once per worker (reported as ``peer_mesh_ms``).
 
 Every frame is made by :func:`terrainwarp.render`: the grid and the LOD policies from the scene, the
-peers, polytree and bintree as prebuilt mesh sources (:mod:`terrainwarp.rendering.sources`). Frame cost
-is :attr:`terrainwarp.Report.frame_ms`, ``select + mesh + raster``: the per-frame work (for the grid and
-the peers ``select`` is 0: their meshes are static, only made camera-relative per frame). The error and
+peers, polytree and bintree as prebuilt mesh sources (:mod:`terrainwarp.rendering.sources`). A row is
+:func:`terrainwarp.rendering.rows.frame_row`'s (one schema: the report's stages, the error, the counters).
+
+Cost: what a GPU would pay, from the frame's pipeline statistics (every frame counts them): ``cost_ms``, the
+sweep's cost model (:class:`terrainwarp.measure.cost.CostModel`, the shipped llvmpipe model unless given) of
+the counters, and reports rank by a :class:`terrainwarp.measure.cost.Cost` (``cost_ms`` by default,
+``triangles`` or any counter), with triangles beside it. This simulator's CPU milliseconds
+(:attr:`terrainwarp.Report.frame_ms`, ``select + mesh + raster``) are measured too, but kept out of
+``report.md`` and ``pareto.png``, which are then byte-identical across runs, thread counts and machines (as is
+``frames.csv`` without its timing columns): they go to ``timing.md`` with the jobs' record. The error and
 reference stages are measurement, not cost.
 """
 
@@ -49,14 +56,16 @@ from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
 from ..lod.quadtree import Terrain
+from ..measure.cost import Cost, CostModel, cost, shipped_model
 from ..rendering.pipeline import Frame, MeshSource, Report, pop_stats, render
+from ..rendering.rows import ROW_COLUMNS, TIMING_COLUMNS, frame_row
 from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import LOD_POLICIES, Scene
 from ..schemes import PLUGIN_FLAG, SCHEMES, register_scheme, scheme_source, sweep_values
 from .runner import Job, Runner, SweepResult, pending_jobs
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
-           "TIMING_COLUMNS", "image_floor"]
+           "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
 _FAMILIES = (*_PEERS, "polytree", "bintree")  # mesh families built once per worker, apart from frames
@@ -65,7 +74,6 @@ _FAMILIES = (*_PEERS, "polytree", "bintree")  # mesh families built once per wor
 def _built(policy: str) -> bool:
     """Whether ``policy`` is drawn as a mesh source built apart from frames: a family, or a registered scheme."""
     return policy in _FAMILIES or policy in SCHEMES
-TIMING_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms", "peer_mesh_ms", "prepare_ms")
 
 
 @dataclass(frozen=True)
@@ -121,6 +129,7 @@ class SweepContext:
     device: str
     need_lod: bool
     schemes: dict = field(default_factory=dict)  # user schemes the sweep draws: name -> pickled SchemeSpec
+    cost_model: CostModel | None = None  # the model of each row's cost_ms (None: the shipped one)
 
 
 _STATE: dict = {}  # per worker process: the context's Terrain, mesh sources and normal map, made once
@@ -148,7 +157,7 @@ def _state(ctx: SweepContext) -> dict:
 
 
 def _outputs(ctx: SweepContext) -> tuple[str, ...]:
-    return ("error", "image") if ctx.images else ("error",)
+    return ("error", "counters", "image") if ctx.images else ("error", "counters")
 
 
 def _warm_up(ctx: SweepContext) -> None:
@@ -268,31 +277,20 @@ def _frame_job(ctx: SweepContext, refs: dict, setting: Setting, k: int) -> dict:
     else:
         sc, terrain = sc.with_(mesh="lod", lod=scene.lod.with_policy(setting.policy, setting.param)), st_["terrain"]
         f = render(sc, terrain=terrain, reference=ref, device=device)
-    rep, err = f.report, f.error
     pop = {"pop_p99_px": math.nan, "pop_max_px": math.nan, "popped_samples": math.nan}
     if k > 0:
         p = pop_stats(sc, ctx.cameras[k - 1], f, ref, terrain=terrain, source=src, device=device)
         pop = {"pop_p99_px": p.p99_px, "pop_max_px": p.max_px, "popped_samples": p.popped}
-    return dict(select_ms=rep.stage_ms("select"), mesh_ms=rep.stage_ms("mesh"), raster_ms=rep.stage_ms("raster"),
-                frame_ms=rep.frame_ms, patches=rep.stage("mesh").counters["patches"], vertices=f.mesh.n_vertices,
-                triangles=f.mesh.n_triangles, peer_mesh_ms=built_ms, peer_error_m=peer_err,
-                max_px=err.max_px, p99_px=err.p99_px, mean_px=err.mean_px, samples_visible=err.samples_visible,
-                samples_hidden=err.samples_hidden, samples_missing=err.samples_missing,
-                image_err_p99_px=err.image_err_p99_px, image_err_max_px=err.image_err_max_px,
-                image_err_mean_px=err.image_err_mean_px, approx_p99_px=err.approx_p99_px,
-                cracks=err.cracks, mismatched=err.mismatched, silhouette=err.silhouette,
-                psnr_db=err.psnr_db if err.psnr_db is not None else math.nan,
-                ssim=err.ssim if err.ssim is not None else math.nan, **pop, prepare_ms=st_["prepare_ms"])
+    model = ctx.cost_model if ctx.cost_model is not None else shipped_model()
+    return frame_row(f, peer_mesh_ms=built_ms, peer_error_m=peer_err, **pop, cost_ms=model(f.report.counters),
+                     prepare_ms=st_["prepare_ms"])
 
 
-#: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``). ``p99_px``,
-#: ``max_px``, ``mean_px``: the primary error (at the samples); ``image_err_*``: the grid-image error
-#: (secondary, with its triangulation floor); ``pop_*``, ``popped_samples``: popping from the frame before.
-COLUMNS = ("policy", "param", "setting", "frame", "select_ms", "mesh_ms", "raster_ms", "frame_ms", "patches",
-           "vertices", "triangles", "peer_mesh_ms", "peer_error_m", "max_px", "p99_px", "mean_px", "samples_visible",
-           "samples_hidden", "samples_missing", "image_err_p99_px", "image_err_max_px", "image_err_mean_px",
-           "approx_p99_px", "cracks", "mismatched", "silhouette", "psnr_db", "ssim", "pop_p99_px", "pop_max_px",
-           "popped_samples", "prepare_ms")
+#: The columns of a sweep's table, in order (the runner adds ``error`` and ``retries``): the job's setting and frame,
+#: then :data:`terrainwarp.rendering.rows.ROW_COLUMNS` (the report's stages, the primary error ``p99_px``,
+#: ``max_px``, ``mean_px`` at the samples and the rest of ``FrameError``, popping from the frame before, the
+#: modelled cost, the counters).
+COLUMNS = ("policy", "param", "setting", "frame", *ROW_COLUMNS)
 
 
 def _scene_token(scene: Scene, device: str) -> str:
@@ -305,9 +303,11 @@ def _scene_token(scene: Scene, device: str) -> str:
     return h.hexdigest()[:32]
 
 
-def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str) -> str:
+def _fingerprint(scene: Scene, cameras: list[Camera], images: bool, device: str,
+                 cost_model: CostModel | None = None) -> str:
     """Identifies a sweep's inputs (the partial file of another sweep is not resumed)."""
-    return hashlib.sha256(repr((_scene_token(scene, device), list(cameras), images)).encode()).hexdigest()[:32]
+    model = None if cost_model is None else cost_model.to_json()
+    return hashlib.sha256(repr((_scene_token(scene, device), list(cameras), images, model)).encode()).hexdigest()[:32]
 
 
 def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
@@ -319,24 +319,27 @@ def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
 
 def run_sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
               images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
-              out: str | Path | None = None, runner: Runner | None = None) -> SweepResult:
+              out: str | Path | None = None, runner: Runner | None = None,
+              cost_model: CostModel | None = None) -> SweepResult:
     """:func:`sweep`, returning the :class:`terrainwarp.experiments.runner.SweepResult` (rows plus what the run cost).
 
     ``runner`` (a :class:`terrainwarp.experiments.runner.Runner`) overrides ``scheduler`` and ``workers``.
     """
+    if cost_model is not None and not isinstance(cost_model, CostModel):
+        raise TypeError(f"cost_model: expected a CostModel or None, got {type(cost_model).__name__}")
     if runner is not None:
-        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out, cost_model)
     with Runner(scheduler, workers) as runner:
-        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out)
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out, cost_model)
 
 
 def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: list[Setting], progress: bool,
-               images: bool, device: str, out: str | Path | None) -> SweepResult:
+               images: bool, device: str, out: str | Path | None, cost_model: CostModel | None) -> SweepResult:
     cameras = list(cameras)
     jobs = sweep_jobs(list(settings), len(cameras))
-    fp = _fingerprint(scene, cameras, images, device)
+    fp = _fingerprint(scene, cameras, images, device, cost_model)
     ctx = SweepContext(_scene_token(scene, device), scene, tuple(cameras), images, device,
-                       any(s.policy in LOD_POLICIES for s in settings), _user_schemes(settings))
+                       any(s.policy in LOD_POLICIES for s in settings), _user_schemes(settings), cost_model)
     ctx_h = runner.share(ctx)
     todo = pending_jobs(jobs, out, fp)
     need = sorted({j.args[1] for j in todo})  # references only for frames still to do
@@ -350,7 +353,7 @@ def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: li
 
 def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
           images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
-          out: str | Path | None = None) -> list[dict]:
+          out: str | Path | None = None, cost_model: CostModel | None = None) -> list[dict]:
     """Render every setting from every camera; one row per (setting, frame), sorted by (setting, frame).
 
     The jobs (setting, camera) run through :mod:`terrainwarp.experiments.runner`: by default on a LocalCluster with one
@@ -365,12 +368,13 @@ def sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progr
         workers: LocalCluster worker processes (default: one per core; 0: in this process).
         out: CSV path: rows are saved to ``out.partial`` as they arrive and the sorted table to ``out``; a
             sweep interrupted before the end resumes from the partial file without redoing finished jobs.
+        cost_model: the model of each row's ``cost_ms`` (None: the shipped llvmpipe model).
     """
     if isinstance(scene.heightmap, StreamedHeightmap):
         raise ValueError("scene.heightmap: a sweep measures every frame against the full-resolution grid; sweep "
                          "StreamedHeightmap.load() (or a part of the terrain that fits)")
     return run_sweep(scene, cameras, settings, progress=progress, images=images, device=device,
-                     scheduler=scheduler, workers=workers, out=out).rows
+                     scheduler=scheduler, workers=workers, out=out, cost_model=cost_model).rows
 
 
 def _worst(rs: list[dict], key: str) -> float:
@@ -379,9 +383,23 @@ def _worst(rs: list[dict], key: str) -> float:
     return max(v) if v else math.nan
 
 
-def summarise(rows: list[dict]) -> list[dict]:
+#: the counters a summary averages over the frames (besides the cost and triangles)
+SUMMARY_COUNTERS = ("draw_calls", "tess_control_shader_patches", "vertex_shader_invocations_llvmpipe",
+                    "fragment_shader_invocations", "fragment_shader_invocations_llvmpipe", "samples_passed",
+                    "quad_efficiency", "overdraw")
+
+
+def _mean(rs: list[dict], key: str) -> float:
+    v = [float(r[key]) for r in rs if key in r]
+    return float(np.mean(v)) if v else math.nan
+
+
+def summarise(rows: list[dict], cost_of: Cost | None = None) -> list[dict]:
     """One row per setting: worst-frame p99 and max error (primary, and the image error's p99), worst pair's
-    pop p99 and max and the popped samples over the path, mean frame time and triangles."""
+    pop p99 and max and the popped samples over the path, the mean modelled cost (``cost_ms``), triangles,
+    :data:`SUMMARY_COUNTERS` and frame time, and ``cost``: the mean of ``cost_of`` (None: ``cost_ms``) over the
+    frames, the cost the report ranks by."""
+    cost_of = cost_of if cost_of is not None else Cost("cost_ms", "modelled ms")
     out = []
     for label in dict.fromkeys(r["setting"] for r in rows):
         rs = [r for r in rows if r["setting"] == label]
@@ -390,21 +408,21 @@ def summarise(rows: list[dict]) -> list[dict]:
                     "p99_px": max(r["p99_px"] for r in rs), "max_px": max(r["max_px"] for r in rs),
                     "image_err_p99_px": _worst(rs, "image_err_p99_px"), "pop_p99_px": _worst(rs, "pop_p99_px"),
                     "pop_max_px": _worst(rs, "pop_max_px"), "popped_samples": sum(popped) if popped else math.nan,
-                    "mean_px": float(np.mean([r["mean_px"] for r in rs])),
-                    "frame_ms": float(np.mean([r["frame_ms"] for r in rs])),
-                    "select_ms": float(np.mean([r["select_ms"] for r in rs])),
-                    "mesh_ms": float(np.mean([r["mesh_ms"] for r in rs])),
-                    "triangles": float(np.mean([r["triangles"] for r in rs])),
-                    "cracks": int(sum(r["cracks"] for r in rs)),
+                    "mean_px": _mean(rs, "mean_px"), "cost": float(np.mean([cost_of.of(r) for r in rs])),
+                    "cost_ms": _mean(rs, "cost_ms"), "triangles": _mean(rs, "triangles"),
+                    **{c: _mean(rs, c) for c in SUMMARY_COUNTERS},
+                    "frame_ms": _mean(rs, "frame_ms"), "select_ms": _mean(rs, "select_ms"),
+                    "mesh_ms": _mean(rs, "mesh_ms"), "cracks": int(sum(r["cracks"] for r in rs)),
                     "peer_mesh_ms": rs[0]["peer_mesh_ms"], "peer_error_m": rs[0]["peer_error_m"],
                     "psnr_db": float(np.nanmean([r["psnr_db"] for r in rs])) if any(
                         np.isfinite(r["psnr_db"]) for r in rs) else math.nan})
     return out
 
 
-def pareto(summary: list[dict], cost: str = "frame_ms") -> list[dict]:
-    """The settings no other setting beats on both p99 error and cost."""
-    pts = sorted(summary, key=lambda r: (r["p99_px"], r[cost]))
+def pareto(summary: list[dict], cost: str = "cost") -> list[dict]:
+    """The settings no other setting beats on both p99 error and ``cost`` (a summary column: ``cost``, the
+    report's cost, by default)."""
+    pts = sorted(summary, key=lambda r: (r["p99_px"], r[cost], r["setting"]))
     front, best = [], math.inf
     for r in pts:
         if r[cost] < best:
@@ -413,22 +431,25 @@ def pareto(summary: list[dict], cost: str = "frame_ms") -> list[dict]:
     return front
 
 
-def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0)) -> list[list]:
-    """For each budget and policy: the cheapest setting (by triangles) whose worst-frame p99 (primary error)
-    meets it: [budget, policy, setting, p99_px, triangles, frame_ms, peer_mesh_ms, image_err_p99_px (the
-    old yardstick at that setting), pop_p99_px]."""
+def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0), cost: str = "cost") -> list[list]:
+    """For each budget and policy: the cheapest setting by ``cost`` (a summary column) whose worst-frame p99
+    (primary error) meets it: [budget, policy, setting, p99_px, cost, triangles, image_err_p99_px (the old
+    yardstick at that setting), pop_p99_px]."""
     rows = []
     for b in budgets:
         for pol in dict.fromkeys(r["policy"] for r in summary):
             ok = [r for r in summary if r["policy"] == pol and r["p99_px"] <= b]
             if not ok:
-                rows.append([b, pol, "-", "-", "-", "-", "-", "-", "-"])
+                rows.append([b, pol, "-", "-", "-", "-", "-", "-"])
                 continue
-            r = min(ok, key=lambda r: r["triangles"])
-            rows.append([b, pol, r["setting"], round(r["p99_px"], 3), int(r["triangles"]), round(r["frame_ms"], 2),
-                         round(r["peer_mesh_ms"], 1) if _built(r["policy"]) else "-",
+            r = min(ok, key=lambda r: (r[cost], r["setting"]))
+            rows.append([b, pol, r["setting"], round(r["p99_px"], 3), _fmt(r[cost]), int(r["triangles"]),
                          round(r.get("image_err_p99_px", math.nan), 3), round(r.get("pop_p99_px", math.nan), 3)])
     return rows
+
+
+def _fmt(v: float) -> str:
+    return "nan" if math.isnan(v) else f"{v:.4g}"
 
 
 def image_floor(summary: list[dict]) -> dict[str, float]:
@@ -453,7 +474,10 @@ def rows_to_csv(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
-def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
+def plot_pareto(summary: list[dict], path: str | Path, title: str = "", cost_label: str = "modelled ms") -> Path:
+    """pareto.png: the worst-frame p99 error against the report's cost (``cost``) and against triangles, each
+    setting a marker, each policy a line, the Pareto fronts marked. Nothing in it depends on timings: the same
+    rows draw the same bytes."""
     import matplotlib  # lazy: heavy optional dependency
 
     matplotlib.use("Agg")
@@ -469,13 +493,14 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
     def y(r):
         return max(r["p99_px"], floor)
 
-    for ax, cost, lab in ((axes[0], "frame_ms", "time per frame (ms)"), (axes[1], "triangles", "triangles per frame")):
+    for ax, col, lab in ((axes[0], "cost", f"cost per frame ({cost_label})"),
+                         (axes[1], "triangles", "triangles per frame")):
         for pol in dict.fromkeys(r["policy"] for r in summary):
-            rs = sorted([r for r in summary if r["policy"] == pol], key=lambda r: r[cost])
-            ax.plot([r[cost] for r in rs], [y(r) for r in rs], marks.get(pol, "o-"),
+            rs = sorted([r for r in summary if r["policy"] == pol], key=lambda r: (r[col], r["setting"]))
+            ax.plot([r[col] for r in rs], [y(r) for r in rs], marks.get(pol, "o-"),
                     label=pol if pol != "grid" else "grid (exact: drawn at the bottom)", ms=6)
-        front = pareto(summary, cost)
-        ax.plot([r[cost] for r in front], [y(r) for r in front], color="red", lw=3, alpha=0.3, label="Pareto front")
+        front = pareto(summary, col)
+        ax.plot([r[col] for r in front], [y(r) for r in front], color="red", lw=3, alpha=0.3, label="Pareto front")
         if old:
             ax.axhline(min(old.values()), color="gray", ls="--", lw=1,
                        label=f"old yardstick's floor: grid-image p99 {min(old.values()):.2f} px (finest settings)")
@@ -492,41 +517,63 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "") -> Path:
 
 
 def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir: str | Path, *,
-                 path: dict | None = None) -> list[Path]:
-    """frames.csv, pareto.png and report.md for a sweep. ``path``: :meth:`Scene.path_info` of the cameras
-    (its ``text`` is stated in report.md), None when the cameras are the caller's own. The three are written
-    as one set (:func:`terrainwarp.io.files.output_set`): a failure leaves the folder's previous set whole."""
+                 path: dict | None = None, cost_of: Cost | str | None = None) -> list[Path]:
+    """frames.csv, pareto.png, report.md and timing.md for a sweep, ranked by ``cost_of`` (a
+    :func:`terrainwarp.measure.cost.cost` spec; None: the rows' ``cost_ms``, the sweep's cost model). ``path``:
+    :meth:`Scene.path_info` of the cameras (its ``text`` is stated in report.md), None when the cameras are the
+    caller's own. report.md and pareto.png hold no timing (byte-identical across runs and machines); this run's
+    CPU milliseconds and its jobs go to timing.md. The four are written as one set
+    (:func:`terrainwarp.io.files.output_set`): a failure leaves the folder's previous set whole."""
+    c = cost_of if isinstance(cost_of, Cost) else (Cost("cost_ms", "modelled ms") if cost_of is None
+                                                   else cost(cost_of))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with output_set(out):
-        return _write_report(scene, cameras, rows, out, path)
+        return _write_report(scene, cameras, rows, out, path, c)
 
 
-def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Path, path: dict | None) -> list[Path]:
-    summ = summarise(rows)
+def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Path, path: dict | None,
+                  c: Cost) -> list[Path]:
+    summ = summarise(rows, c)
     hm = scene.heightmap
     paths = [write_text(out / "frames.csv", rows_to_csv(rows)),
-             plot_pareto(summ, out / "pareto.png", f"{hm.name}: error against cost, "
-                                                   f"{len(cameras)} cameras at {cameras[0].width}x{cameras[0].height}")]
-    md = [f"# Error against run time: {hm.name}", "",
-          f"Heightmap {hm.shape[0]}x{hm.shape[1]}, dx={hm.dx:.4g} m, dz={hm.dz:.4g} m; {len(cameras)} cameras at "
-          f"{cameras[0].width}x{cameras[0].height}; LOD: {scene.lod.roots} roots, tess {scene.lod.tess}.", "",
-          f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", "",
-          *_yardstick_lines(summ), "", _jobs_line(rows),
+             plot_pareto(summ, out / "pareto.png", f"{hm.name}: error against cost, {len(cameras)} cameras at "
+                                                   f"{cameras[0].width}x{cameras[0].height}", c.label)]
+    head = [f"Heightmap {hm.shape[0]}x{hm.shape[1]}, dx={hm.dx:.4g} m, dz={hm.dz:.4g} m; {len(cameras)} cameras at "
+            f"{cameras[0].width}x{cameras[0].height}; LOD: {scene.lod.roots} roots, tess {scene.lod.tess}.", "",
+            f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", ""]
+    md = [f"# Error against cost: {hm.name}", "", *head, *_cost_lines(c), "", *_yardstick_lines(summ),
           "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px",
-                                      "popped_samples", "frame_ms", "triangles", "cracks", "psnr_db",
-                                      "peer_mesh_ms", "peer_error_m"], summ),
-          "", "## Cheapest setting per budget (triangles; budgets on the primary p99)", "",
-          "| budget_px | policy | setting | p99_px | triangles | frame_ms | peer_mesh_ms | image_err_p99_px | "
-          "pop_p99_px |", "|---|---|---|---|---|---|---|---|---|"]
+                                      "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS, "cracks",
+                                      "psnr_db", "peer_error_m"], summ),
+          "", f"## Cheapest setting per budget ({c.label}; budgets on the primary p99)", "",
+          "| budget_px | policy | setting | p99_px | cost | triangles | image_err_p99_px | pop_p99_px |",
+          "|---|---|---|---|---|---|---|---|"]
     md += ["| " + " | ".join(str(v) for v in r) + " |" for r in budget_table(summ)]
-    md += ["", "## Pareto front (time)", "", ", ".join(r["setting"] for r in pareto(summ, "frame_ms")),
+    md += ["", f"## Pareto front ({c.label})", "", ", ".join(r["setting"] for r in pareto(summ)),
+           "", "## Pareto front (triangles)", "", ", ".join(r["setting"] for r in pareto(summ, "triangles")),
            "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]
-    md += [f"| {k} | {tuple(round(v, 1) for v in c.position)} | {tuple(round(v, 1) for v in c.target)} |"
-           for k, c in enumerate(cameras)]
-    md += ["", "![pareto](pareto.png)", ""]
+    md += [f"| {k} | {tuple(round(v, 1) for v in cam.position)} | {tuple(round(v, 1) for v in cam.target)} |"
+           for k, cam in enumerate(cameras)]
+    md += ["", "This simulator's CPU time per frame: [timing.md](timing.md).", "", "![pareto](pareto.png)", ""]
+    timing = [f"# This run's timings: {hm.name}", "", *head, _jobs_line(rows), "",
+              "CPU milliseconds of this simulator (select + mesh + raster = frame_ms), not a GPU's: they differ "
+              "from run to run and machine to machine. The cost a GPU would pay is report.md's.", "",
+              _md(["setting", "frame_ms", "select_ms", "mesh_ms", "cost", "triangles", "peer_mesh_ms"], summ), "",
+              "## Pareto front (CPU ms)", "", ", ".join(r["setting"] for r in pareto(summ, "frame_ms")), ""]
     paths.append(write_text(out / "report.md", "\n".join(md)))
+    paths.append(write_text(out / "timing.md", "\n".join(timing)))
     return paths
+
+
+def _cost_lines(c: Cost) -> list[str]:
+    """What the report's cost is."""
+    if c.model is not None:
+        return [f"Cost (`cost`): {c.model.describe()}."]
+    if c.name == "cost_ms":
+        return ["Cost (`cost`): `cost_ms`, the sweep's cost model of each frame's pipeline statistics (modelled "
+                "ms of the driver it was fitted to; terrainwarp.measure.cost)."]
+    return [f"Cost (`cost`): `{c.name}` per frame; `cost_ms` (the sweep's cost model) beside it."]
 
 
 def _yardstick_lines(summ: list[dict]) -> list[str]:
@@ -536,8 +583,7 @@ def _yardstick_lines(summ: list[dict]) -> list[str]:
     lines = ["Error (`p99_px`, `max_px`): the primary error, per visible heightmap sample the pixel distance "
              "between the sample and the drawn surface at its (x, z), worst frame (every family's full-detail "
              "mesh scores 0). `image_err_p99_px`: the per-pixel reprojection error against the fixed-diagonal "
-             "grid (secondary; the old yardstick). frame_ms = select + mesh + raster (LOD), mesh + raster "
-             "(grid, peers)."]
+             "grid (secondary; the old yardstick)."]
     if floor:
         lines += ["", "Old yardstick's floor here (grid-image p99 of each family's finest setting, which the "
                   "primary error scores near 0): " + ", ".join(f"{k} {v:.3g} px" for k, v in floor.items()) + "."]

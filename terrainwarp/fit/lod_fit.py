@@ -78,7 +78,10 @@ from ..io.files import save_figure
 from ..kernels.checks import check_int, check_number
 from ..lod.policies import ContinuousPolicy, continuous_factors, edge_pixels
 from ..lod.quadtree import Terrain, node_metrics, select
+from ..measure.cost import Cost
+from ..measure.cost import cost as resolve_cost
 from ..rendering.pipeline import Frame, pop_stats, render
+from ..rendering.rows import frame_row
 from ..scene import LOD_POLICIES, POLICY_TABLE, LodConfig, Scene
 from ..schemes import SCHEMES, scheme_range, scheme_source
 
@@ -131,7 +134,8 @@ class Evaluation:
 
     ``p99_px``, ``max_px``: the primary error per frame; ``image_p99_px``: the grid-image error per frame
     (secondary); ``pop_p99_px``: per consecutive pair (frame k-1 -> k, so one fewer than the frames), only
-    when popping was measured (else empty)."""
+    when popping was measured (else empty); ``costs``: the fit's cost of every frame (a
+    :class:`terrainwarp.measure.cost.Cost`; empty: the triangles are the cost)."""
 
     value: float
     p99_px: list[float]
@@ -143,6 +147,7 @@ class Evaluation:
     # the cameras whose error was measured, in the order they were (None: all, in path order); a validation
     # stopped at the first frame over the budget measured only a prefix (its triangles are every frame's)
     frames: list[int] | None = None
+    costs: list[float] = field(default_factory=list)  # every frame's, in path order, as the triangles
 
     @property
     def complete(self) -> bool:
@@ -164,7 +169,8 @@ class Evaluation:
 
     @property
     def cost(self) -> float:
-        return float(np.mean(self.triangles))
+        """The mean cost per frame: of ``costs``, or of the triangles when the cost is the triangles."""
+        return float(np.mean(self.costs if self.costs else self.triangles))
 
 
 @dataclass
@@ -199,6 +205,7 @@ class FitResult:
     grid: dict | None = None
     max_pop_px: float | None = None
     mesh_only_frames: int = 0
+    cost: str = "triangles"  # what the fit minimised (a terrainwarp.measure.cost.Cost's name)
 
     def _repr_html_(self) -> str:
         """The fit in one HTML table (Jupyter): the message, then each camera of the validated value."""
@@ -214,7 +221,7 @@ class FitResult:
 
     def to_dict(self) -> dict:
         v = self.validated
-        return {"policy": self.policy, "budget_px": self.budget_px, "max_pop_px": self.max_pop_px,
+        return {"policy": self.policy, "budget_px": self.budget_px, "max_pop_px": self.max_pop_px, "cost": self.cost,
                 "met": self.met, "value": self.value, "params": self.params._asdict(), "message": self.message,
                 "evaluations": self.evaluations, "mesh_only_frames": self.mesh_only_frames, "wall_s": self.wall_s,
                 "error": "primary: per visible heightmap sample, px (terrainwarp.measure.sample_error); "
@@ -223,7 +230,8 @@ class FitResult:
                                                      "image_p99_px": v.image_p99_px, "pop_p99_px": v.pop_p99_px,
                                                      "triangles": v.triangles, "frame_ms": v.frame_ms,
                                                      "worst_p99_px": v.worst_p99, "worst_pop_p99_px": v.worst_pop,
-                                                     "mean_triangles": v.cost},
+                                                     "mean_triangles": float(np.mean(v.triangles)),
+                                                     "costs": v.costs, "mean_cost": v.cost},
                 "history": self.history, "grid": self.grid}
 
 
@@ -234,7 +242,7 @@ def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], polic
              refs: list[Frame], device: str = "cpu", *, on_frame: Callable[[], None] | None = None,
              pops: bool = False, cache: dict | None = None, order: list[int] | None = None,
              stop_above: float | None = None, measure: Collection[int] | None = None,
-             known: Evaluation | None = None) -> Evaluation:
+             known: Evaluation | None = None, cost_of: Cost | None = None) -> Evaluation:
     """Run the exact pipeline at one parameter value over all cameras (references given); the frame cost
     is ``Report.frame_ms``; the error is the primary error (``Frame.error.p99_px``), the image error kept
     beside it. ``pops``: also the pop of each consecutive pair (the previous frame's selection held,
@@ -249,26 +257,33 @@ def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], polic
     cameras are taken as they are, not drawn again (completing a provisional try).
 
     A scheme (``policy`` in :data:`SCHEMES`; ``terrain`` unused) is drawn as its mesh source
-    (:func:`terrainwarp.schemes.scheme_source`, its pyramids kept in ``cache`` across values)."""
+    (:func:`terrainwarp.schemes.scheme_source`, its pyramids kept in ``cache`` across values).
+    ``cost_of`` (a :class:`terrainwarp.measure.cost.Cost`; None: triangles): every frame's cost, in
+    ``Evaluation.costs``; a cost of counters renders every frame with ``"counters"``."""
     if pops and (order is not None or stop_above is not None or measure is not None or known is not None):
         raise ValueError("order / stop_above / measure / known: popping is measured between consecutive frames of "
                          "the path")
     ev = Evaluation(float(value), [], [], [], [])
     src = scheme_source(policy, scene.heightmap, value, cache=cache, device=device) if policy in SCHEMES else None
     cfg = scene.lod if src is not None else scene.lod.with_policy(policy, value)
+    counted = cost_of is not None and cost_of.needs_counters
     if order is not None or stop_above is not None or measure is not None or known is not None:
         return _evaluate_until(ev, scene, terrain, cameras, refs, cfg, src, device, on_frame,
                                list(range(len(cameras))) if order is None else [int(k) for k in order], stop_above,
-                               None if measure is None else {int(k) for k in measure}, known)
+                               None if measure is None else {int(k) for k in measure}, known, cost_of)
     prev: Frame | None = None
     for k, (cam, ref) in enumerate(zip(cameras, refs)):
-        sc = scene.with_(camera=cam, mesh="lod" if src is None else "grid", lod=cfg, outputs=("error",))
+        sc = scene.with_(camera=cam, mesh="lod" if src is None else "grid", lod=cfg,
+                         outputs=("error", "counters") if counted else ("error",))
         f = render(sc, terrain=terrain, reference=ref, device=device, source=src)
-        ev.p99_px.append(float(f.error.p99_px))
-        ev.max_px.append(float(f.error.max_px))
-        ev.image_p99_px.append(float(f.error.image_err_p99_px))
-        ev.triangles.append(int(f.mesh.n_triangles))
-        ev.frame_ms.append(f.report.frame_ms)
+        row = frame_row(f)
+        ev.p99_px.append(float(row["p99_px"]))
+        ev.max_px.append(float(row["max_px"]))
+        ev.image_p99_px.append(float(row["image_err_p99_px"]))
+        ev.triangles.append(int(row["triangles"]))
+        ev.frame_ms.append(row["frame_ms"])
+        if cost_of is not None:
+            ev.costs.append(cost_of.of(row))
         if pops and prev is not None:
             ev.pop_p99_px.append(pop_stats(sc, cameras[k - 1], f, ref, terrain=terrain, source=src,
                                            held=None if src is not None else prev.patches, device=device).p99_px)
@@ -281,15 +296,18 @@ def evaluate(scene: Scene, terrain: Terrain | None, cameras: list[Camera], polic
 def _evaluate_until(ev: Evaluation, scene: Scene, terrain: Terrain | None, cameras: list[Camera], refs: list[Frame],
                     cfg: LodConfig, src, device: str, on_frame: Callable[[], None] | None, order: list[int],
                     stop_above: float | None, measure: set[int] | None = None,
-                    known: Evaluation | None = None) -> Evaluation:
+                    known: Evaluation | None = None, cost_of: Cost | None = None) -> Evaluation:
     """:func:`evaluate`'s frames in ``order``, stopping after the first whose p99 exceeds ``stop_above``; only
-    the cameras in ``measure`` (None: all) are measured; those ``known`` measured are copied."""
+    the cameras in ``measure`` (None: all) are measured (the others only meshed, or counted when the cost is
+    counters); those ``known`` measured are copied."""
     if sorted(order) != list(range(len(cameras))):
         raise ValueError(f"order: expected a permutation of the {len(cameras)} camera indices, got {order!r}")
     if known is not None and (known.value != ev.value or len(known.triangles) != len(cameras)):
         raise ValueError("known: expected an evaluation of the same value over the same cameras")
     done = {} if known is None else {k: i for i, k in enumerate(known.frames or range(len(cameras)))}
     tris = [0] * len(cameras) if known is None else list(known.triangles)
+    costs = [0.0] * len(cameras) if known is None or not known.costs else list(known.costs)
+    counted = cost_of is not None and cost_of.needs_counters
     ev.frames = []
     mesh = "lod" if src is None else "grid"
     for k in order:
@@ -303,28 +321,36 @@ def _evaluate_until(ev: Evaluation, scene: Scene, terrain: Terrain | None, camer
         if (stop_above is not None and ev.p99_px and max(ev.p99_px) > stop_above) or \
                 (measure is not None and k not in measure):  # infeasible, or not asked for: cost only
             if known is None:
-                f = render(scene.with_(camera=cameras[k], mesh=mesh, lod=cfg, outputs=("mesh",)), terrain=terrain,
-                           device=device, source=src)
+                f = render(scene.with_(camera=cameras[k], mesh=mesh, lod=cfg,
+                                       outputs=("counters",) if counted else ("mesh",)),
+                           terrain=terrain, device=device, source=src)
                 tris[k] = int(f.mesh.n_triangles)
+                costs[k] = cost_of.of(frame_row(f)) if cost_of is not None else 0.0
             continue
-        sc = scene.with_(camera=cameras[k], mesh=mesh, lod=cfg, outputs=("error",))
+        outputs = ("error", "counters") if counted else ("error",)
+        sc = scene.with_(camera=cameras[k], mesh=mesh, lod=cfg, outputs=outputs)
         f = render(sc, terrain=terrain, reference=refs[k], device=device, source=src)
+        row = frame_row(f)
         ev.frames.append(k)
-        ev.p99_px.append(float(f.error.p99_px))
-        ev.max_px.append(float(f.error.max_px))
-        ev.image_p99_px.append(float(f.error.image_err_p99_px))
-        ev.frame_ms.append(f.report.frame_ms)
-        tris[k] = int(f.mesh.n_triangles)
+        ev.p99_px.append(float(row["p99_px"]))
+        ev.max_px.append(float(row["max_px"]))
+        ev.image_p99_px.append(float(row["image_err_p99_px"]))
+        ev.frame_ms.append(row["frame_ms"])
+        tris[k] = int(row["triangles"])
+        costs[k] = cost_of.of(row) if cost_of is not None else 0.0
         if on_frame is not None:
             on_frame()
     ev.triangles = tris
+    ev.costs = costs if cost_of is not None else []
     return ev
 
 
-def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) -> list[Evaluation]:
-    """The :class:`Evaluation` of each value from a sweep's rows (``policy``, ``param``, ``frame``, ``p99_px``,
-    ``max_px``, ``triangles``, ``frame_ms``, ``error``: :func:`terrainwarp.experiments.pareto.sweep`),
-    for a grid search run on the sweep runner. A failed row raises RuntimeError."""
+def evaluations_from_rows(rows: list[dict], policy: str, values: list[float],
+                          cost_of: Cost | None = None) -> list[Evaluation]:
+    """The :class:`Evaluation` of each value from a sweep's rows (:func:`terrainwarp.experiments.pareto.sweep`:
+    the job's ``policy``, ``param``, ``frame`` and ``error``, then :func:`terrainwarp.rendering.rows.frame_row`'s
+    columns), for a grid search run on the sweep runner; ``cost_of``: the cost of each row (None: triangles).
+    A failed row raises RuntimeError."""
     evs = []
     for v in values:
         rs = sorted((r for r in rows if r["policy"] == policy and r["param"] == v), key=lambda r: r["frame"])
@@ -334,14 +360,15 @@ def evaluations_from_rows(rows: list[dict], policy: str, values: list[float]) ->
         pops = [float(r["pop_p99_px"]) for r in rs[1:] if "pop_p99_px" in r]
         evs.append(Evaluation(v, [r["p99_px"] for r in rs], [r["max_px"] for r in rs],
                               [int(r["triangles"]) for r in rs], [r["frame_ms"] for r in rs],
-                              [float(r["image_err_p99_px"]) for r in rs if "image_err_p99_px" in r], pops))
+                              [float(r["image_err_p99_px"]) for r in rs if "image_err_p99_px" in r], pops,
+                              costs=[] if cost_of is None else [cost_of.of(r) for r in rs]))
     return evs
 
 
 def grid_search(scene: Scene, terrain: Terrain | None, cameras: list[Camera], policy: str, budget_px: float,
                 refs: list[Frame], points: int = 24, device: str = "cpu", evaluator: Evaluator | None = None, *,
                 on_frame: Callable[[], None] | None = None, max_pop_px: float | None = None,
-                cache: dict | None = None) -> dict:
+                cache: dict | None = None, cost_of: Cost | None = None) -> dict:
     """Evaluate ``points`` log-spaced values of the policy's fit range (:func:`knob`; a scheme's odd integers
     snapped, repeats dropped) on the exact pipeline; the cheapest that meets the budget (and ``max_pop_px``,
     the worst pair's pop p99, when given: then the pops are measured too).
@@ -350,7 +377,7 @@ def grid_search(scene: Scene, terrain: Terrain | None, cameras: list[Camera], po
     caller's ``terrain`` and ``refs`` (:func:`evaluate`). The command line (``terrainwarp fit --workers N``)
     passes one that runs them as jobs of the sweep runner (dask.distributed), whose workers prepare their
     own terrain and references; the table is the same. ``on_frame()`` is called once per frame evaluated
-    (progress; after the evaluator returns when there is one).
+    (progress; after the evaluator returns when there is one). ``cost_of``: the cost (None: triangles).
     """
     check_int("points", points, 1)
     kn = knob(policy, scene.heightmap, cache)
@@ -358,7 +385,7 @@ def grid_search(scene: Scene, terrain: Terrain | None, cameras: list[Camera], po
     values = list(dict.fromkeys(kn.snap(v) for v in np.geomspace(*kn.fit_range, points)))
     if evaluator is None:
         evs = [evaluate(scene, terrain, cameras, policy, v, refs, device, on_frame=on_frame,
-                        pops=max_pop_px is not None, cache=cache) for v in values]
+                        pops=max_pop_px is not None, cache=cache, cost_of=cost_of) for v in values]
     else:
         evs = evaluator(values)
         for _ in range(len(values) * len(cameras) if on_frame is not None else 0):
@@ -445,9 +472,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             steps: int = 60, max_validations: int = 8, rel_tol: float = 0.02, grid_points: int = 0,
             grid_evaluator: Evaluator | None = None, gradient: str = "relaxed", device: str = "cpu",
             progress: bool = False, max_pop_px: float | None = None,
-            references: list[Frame] | None = None) -> FitResult:
+            references: list[Frame] | None = None, cost: str | Cost | object = "triangles") -> FitResult:
     """Fit the ``policy``'s parameter so that the worst frame's p99 screen error over the camera path is
-    within ``budget_px`` at the lowest cost (triangles).
+    within ``budget_px`` at the lowest cost (``cost``: triangles by default).
 
     Args:
         scene: the scene (heightmap, LOD config: roots, tess); its camera path unless ``cameras``.
@@ -476,13 +503,16 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         references: the full-detail grid frames of ``cameras`` (with depth), one per camera, when the caller
             has them already (several fits on one path: a 4097^2 reference frame takes seconds); None: rendered
             here.
+        cost: what the fit minimises, the mean per frame over the path (:func:`terrainwarp.measure.cost.cost`):
+            ``"triangles"``, a counter name (``"fragment_shader_invocations"``, ...), ``"llvmpipe"`` (the
+            shipped cost model), a :class:`terrainwarp.measure.cost.CostModel` or a weights file. The relaxed
+            model steers by its expected triangles whatever the cost; the exact validations compare the cost
+            (a cost of counters renders every validated frame with ``"counters"``).
     """
     _check_fit_arguments(budget_px, policy, gradient, steps, max_validations, grid_points)
-    if isinstance(scene.heightmap, StreamedHeightmap):
-        raise ValueError("scene.heightmap: fit_lod measures every frame against the full-resolution grid and its "
-                         "pyramids; fit on StreamedHeightmap.load() (or a part of the terrain that fits)")
-    if max_pop_px is not None:
-        check_number("max_pop_px", max_pop_px, 0.0)
+    _check_fit_scene(scene, max_pop_px)
+    cost_of = resolve_cost(cost)
+    cost_of = None if cost_of.name == "triangles" else cost_of
     t_start = time.perf_counter()
     cams = cameras if cameras is not None else scene.camera_path()
     if not cams:
@@ -496,7 +526,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         refs = _references(scene, cams, references, bar, device)
         cache: dict = {}
         exact = _Exact(scene, terrain, cams, refs, policy, device, on_frame=bar, budget_px=budget_px,
-                       max_pop_px=max_pop_px, knob=knob(policy, scene.heightmap, cache), cache=cache)
+                       max_pop_px=max_pop_px, knob=knob(policy, scene.heightmap, cache), cache=cache, cost_of=cost_of)
         if scheme:
             good = _bracket(exact, budget_px, rel_tol, max_validations)
         else:
@@ -508,11 +538,12 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         if max_pop_px is None and len(cams) > 1:  # the chosen setting's popping, for the record (not counted)
             bar.expect(len(cams) * (1 + grid_points))
             res.validated = evaluate(scene, terrain, cams, policy, res.value, refs, device, on_frame=bar, pops=True,
-                                     cache=cache)
+                                     cache=cache, cost_of=cost_of)
         if grid_points:
             bar.expect(len(cams) * grid_points)  # the validations may have stopped early
             res.grid = grid_search(scene, terrain, cams, policy, budget_px, refs, grid_points, device,
-                                   evaluator=grid_evaluator, on_frame=bar, max_pop_px=max_pop_px, cache=cache)
+                                   evaluator=grid_evaluator, on_frame=bar, max_pop_px=max_pop_px, cache=cache,
+                                   cost_of=cost_of)
     finally:
         bar.close()
     return res
@@ -578,6 +609,14 @@ def _check_fit_arguments(budget_px: float, policy: str, gradient: str, steps: in
     check_number("budget_px", budget_px, 0.0, lo_open=True)
 
 
+def _check_fit_scene(scene: Scene, max_pop_px: float | None) -> None:
+    if isinstance(scene.heightmap, StreamedHeightmap):
+        raise ValueError("scene.heightmap: fit_lod measures every frame against the full-resolution grid and its "
+                         "pyramids; fit on StreamedHeightmap.load() (or a part of the terrain that fits)")
+    if max_pop_px is not None:
+        check_number("max_pop_px", max_pop_px, 0.0)
+
+
 @dataclass
 class _Exact:
     """The exact pipeline over the camera path, one evaluation per value (snapped to the fit range,
@@ -601,6 +640,7 @@ class _Exact:
     over: set[int] = field(default_factory=set)  # cameras measured over the budget at some value
     latest: dict[int, float] = field(default_factory=dict)  # each camera's latest measured p99
     safe_at: dict[int, float] = field(default_factory=dict)  # the coarsest value each camera met the budget at
+    cost_of: Cost | None = None  # the cost minimised (None: triangles)
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
@@ -619,13 +659,14 @@ class _Exact:
         n = len(self.cams)
         if self.max_pop_px is not None or (complete and old is None):
             e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
-                         on_frame=self.on_frame, pops=self.max_pop_px is not None, cache=self.cache)
+                         on_frame=self.on_frame, pops=self.max_pop_px is not None, cache=self.cache,
+                         cost_of=self.cost_of)
         else:
             order, measure = self.plan(v)
             e = evaluate(self.scene, self.terrain, self.cams, self.policy, v, self.refs, self.device,
                          on_frame=self.on_frame, cache=self.cache, order=order,
                          stop_above=None if complete else self.budget_px,
-                         measure=None if complete or confirm else measure, known=old)
+                         measure=None if complete or confirm else measure, known=old, cost_of=self.cost_of)
             if e.complete:  # measured in another order: back to path order, as every complete evaluation
                 back = sorted(range(len(e.frames)), key=lambda i: e.frames[i])
                 e.p99_px, e.max_px, e.image_p99_px, e.frame_ms = (
@@ -891,15 +932,19 @@ def _result(exact: _Exact, good: Evaluation | None, budget_px: float, t_start: f
                    + ("" if pop is None else f" and a worst pair pop p99 of {floor.worst_pop:.3g} px"))
             return FitResult(policy, budget_px, False, finest, _params(policy, finest), floor, exact.n_eval,
                              time.perf_counter() - t_start, msg, exact.history, max_pop_px=pop,
-                             mesh_only_frames=exact.n_mesh_only)
+                             mesh_only_frames=exact.n_mesh_only, cost=_cost_name(exact.cost_of))
         good = floor
     res = FitResult(policy, budget_px, exact.meets(good), good.value, _params(policy, good.value), good,
                     exact.n_eval, time.perf_counter() - t_start, "", exact.history, max_pop_px=pop,
-                    mesh_only_frames=exact.n_mesh_only)
+                    mesh_only_frames=exact.n_mesh_only, cost=_cost_name(exact.cost_of))
     res.message = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px"
                    + ("" if pop is None else f", worst pair pop p99 {good.worst_pop:.3g} px <= {pop:g} px")
-                   + f" with {spec.field} = {good.value:.4g}, {good.cost:.0f} triangles per frame")
+                   + f" with {spec.field} = {good.value:.4g}, {good.cost:.4g} {res.cost} per frame")
     return res
+
+
+def _cost_name(c: Cost | None) -> str:
+    return "triangles" if c is None else c.label
 
 
 def _coarser(kn: Knob, a: float, b: float) -> bool:

@@ -57,13 +57,15 @@ def test_report_files_and_tables(small, tmp_path):
     sc, cams = small
     rows = sweep(sc, cams, SETTINGS[:1] + SETTINGS[4:6], progress=False, images=False)
     paths = {p.name for p in write_report(sc, cams, rows, tmp_path)}
-    assert paths == {"frames.csv", "pareto.png", "report.md"}
+    assert paths == {"frames.csv", "pareto.png", "report.md", "timing.md"}
     summ = summarise(rows)
     front = pareto(summ)
     assert front and all(r in summ for r in front)
     tab = budget_table(summ, budgets=(1e9,))
     assert {r[1] for r in tab} == {"grid", "delatin", "martini"}
-    assert "Cheapest setting per budget" in (tmp_path / "report.md").read_text()
+    md = (tmp_path / "report.md").read_text()
+    assert "Cheapest setting per budget" in md and "frame_ms" not in md  # CPU time is timing.md's
+    assert "frame_ms" in (tmp_path / "timing.md").read_text()
 
 
 def _frames_csv(path) -> list[dict]:
@@ -125,3 +127,47 @@ def test_the_schemes_are_report_policies_with_error_popping_and_cost(small):
         assert math.isfinite(r["pop_p99_px"]) == (r["frame"] == 1)
     summ = {r["setting"]: r for r in summarise(rows)}
     assert all(math.isfinite(summ[s.label]["pop_p99_px"]) for s in settings)
+
+
+def test_report_md_pareto_png_and_frames_csv_are_byte_identical_across_runs_and_threads(small, tmp_path):
+    """What a report ranks by is counted, not timed: report.md, pareto.png and frames.csv without its timing
+    columns (cost_ms, a cost model of the counters, kept) are the same bytes for one and two kernel threads."""
+    from terrainwarp.kernels.parallel import set_threads
+
+    sc, cams = small
+    settings = [Setting("grid", 0.0), Setting("sse", 2.0), Setting("delatin", 2.0), Setting("cdlod", 600.0)]
+    out = []
+    for k, threads in enumerate((1, 2)):
+        try:
+            set_threads(threads)
+            rows = sweep(sc, cams, settings, progress=False, images=False, workers=0)
+        finally:
+            set_threads(None)
+        d = tmp_path / str(k)
+        write_report(sc, cams, rows, d, path=sc.path_info(2))
+        out.append(d)
+    for name in ("report.md", "pareto.png"):
+        assert (out[0] / name).read_bytes() == (out[1] / name).read_bytes(), name
+    a, b = (_strip((d / "frames.csv").read_text()) for d in out)
+    assert a == b and all(float(r["cost_ms"]) > 0 and int(r["draw_calls"]) >= 1 for r in a)
+
+
+def test_report_ranks_by_the_cost_asked_for(small, tmp_path):
+    from terrainwarp.measure.cost import cost, shipped_model
+
+    sc, cams = small
+    rows = sweep(sc, cams, [Setting("sse", 0.5), Setting("sse", 8.0), Setting("delatin", 2.0)], progress=False,
+                 images=False, workers=0)
+    model = shipped_model()
+    for r in rows:
+        assert r["cost_ms"] == model(r)  # the shipped model of the row's counters
+    by_model = {r["setting"]: r["cost"] for r in summarise(rows)}
+    by_fs = {r["setting"]: r["cost"] for r in summarise(rows, cost("fragment_shader_invocations"))}
+    for label in by_model:
+        rs = [r for r in rows if r["setting"] == label]
+        assert by_fs[label] == sum(r["fragment_shader_invocations"] for r in rs) / len(rs)
+    write_report(sc, cams, rows, tmp_path, cost_of="triangles")
+    md = (tmp_path / "report.md").read_text()
+    assert "Cost (`cost`): `triangles` per frame" in md and "Pareto front (triangles)" in md
+    with pytest.raises(ValueError, match="cost"):
+        cost("pixels")

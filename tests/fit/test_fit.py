@@ -259,7 +259,7 @@ def test_provisional_tries_are_confirmed_on_every_camera(monkeypatch):
         return (0.5 * v, 0.45 * v, 0.1 * v if v < 1.8 else 0.9 * v, 0.05 * v)[k]
 
     def fake_evaluate(scene, terrain, cams, policy, v, refs, device="cpu", *, on_frame=None, pops=False,
-                      cache=None, order=None, stop_above=None, measure=None, known=None):
+                      cache=None, order=None, stop_above=None, measure=None, known=None, cost_of=None):
         ev = lod_fit.Evaluation(float(v), [], [], [], [])
         ev.triangles = [int(1000 / v)] * 4
         ev.frames = None if order is None else []
@@ -291,3 +291,38 @@ def test_provisional_tries_are_confirmed_on_every_camera(monkeypatch):
     order, measure = exact.plan(v)
     safe = {k for k, at in exact.safe_at.items() if at >= v}
     assert set(order[:len(exact.over)]) == exact.over and measure and not measure & safe
+
+
+def test_fit_minimises_the_cost_asked_for(scene):
+    """``cost=``: the exact validations compare the mean cost per frame; a counter or the shipped model is
+    counted on every validated frame (the same value whatever the thread count, as the counters)."""
+    from terrainwarp.measure.cost import shipped_model
+
+    sc, cams = scene
+    by_fs = fit_lod(sc, 2.0, policy="sse", cameras=cams, steps=10, grid_points=4,
+                    cost="fragment_shader_invocations")
+    assert by_fs.met and by_fs.cost == "fragment_shader_invocations"
+    v = by_fs.validated
+    assert len(v.costs) == len(cams) and v.cost == float(np.mean(v.costs)) and v.cost > max(v.triangles)
+    again = fit_lod(sc, 2.0, policy="sse", cameras=cams, steps=10, cost="fragment_shader_invocations")
+    assert again.value == by_fs.value and again.validated.costs == v.costs
+    f = render(sc.with_(camera=cams[0], mesh="lod", lod=sc.lod.with_policy("sse", by_fs.value),
+                        outputs=("counters",)))
+    assert v.costs[0] == f.report.counters["fragment_shader_invocations"]
+    modelled = fit_lod(sc, 2.0, policy="sse", cameras=cams, steps=10, cost="llvmpipe")
+    assert modelled.validated.costs[0] > 0 and "modelled" in modelled.cost
+    assert shipped_model()(f.report.counters) > 0
+    with pytest.raises(ValueError, match="cost"):
+        fit_lod(sc, 2.0, cameras=cams, cost="speed")
+
+
+def test_evaluations_from_rows_take_the_cost_of_each_row(scene):
+    from terrainwarp.fit import evaluations_from_rows
+    from terrainwarp.measure.cost import cost
+
+    rows = [{"policy": "sse", "param": 1.0, "frame": k, "p99_px": 0.5, "max_px": 1.0, "triangles": 10 + k,
+             "frame_ms": 1.0, "samples_passed": 100 * (k + 1), "error": ""} for k in range(2)]
+    (ev,) = evaluations_from_rows(rows, "sse", [1.0], cost("samples_passed"))
+    assert ev.costs == [100.0, 200.0] and ev.cost == 150.0
+    (tri,) = evaluations_from_rows(rows, "sse", [1.0])
+    assert tri.cost == 10.5
