@@ -5,12 +5,15 @@ continuous), on the same frames.
 For each heightmap (the bundled DEM and an fBm) and path (flyover at 2% and 10% clearance), every family is
 evaluated on a ladder of settings (coarse to fine); for each budget (1, 2, 16 px) the coarsest ladder setting
 whose worst-frame p99 primary error (``measure.sample_error``) meets the budget is refined by bisection toward
-the coarser neighbour that fails. Each row: the primary error p99 / max (worst frame), triangles and
-select + mesh + raster ms (``Report.frame_ms``, mean over frames; select ms apart), and popping between
-consecutive frames of a dense path (each measured camera and the one before it on a path of ``DENSE`` frames,
-0.2% of the path apart: the selection of that frame drawn for the measured camera against the measured
-camera's own, ``measure.popping``; worst p99 / max). Winners among the families that meet the budget: fewest
-triangles, least time, least popping.
+the coarser neighbour that fails. Each row: the primary error p99 / max (worst frame), the modelled GPU cost
+(the shipped llvmpipe cost model of the frame's pipeline statistics, ``terrainwarp.measure.cost``: ms that
+llvmpipe on one thread would take to draw the frame as the family draws it, mean over frames), draw calls,
+triangles, this simulator's select + mesh + raster CPU ms (``Report.frame_ms`` of a render without counting,
+mean over frames; select ms apart), and popping between consecutive frames of a dense path (each measured
+camera and the one before it on a path of ``DENSE`` frames, 0.2% of the path apart: the selection of that frame
+drawn for the measured camera against the measured camera's own, ``measure.popping``; worst p99 / max).
+Winners among the families that meet the budget: lowest modelled cost (the ranking), fewest triangles, least
+CPU time, least popping.
 
 Usage: ``python benchmarks/bench_schemes.py [--fbm 1025] [--width 640 --height 360] [--frames 5]``
 """
@@ -33,6 +36,7 @@ from terrainwarp.lod import Terrain
 from terrainwarp.lod.cdlod import Cdlod
 from terrainwarp.lod.chunked import ChunkedLod
 from terrainwarp.lod.clipmaps import Clipmap
+from terrainwarp.measure.cost import shipped_model
 from terrainwarp.measure.sample_error import popping, sample_error
 from terrainwarp.rendering.pipeline import Frame, pop_stats
 from terrainwarp.rendering.sources import CdlodSource, ChunkedSource, ClipmapSource
@@ -79,9 +83,14 @@ def _path(hm: Heightmap, clearance: float, n: int, width: int, height: int) -> t
     return [dense[i] for i in at], [dense[i - 1] for i in at]
 
 
-def _summary(ctx: Ctx, meshes: list, frames: list[Frame], pops: list) -> dict:
+MODEL = shipped_model()
+
+
+def _summary(ctx: Ctx, meshes: list, frames: list[Frame], pops: list, counted: list[Frame]) -> dict:
     errs = [sample_error(ctx.hm, c, m, r.depth) for c, m, r in zip(ctx.cams, meshes, ctx.refs)]
     return {"p99": max(e.p99_px for e in errs), "max": max(e.max_px for e in errs),
+            "cost": float(np.mean([MODEL(f.report.counters) for f in counted])),
+            "draws": float(np.mean([f.report.counters["draw_calls"] for f in counted])),
             "tris": float(np.mean([m.n_triangles for m in meshes])),
             "ms": float(np.mean([f.report.frame_ms for f in frames])),
             "sel_ms": float(np.mean([f.report.stage_ms("select") for f in frames])),
@@ -91,26 +100,28 @@ def _summary(ctx: Ctx, meshes: list, frames: list[Frame], pops: list) -> dict:
 def _run_policy(policy: str) -> Callable[[Ctx, float], dict]:
     def run(ctx: Ctx, value: float) -> dict:
         lod = LodConfig(**LOD).with_policy(policy, value)
-        frames, pops = [], []
+        frames, pops, counted = [], [], []
         for k, cam in enumerate(ctx.cams):
             scene = Scene(ctx.hm, camera=cam, outputs=("depth", "mesh"), mesh="lod", lod=lod)
             f = render(scene, ctx.terrain)
             frames.append(f)
+            counted.append(render(scene.with_(outputs=("counters",)), ctx.terrain))  # counted apart from the timing
             pops.append(pop_stats(scene, ctx.before[k], f, ctx.refs[k], terrain=ctx.terrain))
-        return _summary(ctx, [f.mesh for f in frames], frames, pops)
+        return _summary(ctx, [f.mesh for f in frames], frames, pops, counted)
     return run
 
 
 def _run_source(make: Callable[[Heightmap, float, dict], object]) -> Callable[[Ctx, float], dict]:
     def run(ctx: Ctx, value: float) -> dict:
         src = make(ctx.hm, value, ctx.cache)
-        frames, pops = [], []
+        frames, pops, counted = [], [], []
         for k, cam in enumerate(ctx.cams):
             f = render(Scene(ctx.hm, camera=cam, outputs=("depth", "mesh")), source=src)
             frames.append(f)
+            counted.append(render(Scene(ctx.hm, camera=cam, outputs=("counters",)), source=src))
             held = src.held_mesh_for(ctx.before[k], cam)
             pops.append(popping(ctx.hm, cam, held, f.mesh, ctx.refs[k].depth))
-        return _summary(ctx, [f.mesh for f in frames], frames, pops)
+        return _summary(ctx, [f.mesh for f in frames], frames, pops, counted)
     return run
 
 
@@ -199,22 +210,24 @@ def budget_rows(fams: list[Family], ctx: Ctx, seen: dict[str, dict],
             r = cheapest(fam, ctx, budget, seen.setdefault(fam.name, {}))
             found.append((fam, r))
         ok = [r for _, r in found if r is not None]
-        best = {k: min((r[1][k] for r in ok), default=None) for k in ("tris", "ms")}
+        best = {k: min((r[1][k] for r in ok), default=None) for k in ("cost", "tris", "ms")}
         best["pop99"] = min(((r[1]["pop99"], r[1]["popmax"]) for r in ok), default=None)  # ties: the max
         summary.append([ctx.hm.name, _clearance(ctx), f"{budget:g}"] + [
             ", ".join(f"{fam.name.split()[0]} ({r[1][k]:.{d}f})" for fam, r in found if r is not None and
                       ((r[1]["pop99"], r[1]["popmax"]) if k == "pop99" else r[1][k]) == best[k])
-            for k, d in (("tris", 0), ("ms", 1), ("pop99", 2))])
+            for k, d in (("cost", 2), ("tris", 0), ("ms", 1), ("pop99", 2))])
         for fam, r in found:
             if r is None:
                 finest = seen[fam.name][fam.ladder[-1]]
-                rows.append([f"{budget:g}", fam.name, "not met", f"{finest['p99']:.2f} (finest)", "", "", "", ""])
+                rows.append([f"{budget:g}", fam.name, "not met", f"{finest['p99']:.2f} (finest)", "", "", "", "", "",
+                             ""])
                 continue
             v, s = r
-            mark = {k: " ★" if s[k] == best[k] else "" for k in ("tris", "ms")}
+            mark = {k: " ★" if s[k] == best[k] else "" for k in ("cost", "tris", "ms")}
             mark["pop99"] = " ★" if (s["pop99"], s["popmax"]) == best["pop99"] else ""
             rows.append([f"{budget:g}", fam.name, _fmt_setting(fam, v), f"{s['p99']:.2f} / {s['max']:.2f}",
-                         f"{s['tris']:.0f}{mark['tris']}", f"{s['ms']:.1f}{mark['ms']}", f"{s['sel_ms']:.2f}",
+                         f"{s['cost']:.2f}{mark['cost']}", f"{s['draws']:.0f}", f"{s['tris']:.0f}{mark['tris']}",
+                         f"{s['ms']:.1f}{mark['ms']}", f"{s['sel_ms']:.2f}",
                          f"{s['pop99']:.2f} / {s['popmax']:.2f}{mark['pop99']}"])
     return rows
 
@@ -268,8 +281,8 @@ def main() -> None:
     terrains = [Heightmap.example(), Heightmap.fbm(args.fbm, seed=1, dx=10.0, max_height=1500.0)]
     fams = families()
     sections, sel_rows, summary = [], [], []
-    header = ["budget px", "family (parameter)", "setting", "p99 / max px", "triangles", "frame ms", "select ms",
-              "pop p99 / max px"]
+    header = ["budget px", "family (parameter)", "setting", "p99 / max px", "modelled GPU ms", "draw calls",
+              "triangles", "CPU frame ms", "select ms", "pop p99 / max px"]
     for hm in terrains:
         cache: dict = {}
         terrain = Terrain.prepare(hm, **LOD)
@@ -290,11 +303,13 @@ def main() -> None:
             f"{args.frames} flyover cameras per path (popping: against the frame before each on a {DENSE}-frame "
             f"path), CPU. Quadtree policies: roots {LOD['roots']}, tess "
             f"{LOD['tess']}; CDLOD grid {CDLOD_GRID} (setting: first range / its seam-free minimum); chunked tile "
-            f"{CHUNK_TILE}, skirts at the least safe depth; clipmaps with Losasso & Hoppe's height rule. ★: the "
-            "winner among the families that meet the budget (fewest triangles, least time, least popping).\n\n"
-            "### Winners per budget (each family at its cheapest setting meeting the budget; details below)\n\n"
-            + md_table(["heightmap", "clearance", "budget px", "fewest triangles", "least frame ms",
-                        "least popping (p99 px)"], summary) + "\n\n"
+            f"{CHUNK_TILE}, skirts at the least safe depth; clipmaps with Losasso & Hoppe's height rule. Modelled "
+            f"GPU ms: {MODEL.describe()}. ★: the winner among the families that meet the budget (lowest modelled "
+            "cost: the ranking; fewest triangles, least CPU time, least popping beside it).\n\n"
+            "### Winners per budget, ranked by modelled GPU cost (each family at its cheapest setting meeting the "
+            "budget; details below)\n\n"
+            + md_table(["heightmap", "clearance", "budget px", "lowest modelled GPU ms", "fewest triangles",
+                        "least CPU frame ms", "least popping (p99 px)"], summary) + "\n\n"
             + "\n\n".join(sections)
             + "\n\n### CDLOD selection time per frame (2% clearance)\n\n"
             + md_table(["heightmap", "first_range / min", "triangles", "nodes visited", "levels", "select ms",

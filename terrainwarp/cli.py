@@ -458,6 +458,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if not args.gl:
         raise ValueError("--gl: calibrate measures a driver through OpenGL; give --gl")
     fams = tuple(args.families.split(",")) if args.families else CALIBRATION_FAMILIES
+    os.environ.setdefault("LP_NUM_THREADS", "0")  # llvmpipe on one thread (read when its first context is made)
     command = (f"terrainwarp calibrate --gl --out {args.out} --frames-per-family {args.frames_per_family} --seed "
                f"{args.seed} --reps {args.reps}" + (f" --families {args.families}" if args.families else ""))
     model, paths = calibrate(args.out, frames_per_family=args.frames_per_family, seed=args.seed, reps=args.reps,

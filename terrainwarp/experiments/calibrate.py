@@ -11,9 +11,10 @@ issues (:class:`terrainwarp.mesh.Draws`). The same frame is rendered by terrainw
 Frames: per family ``frames_per_family`` (default 50) of its settings (fine to coarse) crossed with cameras
 (the scene's flyover at the ground and high presets, an orbit, the whole terrain in view) and viewports (640x360,
 1280x720, 1920x1080), drawn in a seeded order. Each frame's time is the least CPU time of the driver's draws and
-``glFinish`` over ``reps`` draws after a warm-up (``time.process_time``: every thread of the process; llvmpipe is
-run single-threaded, ``LP_NUM_THREADS=0``, set before its first context unless the caller set it, so the time is
-the work done, which a loaded machine disturbs far less than wall time).
+``glFinish`` over ``reps`` draws after a warm-up (``time.process_time``: every thread of the process, the work
+done, which a loaded machine disturbs far less than wall time). ``terrainwarp calibrate`` runs llvmpipe
+single-threaded (``LP_NUM_THREADS=0`` unless set: llvmpipe reads it when its first context is made), so the
+time adds up over the frame's work; the weights file names the driver and its threads.
 
 Fit: non-negative least squares of the frame times (ms) on an intercept and :data:`terrainwarp.measure.cost.
 MODEL_FEATURES`, on a seeded 75% of each family's frames; R^2 is reported on the other 25% (held out), overall
@@ -290,7 +291,6 @@ def calibrate(out_dir: str | Path, *, frames_per_family: int = 50, seed: int = 0
     bad = [f for f in families if f not in FAMILIES]
     if bad:
         raise ValueError(f"families: expected names among {list(FAMILIES)}, got {bad}")
-    os.environ.setdefault("LP_NUM_THREADS", "0")  # read by llvmpipe when its first context is made
     hm = heightmap if heightmap is not None else Heightmap.example()
     t0 = time.perf_counter()
     rows = measure(calibration_frames(hm, frames_per_family, seed, families), hm, reps=reps, progress=progress)

@@ -1,0 +1,90 @@
+"""The cost model: weights fitted to llvmpipe's frame times (terrainwarp calibrate --gl) on a handful of frames,
+the weights file's checks, and the shipped model."""
+
+from __future__ import annotations
+
+import json
+
+import gl_raster_oracle as gl  # noqa: E402
+import numpy as np
+import pytest
+
+from terrainwarp import Heightmap
+from terrainwarp.cli import main
+from terrainwarp.experiments.calibrate import FAMILIES, calibrate, calibration_frames, fit_cost_model
+from terrainwarp.kernels.counters import PIPELINE_COUNTERS
+from terrainwarp.measure.cost import MODEL_FEATURES, CostModel, cost, shipped_model
+
+needs_gl = pytest.mark.skipif(not gl.available(), reason="no EGL / OpenGL 4.5 context (llvmpipe) on this machine")
+
+
+def test_frames_cover_every_family_seeded():
+    hm = Heightmap.example()
+    a = calibration_frames(hm, 5, seed=3)
+    assert [f.family for f in a] == [f.family for f in calibration_frames(hm, 5, seed=3)]
+    assert {f.family for f in a} == set(FAMILIES) and all(sum(f.family == n for f in a) == 5 for n in FAMILIES)
+    assert len({(f.camera.width, f.camera.height) for f in a}) == 3  # the viewports vary
+    assert [f.family for f in calibration_frames(hm, 5, seed=4)] != [f.family for f in a]
+
+
+def test_the_fit_recovers_known_weights_and_holds_out_a_quarter():
+    rng = np.random.default_rng(0)
+    truth = {"clipping_output_primitives": 8e-5, "fragment_shader_invocations_llvmpipe": 4e-6,
+             "tess_control_shader_patches": 0.01}
+    rows = []
+    for k in range(80):
+        r = {c: float(rng.uniform(0, 1e6)) for c in MODEL_FEATURES}
+        r["tess_control_shader_patches"] = float(rng.uniform(0, 2000))
+        r["family"] = ("a", "b")[k % 2]
+        r["gl_cpu_ms"] = 0.5 + sum(w * r[c] for c, w in truth.items())
+        rows.append(r)
+    model, fit = fit_cost_model(rows)
+    assert fit["r2_heldout"] > 0.999 and int(fit["held_out"].sum()) == 20
+    for c, w in model.weights.items():
+        assert w == pytest.approx(truth.get(c, 0.0), rel=1e-6, abs=1e-12), c
+    assert model.intercept_ms == pytest.approx(0.5, rel=1e-6)
+    with pytest.raises(ValueError, match="rows"):
+        fit_cost_model(rows[:5])
+
+
+@needs_gl
+def test_calibrate_on_llvmpipe_writes_a_model_that_loads_and_ranks(tmp_path):
+    model, paths = calibrate(tmp_path, frames_per_family=3, families=("sse", "grid", "cdlod", "delatin"), reps=1,
+                             progress=False, command="test")
+    assert {p.name for p in paths} == {"weights.json", "calibration.csv", "calibration.md"}
+    loaded = CostModel.load(tmp_path / "weights.json")
+    assert loaded == model and model.frames == 12 and "llvmpipe" in model.driver
+    assert np.isfinite(model.r2_heldout) and "R^2 held out" in (tmp_path / "calibration.md").read_text()
+    assert cost(str(tmp_path / "weights.json")).model == model
+    assert set(model.weights) == set(MODEL_FEATURES)
+
+
+def test_weights_files_are_checked(tmp_path):
+    m = shipped_model()
+    assert m.name == "llvmpipe" and m.r2_heldout >= 0.9 and m.frames >= 50 * len(FAMILIES)
+    assert all(k in PIPELINE_COUNTERS for k in m.weights) and m.command.startswith("terrainwarp calibrate --gl")
+    p = tmp_path / "w.json"
+    d = json.loads(m.to_json())
+    d["weights"]["samples_passed"] = 1.0  # edited by hand: the checksum no longer matches
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match="checksum"):
+        CostModel.load(p)
+    p.write_text("not json")
+    with pytest.raises(ValueError, match="JSON"):
+        CostModel.load(p)
+    with pytest.raises(FileNotFoundError, match="weights file"):
+        cost(str(tmp_path / "missing.json"))
+    with pytest.raises(ValueError, match="counter names"):
+        CostModel("x", {"pixels": 1.0})
+    with pytest.raises(ValueError, match=">= 0"):
+        CostModel("x", {"samples_passed": -1.0})
+    with pytest.raises(ValueError, match="counters"):
+        m({"samples_passed": 1})  # a row without the model's counters
+
+
+def test_calibrate_needs_the_gl_flag(tmp_path, capsys):
+    assert main(["calibrate", "--out", str(tmp_path / "c")]) == 2
+    assert "--gl" in capsys.readouterr().err
+    assert main(["calibrate", "--gl", "--out", str(tmp_path / "c"), "--families", "sse,nope"]) == 2
+    assert "families" in capsys.readouterr().err
+    assert not (tmp_path / "c").exists()
