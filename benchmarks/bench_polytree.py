@@ -23,6 +23,7 @@ from terrainwarp.lod.peers import delatin_mesh, martini_mesh
 from terrainwarp.lod.polytree import Polytree, build_polytree, default_tolerances
 from terrainwarp.mesh import Mesh
 from terrainwarp.rendering import rasterize
+from terrainwarp.rendering.rows import frame_row
 from terrainwarp.rendering.sources import PolytreeSource, SourceBase
 from terrainwarp.surface.differential import compute_curvature, max_curvature
 
@@ -381,17 +382,10 @@ def pareto_section(frames: int, width: int, height: int, quick: bool) -> str:
             MorphSource(pt, ctr, (d0, d1), (fixed[0], fixed[-1]))
         for k, cam in enumerate(cams):
             f = render(sc.with_(camera=cam, outputs=("error",)), reference=refs[k], source=src)
-            r, err = f.report, f.error
             rows.append({"policy": pol, "param": param, "setting": label, "frame": k,
-                         "select_ms": r.stage_ms("select"), "mesh_ms": r.stage_ms("mesh"),
-                         "raster_ms": r.stage_ms("raster"), "frame_ms": r.frame_ms, "patches": 0,
-                         "vertices": f.mesh.n_vertices, "triangles": f.mesh.n_triangles, "peer_mesh_ms": build_ms,
-                         "peer_error_m": float("nan"), "max_px": err.max_px, "p99_px": err.p99_px,
-                         "mean_px": err.mean_px, "approx_p99_px": err.approx_p99_px, "cracks": err.cracks,
-                         "mismatched": err.mismatched, "silhouette": err.silhouette, "psnr_db": float("nan"),
-                         "ssim": float("nan"), "prepare_ms": 0.0})
+                         **frame_row(f, peer_mesh_ms=build_ms, prepare_ms=0.0)})
     summ = summarise(rows)
-    front = {r["setting"] for r in pareto(summ)}
+    front = {r["setting"] for r in pareto(summ, "frame_ms")}
     table = md_table(["setting", "triangles", "worst-frame p99 (px)", "mean (px)", "frame ms", "mesh ms",
                       "cracks", "on the Pareto front"],
                      [[r["setting"], int(r["triangles"]), r["p99_px"], r["mean_px"], r["frame_ms"], r["mesh_ms"],
