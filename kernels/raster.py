@@ -474,10 +474,10 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
             if first <= last:
                 qmask = qmask | _run_bits((first >> 1) - (px0 >> 1), (last >> 1) - (px0 >> 1))
                 bmask = bmask | _run_bits((first >> 2) - (px0 >> 2), (last >> 2) - (px0 >> 2))
-            if (y & 1) == 1 or y == py1:
+            if qmask != 0 and ((y & 1) == 1 or y == py1):
                 quads += wp.int64(_popcount(qmask))
                 qmask = 0
-            if (y & 3) == 3 or y == py1:
+            if bmask != 0 and ((y & 3) == 3 or y == py1):
                 blocks += wp.int64(_popcount(bmask))
                 bmask = 0
         tested += wp.int64(px1 - px0 + 1)
