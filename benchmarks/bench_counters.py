@@ -35,8 +35,9 @@ from terrainwarp.lod.bintree import Bintree
 from terrainwarp.lod.peers import delatin_mesh, martini_mesh
 from terrainwarp.lod.polytree import build_polytree, default_tolerances
 from terrainwarp.measure.cost import shipped_model
-from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource, scheme_range, scheme_source
+from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from terrainwarp.scene import LodConfig
+from terrainwarp.schemes import scheme_range, scheme_source
 
 W, H = 1920, 1080
 MODEL = shipped_model()

@@ -44,7 +44,7 @@ Output images have row 0 at the top (window y is flipped once, here).
 import numpy as np
 import warp as wp
 
-from .checks import is_int
+from .checks import check_bool, is_int
 from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import Lease, host_layout, pooled, pooled_array, take
@@ -1393,9 +1393,7 @@ def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, 
 
 
 def _flag(name: str, v: object) -> bool:
-    if not isinstance(v, bool | np.bool_):
-        raise TypeError(f"{name}: expected True or False, got {v!r}")
-    return bool(v)
+    return check_bool(name, v)
 
 
 def transform_warp(positions: wp.array, view: object, proj: object) -> wp.array:

@@ -38,6 +38,7 @@ import numpy as np
 from ..camera import Camera
 from ..heightmap import Heightmap
 from ..io.files import atomic_path
+from ..kernels.checks import check_choice, check_int
 from ..kernels.counters import PIPELINE_COUNTERS
 from ..kernels.raster import clip_coordinates
 from ..lod.bintree import Bintree
@@ -46,8 +47,9 @@ from ..lod.polytree import build_polytree, default_tolerances
 from ..lod.quadtree import Terrain
 from ..measure.cost import MODEL_FEATURES, CostModel
 from ..rendering.pipeline import Frame, MeshSource, render
-from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource, scheme_range, scheme_source
-from ..scene import LodConfig, Scene
+from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
+from ..scene import CameraPath, LodConfig, Scene
+from ..schemes import scheme_range, scheme_source
 from .gl import GLMesh, GLTerrain, batches, patch_records
 from .pareto import rows_to_csv
 
@@ -91,7 +93,7 @@ def _cameras(hm: Heightmap) -> list[Camera]:
     """Viewpoints at 1920x1080 (a frame takes its viewport from :data:`VIEWPORTS`)."""
     base = Scene(hm, camera=Camera.default_for(hm, 1920, 1080))
     cams = [base.camera] + base.camera_path(6, preset="ground") + base.camera_path(6, preset="high")
-    orbit = Scene(hm, camera=base.camera, source={"path": {"kind": "orbit", "n": 4}}).camera_path()
+    orbit = Scene(hm, camera=base.camera, path=CameraPath(kind="orbit", n=4)).camera_path()
     return cams + orbit
 
 
@@ -286,11 +288,10 @@ def calibrate(out_dir: str | Path, *, frames_per_family: int = 50, seed: int = 0
     """Measure the driver's frame times (:func:`calibration_frames`, :func:`measure`), fit the weights
     (:func:`fit_cost_model`) and write ``weights.json`` (the model), ``calibration.csv`` (every frame: our
     counters, the driver's times and counters, the prediction, held out or not) and ``calibration.md``."""
-    if isinstance(frames_per_family, bool) or not isinstance(frames_per_family, int) or frames_per_family < 2:
-        raise ValueError(f"frames_per_family: expected an integer >= 2, got {frames_per_family!r}")
-    bad = [f for f in families if f not in FAMILIES]
-    if bad:
-        raise ValueError(f"families: expected names among {list(FAMILIES)}, got {bad}")
+    check_int("frames_per_family", frames_per_family, 2)
+    check_int("reps", reps, 1)
+    for k, f in enumerate(families):
+        check_choice(f"families[{k}]", f, FAMILIES)
     hm = heightmap if heightmap is not None else Heightmap.example()
     t0 = time.perf_counter()
     rows = measure(calibration_frames(hm, frames_per_family, seed, families), hm, reps=reps, progress=progress)

@@ -27,6 +27,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from ..kernels.checks import check_number
 from ..kernels.counters import PIPELINE_COUNTERS
 
 __all__ = ["CostModel", "Cost", "cost", "shipped_model", "MODEL_FEATURES", "COST_NAMES"]
@@ -68,8 +69,7 @@ class CostModel:
         if bad:
             raise ValueError(f"weights: expected counter names among {list(PIPELINE_COUNTERS)}, got {bad}")
         for k, v in (*self.weights.items(), ("intercept_ms", self.intercept_ms)):
-            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"weights[{k!r}]: expected a finite number >= 0 (ms), got {v!r}")
+            check_number(f"weights[{k!r}]", v, 0.0)
 
     def __call__(self, counters: Mapping[str, Any]) -> float:
         """The modelled frame time (ms) of a frame's counters (a ``Report.counters`` or a report row)."""
@@ -162,5 +162,7 @@ def cost(spec: str | Path | CostModel | Cost | None = None) -> Cost:
         return Cost("cost_ms", f"modelled {m.name} ms", m)
     if isinstance(spec, str) and (spec == "triangles" or spec in PIPELINE_COUNTERS):
         return Cost(spec, spec)
+    if not isinstance(spec, str):
+        raise TypeError(f"cost: expected a name, a CostModel or a weights file's path, got {type(spec).__name__}")
     raise ValueError(f"cost: expected 'triangles', a counter name ({', '.join(PIPELINE_COUNTERS)}), 'llvmpipe', "
                      f"a CostModel or a weights file (.json), got {spec!r}")

@@ -80,6 +80,12 @@ def test_weights_files_are_checked(tmp_path):
         CostModel("x", {"samples_passed": -1.0})
     with pytest.raises(ValueError, match="counters"):
         m({"samples_passed": 1})  # a row without the model's counters
+    with pytest.raises(TypeError, match="cost"):
+        cost(3)
+    with pytest.raises(ValueError, match="frames_per_family"):
+        calibrate(tmp_path / "c", frames_per_family=1)
+    with pytest.raises(ValueError, match=r"families\[1\]"):
+        calibrate(tmp_path / "c", families=("sse", "nope"))
 
 
 def test_calibrate_needs_the_gl_flag(tmp_path, capsys):

@@ -112,6 +112,8 @@ def test_counters_are_identical_for_any_thread_count(threads):
     assert one.counters == many.counters
     plain = rasterize_clip(clip, tri, 320, 200)
     assert plain.counters is None  # nothing counted unless asked
+    with pytest.raises(TypeError, match="counters"):
+        rasterize_clip(clip, tri, 32, 20, counters="yes")
     assert np.array_equal(plain.triangle_id, many.triangle_id) and np.array_equal(plain.depth, many.depth)
 
 

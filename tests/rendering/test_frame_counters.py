@@ -14,7 +14,8 @@ from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
 from terrainwarp.kernels.counters import PIPELINE_COUNTERS
 from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.lod.peers import delatin_mesh
-from terrainwarp.rendering.sources import PeerSource, scheme_source
+from terrainwarp.rendering.sources import PeerSource
+from terrainwarp.schemes import scheme_source
 
 
 @pytest.fixture(scope="module")

@@ -31,8 +31,9 @@ from terrainwarp.kernels.raster import clip_coordinates
 from terrainwarp.lod import PatchList, Terrain
 from terrainwarp.lod.bintree import Bintree
 from terrainwarp.lod.peers import delatin_mesh
-from terrainwarp.rendering.sources import BintreeSource, PeerSource, scheme_range, scheme_source
+from terrainwarp.rendering.sources import BintreeSource, PeerSource
 from terrainwarp.scene import LodConfig
+from terrainwarp.schemes import scheme_range, scheme_source
 
 pytestmark = pytest.mark.skipif(not gl.available(), reason="no EGL / OpenGL 4.5 context (llvmpipe) on this machine")
 W, H = 640, 360
