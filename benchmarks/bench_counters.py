@@ -26,10 +26,9 @@ import numpy as np
 from _common import md_table, write_result
 
 from terrainwarp import Camera, Heightmap, Scene, render
-from terrainwarp.experiments.gl import GLMesh, GLTerrain, batches, patch_records
+from terrainwarp.experiments.gl import FrameDriver
 from terrainwarp.kernels.counters import PIPELINE_COUNTERS
 from terrainwarp.kernels.parallel import set_threads, threads
-from terrainwarp.kernels.raster import clip_coordinates
 from terrainwarp.lod import Terrain
 from terrainwarp.lod.bintree import Bintree
 from terrainwarp.lod.peers import delatin_mesh, martini_mesh
@@ -81,31 +80,6 @@ def per_family_table(frames) -> str:
     return md_table(["counter", *(f"{n} ({s})" for n, s, _ in frames)], rows)
 
 
-def _gl_tessellated(f) -> dict:
-    hm, cam, mesh, pl = f.scene.heightmap, f.scene.camera, f.mesh, f.patches
-    t_off = np.concatenate([[0], np.cumsum(np.bincount(mesh.patch_id[mesh.triangles[:, 0]], minlength=len(pl)))])
-    g = GLTerrain(W, H, hm.heights, hm.dx, hm.dz, f.scene.lod.spacing)
-    try:
-        g.set_camera(cam.position, hm.origin, cam.view_matrix(relative=True), cam.proj_matrix())
-        return g.draw(patch_records(pl.origin, pl.size, pl.outer, pl.inner, hm.origin, hm.dx, hm.dz),
-                      batches(t_off), counters=True)[4]
-    finally:
-        g.close()
-
-
-def _gl_indexed(f) -> dict:
-    cam, mesh = f.scene.camera, f.mesh
-    g = GLMesh(W, H)
-    try:
-        up = g.upload(clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix()),
-                      mesh.triangles)
-        got = g.draw(up, counters=True)[4]
-        g.release(up)
-        return got
-    finally:
-        g.close()
-
-
 GL_ROWS = ("vertices_submitted", "primitives_submitted", "vertex_shader_invocations", "tess_control_shader_patches",
            "tess_evaluation_shader_invocations", "primitives_generated", "clipping_input_primitives",
            "clipping_output_primitives", "fragment_shader_invocations_llvmpipe", "samples_passed")
@@ -117,13 +91,14 @@ def llvmpipe_table(hm: Heightmap) -> tuple[str, list[str]]:
     cams = {"flyover": Scene(hm, camera=Camera.default_for(hm, W, H)).camera_path(4)[2],
             "whole terrain": Camera.default_for(hm, W, H)}
     rows, worst = [], {}
+    driver = FrameDriver()
     for spacing in ("equal", "fractional_even", "fractional_odd"):
         lod = LodConfig(policy="continuous", spacing="fractional_odd") if spacing == "fractional_odd" else \
             LodConfig(spacing=spacing)
         for cname, cam in cams.items():
             f = render(Scene(hm, camera=cam, mesh="lod", lod=lod, outputs=("depth", "counters", "mesh", "patches")),
                        terrain=terrain)
-            tess, flat = _gl_tessellated(f), _gl_indexed(f)
+            tess, flat = driver.statistics(f), driver.statistics(f, indexed=True)
             for gl in (tess, flat):
                 gl["fragment_shader_invocations_llvmpipe"] = gl["fragment_shader_invocations"]
             for c in GL_ROWS:
@@ -133,6 +108,7 @@ def llvmpipe_table(hm: Heightmap) -> tuple[str, list[str]]:
                 worst[c] = max(worst.get(c, 0.0), abs(d_t), 0.0 if np.isnan(d_f) else abs(d_f))
                 rows.append([spacing, cname, c, f"{ours:,}", f"{tess[c]:,}", f"{d_t:+.3%}",
                              "-" if np.isnan(d_f) else f"{flat[c]:,}", "-" if np.isnan(d_f) else f"{d_f:+.3%}"])
+    driver.close()
     table = md_table(["spacing", "camera", "counter", "ours", "llvmpipe tessellated", "ours vs tess",
                       "llvmpipe indexed", "ours vs indexed"], rows)
     lines = [f"{c}: {'equal everywhere' if worst[c] == 0 else f'at most {worst[c]:.3%} apart'}" for c in GL_ROWS]

@@ -19,17 +19,15 @@ time adds up over the frame's work; the weights file names the driver and its th
 Fit: non-negative least squares of the frame times (ms) on an intercept and :data:`terrainwarp.measure.cost.
 MODEL_FEATURES`, on a seeded 75% of each family's frames; R^2 is reported on the other 25% (held out), overall
 and per family. The weights file (:class:`terrainwarp.measure.cost.CostModel`), the frames (``calibration.csv``)
-and a summary (``calibration.md``) are written as one set (temporary names, renamed when all are written).
+and a summary (``calibration.md``) are written as one set (:func:`terrainwarp.io.files.output_set`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,10 +35,9 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
-from ..io.files import atomic_path
+from ..io.files import output_set, write_text
 from ..kernels.checks import check_choice, check_int
 from ..kernels.counters import PIPELINE_COUNTERS
-from ..kernels.raster import clip_coordinates
 from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh
 from ..lod.polytree import build_polytree, default_tolerances
@@ -50,7 +47,7 @@ from ..rendering.pipeline import Frame, MeshSource, render
 from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import CameraPath, LodConfig, Scene
 from ..schemes import scheme_range, scheme_source
-from .gl import GLMesh, GLTerrain, batches, patch_records
+from .gl import FrameDriver
 from .pareto import rows_to_csv
 
 __all__ = ["calibrate", "calibration_frames", "fit_cost_model", "FAMILIES", "VIEWPORTS", "CalibrationFrame"]
@@ -154,59 +151,16 @@ def _ours(spec: CalibrationFrame, sources: _Sources) -> Frame:
     return render(Scene(hm, camera=spec.camera, outputs=outputs), source=src)
 
 
-class _Driver:
-    """The driver's framebuffers, one per (kind, viewport, spacing), made on first use."""
-
-    def __init__(self, hm: Heightmap):
-        self.hm, self.targets = hm, {}
-        self.renderer = ""
-
-    def _target(self, key: tuple, make: Callable):
-        if key not in self.targets:
-            self.targets[key] = make()
-            self.renderer = self.targets[key].renderer
-        return self.targets[key]
-
-    def time(self, f: Frame, reps: int) -> tuple[float, float, dict]:
-        """(least CPU ms, least wall ms, the driver's counters) of drawing frame ``f`` as its family does."""
-        cam, mesh, hm = f.scene.camera, f.mesh, self.hm
-        w, h = cam.width, cam.height
-        if f.scene.mesh == "lod":
-            pl = f.patches
-            spacing = f.scene.lod.spacing
-            g = self._target(("patches", w, h, spacing), lambda: GLTerrain(w, h, hm.heights, hm.dx, hm.dz, spacing))
-            g.set_camera(cam.position, hm.origin, cam.view_matrix(relative=True), cam.proj_matrix())
-            t_off = np.concatenate([[0], np.cumsum(np.bincount(mesh.patch_id[mesh.triangles[:, 0]],
-                                                               minlength=len(pl)))])
-            rec = patch_records(pl.origin, pl.size, pl.outer, pl.inner, hm.origin, hm.dx, hm.dz)
-            ranges = batches(t_off)
-
-            def draw(counters: bool = False):
-                return g.draw(rec, ranges, counters=counters)
-            release = None
-        else:
-            g = self._target(("mesh", w, h), lambda: GLMesh(w, h))
-            d = mesh.draws
-            tri = mesh.triangles if d is None or d.order is None else mesh.triangles[d.order]
-            up = g.upload(clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix()), tri)
-
-            def draw(counters: bool = False):
-                return g.draw(up, None if d is None else d.ranges, counters=counters)
-
-            def release():
-                g.release(up)
-        try:
-            got = draw(True)[4]  # the warm-up, with the driver's counters
-            runs = [draw()[2:4] for _ in range(reps)]
-        finally:
-            if release is not None:
-                release()
-        return 1e3 * min(r[1] for r in runs), 1e3 * min(r[0] for r in runs), got
-
-    def close(self) -> None:
-        for g in self.targets.values():
-            g.close()
-        self.targets.clear()
+def _time(driver: FrameDriver, f: Frame, reps: int) -> tuple[float, float, dict]:
+    """(least CPU ms, least wall ms, the driver's counters) of drawing frame ``f`` as its family does, ``reps``
+    times after a warm-up (the warm-up counted)."""
+    draw, release = driver.draws(f)
+    try:
+        got = draw(True)[4]
+        runs = [draw()[2:4] for _ in range(reps)]
+    finally:
+        release()
+    return 1e3 * min(r[1] for r in runs), 1e3 * min(r[0] for r in runs), got
 
 
 def measure(frames: list[CalibrationFrame], hm: Heightmap, reps: int = 3, progress: bool = True) -> list[dict]:
@@ -217,12 +171,12 @@ def measure(frames: list[CalibrationFrame], hm: Heightmap, reps: int = 3, progre
         from tqdm import tqdm  # lazy: heavy optional dependency
 
         bar = tqdm(total=len(frames), desc="calibrate", unit="frame", leave=False, file=sys.stderr)
-    sources, driver = _Sources(hm), _Driver(hm)
+    sources, driver = _Sources(hm), FrameDriver()
     rows = []
     try:
         for k, spec in enumerate(frames):
             f = _ours(spec, sources)
-            cpu_ms, wall_ms, got = driver.time(f, reps)
+            cpu_ms, wall_ms, got = _time(driver, f, reps)
             rows.append({"frame": k, "family": spec.family, "param": spec.param, "width": spec.camera.width,
                          "height": spec.camera.height, "triangles": f.mesh.n_triangles,
                          **{c: f.report.counters[c] for c in PIPELINE_COUNTERS}, "gl_cpu_ms": cpu_ms,
@@ -301,10 +255,10 @@ def calibrate(out_dir: str | Path, *, frames_per_family: int = 50, seed: int = 0
     out = Path(out_dir)
     texts = {"weights.json": model.to_json(), "calibration.csv": rows_to_csv(rows),
              "calibration.md": _summary(model, fit, rows, time.perf_counter() - t0)}
-    with contextlib.ExitStack() as stack:  # the set is whole: every file written, then all renamed
-        for name, tmp in ((n, stack.enter_context(atomic_path(out / n))) for n in texts):
-            tmp.write_text(texts[name])
-    return model, [out / n for n in texts]
+    out.mkdir(parents=True, exist_ok=True)
+    with output_set(out):  # the set is whole: every file written, then all renamed into place
+        paths = [write_text(out / n, t) for n, t in texts.items()]
+    return model, paths
 
 
 def _summary(model: CostModel, fit: dict, rows: list[dict], seconds: float) -> str:

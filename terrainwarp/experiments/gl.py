@@ -35,8 +35,10 @@ from typing import Any
 
 import numpy as np
 
+from ..kernels.raster import clip_coordinates
+
 __all__ = ["GL_COUNTERS", "GLUnavailable", "new_context", "depth32f", "renderer", "Statistics", "GLTerrain",
-           "GLMesh", "patch_records", "batches", "BATCH_VERTICES"]
+           "GLMesh", "FrameDriver", "patch_records", "batches", "BATCH_VERTICES"]
 
 GL_COUNTERS = {
     "vertices_submitted": 0x82EE,
@@ -431,3 +433,56 @@ class GLMesh(_Target):
         got, dt, dc = self._timed(run, counters)
         ids, dep = self._read()
         return ids, dep, dt, dc, got
+
+
+class FrameDriver:
+    """The driver drawing terrainwarp :class:`terrainwarp.rendering.pipeline.Frame` s as their families draw them,
+    with one framebuffer per (kind, viewport, spacing) made on first use and kept until :meth:`close`: a LOD frame
+    (its ``patches`` and ``mesh``) through the tessellation shaders (:class:`GLTerrain`), any other frame's mesh
+    as indexed triangles of its clip-space vertices, one draw per draw call of its family (:class:`GLMesh`,
+    ``mesh.draws``: its ranges over the triangles in the order the draws take them). ``indexed=True`` draws a LOD
+    frame's mesh as indexed triangles too (one draw)."""
+
+    def __init__(self):
+        self.targets: dict[tuple, _Target] = {}
+        self.renderer = ""
+
+    def _target(self, key: tuple, make) -> Any:
+        if key not in self.targets:
+            self.targets[key] = make()
+            self.renderer = self.targets[key].renderer
+        return self.targets[key]
+
+    def draws(self, frame: Any, *, indexed: bool = False) -> tuple[Any, Any]:
+        """(``draw(counters=False)`` -> the target's draw's result, ``release()``) for ``frame``."""
+        hm, cam, mesh = frame.scene.heightmap, frame.scene.camera, frame.mesh
+        w, h = cam.width, cam.height
+        if frame.scene.mesh == "lod" and not indexed:
+            pl, spacing = frame.patches, frame.scene.lod.spacing
+            g = self._target(("patches", w, h, spacing, id(hm)),
+                             lambda: GLTerrain(w, h, hm.heights, hm.dx, hm.dz, spacing))
+            g.set_camera(cam.position, hm.origin, cam.view_matrix(relative=True), cam.proj_matrix())
+            t_off = np.concatenate([[0], np.cumsum(np.bincount(mesh.patch_id[mesh.triangles[:, 0]],
+                                                               minlength=len(pl)))])
+            rec = patch_records(pl.origin, pl.size, pl.outer, pl.inner, hm.origin, hm.dx, hm.dz)
+            ranges = batches(t_off)
+            return (lambda counters=False: g.draw(rec, ranges, counters=counters)), (lambda: None)
+        g = self._target(("mesh", w, h), lambda: GLMesh(w, h))
+        d = None if indexed else mesh.draws
+        tri = mesh.triangles if d is None or d.order is None else mesh.triangles[d.order]
+        up = g.upload(clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix()), tri)
+        return (lambda counters=False: g.draw(up, None if d is None else d.ranges, counters=counters)), \
+            (lambda: g.release(up))
+
+    def statistics(self, frame: Any, *, indexed: bool = False) -> dict[str, int]:
+        """The driver's pipeline statistics of one draw of ``frame`` (see the class docstring)."""
+        draw, release = self.draws(frame, indexed=indexed)
+        try:
+            return draw(True)[4]
+        finally:
+            release()
+
+    def close(self) -> None:
+        for g in self.targets.values():
+            g.close()
+        self.targets.clear()

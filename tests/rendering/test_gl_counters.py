@@ -26,8 +26,7 @@ import numpy as np
 import pytest
 
 from terrainwarp import Camera, Heightmap, Scene, render
-from terrainwarp.experiments.gl import GLMesh, GLTerrain, batches, patch_records
-from terrainwarp.kernels.raster import clip_coordinates
+from terrainwarp.experiments.gl import FrameDriver
 from terrainwarp.lod import PatchList, Terrain
 from terrainwarp.lod.bintree import Bintree
 from terrainwarp.lod.peers import delatin_mesh
@@ -70,40 +69,22 @@ def _frames(dem, spacing):
     return out
 
 
-def _gl_tessellated(frame):
-    hm, cam, mesh, pl = frame.scene.heightmap, frame.scene.camera, frame.mesh, frame.patches
-    t_off = np.concatenate([[0], np.cumsum(np.bincount(mesh.patch_id[mesh.triangles[:, 0]], minlength=len(pl)))])
-    g = GLTerrain(W, H, hm.heights, hm.dx, hm.dz, frame.scene.lod.spacing)
-    try:
-        g.set_camera(cam.position, hm.origin, cam.view_matrix(relative=True), cam.proj_matrix())
-        return g.draw(patch_records(pl.origin, pl.size, pl.outer, pl.inner, hm.origin, hm.dx, hm.dz),
-                      batches(t_off), counters=True)[4]
-    finally:
-        g.close()
-
-
-def _gl_indexed(frame):
-    cam, mesh = frame.scene.camera, frame.mesh
-    clip = clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix())
-    g = GLMesh(W, H)
-    try:
-        up = g.upload(clip, mesh.triangles)
-        got = g.draw(up, counters=True)[4]
-        g.release(up)
-        return got
-    finally:
-        g.close()
+@pytest.fixture(scope="module")
+def driver():
+    d = FrameDriver()
+    yield d
+    d.close()
 
 
 @pytest.mark.parametrize("spacing", ["equal", "fractional_even", "fractional_odd"])
-def test_frame_counters_equal_llvmpipes(dem, spacing):
+def test_frame_counters_equal_llvmpipes(dem, driver, spacing):
     clipped = 0
     for f in _frames(dem, spacing):
         ours = f.report.counters
-        tess = _gl_tessellated(f)
+        tess = driver.statistics(f)
         for name in TESS:
             assert ours[name] == tess[name], (spacing, name, ours[name], tess[name])
-        flat = _gl_indexed(f)
+        flat = driver.statistics(f, indexed=True)
         flat["fragment_shader_invocations_llvmpipe"] = flat["fragment_shader_invocations"]
         tess["fragment_shader_invocations_llvmpipe"] = tess["fragment_shader_invocations"]
         for name in RASTER[:2]:
@@ -116,7 +97,7 @@ def test_frame_counters_equal_llvmpipes(dem, spacing):
 
 
 @pytest.mark.parametrize("family", ["grid", "cdlod", "clipmaps", "chunked", "delatin", "bintree"])
-def test_indexed_families_counters_equal_llvmpipes(dem, family):
+def test_indexed_families_counters_equal_llvmpipes(dem, driver, family):
     """Every other family drawn as indexed triangles, one glDrawElements per draw call it issues (CDLOD per node,
     clipmaps per block and per level's stitches, chunked per chunk, the rest one draw): the input assembler's and
     the vertex shader's counters (llvmpipe's vertex cache model) are equal, the raster counters as above. Samples
@@ -132,17 +113,8 @@ def test_indexed_families_counters_equal_llvmpipes(dem, family):
     source = None if src is None else src()
     for cam in cams:
         f = render(Scene(hm, camera=cam, outputs=("depth", "counters", "mesh")), source=source)
-        ours, mesh = f.report.counters, f.mesh
-        d = mesh.draws
-        tri = mesh.triangles if d is None or d.order is None else mesh.triangles[d.order]
-        clip = clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix())
-        g = GLMesh(W, H)
-        try:
-            up = g.upload(clip, tri)
-            got = g.draw(up, None if d is None else d.ranges, counters=True)[4]
-            g.release(up)
-        finally:
-            g.close()
+        ours, d = f.report.counters, f.mesh.draws
+        got = driver.statistics(f)
         assert ours["vertex_shader_invocations_llvmpipe"] == got["vertex_shader_invocations"], family
         for name in ("vertices_submitted", "primitives_submitted", "primitives_generated", "clipping_input_primitives",
                      "clipping_output_primitives"):
