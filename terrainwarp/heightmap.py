@@ -379,6 +379,7 @@ class Heightmap:
 def _read_image(p: Path, channel: int) -> np.ndarray:
     import OpenImageIO as oiio  # lazy: heavy optional dependency
 
+    geotiff.check_tiff_layout(p)  # libtiff would guess at a mixed-up block layout (see there)
     with native_stderr_silenced():  # libpng prints "libpng error: ..." itself; the ValueError says it
         inp = oiio.ImageInput.open(str(p))
     if inp is None:

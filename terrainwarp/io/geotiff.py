@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import struct
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -38,7 +39,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
-from ..kernels.checks import check_int
+from ..kernels.checks import check_int, check_number
 from .files import atomic_path
 from .geodesy import WGS84_A, WGS84_INV_F, metres_per_degree
 from .memory import check_heightmap_fits
@@ -49,14 +50,15 @@ if TYPE_CHECKING:  # rasterio and affine are imported where used (heavy optional
     from rasterio.io import DatasetReader
     from rasterio.windows import Window
 
-__all__ = ["GDAL_EXTS", "GeoRaster", "HeightGrid", "RasterHeader", "describe", "is_gdal_raster", "is_georeferenced",
-           "open_raster", "read_header", "read_oriented",
+__all__ = ["GDAL_EXTS", "TIFF_EXTS", "GeoRaster", "HeightGrid", "RasterHeader", "check_tiff_layout", "describe",
+           "gdal_cause",
+           "is_gdal_raster", "is_georeferenced", "open_raster", "read_failure", "read_header", "read_oriented",
            "read_geotiff", "write_geotiff", "write_tiled"]
 
-# Extensions always read through GDAL; .tif/.tiff only when the file carries georeferencing (plain TIFFs
-# stay with OpenImageIO, see Heightmap.load).
+# Extensions always read through GDAL; TIFF_EXTS only when the file carries georeferencing (plain TIFFs
+# stay with OpenImageIO, see Heightmap.load) or the caller asks for a window, bounds or decimation.
 GDAL_EXTS = (".vrt", ".img", ".asc", ".hgt", ".dem", ".bil", ".bt", ".ter", ".xyz", ".grd", ".nc", ".jp2")
-_TIFF_EXTS = (".tif", ".tiff", ".gtiff")
+TIFF_EXTS = (".tif", ".tiff", ".gtiff")
 
 # Vertical units (band unit tags) -> metres. Unknown units are reported and taken as metres.
 _VERTICAL_UNITS = {
@@ -97,8 +99,55 @@ def _rasterio():
     return rasterio
 
 
+_TIFF_MAGIC = {b"II*\x00": ("<", False), b"MM\x00*": (">", False), b"II+\x00": ("<", True), b"MM\x00+": (">", True)}
+_TILE_TAGS = {322: "TileWidth", 323: "TileLength", 324: "TileOffsets", 325: "TileByteCounts"}
+_STRIP_TAGS = {273: "StripOffsets", 279: "StripByteCounts"}
+
+
+def _first_ifd_tags(p: Path) -> set[int] | None:
+    """The tags of a TIFF's (or BigTIFF's) first image directory, or None when ``p`` is not a TIFF or its
+    directory cannot be read (the reader then says why)."""
+    with p.open("rb") as f:
+        head = f.read(16)
+        if head[:4] not in _TIFF_MAGIC:
+            return None
+        e, big = _TIFF_MAGIC[head[:4]]
+        ifd = struct.unpack(e + ("Q" if big else "I"), head[8:16] if big else head[4:8])[0]
+        f.seek(min(ifd, 2**62))
+        raw = f.read(8 if big else 2)
+        if len(raw) < (8 if big else 2):
+            return None
+        n = struct.unpack(e + ("Q" if big else "H"), raw)[0]
+        size = 20 if big else 12
+        body = f.read(min(n, 4096) * size)
+    return {struct.unpack(e + "H", body[k:k + 2])[0] for k in range(0, len(body) - size + 1, size)}
+
+
+def check_tiff_layout(path: str | os.PathLike) -> None:
+    """Refuse a TIFF whose first image mixes up its block layout: tile offsets without both tile sizes (or a
+    tile size without its partner), or strip offsets beside tile sizes. libtiff then guesses ("RowsPerStrip
+    not defined ... assuming all one strip") and decodes tile data as a strip: OpenImageIO returns scrambled
+    heights, and GDAL 3.10 (rasterio 1.4.4) uninitialised memory that differs from run to run. A file that
+    is not a TIFF, or whose directory cannot be read, passes (its reader reports it)."""
+    p = Path(path)
+    try:
+        tags = _first_ifd_tags(p)
+    except (OSError, struct.error):
+        return
+    if tags is None:
+        return
+    tiled = {322, 323} <= tags
+    wrong = ([_STRIP_TAGS[t] for t in _STRIP_TAGS if t in tags] if tiled else
+             [_TILE_TAGS[t] for t in _TILE_TAGS if t in tags])
+    if wrong:
+        layout = "tiled (TileWidth and TileLength)" if tiled else "striped (no TileWidth and TileLength pair)"
+        raise ValueError(f"path: {p} is damaged: its first image is {layout} but holds {', '.join(wrong)}; "
+                         "its pixels cannot be located")
+
+
 def _open(p: Path) -> DatasetReader:
     rasterio = _rasterio()
+    check_tiff_layout(p)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         try:
@@ -115,7 +164,7 @@ def is_gdal_raster(path: str | os.PathLike) -> bool:
     ext = p.suffix.lower()
     if ext in GDAL_EXTS:
         return True
-    if ext not in _TIFF_EXTS:
+    if ext not in TIFF_EXTS:
         return False
     try:
         with _open(p) as src:
@@ -383,6 +432,9 @@ def _band(src: DatasetReader, band: object, p: Path) -> int:
     b = _int_arg("band", band, 1)
     if b > src.count:
         raise ValueError(f"band: expected 1..{src.count} for {p}, got {band}")
+    if np.dtype(src.dtypes[b - 1]).kind not in "iuf":
+        raise ValueError(f"path: band {b} of {p} holds {src.dtypes[b - 1]} values; heights need a real "
+                         "(integer or float) band")
     _check_transform(src, p)
     return b
 
@@ -401,8 +453,8 @@ def _check_transform(src: DatasetReader, p: Path) -> None:
             f"path: {p} has a rotated or sheared geotransform (row/column terms b={t.b!r}, d={t.d!r}); "
             "terrainwarp needs a grid aligned with east and north: resample it first, e.g. "
             "`gdalwarp -t_srs <its CRS> in.tif north_up.tif`")
-    if t.a == 0.0 or t.e == 0.0:
-        raise ValueError(f"path: {p} has a degenerate geotransform (pixel size {t.a}, {t.e})")
+    if t.a == 0.0 or t.e == 0.0 or not all(math.isfinite(v) for v in (t.a, t.b, t.c, t.d, t.e, t.f)):
+        raise ValueError(f"path: {p} has a degenerate geotransform (pixel size {t.a}, {t.e}; origin {t.c}, {t.f})")
 
 
 def _read_part(src: DatasetReader, b: int, pixel_window: tuple[int, int, int, int], k: int,
@@ -418,9 +470,12 @@ def _read_part(src: DatasetReader, b: int, pixel_window: tuple[int, int, int, in
         raise ValueError(f"decimate: {k} leaves no sample of the {h}x{w} window")
     win = Window(c0, r0, m * k, n * k)
     rs = getattr(Resampling, resampling)
-    raw = src.read(b, window=win, out_shape=(n, m), resampling=rs) if k > 1 else src.read(b, window=win)
     dtype = np.dtype(src.dtypes[b - 1])
-    holes, nodata = _no_data(src, b, raw, win, k, dtype)
+    try:
+        raw = src.read(b, window=win, out_shape=(n, m), resampling=rs) if k > 1 else src.read(b, window=win)
+        holes, nodata = _no_data(src, b, raw, win, k, dtype)
+    except _rasterio().errors.RasterioError as e:
+        raise ValueError(read_failure(src, b, pixel_window, e)) from e
     t = src.transform
     return _Part(
         raw=raw, holes=holes, transform=Affine(t.a * k, 0.0, t.c + t.a * c0, 0.0, t.e * k, t.f + t.e * r0),
@@ -428,6 +483,54 @@ def _read_part(src: DatasetReader, b: int, pixel_window: tuple[int, int, int, in
         scale=float(src.scales[b - 1] if src.scales[b - 1] is not None else 1.0),
         offset=float(src.offsets[b - 1] if src.offsets[b - 1] is not None else 0.0),
         unit=(src.units[b - 1] or "").strip(), crs=src.crs, georef=src.crs is not None or not t.is_identity)
+
+
+# GDAL names the block it could not decode by its block indices ("IReadBlock failed at X offset 3, Y offset 1")
+_BLOCK = re.compile(r"IReadBlock failed at X offset (\d+), Y offset (\d+)")
+
+
+def gdal_cause(e: BaseException) -> str:
+    """GDAL's own words for a failed call, from rasterio's exception chain: the innermost message (what
+    went wrong: ``ZIPDecode: Decoding error ...``) first, then the outer ones that add something, each once;
+    rasterio's ``Read failed. See previous exception for details.`` left out."""
+    msgs: list[str] = []
+    seen: set[int] = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        m = " ".join(str(e).split())
+        if m and "See previous exception" not in m and m not in msgs:
+            msgs.append(m)
+        e = e.__cause__ or e.__context__
+    inner = [m.split(": ", 1)[1] if _BLOCK.search(m) and ": " in m else m for m in reversed(msgs)]
+    out: list[str] = []
+    for m in inner:
+        m = _BLOCK.sub("", m).strip(" :")
+        if m and not any(m in o for o in out):
+            out.append(m)
+    return "; ".join(out) or type(e).__name__
+
+
+def read_failure(src: DatasetReader, b: int, pixel_window: tuple[int, int, int, int], e: BaseException) -> str:
+    """The message for a read of ``pixel_window`` (row_off, col_off, height, width) of band ``b`` that GDAL
+    could not do: the file, the band, the file block GDAL names (its pixel rows and columns) or else the
+    window, and GDAL's cause (:func:`gdal_cause`)."""
+    r0, c0, h, w = pixel_window
+    where = f"rows {r0}..{r0 + h - 1}, columns {c0}..{c0 + w - 1}"
+    found = [mm for x in _chain(e) for mm in [_BLOCK.search(str(x))] if mm]
+    if found:
+        bx, by = int(found[0].group(1)), int(found[0].group(2))
+        bh, bw = src.block_shapes[b - 1]
+        where = (f"block (row {by}, col {bx}) of {bh} x {bw} pixels: rows {by * bh}.."
+                 f"{min((by + 1) * bh, src.height) - 1}, columns {bx * bw}..{min((bx + 1) * bw, src.width) - 1}")
+    return f"path: {src.name}: band {b}, {where}: cannot be read: {gdal_cause(e)}"
+
+
+def _chain(e: BaseException | None) -> list[BaseException]:
+    out: list[BaseException] = []
+    while e is not None and e not in out:
+        out.append(e)
+        e = e.__cause__ or e.__context__
+    return out
 
 
 # -- no-data -----------------------------------------------------------------------------------------
@@ -461,7 +564,8 @@ def _decode(part: _Part) -> tuple[np.ndarray, float, list[str]]:
     notes: list[str] = []
     if unit and unit.lower() not in _VERTICAL_UNITS:
         notes.append(f"unknown vertical unit {unit!r}: values taken as metres")
-    h64 = (part.raw.astype(np.float64) * part.scale + part.offset) * vf
+    with np.errstate(invalid="ignore"):  # a float band's signalling NaNs are no-data holes like the others
+        h64 = (part.raw.astype(np.float64) * part.scale + part.offset) * vf
     h64[part.holes] = np.nan
     return h64, vf, notes
 
@@ -493,10 +597,12 @@ def _spacing(part: _Part, p: Path, dx: float | None, dz: float | None) -> tuple[
         meta.update(crs_kind="none")
         how = "no georeferencing: spacing 1 m"
     if dx is not None or dz is not None:  # as in Heightmap.load: dz defaults to dx
-        sdx, sdz = (float(dx), float(dz if dz is not None else dx)) if dx is not None else (sdx, float(dz))
+        sdx = check_number("dx", dx, 0.0, lo_open=True) if dx is not None else sdx
+        sdz = check_number("dz", dz, 0.0, lo_open=True) if dz is not None else sdx if dx is not None else sdz
         how += f"; overridden by the caller to dx={sdx:.6g}, dz={sdz:.6g} m"
     meta["spacing_note"] = how
     return sdx, sdz, meta
+
 
 
 def _geographic_spacing(part: _Part, p: Path, meta: dict[str, Any]) -> tuple[float, float, str]:

@@ -356,9 +356,10 @@ class TileCache:
             raise ValueError(f"{what}: outside the {lr} x {lc} grid")
         try:
             t = self.source.read(step, r0, c0, rows, cols)
-        except (OSError, ValueError, RuntimeError) as e:  # rasterio's errors derive from these
+        except (OSError, ValueError, RuntimeError) as e:  # a GeoTIFF source's say the file block and GDAL's cause
             msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-            raise ValueError(f"{what}: cannot be read: {msg}") from None
+            msg = msg.removeprefix(f"path: {self.source.where()}: ")  # named once, in `what`
+            raise ValueError(f"{what}: {msg}" if "cannot be read" in msg else f"{what}: cannot be read: {msg}") from e
         if t.shape != (rows, cols) or t.dtype != np.float32:
             raise ValueError(f"{what}: the source returned {t.dtype} {t.shape}, expected float32 ({rows}, {cols})")
         if np.isinf(t).any():

@@ -114,8 +114,12 @@ def test_corrupt_tile_names_the_tile_and_the_file(tmp_path):
     raw[mid:mid + 4096] = b"\xff" * 4096  # inside the compressed tiles
     p.write_bytes(bytes(raw))
     tiles = TileCache(GeoTiffSource(p))
-    with pytest.raises(ValueError, match=r"tile \(step 1, row \d+, col \d+.*bad\.tif: cannot be read"):
+    with pytest.raises(ValueError, match=r"tile \(step 1, row \d+, col \d+.*bad\.tif: band 1, block \(row \d+, col "
+                                         r"\d+\) of 256 x 256 pixels: rows \d+\.\.\d+, columns \d+\.\.\d+: cannot be "
+                                         r"read: ZIPDecode") as e:
         tiles.window(1, 0, 0, 1024, 1024)
+    # GDAL's cause, not rasterio's "Read failed. See previous exception for details.", and the file once
+    assert "previous exception" not in str(e.value) and str(e.value).count("bad.tif") == 1
 
 
 def test_write_tiled_round_trips(tmp_path):
