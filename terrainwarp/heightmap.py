@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import tokenize
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -40,6 +41,32 @@ def _positive(name: str, v: object) -> float:
     if not (math.isfinite(f) and f > 0.0):
         raise ValueError(f"{name}: expected a positive finite number of metres, got {v}")
     return f
+
+
+def _heights(name: str, a: object, max_height: float | None, allow_nan: bool) -> tuple[np.ndarray, np.dtype]:
+    """(float32 heights, the source dtype) of an (H, W) or (H, W, 1) array of any integer or float dtype, by
+    :meth:`Heightmap.from_array`'s rules (``max_height``: a normalised image); errors name ``name``."""
+    arr = np.asarray(a)
+    if arr.dtype == object or arr.dtype.kind not in "iuf":
+        raise TypeError(f"{name}: expected an integer or float array, got dtype {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    check_heights(name, arr, allow_nan=allow_nan)  # shape, then values (the scaled ones below)
+    h64 = None
+    if max_height is not None:
+        n = _positive("max_height", max_height)
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow to inf is refused below
+            if arr.dtype.kind in "iu":
+                h64 = arr.astype(np.float64) / float(np.iinfo(arr.dtype).max) * n
+            else:
+                h64 = arr.astype(np.float64) * n
+        if arr.dtype.kind == "f":
+            check_heights(name, h64, allow_nan=allow_nan)  # scaling may overflow to inf
+    with np.errstate(over="ignore"):
+        h = (h64 if h64 is not None else arr).astype(np.float32)
+    if np.isinf(h).any():
+        raise ValueError(f"{name}: heights overflow float32 (|h| > 3.4e38)")
+    return h, arr.dtype
 
 
 def check_heights(name: str, h: np.ndarray, *, allow_nan: bool) -> None:
@@ -123,30 +150,10 @@ class Heightmap:
         """
         if isinstance(a, Heightmap):
             raise TypeError("a: already a Heightmap")
-        arr = np.asarray(a)
-        if arr.dtype == object or not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-            raise TypeError(f"a: expected an integer or float array, got dtype {arr.dtype}")
-        if arr.ndim == 3 and arr.shape[2] == 1:
-            arr = arr[:, :, 0]
-        check_heights("a", arr, allow_nan=allow_nan)  # shape, then values (the scaled ones below)
-        if max_height is not None:
-            n = _positive("max_height", max_height)
-            if np.issubdtype(arr.dtype, np.integer):
-                scale = float(np.iinfo(arr.dtype).max)
-                h64 = arr.astype(np.float64) / scale * n
-            else:
-                h64 = arr.astype(np.float64) * n
-        else:
-            h64 = None
-        if h64 is not None and np.issubdtype(arr.dtype, np.floating):
-            check_heights("a", h64, allow_nan=allow_nan)  # scaling may overflow to inf
-        with np.errstate(over="ignore"):
-            h = (h64 if h64 is not None else arr).astype(np.float32)
-        if np.isinf(h).any():
-            raise ValueError("a: heights overflow float32 (|h| > 3.4e38)")
+        h, source_dtype = _heights("a", a, max_height, allow_nan)
         dxf = _positive("dx", dx)
         dzf = _positive("dz", dz if dz is not None else dx)
-        m = {"source_dtype": str(arr.dtype)}
+        m = {"source_dtype": str(source_dtype)}
         if meta:
             m.update(meta)
         return cls(heights=h, dx=dxf, dz=dzf, origin=origin, name=name, meta=m)
@@ -175,30 +182,23 @@ class Heightmap:
             raise ValueError(f"path: expected a file, got a directory: {p}")
         if p.stat().st_size == 0:
             raise ValueError(f"path: file is empty: {p}")
+        channel = check_int("channel", channel, 0)
         ext = p.suffix.lower()
-        if geotiff.is_gdal_raster(p):
+        if geotiff.is_gdal_raster(p) or (raster_options and ext in geotiff.TIFF_EXTS):
             if max_height is not None:
                 raise ValueError(f"max_height: not used for georeferenced rasters ({p.name}); heights come "
                                  "from the file's values, scale and offset")
-            r = geotiff.read_geotiff(p, band=int(channel) + 1, dx=dx, dz=dz, **raster_options)
-            return cls.from_array(r.heights, r.dx, r.dz, allow_nan=True, name=r.name, meta=r.meta)
+            r = geotiff.read_geotiff(p, band=channel + 1, dx=dx, dz=dz, **raster_options)
+            h, _ = _heights(f"path: {p}", r.heights, None, True)  # a float band may hold infinities
+            return cls(heights=h, dx=r.dx, dz=r.dz, name=r.name, meta=r.meta)
         if raster_options:
             raise TypeError(f"{sorted(raster_options)[0]}: only GeoTIFF / GDAL rasters take "
                             f"{', '.join(sorted(raster_options))}; {p.name} is read by OpenImageIO or numpy")
+        arr = _read_npy(p) if ext == ".npy" else _read_image(p, channel)
+        h, source_dtype = _heights(f"path: {p}", arr, max_height, allow_nan)
         dx = 1.0 if dx is None else dx
-        if ext == ".npy":
-            shape = _npy_shape(p)
-            if shape is not None and len(shape) >= 2:
-                check_heightmap_fits("path", shape[0], shape[1], what=f"array in {p.name}")
-            try:
-                arr = np.load(p, allow_pickle=False)
-            except Exception as e:  # numpy raises several types for corrupt files
-                raise ValueError(f"path: cannot read {p} as .npy: {e}") from e
-            return cls.from_array(arr, dx, dz, max_height=max_height, allow_nan=allow_nan, name=p.stem,
-                                  meta={"source": str(p)})
-        arr = _read_image(p, channel)
-        return cls.from_array(arr, dx, dz, max_height=max_height, allow_nan=allow_nan, name=p.stem,
-                              meta={"source": str(p)})
+        return cls(heights=h, dx=_positive("dx", dx), dz=_positive("dz", dz if dz is not None else dx), name=p.stem,
+                   meta={"source_dtype": str(source_dtype), "source": str(p)})
 
     @classmethod
     def open(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *, band: int = 1,
@@ -414,17 +414,24 @@ def _one_line(err: str) -> str:
     return "; ".join(parts)
 
 
-def _npy_shape(p: Path) -> tuple[int, ...] | None:
-    """The shape a ``.npy`` file's header declares, or None when the header cannot be read (np.load then
-    says why)."""
+def _read_npy(p: Path) -> np.ndarray:
+    """The array of a ``.npy`` file, its header checked first: a readable header (numpy's parser raises
+    several types on a damaged one), non-negative dimensions, a 2D grid (or (H, W, 1)) that fits in memory.
+    Raises ValueError naming the file."""
     try:
         with p.open("rb") as f:
             version = np.lib.format.read_magic(f)
             shape, _, _ = (np.lib.format.read_array_header_1_0(f) if version == (1, 0)
                            else np.lib.format.read_array_header_2_0(f))
-        return tuple(int(v) for v in shape)
-    except (ValueError, OSError, EOFError):
-        return None
+    except (ValueError, TypeError, SyntaxError, EOFError, tokenize.TokenError) as e:
+        raise ValueError(f"path: cannot read {p} as .npy: its header is damaged: {_one_line(str(e))}") from e
+    if any(int(v) < 0 for v in shape) or not (len(shape) == 2 or (len(shape) == 3 and shape[2] == 1)):
+        raise ValueError(f"path: {p} holds an array of shape {tuple(shape)}; expected a 2D grid (H, W) or (H, W, 1)")
+    check_heightmap_fits("path", shape[0], shape[1], what=f"array in {p.name}")
+    try:
+        return np.load(p, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as e:  # a short body, an object array
+        raise ValueError(f"path: cannot read {p} as .npy: {_one_line(str(e))}") from e
 
 
 # -- streamed ---------------------------------------------------------------------------------------
