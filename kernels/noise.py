@@ -121,6 +121,9 @@ def _fbm_kernel(
     out_h[i, j] = total / (0.70710678 * norm)
 
 
+MAX_OCTAVES = 64  # octaves of one fBm: past ~24 (lacunarity 2) a float32 noise coordinate resolves nothing more
+
+
 def fbm(rows: int, cols: int, *, seed: int = 0, base_frequency: float = 1.0 / 256.0, octaves: int = 8,
         lacunarity: float = 2.0, gain: float = 0.5, ridged: bool = False, row0: int = 0, col0: int = 0,
         step: int = 1, device: str = "cpu") -> np.ndarray:

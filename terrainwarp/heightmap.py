@@ -25,7 +25,7 @@ from .io.geodesy import metres_per_degree
 from .io.memory import check_heightmap_fits
 from .io.native import native_stderr_silenced
 from .io.tiles import TILE, ArraySource, FbmSource, GeoTiffSource, TileCache, TileSource
-from .kernels import noise, sampling
+from .kernels import sampling
 from .kernels.checks import check_int, is_number
 
 # metres_per_degree lives in io.geodesy; re-exported as before
@@ -261,17 +261,16 @@ class Heightmap:
         samples. Any window of a larger terrain with the same parameters equals that part of it.
         """
         cols = rows if cols is None else cols
-        for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
+        for nm, v in (("rows", rows), ("cols", cols)):
             check_int(nm, v, 1)
-        n = _positive("max_height", max_height)
-        fs = _positive("feature_size", feature_size)
         check_heightmap_fits("rows" if rows >= cols else "cols", rows, cols)
-        a = noise.fbm(int(rows), int(cols), seed=int(seed), base_frequency=1.0 / fs, octaves=int(octaves),
-                       lacunarity=float(lacunarity), gain=float(gain), ridged=ridged)
-        h = ((a + np.float32(1.0)) * np.float32(0.5 * n)).astype(np.float32)
-        return cls.from_array(h, dx, dz, name=f"fbm{rows}x{cols}s{seed}", meta={
-            "source": "fbm", "seed": int(seed), "feature_size": fs, "octaves": int(octaves),
-            "gain": gain, "lacunarity": lacunarity, "ridged": ridged})
+        # the streamed source's rules and noise: one set of checks, the same heights as any window of it
+        src = FbmSource(rows, cols, seed=seed, max_height=max_height, dx=dx, dz=dz, feature_size=feature_size,
+                        octaves=octaves, gain=gain, lacunarity=lacunarity, ridged=ridged)
+        h = src.read(1, 0, 0, int(rows), int(cols))
+        return cls.from_array(h, src.dx, src.dz, name=src.name, meta={
+            "source": "fbm", "seed": src.seed, "feature_size": src.feature_size, "octaves": src.octaves,
+            "gain": src.gain, "lacunarity": src.lacunarity, "ridged": src.ridged})
 
     # -- properties --------------------------------------------------------------------------------
     @property
@@ -495,7 +494,8 @@ class StreamedHeightmap:
 
     def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
         """(rows, cols) float32 of the step-``step`` point-sampled overview from its sample (r0, c0)."""
-        return self.tiles.window(int(step), int(r0), int(c0), int(rows), int(cols))
+        args = [check_int(n, v) for n, v in (("step", step), ("r0", r0), ("c0", c0), ("rows", rows), ("cols", cols))]
+        return self.tiles.window(*args)
 
     def load(self) -> Heightmap:
         """The whole grid as an in-memory :class:`Heightmap` (refused when it would not fit)."""

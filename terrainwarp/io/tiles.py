@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from ..kernels import noise
-from ..kernels.checks import check_int, check_number, is_number
+from ..kernels.checks import check_bool, check_int, check_number, is_number
 from . import geotiff
 from .cache import CacheFolder
 
@@ -159,9 +159,12 @@ class FbmSource(TileSource):
         cols = rows if cols is None else cols
         for nm, v in (("rows", rows), ("cols", cols), ("octaves", octaves)):
             check_int(nm, v, 1)
+        check_int("octaves", octaves, 1, noise.MAX_OCTAVES)  # more is a hang, not a terrain
         if max(rows, cols) > 2**24:
             raise ValueError(f"rows, cols: at most 2^24 samples per side (float32 noise coordinates), got "
                              f"{rows} x {cols}")
+        check_int("seed", seed)
+        check_bool("ridged", ridged)
         for nm, v in (("max_height", max_height), ("dx", dx), ("feature_size", feature_size),
                       ("gain", gain), ("lacunarity", lacunarity)) + ((("dz", dz),) if dz is not None else ()):
             check_number(nm, v, 0.0, lo_open=True)
@@ -373,6 +376,7 @@ class TileCache:
     def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
         """(rows, cols) float32 of the step-``step`` overview from sample (r0, c0), assembled from tiles
         (the window must lie inside the overview)."""
+        step = check_int("step", step, 1)  # 1: full resolution; 2, 4, ...: overviews
         lr, lc = self.source.level_shape(step)
         if r0 < 0 or c0 < 0 or rows < 1 or cols < 1 or r0 + rows > lr or c0 + cols > lc:
             raise ValueError(f"window: rows {r0}..{r0 + rows - 1}, cols {c0}..{c0 + cols - 1} outside the step-"

@@ -1,6 +1,7 @@
 """What the fuzz suite (tests/fuzz_runner.py, issue 31) found in the GeoTIFF and tile loaders, each kept as a
 small input made here: a corrupt tile, a damaged block layout, a non-finite geotransform, spacing overrides
-that are not numbers, a signalling NaN; and one seen while fixing them (a complex band read as real)."""
+that are not numbers, a signalling NaN, a step of 0, fBm parameters that hang or are not what they say; and
+one seen while fixing them (a complex band read as real)."""
 
 from __future__ import annotations
 
@@ -14,8 +15,10 @@ import rasterio
 from affine import Affine
 from rasterio.transform import from_origin
 
-from terrainwarp import Heightmap
+from terrainwarp import Heightmap, StreamedHeightmap
 from terrainwarp.io.geotiff import check_tiff_layout
+from terrainwarp.io.tiles import ArraySource, FbmSource, TileCache
+from terrainwarp.kernels.noise import MAX_OCTAVES
 
 
 def _geotiff(path, a, **profile):
@@ -160,3 +163,28 @@ def test_a_signalling_nan_is_a_hole_without_a_warning(tmp_path):
         warnings.simplefilter("error")
         hm = Heightmap.load(p)
     assert np.isnan(hm.heights[1, 2]) and int(np.isnan(hm.heights).sum()) == 1
+
+
+# -- tiles and procedural sources ----------------------------------------------------------------------------
+def test_a_window_at_step_zero_is_refused():
+    # fuzz finding: StreamedHeightmap.window(0, ...) raised ZeroDivisionError from level_shape
+    tiles = TileCache(ArraySource(np.zeros((9, 9), np.float32)))
+    with pytest.raises(ValueError, match=r"^step: expected an integer >= 1, got 0"):
+        tiles.window(0, 0, 0, 1, 1)
+    with pytest.raises(TypeError, match=r"^step: expected an integer"):
+        tiles.window(1.5, 0, 0, 1, 1)
+    s = StreamedHeightmap.of(Heightmap.from_array(np.zeros((9, 9), np.float32)))
+    with pytest.raises(TypeError, match=r"^r0: expected an integer, got 1.5"):
+        s.window(1, 1.5, 0, 2, 2)
+
+
+def test_fbm_parameters_that_hang_or_are_not_numbers_are_refused():
+    # fuzz finding: [heightmap.fbm] octaves = 16777217 with stream = true ran for minutes (a hang)
+    with pytest.raises(ValueError, match=rf"^octaves: expected an integer >= 1 and <= {MAX_OCTAVES}"):
+        FbmSource(65, octaves=2**24 + 1)
+    for kw, kind, name in ((dict(seed="x"), TypeError, "seed"), (dict(seed=1.5), TypeError, "seed"),
+                           (dict(ridged="yes"), TypeError, "ridged"), (dict(gain=math.nan), ValueError, "gain")):
+        for make in (FbmSource, Heightmap.fbm):
+            with pytest.raises(kind, match=rf"^{name}: expected"):
+                make(17, **kw)
+    assert FbmSource(17, octaves=MAX_OCTAVES).octaves == MAX_OCTAVES
