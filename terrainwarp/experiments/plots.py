@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..heightmap import Heightmap
+from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import save_figure
 from ..kernels.normals import sobel_normals
 from ..kernels.shading import light_direction
@@ -21,19 +21,36 @@ __all__ = ["plot_patches", "patches_figure", "OVERHANG_NOTE"]
 OVERHANG_NOTE = "beyond the heightmap: clamped onto its border by displacement (no terrain there)"
 
 
-def _hillshade(heightmap: Heightmap) -> np.ndarray:
-    """(H, W) grey Lambert term in [0, 1] of the pipeline's normal map under its default sun (no-data as 0 m)."""
-    n = sobel_normals(np.nan_to_num(heightmap.heights), heightmap.dx, heightmap.dz, border="clamp")
-    return np.clip(n.astype(np.float64) @ np.asarray(light_direction(315.0, 45.0)), 0, 1)
+HILLSHADE_MAX = 2048  # samples a side of a streamed heightmap's hillshade (its overview at a power-of-two step)
 
 
-def plot_patches(heightmap: Heightmap, patches: PatchList, camera: Camera | None, path: str | Path,
+def _hillshade(heightmap: Heightmap | StreamedHeightmap) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """(H, W) grey Lambert term in [0, 1] of the pipeline's normal map under its default sun (no-data as 0 m),
+    and its extent (x0, x1, z1, z0) in world metres. A streamed heightmap is shaded from its point-sampled
+    overview at the smallest power-of-two step with at most ``HILLSHADE_MAX`` samples a side (never read whole)."""
+    (x0, z0), _ = heightmap.bounds_xz
+    if isinstance(heightmap, StreamedHeightmap):
+        step = 1
+        while max(heightmap.source.level_shape(step)) > HILLSHADE_MAX:
+            step *= 2
+        rows, cols = heightmap.source.level_shape(step)
+        h = heightmap.window(step, 0, 0, rows, cols)
+    else:
+        step, h = 1, heightmap.heights
+    dx, dz = heightmap.dx * step, heightmap.dz * step
+    n = sobel_normals(np.nan_to_num(h), dx, dz, border="clamp")
+    shade = np.clip(n.astype(np.float64) @ np.asarray(light_direction(315.0, 45.0)), 0, 1)
+    return shade, (x0, x0 + (h.shape[1] - 1) * dx, z0 + (h.shape[0] - 1) * dz, z0)
+
+
+def plot_patches(heightmap: Heightmap | StreamedHeightmap, patches: PatchList, camera: Camera | None, path: str | Path,
                  title: str = "") -> Path:
     """Write :func:`patches_figure` to ``path`` (PNG)."""
     return save_figure(patches_figure(heightmap, patches, camera, title), path, dpi=110)
 
 
-def patches_figure(heightmap: Heightmap, patches: PatchList, camera: Camera | None, title: str = ""):
+def patches_figure(heightmap: Heightmap | StreamedHeightmap, patches: PatchList, camera: Camera | None,
+                   title: str = ""):
     """Top-down map (north up: -z at the top) of the selected patches coloured by level over a hillshade,
     with the heightmap's outline, the camera and the horizontal footprint of its frustum.
 
@@ -48,8 +65,8 @@ def patches_figure(heightmap: Heightmap, patches: PatchList, camera: Camera | No
 
     (x0, z0), (x1, z1) = heightmap.bounds_xz
     fig, ax = plt.subplots(figsize=(8, 8 * max(0.3, (z1 - z0) / max(x1 - x0, 1e-9))) if x1 > x0 else (8, 8))
-    hs = _hillshade(heightmap)
-    ax.imshow(hs, cmap="gray", extent=(x0, x1, z1, z0), origin="upper", vmin=0, vmax=1, interpolation="nearest")
+    hs, extent = _hillshade(heightmap)
+    ax.imshow(hs, cmap="gray", extent=extent, origin="upper", vmin=0, vmax=1, interpolation="nearest")
     lv = np.asarray(patches.level)
     cmap = plt.get_cmap("viridis", max(int(lv.max()) + 1 if len(lv) else 1, 1))
     rects = [Rectangle((o[0], o[1]), s[0], s[1]) for o, s in zip(patches.origin, patches.size)]

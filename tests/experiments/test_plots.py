@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import pytest
 
-from terrainwarp import Camera, Heightmap
+from terrainwarp import Camera, Heightmap, Scene
+from terrainwarp.cli import main
 from terrainwarp.experiments.plots import OVERHANG_NOTE, patches_figure, plot_patches
+from terrainwarp.heightmap import StreamedHeightmap
 from terrainwarp.lod import ScreenErrorPolicy, Terrain, select
 
 pytest.importorskip("matplotlib")
@@ -57,3 +59,13 @@ def test_no_overhang_no_note():
         assert not [p for p in fig.axes[0].patches if p.get_hatch()]
     finally:
         plt.close(fig)
+
+
+def test_lod_command_draws_a_streamed_terrain(tmp_path, capsys):
+    # fuzz finding: `terrainwarp lod` on a scene with stream = true printed a traceback
+    # (AttributeError: 'StreamedHeightmap' object has no attribute 'heights', from the hillshade)
+    scene = tmp_path / "s.toml"
+    scene.write_text('[heightmap]\nfbm = {rows = 65, seed = 1, octaves = 3}\nstream = true\n')
+    assert isinstance(Scene.load(scene).heightmap, StreamedHeightmap)
+    rc = main(["lod", str(scene), "--width", "16", "--height", "12", "--out", str(tmp_path / "out")])
+    assert rc == 0 and (tmp_path / "out" / "lod.png").stat().st_size > 0
