@@ -47,6 +47,7 @@ __all__ = ["TILE", "DEFAULT_CACHE_MB", "TileSource", "ArraySource", "FbmSource",
 TILE = 256  # samples per tile side, at every step
 DEFAULT_CACHE_MB = 512.0  # the tile cache's cap when neither the argument nor TERRAINWARP_TILE_CACHE_MB says
 PERLIN_SLOPE = 2.5  # bound on |d noise / d input| per axis of the 2-D gradient noise (measured 2.00)
+F32_MAX = float(np.finfo(np.float32).max)
 PERLIN_CURVATURE = 12.0  # bound on |d2 noise / d input2| per axis (measured 8.15; quintic fade: smooth)
 
 
@@ -168,6 +169,7 @@ class FbmSource(TileSource):
         for nm, v in (("max_height", max_height), ("dx", dx), ("feature_size", feature_size),
                       ("gain", gain), ("lacunarity", lacunarity)) + ((("dz", dz),) if dz is not None else ()):
             check_number(nm, v, 0.0, lo_open=True)
+        _check_octave_series(int(octaves), float(gain), float(lacunarity), float(feature_size))
         self.shape = (int(rows), int(cols))
         self.dx, self.dz = float(dx), float(dz if dz is not None else dx)
         self.max_height, self.feature_size = float(max_height), float(feature_size)
@@ -217,6 +219,20 @@ class FbmSource(TileSource):
     def fingerprint(self) -> str:
         return "fbm:" + repr((self.shape, self.seed, self.max_height, self.feature_size, self.octaves,
                               self.gain, self.lacunarity, self.ridged))
+
+
+def _check_octave_series(octaves: int, gain: float, lacunarity: float, feature_size: float) -> None:
+    """The noise kernel sums ``octaves`` octaves in float32: amplitudes ``gain**k`` (and their sum) and noise
+    coordinates ``index * lacunarity**k / feature_size`` (index < 2^24) must stay finite there, or the heights
+    come out NaN. Raises ValueError naming ``gain`` or ``lacunarity``."""
+    top = math.log(F32_MAX)
+    k = octaves - 1
+    if k * max(math.log(gain), 0.0) + math.log(octaves) >= top:
+        raise ValueError(f"gain: {gain!r} over {octaves} octaves overflows the kernel's float32 amplitudes "
+                         f"(gain**{k} x {octaves} must stay below 3.4e38)")
+    if k * max(math.log(lacunarity), 0.0) + math.log(2.0**24 / feature_size) >= top:
+        raise ValueError(f"lacunarity: {lacunarity!r} over {octaves} octaves overflows the kernel's float32 noise "
+                         f"coordinates (2^24 x lacunarity**{k} / feature_size must stay below 3.4e38)")
 
 
 class GeoTiffSource(TileSource):

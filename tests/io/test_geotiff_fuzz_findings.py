@@ -188,3 +188,12 @@ def test_fbm_parameters_that_hang_or_are_not_numbers_are_refused():
             with pytest.raises(kind, match=rf"^{name}: expected"):
                 make(17, **kw)
     assert FbmSource(17, octaves=MAX_OCTAVES).octaves == MAX_OCTAVES
+    # fuzz finding: gain = 1e300 is finite in float64 but the kernel's float32 amplitudes overflow: every height
+    # came out NaN ("a: 561 NaN heights"); so did a lacunarity whose finest octave overflows the coordinates
+    for kw, name in ((dict(gain=1e300), "gain"), (dict(gain=1e5, octaves=9), "gain"),
+                     (dict(lacunarity=1e30, octaves=3), "lacunarity")):
+        for make in (FbmSource, Heightmap.fbm):
+            with pytest.raises(ValueError, match=rf"^{name}: .* overflows the kernel's float32"):
+                make(17, **kw)
+    h = Heightmap.fbm(17, gain=1e4, octaves=9, lacunarity=1e3).heights  # just inside: finite heights
+    assert np.isfinite(h).all()
