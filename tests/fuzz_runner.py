@@ -246,6 +246,8 @@ def _cli_names_input(message: str, names: set[str], argv: list[str]) -> bool:
     if names_input(message, names) or re.search(r"(^|[\s(\[,'\"])--[a-z][a-z-]*", message):
         return True
     words = set(re.findall(r"[^\s,'\"\[\]()]+", message))
+    if any(w in names for w in words if len(w) >= 3):  # a metavariable or key: "required: COMMAND"
+        return True
     return any(a.strip() in words or (len(a.strip()) >= 3 and a.strip() in message) for a in argv if a.strip())
 
 
