@@ -10,6 +10,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+try:
+    import resource
+except ImportError:  # pragma: no cover - not on Windows
+    resource = None
+
 __all__ = ["BYTES_PER_SAMPLE", "available_bytes", "check_heightmap_fits", "format_bytes"]
 
 # Peak bytes per sample while a heightmap is made: the float32 heights themselves (4 B) plus what making
@@ -23,8 +28,8 @@ BIGGER = "terrains larger than memory need the tiled, streamed (out-of-core) pat
 
 def available_bytes() -> int | None:
     """Memory this process can still use, in bytes: MemAvailable from /proc/meminfo (Linux), else the free
-    physical pages (``os.sysconf``); lowered to what a cgroup (v2) memory limit leaves. None when the
-    machine does not say (then nothing is refused)."""
+    physical pages (``os.sysconf``); lowered to what a cgroup (v2) memory limit leaves, and to what an
+    address-space limit (``ulimit -v``) leaves. None when the machine does not say (then nothing is refused)."""
     avail = None
     try:
         for line in Path("/proc/meminfo").read_text().splitlines():
@@ -46,7 +51,31 @@ def available_bytes() -> int | None:
             avail = left if avail is None else min(avail, left)
     except (OSError, ValueError):
         pass
+    left = _address_space_left()
+    if left is not None:
+        avail = left if avail is None else min(avail, left)
     return avail
+
+
+def _address_space_left() -> int | None:
+    """What an address-space limit (``ulimit -v``, RLIMIT_AS) leaves this process: the limit less its virtual
+    size (VmSize in /proc/self/status); None without a limit. Past it an allocation fails with MemoryError
+    (or std::bad_alloc in native code) however much the machine has free."""
+    try:
+        soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    except (AttributeError, OSError, ValueError):  # no resource limits here
+        return None
+    if soft == resource.RLIM_INFINITY:
+        return None
+    size = 0
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmSize:"):
+                size = int(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(int(soft) - size, 0)
 
 
 def format_bytes(n: float) -> str:

@@ -1,11 +1,16 @@
 """What the fuzz suite (tests/fuzz_runner.py, issue 31) found in ``Heightmap.load``, each kept as a small input
 made here: damaged ``.npy`` headers (numpy's tokenizer error escaped as ``TokenError``), errors that blamed
 ``a`` (``from_array``'s argument) instead of the file, a ``channel`` that was not an integer, raster options
-on a GeoTIFF GDAL cannot open, and overflow warnings."""
+on a GeoTIFF GDAL cannot open, overflow warnings; and the size guard, blind to the worker's address-space
+limit."""
 
 from __future__ import annotations
 
 import io
+import re
+import subprocess
+import sys
+import textwrap
 import warnings
 
 import numpy as np
@@ -109,3 +114,23 @@ def test_raster_options_on_a_tiff_gdal_cannot_open_say_why(tmp_path):
     plain = write_image(tmp_path / "plain.tif", np.arange(16, dtype=np.uint16).reshape(4, 4))
     hm = Heightmap.load(plain, window=((1, 3), (0, 2)))  # a plain TIFF with a window: read through GDAL
     assert np.array_equal(hm.heights, np.arange(16, dtype=np.float32).reshape(4, 4)[1:3, 0:2])
+
+
+def test_the_size_guard_counts_an_address_space_limit(tmp_path):
+    # the fuzz worker runs under an address-space limit (RLIMIT_AS, as `ulimit -v` sets it), so that a case that
+    # allocates without bound fails fast instead of taking the shared machine's memory; the guard did not see
+    # the limit and let a heightmap through that the limit then refused with Warp's or numpy's allocation error
+    code = textwrap.dedent("""
+        import resource
+        resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+        from terrainwarp import Heightmap
+        try:
+            Heightmap.fbm(11000)  # about 2.9 GB by the guard's estimate: more than the limit leaves
+        except ValueError as e:
+            print(e)
+    """)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = re.match(r"rows: a 11000 x 11000 heightmap needs about 2\.9 GB; this machine has ([0-9.]+) GB available",
+                 r.stdout)
+    assert m and float(m.group(1)) < 2.15, r.stdout  # what the 2 GiB limit leaves, not what the machine has free
