@@ -26,7 +26,7 @@ from _common import write_result
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the suite lives beside the tests that run its bounded subset
 
-from fuzz_runner import FINDINGS, HANG_S, counts_table, fuzz, plan_for  # noqa: E402
+from fuzz_runner import FINDINGS, HANG_S, MEMORY_MB, counts_table, fuzz, plan_for  # noqa: E402
 
 QUICK_CASES = 600
 
@@ -37,8 +37,9 @@ def _top(counter: Counter, n: int = 8) -> str:
 
 def _details(counts, args, plan: dict[str, int]) -> str:
     lines = [f"Seed {args.seed}; {sum(plan.values())} cases in {counts.wall_s:.0f} s wall "
-             f"({counts.wall_s / 60:.1f} min) on one worker process; hang limit {HANG_S:.0f} s per case; worker "
-             f"restarts: {counts.restarts}. Findings kept under `{args.findings}` (input files and finding.json).", "",
+             f"({counts.wall_s / 60:.1f} min) on one worker process; hang limit {HANG_S:.0f} s per case, address "
+             f"space {args.memory_mb} MiB; worker restarts: {counts.restarts}. Findings kept under "
+             f"`{args.findings}` (input files and finding.json).", "",
              counts_table(counts), "",
              "Verdicts: *ok* loaded (and passed the loader's own rules; a streamed GeoTIFF also equals its in-memory "
              "load) or the command succeeded; *ValueError / TypeError / OSError* a refusal of that kind whose message "
@@ -67,6 +68,7 @@ def main() -> int:
     ap.add_argument("--cases", type=int, default=10000, help="generated cases, split over the targets")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--findings", default="out/fuzz", help="folder for the findings and the worker's log")
+    ap.add_argument("--memory-mb", type=int, default=MEMORY_MB, help="the worker's address-space limit")
     ap.add_argument("--quick", action="store_true", help=f"{QUICK_CASES} cases; prints, leaves the results file alone")
     args = ap.parse_args()
     n = QUICK_CASES if args.quick else args.cases
@@ -74,7 +76,8 @@ def main() -> int:
     out = Path(args.findings)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    counts = fuzz(plan, seed=args.seed, findings=out / f"seed{args.seed}", progress=True, log=out / "worker.log")
+    counts = fuzz(plan, seed=args.seed, findings=out / f"seed{args.seed}", progress=True, log=out / "worker.log",
+                  memory_mb=args.memory_mb)
     body = _details(counts, args, plan)
     title = f"Fuzz suite: {n} mutated inputs through the loaders and the CLI"
     if args.quick:

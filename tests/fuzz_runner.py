@@ -8,7 +8,8 @@ worker subprocess, judged there, counted here.
 * The supervisor (:class:`Supervisor`) feeds batches and waits for each verdict at most ``HANG_S`` seconds.
   A worker that dies (segfault, abort, SIGBUS, an exit from native code) or does not answer in time is
   killed (its whole process group) and restarted; the input in flight is kept in the findings folder as a
-  ``crash`` or a ``hang``, and the batch goes on from the next case.
+  ``crash`` or a ``hang``, and the batch goes on from the next case. The worker runs under an address-space
+  limit (``MEMORY_MB``), so a case that allocates without bound is a MemoryError, not a machine out of memory.
 * :func:`fuzz` draws the cases with hypothesis (deterministic for a seed: ``@seed``, no database, the
   generate phase only) and returns the counts (:class:`Counts`); every finding is also written to the
   findings folder: the input file(s) and ``finding.json`` (what was called, what happened, how the input
@@ -31,6 +32,7 @@ import json
 import os
 import pickle
 import re
+import resource
 import select
 import shutil
 import signal
@@ -56,6 +58,8 @@ from hypothesis import strategies as st
 __all__ = ["HANG_S", "Counts", "Supervisor", "fuzz", "judge_cli", "judge_load", "names_input", "run_case"]
 
 HANG_S = 20.0  # a case that runs longer is a hang: the worker is killed and restarted
+MEMORY_MB = 6144  # the worker's address-space limit (RLIMIT_AS): a case that allocates without bound fails fast
+# (a MemoryError, a finding) instead of taking the shared machine's memory; the size guard sees the limit
 BATCH = 64  # cases sent to the worker at once
 ALLOWED = (ValueError, TypeError, OSError)
 FINDINGS = ("crash", "hang", "exception", "unnamed", "bad-result", "traceback", "cli-output")
@@ -374,6 +378,8 @@ def _recv(f) -> object | None:
 def worker_main() -> int:
     """Read batches of cases on stdin, answer ``("start", i)`` and ``("result", i, verdict)`` on the
     original stdout; everything else the process prints (Python or native) goes to stderr."""
+    limit = int(os.environ.get("TERRAINWARP_FUZZ_MEMORY_MB", MEMORY_MB)) << 20
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
     proto = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # native code that prints must not corrupt the protocol
     sys.stdout = sys.stderr
@@ -404,8 +410,9 @@ class Supervisor:
     """One worker subprocess, restarted after a crash or a hang. :meth:`run` sends a batch and yields
     ``(case, verdict)`` for each case, a crash or a hang included."""
 
-    def __init__(self, log: Path | None = None, hang_s: float = HANG_S):
+    def __init__(self, log: Path | None = None, hang_s: float = HANG_S, memory_mb: int = MEMORY_MB):
         self.hang_s = hang_s
+        self.memory_mb = memory_mb
         self.log = log
         self.proc: subprocess.Popen | None = None
         self.restarts = 0
@@ -413,7 +420,7 @@ class Supervisor:
 
     def _start(self) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1", TERRAINWARP_THREADS=os.environ.get("TERRAINWARP_THREADS", "1"),
-                   MPLBACKEND="Agg")
+                   MPLBACKEND="Agg", TERRAINWARP_FUZZ_MEMORY_MB=str(self.memory_mb))
         err = open(self.log, "ab") if self.log is not None else subprocess.DEVNULL  # noqa: SIM115
         self.proc = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--worker"], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=err, env=env, start_new_session=True,
@@ -579,11 +586,11 @@ def each_case(target: str, n: int, seed: int, fn) -> None:
 
 
 def fuzz(plan: dict[str, int], seed: int = 0, findings: Path | None = None, progress: bool = False,
-         log: Path | None = None, hang_s: float = HANG_S) -> Counts:
+         log: Path | None = None, hang_s: float = HANG_S, memory_mb: int = MEMORY_MB) -> Counts:
     """Run ``plan`` (target -> number of cases) in a worker subprocess; the counts, and every finding kept
     under ``findings`` (when given)."""
     counts = Counts()
-    sup = Supervisor(log=log, hang_s=hang_s)
+    sup = Supervisor(log=log, hang_s=hang_s, memory_mb=memory_mb)
     bar = None
     if progress:
         from tqdm import tqdm
