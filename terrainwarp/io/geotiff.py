@@ -210,8 +210,9 @@ def _pixel_window(src: DatasetReader, window: object, bounds: object) -> tuple[i
             raise ValueError(f"bounds: expected (left, bottom, right, top) in CRS units with left < right "
                              f"and bottom < top, got {bounds!r}")
         t = src.transform  # axis-aligned (checked by the caller)
-        cs = [(x - t.c) / t.a for x in (b[0], b[2])]
-        rs = [(y - t.f) / t.e for y in (b[1], b[3])]
+        with np.errstate(over="ignore"):  # a tiny pixel size puts far bounds at +-inf pixels: clipped below
+            cs = [float(np.clip((x - t.c) / t.a, -1.0, W + 1.0)) for x in (b[0], b[2])]
+            rs = [float(np.clip((y - t.f) / t.e, -1.0, H + 1.0)) for y in (b[1], b[3])]
         # cells that the bounds touch (a cell is kept when any part of it lies inside; 1e-9 px of slack)
         r0, r1 = math.floor(min(rs) + 1e-9), math.ceil(max(rs) - 1e-9)
         c0, c1 = math.floor(min(cs) + 1e-9), math.ceil(max(cs) - 1e-9)

@@ -133,6 +133,16 @@ def test_a_non_finite_geotransform_is_refused_naming_the_file(tmp_path, t):
             read(p)
 
 
+def test_bounds_far_outside_a_tiny_pixel_size_read_what_they_cover(tmp_path):
+    # fuzz finding: bounds on a raster whose pixel size is 1e-300 became infinite pixel coordinates, and
+    # math.floor raised OverflowError ("cannot convert float infinity to integer")
+    p = _geotiff(tmp_path / "tiny.tif", np.ones((8, 8), np.float32), transform=Affine(1e-300, 0, 0, 0, -1e-300, 0))
+    assert Heightmap.load(p, bounds=(-1e10, -1e10, 1e10, 1e10)).shape == (8, 8)  # they hold the whole raster
+    assert Heightmap.load(p, bounds=(0, -4e-300, 4e-300, 0)).shape == (4, 4)
+    with pytest.raises(ValueError, match=r"^bounds: .* does not overlap the raster"):
+        Heightmap.load(p, bounds=(1e10, 1e10, 2e10, 2e10))
+
+
 @pytest.mark.parametrize("dx, kind", [(math.nan, ValueError), (-3.0, ValueError), (0, ValueError),
                                       ("30", TypeError), (True, TypeError)])
 def test_spacing_overrides_are_numbers_for_load_and_open(tmp_path, dx, kind):
