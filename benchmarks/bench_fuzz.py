@@ -26,7 +26,7 @@ from _common import write_result
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))  # the suite lives beside the tests that run its bounded subset
 
-from fuzz_runner import FINDINGS, HANG_S, MEMORY_MB, counts_table, fuzz, plan_for  # noqa: E402
+from fuzz_runner import FINDINGS, GUARD_MB, HANG_S, MEMORY_MB, counts_table, fuzz, plan_for  # noqa: E402
 
 QUICK_CASES = 600
 
@@ -38,7 +38,7 @@ def _top(counter: Counter, n: int = 8) -> str:
 def _details(counts, args, plan: dict[str, int]) -> str:
     lines = [f"Seed {args.seed}; {sum(plan.values())} cases in {counts.wall_s:.0f} s wall "
              f"({counts.wall_s / 60:.1f} min) on one worker process; hang limit {HANG_S:.0f} s per case, address "
-             f"space {args.memory_mb} MiB; worker restarts: {counts.restarts}. Findings kept under "
+             f"space {args.memory_mb} MiB, size guard told {GUARD_MB} MiB; worker restarts: {counts.restarts}. Findings kept under "
              f"`{args.findings}` (input files and finding.json).", "",
              counts_table(counts), "",
              "Verdicts: *ok* loaded (and passed the loader's own rules; a streamed GeoTIFF also equals its in-memory "
@@ -54,7 +54,8 @@ def _details(counts, args, plan: dict[str, int]) -> str:
     for t, c in counts.warnings.items():
         lines.append(f"- {t}: Python warnings {_top(c, 4)}")
     for t, c in counts.native.items():
-        lines.append(f"- {t}: printed on file descriptor 2 by native code in {sum(c.values())} case(s): {_top(c, 3)}")
+        lines.append(f"- {t}: printed on file descriptor 2 by native code in {sum(c.values())} case(s): {_top(c, 3)}; "
+                     "cases " + "; ".join(f"{k[:40]}: {counts.native_cases[(t, k)][:5]}" for k, _ in c.most_common(3)))
     if counts.findings:
         groups = Counter((f["target"], f["verdict"], f.get("type"), (f.get("message") or "")[:100])
                          for f in counts.findings)

@@ -9,7 +9,8 @@ worker subprocess, judged there, counted here.
   A worker that dies (segfault, abort, SIGBUS, an exit from native code) or does not answer in time is
   killed (its whole process group) and restarted; the input in flight is kept in the findings folder as a
   ``crash`` or a ``hang``, and the batch goes on from the next case. The worker runs under an address-space
-  limit (``MEMORY_MB``), so a case that allocates without bound is a MemoryError, not a machine out of memory.
+  limit (``MEMORY_MB``), so a case that allocates without bound is a MemoryError, not a machine out of memory,
+  and its size guard is told the worker has ``GUARD_MB``, so that its refusals are the same on every run.
 * :func:`fuzz` draws the cases with hypothesis (deterministic for a seed: ``@seed``, no database, the
   generate phase only) and returns the counts (:class:`Counts`); every finding is also written to the
   findings folder: the input file(s) and ``finding.json`` (what was called, what happened, how the input
@@ -59,7 +60,9 @@ __all__ = ["HANG_S", "Counts", "Supervisor", "fuzz", "judge_cli", "judge_load", 
 
 HANG_S = 20.0  # a case that runs longer is a hang: the worker is killed and restarted
 MEMORY_MB = 6144  # the worker's address-space limit (RLIMIT_AS): a case that allocates without bound fails fast
-# (a MemoryError, a finding) instead of taking the shared machine's memory; the size guard sees the limit
+# (a MemoryError, a finding) instead of taking the shared machine's memory
+GUARD_MB = 2048  # what the size guard (terrainwarp.io.memory) is told the worker has: the same refusals on every
+# run, whatever the shared machine has free and however large the worker's address space has grown
 BATCH = 64  # cases sent to the worker at once
 ALLOWED = (ValueError, TypeError, OSError)
 FINDINGS = ("crash", "hang", "exception", "unnamed", "bad-result", "traceback", "cli-output")
@@ -161,12 +164,15 @@ def _open_geotiff(path: Path, call: dict[str, Any]) -> str | None:
 def _run_load(case: Case, path: Path) -> str | None:
     """Call the loader a case asks for; a description of a bad result, or None."""
     from terrainwarp import Heightmap
+    from terrainwarp.io import geotiff
 
     call = case.call
     if case.target == "geotiff" and call.get("how", "load").startswith("open"):
         return _open_geotiff(path, call)
     hm = Heightmap.load(path, **_load_kwargs(call))
-    return _check_heightmap(hm, holes=case.target == "geotiff" or bool(call.get("allow_nan")))
+    # a GDAL raster's no-data cells are NaN whatever allow_nan says (Heightmap.load); elsewhere only with it
+    return _check_heightmap(hm, holes=bool(call.get("allow_nan")) or geotiff.is_gdal_raster(path)
+                            or bool(set(call) & {"window", "bounds", "decimate", "resampling"}))
 
 
 def _scene_names(case: Case, scene_path: Path) -> set[str]:
@@ -248,6 +254,8 @@ def _cli_names_input(message: str, names: set[str], argv: list[str]) -> bool:
     ``the following arguments are required: --inner``), or a token of the command line quoted back
     (``unrecognized arguments: 16 1``)."""
     if names_input(message, names) or re.search(r"(^|[\s(\[,'\"])--[a-z][a-z-]*", message):
+        return True
+    if message.startswith("unrecognized arguments:"):  # argparse quotes them back, blanks included
         return True
     words = set(re.findall(r"[^\s,'\"\[\]()]+", message))
     if any(w in names for w in words if len(w) >= 3):  # a metavariable or key: "required: COMMAND"
@@ -383,11 +391,15 @@ def worker_main() -> int:
     proto = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)  # native code that prints must not corrupt the protocol
     sys.stdout = sys.stderr
+    from terrainwarp.io import memory
     from terrainwarp.runtime import configure
 
     # imported once (the point of a long-lived worker); Warp started quiet, as the command starts it, so its
     # greeting is not taken for a case's output on stderr
     configure(quiet=True)
+    guard = int(os.environ.get("TERRAINWARP_FUZZ_GUARD_MB", GUARD_MB)) << 20
+    if guard:  # verdicts independent of the machine's free memory (0: the machine's own)
+        memory.available_bytes = lambda: guard
 
     root = Path(tempfile.mkdtemp(prefix="tw-fuzz-worker-"))
     inp = os.fdopen(os.dup(0), "rb")
@@ -538,6 +550,7 @@ class Counts:
     classes: dict[str, Counter] = field(default_factory=dict)
     warnings: dict[str, Counter] = field(default_factory=dict)
     native: dict[str, Counter] = field(default_factory=dict)  # first line of what a case printed on fd 2
+    native_cases: dict[tuple[str, str], list[int]] = field(default_factory=dict)  # (target, that line) -> cases
     secs: dict[str, list[float]] = field(default_factory=dict)
     findings: list[dict[str, Any]] = field(default_factory=list)
     restarts: int = 0
@@ -551,7 +564,9 @@ class Counts:
         for w in res.get("warnings", []):
             self.warnings.setdefault(t, Counter())[w] += 1
         if res.get("native_stderr", "").strip():
-            self.native.setdefault(t, Counter())[res["native_stderr"].strip().splitlines()[0][:200]] += 1
+            first = res["native_stderr"].strip().splitlines()[0][:200]
+            self.native.setdefault(t, Counter())[first] += 1
+            self.native_cases.setdefault((t, first), []).append(case.index)
         self.secs.setdefault(t, []).append(float(res.get("secs", 0.0)))
 
     def n_findings(self) -> int:
@@ -572,8 +587,30 @@ def keep_finding(folder: Path, case: Case, res: dict[str, Any], seed: int) -> Pa
 
 
 def each_case(target: str, n: int, seed: int, fn) -> None:
-    """Call ``fn(case)`` for ``n`` cases of ``target`` drawn by hypothesis, the same cases for the same seed."""
+    """Call ``fn(case)`` for ``n`` cases of ``target`` drawn by hypothesis, the same cases for the same seed.
+
+    They are drawn in a subprocess (``--generate``) that imports this suite and nothing of terrainwarp: hypothesis
+    draws some values from the literals in the source of the non-library modules loaded in its process, so in
+    the caller's (pytest's, a benchmark's) the same seed gave other cases whenever other modules were loaded."""
+    p = subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--generate", target, str(n), str(seed)],
+                         stdout=subprocess.PIPE, cwd=tempfile.gettempdir(), env=dict(os.environ, PYTHONHASHSEED="0"))
+    try:
+        while (case := _recv(p.stdout)) is not None:
+            fn(case)
+    finally:
+        p.stdout.close()
+        rc = p.wait()
+    if rc:
+        raise RuntimeError(f"drawing the {target} cases failed (exit {rc}): python {__file__} --generate {target} "
+                           f"{n} {seed}")
+
+
+def _generate(target: str, n: int, seed: int) -> int:
+    """The ``--generate`` subprocess: draw the cases of :func:`each_case` and send them on stdout."""
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # a library that prints must not corrupt the stream
     counter = iter(range(10**9))
+    fn = lambda case: _send(out, case)  # noqa: E731
 
     @settings(max_examples=n, database=None, phases=[Phase.generate], deadline=None, derandomize=False,
               suppress_health_check=list(HealthCheck), verbosity=Verbosity.quiet, print_blob=False)
@@ -583,6 +620,8 @@ def each_case(target: str, n: int, seed: int, fn) -> None:
         fn(data.draw(case_strategy(target, next(counter))))
 
     draw()
+    out.close()
+    return 0
 
 
 def fuzz(plan: dict[str, int], seed: int = 0, findings: Path | None = None, progress: bool = False,
@@ -665,6 +704,9 @@ def plan_for(total: int, targets: tuple[str, ...] = TARGETS) -> dict[str, int]:
 if __name__ == "__main__":
     if sys.argv[1:] == ["--worker"]:
         sys.exit(worker_main())
-    print("usage: python tests/fuzz_runner.py --worker (started by the fuzz supervisor)", file=sys.stderr)
+    if len(sys.argv) == 5 and sys.argv[1] == "--generate":
+        sys.exit(_generate(sys.argv[2], int(sys.argv[3]), int(sys.argv[4])))
+    print("usage: python tests/fuzz_runner.py --worker | --generate TARGET N SEED (started by the fuzz supervisor)",
+          file=sys.stderr)
     sys.exit(2)
 
