@@ -580,15 +580,17 @@ def _spacing(part: _Part, p: Path, dx: float | None, dz: float | None) -> tuple[
     if crs is not None and crs.is_geographic:
         sdx, sdz, how = _geographic_spacing(part, p, meta)
     elif crs is not None:
+        kind = "projected" if crs.is_projected else "local"  # a local (engineering) CRS: its own unit, no projection
         try:
-            lu, lf = crs.linear_units_factor
+            lu, lf = crs.linear_units_factor if crs.is_projected else crs.units_factor
         except Exception as e:  # noqa: BLE001 - rasterio raises CRSError for unknown units
             raise ValueError(f"path: {p}: cannot tell the linear unit of its CRS {crs.to_string()!r}; "
                              "pass dx and dz in metres") from e
         sdx, sdz = px * lf, py * lf
-        meta.update(crs_kind="projected", linear_unit=lu, linear_unit_m=lf)
+        meta.update(crs_kind=kind, linear_unit=lu, linear_unit_m=lf)
         how = (f"projected CRS: {px:.6g} x {py:.6g} {lu} (x {lf:.12g} m) grid metres; the "
-               "projection's scale factor is not applied")
+               "projection's scale factor is not applied") if kind == "projected" else \
+            f"local CRS: {px:.6g} x {py:.6g} {lu} (x {lf:.12g} m)"
     elif part.georef:
         sdx, sdz = px, py
         meta.update(crs_kind="none")

@@ -143,6 +143,21 @@ def test_bounds_far_outside_a_tiny_pixel_size_read_what_they_cover(tmp_path):
         Heightmap.load(p, bounds=(1e10, 1e10, 2e10, 2e10))
 
 
+@pytest.mark.parametrize("unit, metres", [("metre", 1.0), ("US survey foot", 1200.0 / 3937.0)])
+def test_a_local_crs_gives_spacing_in_its_own_unit(tmp_path, unit, metres):
+    # fuzz finding: mutated GeoKeys turned a UTM CRS into LOCAL_CS["...", UNIT["metre", 1]], which was refused:
+    # "cannot tell the linear unit of its CRS" (rasterio defines linear_units_factor for projected CRSs only)
+    from rasterio.crs import CRS
+
+    wkt = f'LOCAL_CS["site",UNIT["{unit}",{metres!r}],AXIS["Easting",EAST],AXIS["Northing",NORTH]]'
+    p = _geotiff(tmp_path / "site.tif", np.ones((4, 4), np.float32), crs=CRS.from_wkt(wkt),
+                 transform=from_origin(0, 40, 10, 10))
+    hm = Heightmap.load(p)
+    assert hm.dx == pytest.approx(10 * metres, rel=1e-12) and hm.dz == pytest.approx(10 * metres, rel=1e-12)
+    assert hm.meta["crs_kind"] == "local" and hm.meta["linear_unit"] == unit
+    assert Heightmap.open(p).dx == hm.dx
+
+
 @pytest.mark.parametrize("dx, kind", [(math.nan, ValueError), (-3.0, ValueError), (0, ValueError),
                                       ("30", TypeError), (True, TypeError)])
 def test_spacing_overrides_are_numbers_for_load_and_open(tmp_path, dx, kind):
