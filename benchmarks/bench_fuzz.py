@@ -38,8 +38,8 @@ def _top(counter: Counter, n: int = 8) -> str:
 def _details(counts, args, plan: dict[str, int]) -> str:
     lines = [f"Seed {args.seed}; {sum(plan.values())} cases in {counts.wall_s:.0f} s wall "
              f"({counts.wall_s / 60:.1f} min) on one worker process; hang limit {HANG_S:.0f} s per case, address "
-             f"space {args.memory_mb} MiB, size guard told {GUARD_MB} MiB; worker restarts: {counts.restarts}. Findings kept under "
-             f"`{args.findings}` (input files and finding.json).", "",
+             f"space {args.memory_mb} MiB, size guard told {GUARD_MB} MiB; worker restarts: {counts.restarts}. "
+             f"Findings kept under `{args.findings}` (input files and finding.json).", "",
              counts_table(counts), "",
              "Verdicts: *ok* loaded (and passed the loader's own rules; a streamed GeoTIFF also equals its in-memory "
              "load) or the command succeeded; *ValueError / TypeError / OSError* a refusal of that kind whose message "

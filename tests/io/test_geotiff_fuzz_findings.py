@@ -15,7 +15,8 @@ import rasterio
 from affine import Affine
 from rasterio.transform import from_origin
 
-from terrainwarp import Heightmap, StreamedHeightmap
+from terrainwarp import Heightmap
+from terrainwarp.heightmap import StreamedHeightmap
 from terrainwarp.io.geotiff import check_tiff_layout
 from terrainwarp.io.tiles import ArraySource, FbmSource, TileCache
 from terrainwarp.kernels.noise import MAX_OCTAVES
