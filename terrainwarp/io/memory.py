@@ -30,14 +30,7 @@ def available_bytes() -> int | None:
     """Memory this process can still use, in bytes: MemAvailable from /proc/meminfo (Linux), else the free
     physical pages (``os.sysconf``); lowered to what a cgroup (v2) memory limit leaves, and to what an
     address-space limit (``ulimit -v``) leaves. None when the machine does not say (then nothing is refused)."""
-    avail = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                avail = int(line.split()[1]) * 1024
-                break
-    except (OSError, ValueError, IndexError):
-        pass
+    avail = _proc_bytes("/proc/meminfo", "MemAvailable")
     if avail is None:
         try:
             avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
@@ -67,15 +60,18 @@ def _address_space_left() -> int | None:
         return None
     if soft == resource.RLIM_INFINITY:
         return None
-    size = 0
+    return max(int(soft) - (_proc_bytes("/proc/self/status", "VmSize") or 0), 0)
+
+
+def _proc_bytes(path: str, key: str) -> int | None:
+    """A ``key:  N kB`` line of a /proc file, in bytes; None when there is no such file or line."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmSize:"):
-                size = int(line.split()[1]) * 1024
-                break
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
-    return max(int(soft) - size, 0)
+    return None
 
 
 def format_bytes(n: float) -> str:
