@@ -62,6 +62,7 @@ GROUND_CLEARANCE = 0.02
 HIGH_CLEARANCE = 0.10
 PATH_PRESETS = {"ground": GROUND_CLEARANCE, "high": HIGH_CLEARANCE}
 PATH_FOV_Y_DEG = 60.0  # every path's field of view unless its [path] table gives fov_y_deg
+MAX_PATH_CAMERAS = 100_000  # a path's cameras at most (n = 2^31 would allocate for minutes, then fail)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -332,7 +333,7 @@ class CameraPath:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: the checked values
         check_choice("path.kind", self.kind, ("flyover", "orbit"))
         check_choice("path.units", self.units, ("fraction", "m"))
-        set_("n", check_int("path.n", self.n, 1))
+        set_("n", check_int("path.n", self.n, 1, MAX_PATH_CAMERAS))
         set_("fov_y_deg", check_number("path.fov_y_deg", self.fov_y_deg, 0.0, 180.0, lo_open=True, hi_open=True))
         if self.preset is not None:
             check_choice("path.preset", self.preset, PATH_PRESETS)
@@ -362,8 +363,11 @@ def _waypoints(w: object, units: str) -> tuple[tuple[float, float], ...]:
         raise ValueError(f"path.waypoints: expected at least 2 [x, z] pairs, got {w!r}")
     hi = 1.0 if units == "fraction" else None
     lo = 0.0 if units == "fraction" else None
-    return tuple((check_number(f"path.waypoints[{i}][0]", a, lo, hi), check_number(f"path.waypoints[{i}][1]", b, lo,
-                                                                                   hi)) for i, (a, b) in enumerate(w))
+    pts = tuple((check_number(f"path.waypoints[{i}][0]", a, lo, hi), check_number(f"path.waypoints[{i}][1]", b, lo,
+                                                                                  hi)) for i, (a, b) in enumerate(w))
+    if len(set(pts)) == 1:
+        raise ValueError(f"path.waypoints: the path has zero length (every waypoint is {list(pts[0])})")
+    return pts
 
 
 def _attribute_docs(cls: type) -> dict[str, str]:
@@ -508,7 +512,7 @@ class Scene:
         ``clearance_m``, ``clearance_fraction`` (of the extent) and ``waypoints_m``; for an orbit
         ``radius_m`` and ``elevation_m``; and ``text``, one line describing it."""
         d = self.path
-        n = d.n if n is None else check_int("n", n, 1)
+        n = d.n if n is None else check_int("n", n, 1, MAX_PATH_CAMERAS)
         if preset is not None:
             check_choice("preset", preset, PATH_PRESETS)
         hm = self.heightmap
@@ -563,6 +567,8 @@ class Scene:
         kw = {k: r[k] for k in ("mesh", "light_azimuth_deg", "light_elevation_deg", "cull_back", "shading")
               if k in r}
         if "outputs" in r:
+            if not isinstance(r["outputs"], list) or not all(isinstance(o, str) for o in r["outputs"]):
+                raise TypeError(f"render.outputs: expected a list of output names, got {r['outputs']!r}")
             kw["outputs"] = tuple(r["outputs"])
         if "lod" in data:
             _check_keys("lod", data["lod"], set(SCENE_FILE["lod"]))
