@@ -40,7 +40,7 @@ from ..camera import Camera
 from ..heightmap import Heightmap
 from ..io.display import html_table
 from ..kernels.metrics import pixel_error
-from .sample_error import SampleError
+from .sample_error import SampleError, percentile
 
 __all__ = ["ErrorStats", "FrameError", "pixel_positions", "reference_height", "frame_error"]
 
@@ -209,8 +209,8 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
         return float(f(a)) if len(a) else 0.0
 
     stats = ErrorStats(
-        max_px=q(err, np.max), p99_px=q(err, lambda a: np.percentile(a, 99)), mean_px=q(err, np.mean),
-        approx_max_px=q(approx, np.max), approx_p99_px=q(approx, lambda a: np.percentile(a, 99)),
+        max_px=q(err, np.max), p99_px=q(err, lambda a: percentile(a, 99)), mean_px=q(err, np.mean),
+        approx_max_px=q(approx, np.max), approx_p99_px=q(approx, lambda a: percentile(a, 99)),
         covered=n, mismatched=0, silhouette=0, cracks=0, max_depth_diff=0.0)
     if ref_triangle_id is not None:
         rc = ref_triangle_id >= 0

@@ -60,6 +60,7 @@ Measurement, not pipeline: the per-sample work runs in float64. Deterministic: i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,7 +71,7 @@ from ..kernels import sample_error as _k
 from ..kernels.pool import pooled
 from ..mesh import Mesh
 
-__all__ = ["SampleError", "PopStats", "surface_heights", "sample_error", "popping", "STATES"]
+__all__ = ["SampleError", "PopStats", "surface_heights", "sample_error", "popping", "STATES", "percentile"]
 
 STATES = {"visible": _k.VISIBLE, "no_data": _k.NO_DATA, "outside": _k.OUTSIDE, "hidden": _k.HIDDEN,
           "missing": _k.MISSING}
@@ -199,13 +200,22 @@ def _measure(heightmap: Heightmap, camera: Camera, ya: np.ndarray | None, yb: np
                                   (heightmap.dx, heightmap.dz), mvp, camera.near, camera.far, device=device)
 
 
+def percentile(a: np.ndarray, q: float) -> float:
+    """``np.percentile(a, q)`` where ``a`` may hold +inf (a point behind the eye is infinitely far on screen):
+    numpy's interpolation gives NaN (inf - inf, with a RuntimeWarning) when a neighbour is infinite; the
+    percentile is +inf then."""
+    with np.errstate(invalid="ignore"):
+        v = float(np.percentile(a, q))
+    return math.inf if math.isnan(v) and np.isposinf(a).any() else v
+
+
 def _summary(err: np.ndarray, state: np.ndarray) -> dict[str, float | int]:
     vis = state == _k.VISIBLE
     e = err[vis]
     counts = {k: int(np.count_nonzero(state == v)) for k, v in STATES.items()}
     if not e.size:
         return {"p99_px": 0.0, "max_px": 0.0, "mean_px": 0.0, **counts}
-    return {"p99_px": float(np.percentile(e, 99)), "max_px": float(e.max()), "mean_px": float(e.mean()), **counts}
+    return {"p99_px": percentile(e, 99), "max_px": float(e.max()), "mean_px": float(e.mean()), **counts}
 
 
 def _as_map(err: np.ndarray) -> np.ndarray:

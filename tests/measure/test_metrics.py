@@ -114,3 +114,16 @@ def test_tiny_viewport_with_images_has_no_ssim_but_no_crash():
     st = frame_error(hm, cam, pos, cam.position, tri, f.triangle_id, f.barycentrics, image=img, ref_image=img + 1)
     # SSIM needs a 7x7 window; PSNR of images 1 level apart everywhere: MSE 1, so 20 log10(255) = 48.13 dB
     assert st.ssim is None and st.psnr_db == pytest.approx(20 * np.log10(255.0), abs=1e-9)
+
+
+def test_a_percentile_over_infinite_errors_is_infinite_not_nan():
+    """A point behind the eye is +inf px; numpy's interpolation made the p99 NaN (inf - inf) with a warning."""
+    import warnings
+
+    from terrainwarp.measure.sample_error import percentile
+
+    a = np.array([1.0, 2.0, np.inf] * 50)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert percentile(a, 99) == np.inf and percentile(a, 10) == 1.0
+        assert percentile(np.arange(101.0), 99) == 99.0
