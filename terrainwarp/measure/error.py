@@ -181,8 +181,8 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
                 triangles: np.ndarray, triangle_id: np.ndarray, barycentrics: np.ndarray,
                 depth: np.ndarray | None = None, ref_triangle_id: np.ndarray | None = None,
                 ref_depth: np.ndarray | None = None, image: np.ndarray | None = None,
-                ref_image: np.ndarray | None = None, keep_maps: bool = False) -> ErrorStats:
-    """Measure one LOD frame.
+                ref_image: np.ndarray | None = None, keep_maps: bool = False, device: str = "cpu") -> ErrorStats:
+    """Measure one LOD frame (the per-pixel error pass runs on ``device``).
 
     Args:
         heightmap: the full-resolution terrain (the reference surface).
@@ -198,7 +198,7 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
     cov = triangle_id >= 0
     m = camera.proj_matrix() @ camera.view_matrix(relative=True)
     emap, amap = pixel_error(triangle_id, barycentrics, positions, triangles, heightmap.heights, eye,
-                             heightmap.origin, (heightmap.dx, heightmap.dz), m, camera.focal_px)
+                             heightmap.origin, (heightmap.dx, heightmap.dz), m, camera.focal_px, device=device)
     err = emap[cov]
     err = np.where(err >= 1e300, np.inf, err)
     approx = amap[cov]

@@ -522,7 +522,8 @@ def _stage_error(run: _Run, rec: StageRecord) -> None:
     primary = sample_error(run.hm, run.cam, mesh, run.ref_depth, keep_map=True, device=run.device)
     image = frame_error(run.hm, run.cam, mesh.positions, mesh.eye, mesh.triangles, frame.triangle_id,
                         frame.barycentrics, frame.depth, run.ref_tri, run.ref_depth,
-                        image=frame.image if ref_img is not None else None, ref_image=ref_img, keep_maps=True)
+                        image=frame.image if ref_img is not None else None, ref_image=ref_img, keep_maps=True,
+                        device=run.device)
     frame.error = e = FrameError.combine(primary, image)
     rec.counters.update(max_px=round(e.max_px, 4), p99_px=round(e.p99_px, 4),
                         image_err_p99_px=round(e.image_err_p99_px, 4), cracks=e.cracks)
