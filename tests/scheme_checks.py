@@ -33,20 +33,21 @@ def top_down(hm: Heightmap, height_m: float, width: int = 96, height: int = 64) 
                   width=width, height=height, near=1.0, far=1e5)
 
 
-def coverage(hm: Heightmap, cam: Camera, source: object) -> tuple[object, np.ndarray, np.ndarray]:
+def coverage(hm: Heightmap, cam: Camera, source: object, device: str = "cpu") -> tuple[object, np.ndarray, np.ndarray]:
     """(the scheme's frame, its covered pixels, the full grid frame's covered pixels)."""
     scene = Scene(heightmap=hm, camera=cam, outputs=("depth",))
-    grid = render(scene)
-    frame = render(scene, source=source)
+    grid = render(scene, device=device)
+    frame = render(scene, source=source, device=device)
     return frame, frame.depth < 1.0, grid.depth < 1.0
 
 
-def assert_crack_free(hm: Heightmap, cam: Camera, source: object, error_px: float, what: str) -> np.ndarray:
+def assert_crack_free(hm: Heightmap, cam: Camera, source: object, error_px: float, what: str,
+                      device: str = "cpu") -> np.ndarray:
     """No background seen through the terrain: the covered pixels have no holes, and every pixel the full grid
     covers but the scheme does not lies on the terrain's silhouette (within the scheme's screen error, plus a
     pixel, of the grid frame's background), where a coarser surface legitimately shows sky. Returns the
     scheme frame's depth."""
-    frame, got, want = coverage(hm, cam, source)
+    frame, got, want = coverage(hm, cam, source, device)
     assert np.array_equal(ndimage.binary_fill_holes(got), got), f"{what}: holes inside the terrain"
     to_background = ndimage.distance_transform_edt(want)
     lost = want & ~got
@@ -62,11 +63,11 @@ def assert_fills_view(hm: Heightmap, cam: Camera, source: object, what: str) -> 
     assert got.all(), f"{what}: {int((~got).sum())} background pixels seen through the terrain"
 
 
-def finest_error(hm: Heightmap, cam: Camera, source: object) -> float:
+def finest_error(hm: Heightmap, cam: Camera, source: object, device: str = "cpu") -> float:
     scene = Scene(heightmap=hm, camera=cam, outputs=("depth",))
-    grid = render(scene)
-    frame = render(scene.with_(outputs=("mesh",)), source=source)
-    return sample_error(hm, cam, frame.mesh, grid.depth).max_px
+    grid = render(scene, device=device)
+    frame = render(scene.with_(outputs=("mesh",)), source=source, device=device)
+    return sample_error(hm, cam, frame.mesh, grid.depth, device=device).max_px
 
 
 def mesh_digest(source: object, cams: list[Camera]) -> str:

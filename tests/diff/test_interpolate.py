@@ -130,7 +130,7 @@ def test_warp_tape_gradients_match_finite_differences():
     np.testing.assert_allclose(g_clip, fd_clip, rtol=1e-3, atol=1e-3 * scale)
 
 
-def test_jax_gradients_through_warp_jax_kernel_match_the_tape_and_finite_differences():
+def test_jax_gradients_through_warp_jax_kernel_match_the_tape_and_finite_differences(jax_device):
     pos, tri, view, proj, clip, ids, attr = small_scene()
     h, w = ids.shape
     wts = np.random.default_rng(3).normal(size=(h, w, 3)).astype(np.float32)

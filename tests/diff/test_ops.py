@@ -160,7 +160,7 @@ def terrain_scene(size=9, w=20, h=14):
 # ------------------------------------------------------------------------------------------------
 
 
-def test_rasterize_gives_tw_rasterize_pixels_under_jit():
+def test_rasterize_gives_tw_rasterize_pixels_under_jit(jax_device):
     clip, tri, ids, _ = occluder_scene()
     f = tw.kernels.raster.rasterize_clip(clip, tri, 24, 18)
     jids, depth = jax.jit(lambda c: diff.rasterize(c, tri, 24, 18))(jnp.asarray(clip))
@@ -182,7 +182,7 @@ def test_topology_pairs_triangles_across_shared_edges():
 # ------------------------------------------------------------------------------------------------
 
 
-def test_antialias_forward_matches_the_float64_reference():
+def test_antialias_forward_matches_the_float64_reference(jax_device):
     clip, tri, ids, color = occluder_scene()
     nbr = diff.topology(tri)
     out = np.asarray(diff.antialias(color, ids, clip, tri, nbr))
@@ -198,7 +198,7 @@ def test_antialias_forward_matches_the_float64_reference():
     assert inner.sum() >= 3 and np.array_equal(out[inner], color[inner])
 
 
-def test_antialias_gradients_match_finite_differences():
+def test_antialias_gradients_match_finite_differences(jax_device):
     clip, tri, ids, color = occluder_scene()
     nbr = diff.topology(tri)
     wts = np.random.default_rng(6).normal(size=color.shape).astype(np.float32)
@@ -228,7 +228,7 @@ def _coverage(clip, tri, nbr, w, h):
     return jnp.sum(diff.antialias(one, ids, clip, tri, nbr))
 
 
-def test_antialias_moves_a_silhouette_across_pixel_centres():
+def test_antialias_moves_a_silhouette_across_pixel_centres(jax_device):
     """One white triangle on black: the antialiased coverage sum approximates the triangle's area in pixels,
     a continuous function of the vertices (up to jumps of about half a pixel where the ids change near a
     vertex), although the ids change whenever an edge crosses a pixel centre. Moving one vertex by 3 pixels
@@ -285,7 +285,7 @@ def test_antialias_gradient_through_occlusion_on_a_terrain():
 # ------------------------------------------------------------------------------------------------
 
 
-def test_displace_matches_the_reference_and_its_gradients():
+def test_displace_matches_the_reference_and_its_gradients(jax_device):
     rng = np.random.default_rng(7)
     heights = rng.uniform(0, 50, (5, 7)).astype(np.float32)
     uv = np.concatenate([rng.uniform(0, 1, (40, 2)), [[0, 0], [1, 1], [1, 0], [0.5, 1.0]]]).astype(np.float32)
@@ -303,7 +303,7 @@ def test_displace_matches_the_reference_and_its_gradients():
         diff.displace(heights, 10.0, 12.0, uv[:, :1], eye)
 
 
-def test_displace_at_grid_uv_is_the_grid_mesh():
+def test_displace_at_grid_uv_is_the_grid_mesh(jax_device):
     heights, uv, tri, eye, _ = terrain_scene()
     pos = np.asarray(diff.displace(heights, 10.0, 10.0, uv, eye))
     size = heights.shape[0]
@@ -333,7 +333,7 @@ def _pipeline_grads():
     return digest(*[np.asarray(x) for x in g]), g
 
 
-def test_gradients_are_bit_identical_across_runs_and_thread_counts():
+def test_gradients_are_bit_identical_across_runs_and_thread_counts(jax_device):
     base, g = _pipeline_grads()
     assert all(np.abs(np.asarray(x)).max() > 0 for x in g)
     assert _pipeline_grads()[0] == base

@@ -26,11 +26,11 @@ def window_to_clip(xy: np.ndarray, width: int, height: int, z: float | np.ndarra
     return out.astype(np.float32)
 
 
-def coverage_counts(clip, tris, width, height):
+def coverage_counts(clip, tris, width, height, device="cpu"):
     """How many of the triangles cover each pixel, drawing each alone."""
     cnt = np.zeros((height, width), np.int32)
     for t in tris:
-        f = rasterize_clip(clip, np.asarray([t], np.int32), width, height)
+        f = rasterize_clip(clip, np.asarray([t], np.int32), width, height, device=device)
         cnt += f.triangle_id >= 0
     return cnt
 
@@ -39,41 +39,42 @@ def frame_hash(f) -> str:
     return digest(f.triangle_id, f.depth, f.barycentrics)
 
 
-def terrain_frame(rows=96, width=160, height=120):
+def terrain_frame(rows=96, width=160, height=120, device="cpu"):
     from terrainwarp.kernels.displacement import grid_mesh
 
     hm = tw.Heightmap.fbm(rows, rows, seed=3)
     cam = tw.Camera.default_for(hm, width=width, height=height)
     eye = cam.position
-    pos, _, tri = grid_mesh(hm.heights, hm.dx, hm.dz, (hm.origin[0] - eye[0], eye[1], hm.origin[1] - eye[2]))
+    pos, _, tri = grid_mesh(hm.heights, hm.dx, hm.dz, (hm.origin[0] - eye[0], eye[1], hm.origin[1] - eye[2]),
+                            device=device)
     return pos, tri, cam
 
 
 # -- fill rule ---------------------------------------------------------------------------------------
 
 
-def test_shared_edge_through_pixel_centres_covers_each_pixel_once():
+def test_shared_edge_through_pixel_centres_covers_each_pixel_once(device):
     w, h = 16, 12
     # a square whose corners and diagonal lie exactly on pixel centres
     xy = np.array([[2.5, 2.5], [12.5, 2.5], [12.5, 9.5], [2.5, 9.5]])
     clip = window_to_clip(xy, w, h)
     tris = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
-    cnt = coverage_counts(clip, tris, w, h)
+    cnt = coverage_counts(clip, tris, w, h, device=device)
     assert cnt.max() == 1
-    both = rasterize_clip(clip, tris, w, h).triangle_id
+    both = rasterize_clip(clip, tris, w, h, device=device).triangle_id
     assert np.array_equal(both >= 0, cnt == 1)
     # the diagonal's centres (x - 2.5 == (y - 2.5) * 10 / 7 has none here besides corners); use a
     # 45-degree square as well, whose diagonal passes through 8 pixel centres
     xy = np.array([[2.5, 1.5], [10.5, 1.5], [10.5, 9.5], [2.5, 9.5]])
     clip = window_to_clip(xy, w, h)
-    cnt = coverage_counts(clip, tris, w, h)
+    cnt = coverage_counts(clip, tris, w, h, device=device)
     assert cnt.max() == 1
     # inside pixels all covered: columns 3..10 (centres 3.5..10.5 ... left edge at 2.5 included)
-    ids = rasterize_clip(clip, tris, w, h).triangle_id
+    ids = rasterize_clip(clip, tris, w, h, device=device).triangle_id
     assert (ids >= 0).sum() == (cnt == 1).sum() == 8 * 8
 
 
-def test_fan_around_a_pixel_centre_covers_each_pixel_once():
+def test_fan_around_a_pixel_centre_covers_each_pixel_once(device):
     w, h = 24, 24
     c = np.array([12.5, 12.5])  # a pixel centre
     k = 7
@@ -84,10 +85,10 @@ def test_fan_around_a_pixel_centre_covers_each_pixel_once():
     xy = np.vstack([c, ring])
     clip = window_to_clip(xy, w, h)
     tris = np.array([[0, 1 + i, 1 + (i + 1) % k] for i in range(k)], np.int32)
-    cnt = coverage_counts(clip, tris, w, h)
+    cnt = coverage_counts(clip, tris, w, h, device=device)
     assert cnt.max() == 1
     assert cnt[h - 1 - 12, 12] == 1  # the centre pixel itself, exactly once
-    ids = rasterize_clip(clip, tris, w, h).triangle_id
+    ids = rasterize_clip(clip, tris, w, h, device=device).triangle_id
     assert np.array_equal(ids >= 0, cnt == 1)
 
 
@@ -187,7 +188,7 @@ def _reference_coverage(clip64, w, h):
     return inside, margin
 
 
-def test_near_plane_crossing_triangle_is_drawn_correctly_never_flipped():
+def test_near_plane_crossing_triangle_is_drawn_correctly_never_flipped(device):
     w, h = 64, 48
     near, far = 0.5, 100.0
     cam_proj = tw.Camera(position=(0, 0, 0), target=(0, 0, -1), width=w, height=h, near=near,
@@ -198,7 +199,7 @@ def test_near_plane_crossing_triangle_is_drawn_correctly_never_flipped():
         tri = np.array([order], np.int32)
         clip64 = np.c_[pos.astype(np.float64), np.ones(3)] @ (cam_proj @ I4).T
         ref, margin = _reference_coverage(clip64, w, h)
-        f = rasterize(pos, tri, I4, cam_proj, w, h)
+        f = rasterize(pos, tri, I4, cam_proj, w, h, device=device)
         got = f.triangle_id >= 0
         assert ref.sum() > 200
         assert np.all(got[ref & (margin > 1e-3)])
@@ -207,14 +208,14 @@ def test_near_plane_crossing_triangle_is_drawn_correctly_never_flipped():
         assert not got[: h // 2 - 1].any()
         # facing is preserved through clipping: the first order is counter-clockwise seen from above
         # (normal +y), so it faces the camera above the floor and culling keeps it; the other is culled
-        culled = rasterize(pos, tri, I4, cam_proj, w, h, cull_back=True).triangle_id >= 0
+        culled = rasterize(pos, tri, I4, cam_proj, w, h, cull_back=True, device=device).triangle_id >= 0
         if order == [0, 1, 2]:
             assert np.array_equal(culled, got)
         else:
             assert not culled.any()
 
 
-def test_moving_a_vertex_by_less_than_half_a_subpixel_changes_no_pixel():
+def test_moving_a_vertex_by_less_than_half_a_subpixel_changes_no_pixel(device):
     rng = np.random.default_rng(5)
     w, h = 48, 40
     # vertices exactly on the 1/256-pixel grid, away from pixel centres by construction of rounding
@@ -222,37 +223,37 @@ def test_moving_a_vertex_by_less_than_half_a_subpixel_changes_no_pixel():
     # one depth for all (ties go by id), so that only coverage can change
     clip = window_to_clip(xy, w, h, 0.3)
     tris = np.arange(600, dtype=np.int32).reshape(-1, 3)
-    f0 = rasterize_clip(clip, tris, w, h)
+    f0 = rasterize_clip(clip, tris, w, h, device=device)
     for _ in range(3):
         d = rng.uniform(-0.45, 0.45, xy.shape) / SUBPIXEL  # < 1/512 px: same snapped position
-        f1 = rasterize_clip(window_to_clip(xy + d, w, h, clip[:, 2]), tris, w, h)
+        f1 = rasterize_clip(window_to_clip(xy + d, w, h, clip[:, 2]), tris, w, h, device=device)
         assert np.array_equal(f0.triangle_id, f1.triangle_id)
         assert np.array_equal(f0.depth, f1.depth)
     # and a move by a whole sub-pixel step does change something somewhere
-    f2 = rasterize_clip(window_to_clip(xy + 3.0 / SUBPIXEL, w, h, clip[:, 2]), tris, w, h)
+    f2 = rasterize_clip(window_to_clip(xy + 3.0 / SUBPIXEL, w, h, clip[:, 2]), tris, w, h, device=device)
     assert not np.array_equal(f0.triangle_id, f2.triangle_id)
 
 
-def test_depth_ties_go_to_the_lower_triangle_id_whatever_the_order():
+def test_depth_ties_go_to_the_lower_triangle_id_whatever_the_order(device):
     w, h = 32, 32
     xy = np.array([[2.0, 3.0], [30.0, 5.0], [9.0, 29.0]])
     clip = window_to_clip(np.vstack([xy, xy]), w, h, 0.25)
     for tris in (np.array([[0, 1, 2], [3, 4, 5]], np.int32), np.array([[3, 4, 5], [0, 1, 2]], np.int32)):
-        ids = rasterize_clip(clip, tris, w, h).triangle_id
+        ids = rasterize_clip(clip, tris, w, h, device=device).triangle_id
         assert set(np.unique(ids)) == {-1, 0}
     # nearer wins regardless of id
     clip2 = clip.copy()
     clip2[3:, 2] = 0.1
-    ids = rasterize_clip(clip2, np.array([[0, 1, 2], [3, 4, 5]], np.int32), w, h).triangle_id
+    ids = rasterize_clip(clip2, np.array([[0, 1, 2], [3, 4, 5]], np.int32), w, h, device=device).triangle_id
     assert set(np.unique(ids)) == {-1, 1}
 
 
-def test_depth_is_window_depth_and_matches_an_analytic_plane():
+def test_depth_is_window_depth_and_matches_an_analytic_plane(device):
     w, h = 40, 30
     cam = tw.Camera(position=(0, 5, 0), target=(0, 0, -20), width=w, height=h, near=1.0, far=200.0)
     view, proj = cam.view_matrix(), cam.proj_matrix()
     pos = np.array([[-50, 0, 5], [50, 0, 5], [0, 0, -150]], np.float32)  # the ground plane y = 0
-    f = rasterize(pos, np.array([[0, 1, 2]], np.int32), view, proj, w, h)
+    f = rasterize(pos, np.array([[0, 1, 2]], np.int32), view, proj, w, h, device=device)
     m = f.triangle_id >= 0
     assert m.sum() > 100
     # analytic: intersect each pixel's ray with y = 0, project, window depth
@@ -275,17 +276,18 @@ def test_depth_is_window_depth_and_matches_an_analytic_plane():
 # -- edge cases -------------------------------------------------------------------------------------
 
 
-def test_empty_mesh_and_degenerate_triangles_draw_nothing():
+def test_empty_mesh_and_degenerate_triangles_draw_nothing(device):
     w, h = 16, 16
-    f = rasterize(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), I4, I4, w, h)
+    f = rasterize(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), I4, I4, w, h, device=device)
     assert (f.triangle_id == -1).all() and (f.depth == 1.0).all() and f.stats["triangles_in"] == 0
     pos = np.array([[0, 0, 0], [0.5, 0.5, 0], [-0.5, -0.5, 0], [0.3, -0.7, 0]], np.float32)
     tris = np.array([[0, 0, 0], [0, 1, 2], [1, 1, 3], [3, 3, 3]], np.int32)  # point, collinear, line, point
-    f = rasterize(pos, tris, I4, I4, w, h)
+    f = rasterize(pos, tris, I4, I4, w, h, device=device)
     assert (f.triangle_id == -1).all()
     assert f.stats["triangles_rasterized"] == 0 and f.stats["pixels_covered"] == 0
     # triangles entirely behind the eye or beyond the far plane
-    f = rasterize(np.array([[0, 0, 2], [1, 0, 2], [0, 1, 2]], np.float32), np.array([[0, 1, 2]]), I4, I4, w, h)
+    f = rasterize(np.array([[0, 0, 2], [1, 0, 2], [0, 1, 2]], np.float32), np.array([[0, 1, 2]]), I4, I4, w, h,
+                  device=device)
     assert (f.triangle_id == -1).all()
 
 
@@ -310,20 +312,20 @@ def test_bad_input_is_rejected_with_the_argument_named():
         rasterize(np.full((3, 3), np.nan, np.float32), tri, I4, I4, 8, 8)
 
 
-def test_one_pixel_viewport():
+def test_one_pixel_viewport(device):
     pos = np.array([[-1, -1, 0], [1, -1, 0], [0, 1, 0]], np.float32)
-    f = rasterize(pos, np.array([[0, 1, 2]], np.int32), I4, I4, 1, 1)
+    f = rasterize(pos, np.array([[0, 1, 2]], np.int32), I4, I4, 1, 1, device=device)
     assert f.triangle_id.shape == (1, 1) and f.triangle_id[0, 0] == 0
     assert abs(float(f.depth[0, 0]) - 0.5) < 1e-6
-    f = rasterize(pos * 0.2 + np.float32([0.5, 0.5, 0]), np.array([[0, 1, 2]], np.int32), I4, I4, 1, 1)
+    f = rasterize(pos * 0.2 + np.float32([0.5, 0.5, 0]), np.array([[0, 1, 2]], np.int32), I4, I4, 1, 1, device=device)
     assert f.triangle_id[0, 0] == -1  # does not reach the single centre
 
 
-def test_8192_viewport_covers_exactly_like_a_scaled_small_one():
+def test_8192_viewport_covers_exactly_like_a_scaled_small_one(device):
     w = 8192
     pos = np.array([[-0.9, -0.8, 0.1], [0.95, -0.3, 0.2], [-0.2, 0.85, -0.4], [0.9, 0.9, 0.5]], np.float32)
     tris = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
-    f = rasterize(pos, tris, I4, I4, w, w)
+    f = rasterize(pos, tris, I4, I4, w, w, device=device)
     assert f.triangle_id.shape == (w, w)
     cnt = np.bincount(f.triangle_id.ravel() + 1, minlength=3)
     # areas in pixels: ndc area * (w / 2)^2, to within the perimeter
@@ -338,25 +340,25 @@ def test_8192_viewport_covers_exactly_like_a_scaled_small_one():
     assert f.triangle_id[0, 0] == -1 and f.triangle_id[-1, -1] == -1
 
 
-def test_deterministic_and_counts_reported():
-    pos, tri, cam = terrain_frame()
+def test_deterministic_and_counts_reported(device):
+    pos, tri, cam = terrain_frame(device=device)
     args = (pos, tri, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width, cam.height)
-    f1, f2 = rasterize(*args), rasterize(*args)
+    f1, f2 = rasterize(*args, device=device), rasterize(*args, device=device)
     assert frame_hash(f1) == frame_hash(f2)
     s = f1.stats
     assert s["triangles_in"] == len(tri)
     assert 0 < s["triangles_rasterized"] <= s["triangles_in"]
     assert s["fragments_tested"] >= s["fragments_inside"] >= s["pixels_written"] >= s["pixels_covered"] > 0
     # back-face culling of a terrain seen from above keeps the same image (the terrain faces up)
-    f3 = rasterize(*args, cull_back=True)
+    f3 = rasterize(*args, cull_back=True, device=device)
     assert f3.stats["triangles_rasterized"] <= s["triangles_rasterized"]
     assert ((f3.triangle_id >= 0) != (f1.triangle_id >= 0)).mean() < 0.01
 
 
-def test_barycentrics_reconstruct_the_pixel_centre():
-    pos, tri, cam = terrain_frame(rows=48, width=64, height=48)
+def test_barycentrics_reconstruct_the_pixel_centre(device):
+    pos, tri, cam = terrain_frame(rows=48, width=64, height=48, device=device)
     view, proj = cam.view_matrix(relative=True), cam.proj_matrix()
-    f = rasterize(pos, tri, view, proj, cam.width, cam.height)
+    f = rasterize(pos, tri, view, proj, cam.width, cam.height, device=device)
     ys, xs = np.nonzero(f.triangle_id >= 0)
     t = f.triangle_id[ys, xs]
     b = f.barycentrics[ys, xs].astype(np.float64)
@@ -397,12 +399,12 @@ def test_agrees_with_llvmpipe_when_the_camera_is_down_in_the_terrain():
     assert np.abs(f.depth[same] - dep[same]).max() < 1e-4
 
 
-def test_binning_tests_only_tiles_a_large_triangle_can_cover():
+def test_binning_tests_only_tiles_a_large_triangle_can_cover(device):
     w, h = 512, 512
     # a long thin diagonal triangle: its bounding box is the whole screen, its area ~1% of it
     xy = np.array([[4.0, 2.0], [508.0, 500.0], [500.0, 510.0]])
     clip = window_to_clip(xy, w, h, 0.0)
-    f = rasterize_clip(clip, np.array([[0, 1, 2]], np.int32), w, h)
+    f = rasterize_clip(clip, np.array([[0, 1, 2]], np.int32), w, h, device=device)
     s = f.stats
     assert s["triangles_binned"] == 1
     covered = s["pixels_covered"]
@@ -414,12 +416,12 @@ def test_binning_tests_only_tiles_a_large_triangle_can_cover():
 
 
 @needs_gl
-def test_depth_one_is_not_drawn_as_gl_less_against_a_cleared_buffer():
+def test_depth_one_is_not_drawn_as_gl_less_against_a_cleared_buffer(device):
     w, h = 32, 24
     clip = np.array([[-0.9, -0.9, 1.0, 1.0], [0.9, -0.8, 1.0, 1.0], [0.0, 0.9, 1.0, 1.0],  # on the far plane
                      [-0.9, 0.9, 0.0, 1.0], [0.9, 0.9, 2.0, 1.0], [0.0, -0.9, 0.0, 1.0]], np.float32)  # crosses it
     tris = np.array([[0, 1, 2], [3, 4, 5]], np.int32)
-    f = rasterize_clip(clip, tris, w, h)
+    f = rasterize_clip(clip, tris, w, h, device=device)
     ids, dep = gl.gl_rasterize(clip, tris, w, h)
     assert not (f.triangle_id == 0).any()
     assert (f.triangle_id == 1).sum() > 50

@@ -118,16 +118,16 @@ def test_base_neighbours_share_the_hypotenuse(fbm_tree):
     assert np.all(on_border)
 
 
-def test_vertex_heights_nearest3_and_bilinear():
+def test_vertex_heights_nearest3_and_bilinear(device):
     a = np.random.default_rng(1).normal(size=(17, 17)).astype(np.float32) * 50
     hm = tw.Heightmap.from_array(a, 2.0)
-    t3 = Bintree.build(hm, 9)  # G = 16: vertices on every sample
-    tb = Bintree.build(hm, 9, method="bilinear")
+    t3 = Bintree.build(hm, 9, device=device)  # G = 16: vertices on every sample
+    tb = Bintree.build(hm, 9, method="bilinear", device=device)
     vh = t3.arrays["vertex_height"].numpy().reshape(17, 17)
     np.testing.assert_allclose(vh, a, rtol=0, atol=1e-4)  # a vertex on a sample takes it (float32 rounding)
     np.testing.assert_allclose(tb.arrays["vertex_height"].numpy().reshape(17, 17), a, rtol=0, atol=1e-4)
     # finer than the samples: the plane through the three closest samples (float64 reference)
-    t3f = Bintree.build(hm, 11)  # G = 32: half-sample vertices
+    t3f = Bintree.build(hm, 11, device=device)  # G = 32: half-sample vertices
     vf = t3f.arrays["vertex_height"].numpy().reshape(33, 33)
     u, v = 5.5, 3.0  # on a row: two equidistant samples at distance .5 and the plane through 3 closest
     gx, gz = int(u * 2), int(v * 2)
@@ -135,13 +135,13 @@ def test_vertex_heights_nearest3_and_bilinear():
     u, v = 5.5, 3.5  # cell centre: a tie, broken by dropping (1,1): the plane through (0,0),(1,0),(0,1)
     ref = a[3, 5] + 0.5 * (a[3, 6] - a[3, 5]) + 0.5 * (a[4, 5] - a[3, 5])
     assert vf[7, 11] == pytest.approx(ref, abs=1e-3)
-    bil = Bintree.build(hm, 11, method="bilinear").arrays["vertex_height"].numpy().reshape(33, 33)
+    bil = Bintree.build(hm, 11, method="bilinear", device=device).arrays["vertex_height"].numpy().reshape(33, 33)
     assert bil[7, 11] == pytest.approx(a[3:5, 5:7].mean(), abs=1e-3)
     # a plane is reproduced by both
     x, z = np.meshgrid(np.arange(17.0), np.arange(17.0))
     pl = tw.Heightmap.from_array((3 * x - 2 * z + 7).astype(np.float32), 1.0)
     for meth in ("nearest3", "bilinear"):
-        tp = Bintree.build(pl, 11, method=meth)
+        tp = Bintree.build(pl, 11, method=meth, device=device)
         g = tp.vertex_grid_xz(np.arange(33 * 33)) * tp.step
         np.testing.assert_allclose(tp.arrays["vertex_height"].numpy(), 3 * g[:, 0] - 2 * g[:, 1] + 7, atol=1e-4)
 
@@ -171,10 +171,10 @@ def test_lod_threshold_hand_cases():
     assert lod_threshold([4.0, 4.5], 8, 0.5).tolist() == [5, 5]
 
 
-def test_selection_matches_the_formula_hand_case():
+def test_selection_matches_the_formula_hand_case(device):
     """Flat 2x2 km terrain, M = 7: S = 2000 * 2**-3 = 250 m; eye 1 m above the corner (0, 0)."""
     hm = tw.Heightmap.from_array(np.zeros((3, 3), np.float32), 1000.0)
-    t = Bintree.build(hm, 7)
+    t = Bintree.build(hm, 7, device=device)
     assert t.short_side == pytest.approx(250.0)
     cam = tw.Camera(position=(0.0, 1.0, 0.0), target=(1.0, 1.0, 1.0))
     f = select_bintree(t, cam, hole_fix=False, propagate=False, frustum=False)
@@ -333,10 +333,10 @@ def test_bad_input(fbm_tree):
 
 
 @pytest.mark.parametrize("shape", [(2, 2), (1, 5), (5, 1), (3, 7)])
-def test_tiny_grids(shape):
+def test_tiny_grids(shape, device):
     hm = tw.Heightmap.from_array(np.arange(np.prod(shape), dtype=np.float32).reshape(shape), 1.0)
     for depth in (1, 2, 3):
-        t = Bintree.build(hm, depth)
+        t = Bintree.build(hm, depth, device=device)
         f = select_bintree(t, tw.Camera(position=(0.5, 5.0, 0.5), target=(0.6, 0.0, 0.6)), frustum=False)
         assert 2 <= f.stats["triangles"] <= 2 ** depth
         assert np.all(np.isfinite(f.mesh.uv)) and np.all(np.isfinite(f.mesh.positions))
@@ -348,10 +348,7 @@ def test_uv_spans_the_heightmap(fbm_tree):
     assert f.mesh.uv.min() == 0.0 and f.mesh.uv.max() == 1.0  # a square heightmap fills the root square
 
 
-_DEVICES = ["cpu"] + (["cuda:0"] if __import__("warp").is_cuda_available() else [])
-
-
-@pytest.mark.parametrize("device", _DEVICES)
+@pytest.mark.host_launches  # the reference tree is built and walked on the CPU
 def test_devices_agree(device):
     hm = tw.Heightmap.fbm(65, seed=2, dx=10.0, max_height=300.0)
     cpu = Bintree.build(hm, 12)
@@ -539,12 +536,12 @@ def test_walk_matches_the_per_level_reference(name, fbm_tree, dem_tree):
     assert 32 * select_bintree(t, cam, lod=False, frustum=False).mesh.n_vertices >= g1 * g1  # ... all: scanned
 
 
-def test_walk_matches_the_reference_where_propagation_cascades():
+def test_walk_matches_the_reference_where_propagation_cascades(device):
     """Rough terrain (white noise, 300 m over 10 m spacing): forced splits cascade over several passes,
     with base neighbours both ahead of and behind the node that forces them, so the walk's pass count
     follows the sequential passes'."""
     a = np.random.default_rng(0).random((65, 65)).astype(np.float32) * 300
-    t = Bintree.build(tw.Heightmap.from_array(a, 10.0), 12)
+    t = Bintree.build(tw.Heightmap.from_array(a, 10.0), 12, device=device)
     most = 0
     for x, z in [(407.65547988573076, 172.663496808877), (100.0, 500.0), (320.0, 320.0), (600.0, 40.0)]:
         y = float(t.surface_height(x, z)) + 1.8

@@ -110,17 +110,17 @@ def test_vertex_positions_are_continuous_across_range_borders(hm, cdlod):
     assert switched >= 2, "the path must cross range borders"
 
 
-def test_finest_setting_scores_zero(hm):
-    src = CdlodSource(scheme=Cdlod(hm, 1e9, grid=8))
+def test_finest_setting_scores_zero(hm, device):
+    src = CdlodSource(scheme=Cdlod(hm, 1e9, grid=8, device=device))
     for cam in ground_path(hm, 2):
-        assert finest_error(hm, cam, src) == 0.0
+        assert finest_error(hm, cam, src, device=device) == 0.0
 
 
-def test_deterministic(hm, cdlod):
+def test_deterministic(hm, cdlod, device):
     """Two runs, and any thread count, draw the same bytes."""
 
     def make():
-        return CdlodSource(scheme=Cdlod(hm, cdlod.first_range, grid=8))
+        return CdlodSource(scheme=Cdlod(hm, cdlod.first_range, grid=8, device=device))
 
     assert len(digest_over_threads(make, ground_path(hm), (1, 1, 3))) == 1
 

@@ -105,22 +105,22 @@ def test_crack_free_with_skirts(hm, chunked):
     assert_fills_view(hm, top_down(hm, 120.0), src, "chunked")
 
 
-def test_without_skirts_the_frame_would_crack(hm):
+def test_without_skirts_the_frame_would_crack(hm, device):
     """The control: depth-0 skirts leave the gaps the real ones cover (so the coverage check can see cracks)."""
-    src = ChunkedSource(scheme=ChunkedLod(hm, 1.0, tile=TILE, skirt_depth=0.0))
+    src = ChunkedSource(scheme=ChunkedLod(hm, 1.0, tile=TILE, skirt_depth=0.0, device=device))
     cracked = 0
     for cam in ground_path(hm, 5):
         try:
-            assert_crack_free(hm, cam, src, 3.0, "chunked without skirts")
+            assert_crack_free(hm, cam, src, 3.0, "chunked without skirts", device=device)
         except AssertionError:
             cracked += 1
     assert cracked > 0
 
 
-def test_finest_setting_scores_zero(hm):
-    src = ChunkedSource(scheme=ChunkedLod(hm, 0.0, tile=TILE))
+def test_finest_setting_scores_zero(hm, device):
+    src = ChunkedSource(scheme=ChunkedLod(hm, 0.0, tile=TILE, device=device))
     for cam in ground_path(hm, 2):
-        assert finest_error(hm, cam, src) == 0.0
+        assert finest_error(hm, cam, src, device=device) == 0.0
 
 
 def test_no_skirts_on_the_terrain_border(hm, chunked):
@@ -136,11 +136,11 @@ def test_no_skirts_on_the_terrain_border(hm, chunked):
         assert ((sel.skirt_mask >> bit) & 1)[~edge].all()
 
 
-def test_deterministic(hm):
+def test_deterministic(hm, device):
     """Two runs, and any thread count, draw the same bytes."""
 
     def make():
-        return ChunkedSource(scheme=ChunkedLod(hm, 1.0, tile=TILE))
+        return ChunkedSource(scheme=ChunkedLod(hm, 1.0, tile=TILE, device=device))
 
     assert len(digest_over_threads(make, ground_path(hm), (1, 1, 3))) == 1
 

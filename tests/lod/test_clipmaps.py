@@ -111,25 +111,25 @@ def test_stitches_along_every_inner_border(hm, clip):
     assert n_stitch > 0 and (np.diff(stitches, axis=1) > 0).all()
 
 
-def test_finest_setting_scores_zero(hm):
-    src = scheme_source("clipmaps", hm, 511)
+def test_finest_setting_scores_zero(hm, device):
+    src = scheme_source("clipmaps", hm, 511, device=device)
     assert src.scheme.n == 511
     for cam in ground_path(hm, 2):
-        assert finest_error(hm, cam, src) == 0.0
+        assert finest_error(hm, cam, src, device=device) == 0.0
 
 
-def test_high_viewer_drops_fine_levels(hm):
-    clip = Clipmap(hm, N)
+def test_high_viewer_drops_fine_levels(hm, device):
+    clip = Clipmap(hm, N, device=device)
     cam = top_down(hm, 2000.0)
     assert clip.finest_active(cam) > 0
-    assert Clipmap(hm, N, active_height_ratio=None).finest_active(cam) == 0
+    assert Clipmap(hm, N, active_height_ratio=None, device=device).finest_active(cam) == 0
 
 
-def test_deterministic(hm):
+def test_deterministic(hm, device):
     """Two runs, and any thread count, draw the same bytes."""
 
     def make():
-        return ClipmapSource(scheme=Clipmap(hm, N))
+        return ClipmapSource(scheme=Clipmap(hm, N, device=device))
 
     assert len(digest_over_threads(make, ground_path(hm), (1, 1, 3))) == 1
 

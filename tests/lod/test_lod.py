@@ -43,15 +43,15 @@ def _flat(n=257):
     return Heightmap.from_array(np.zeros((n, n), np.float32), 1.0)
 
 
-def test_geometric_error_zero_on_plane_and_exact_on_bump():
+def test_geometric_error_zero_on_plane_and_exact_on_bump(device):
     i, j = np.mgrid[0:129, 0:129]
     plane = Heightmap.from_array((0.3 * j - 0.7 * i + 5.0).astype(np.float32))
-    t = Terrain.prepare(plane, roots=1, tess=8)
+    t = Terrain.prepare(plane, roots=1, tess=8, device=device)
     for _mn, _mx, err in t.stats:
         assert err.max() <= 1e-4  # float32 rounding of the bilinear weights only
     h = np.zeros((129, 129), np.float32)
     h[37, 53] = 10.0  # a one-sample bump, not on any vertex of levels < depth
-    t = Terrain.prepare(Heightmap.from_array(h), roots=1, tess=8)
+    t = Terrain.prepare(Heightmap.from_array(h), roots=1, tess=8, device=device)
     assert t.depth == 4
     # at level L the node spacing is 2**(4-L) cells; (37, 53) is on the vertex grid only at the deepest level
     for lvl, (mn, mx, err) in enumerate(t.stats):
@@ -65,12 +65,12 @@ def test_geometric_error_zero_on_plane_and_exact_on_bump():
     assert t.stats[0][2][0, 0] == 10.0
 
 
-def test_flat_terrain_camera_over_middle_is_symmetric():
+def test_flat_terrain_camera_over_middle_is_symmetric(device):
     hm = _flat()
-    t = Terrain.prepare(hm, roots=4, tess=8)
+    t = Terrain.prepare(hm, roots=4, tess=8, device=device)
     cam = Camera(position=(128.0, 40.0, 128.0), target=(128.0, 0.0, 128.0), up=(0.0, 0.0, -1.0), fov_y_deg=120,
                  width=256, height=256, near=0.5, far=1000.0)
-    pl = select(t, cam, DistancePolicy(k=3.0))
+    pl = select(t, cam, DistancePolicy(k=3.0), device=device)
     assert len(np.unique(pl.level)) > 1
     n = t.roots[0] << t.depth
     cells = {(int(lv), int(x), int(y)) for lv, (_, x, y) in zip(pl.level, np.stack(tile_from_key(pl.key), 1))}
@@ -98,9 +98,9 @@ def _cams(hm, n=4):
 
 
 @pytest.mark.parametrize("policy", [ScreenErrorPolicy(0.5), ScreenErrorPolicy(2.0), DistancePolicy(3.0)])
-def test_balance_and_matching_edge_spacing(dem_terrain, policy):
+def test_balance_and_matching_edge_spacing(dem_terrain, policy, device):
     for cam in _cams(dem_terrain.heightmap):
-        pl = select(dem_terrain, cam, policy)
+        pl = select(dem_terrain, cam, policy, device=device)
         nb = pl.neighbour_level
         has = nb >= 0
         diff = np.abs(nb - pl.level[:, None])[has]
@@ -138,10 +138,10 @@ def _check_shared_edges(pl):
     assert checked > 0
 
 
-def test_culling_never_removes_a_visible_patch(dem_terrain):
+def test_culling_never_removes_a_visible_patch(dem_terrain, device):
     hm = dem_terrain.heightmap
     for cam in _cams(hm, 3):
-        pl = select(dem_terrain, cam, ScreenErrorPolicy(1.0))
+        pl = select(dem_terrain, cam, ScreenErrorPolicy(1.0), device=device)
         assert pl.stats["culled"] >= 0
         f = render(Scene(hm, camera=cam, outputs=("depth",)))
         tri = f.triangle_id[f.triangle_id >= 0]
@@ -154,19 +154,19 @@ def test_culling_never_removes_a_visible_patch(dem_terrain):
         assert covered.all()
 
 
-def test_culling_drops_patches_behind_the_camera(dem_terrain):
+def test_culling_drops_patches_behind_the_camera(dem_terrain, device):
     hm = dem_terrain.heightmap
     (x0, z0), (x1, z1) = hm.bounds_xz
     cam = Camera(position=(0.5 * (x0 + x1), 1500.0, 0.5 * (z0 + z1)), target=(x1, 1400.0, 0.5 * (z0 + z1)),
                  width=160, height=120, near=1.0, far=1e6)
-    pl = select(dem_terrain, cam, DistancePolicy(1.0))
+    pl = select(dem_terrain, cam, DistancePolicy(1.0), device=device)
     assert pl.stats["culled"] > 0
     assert np.all(pl.origin[:, 0] + pl.size[:, 0] > 0.5 * (x0 + x1) - 1.0)  # nothing behind the eye
 
 
-def test_hysteresis_lowers_level_changes():
+def test_hysteresis_lowers_level_changes(device):
     hm = Heightmap.fbm(257, seed=3, dx=10.0, max_height=400.0)
-    t = Terrain.prepare(hm, roots=4, tess=8)
+    t = Terrain.prepare(hm, roots=4, tess=8, device=device)
     path = []
     for k in range(40):  # back and forth along a line, small steps
         s = 0.5 + 0.03 * np.sin(k * 1.3)
@@ -178,7 +178,7 @@ def test_hysteresis_lowers_level_changes():
         prev = None
         n = 0
         for cam in path:
-            pl = select(t, cam, ScreenErrorPolicy(1.0, hysteresis=h), st)
+            pl = select(t, cam, ScreenErrorPolicy(1.0, hysteresis=h), st, device=device)
             cur = set(pl.key.tolist())
             if prev is not None:
                 n += len(cur ^ prev)
@@ -190,21 +190,21 @@ def test_hysteresis_lowers_level_changes():
     assert hyst < plain
 
 
-def test_dist_zero_camera_inside_node_is_defined():
+def test_dist_zero_camera_inside_node_is_defined(device):
     hm = Heightmap.fbm(129, seed=1, dx=1.0, max_height=50.0)
-    t = Terrain.prepare(hm, roots=1, tess=8)
+    t = Terrain.prepare(hm, roots=1, tess=8, device=device)
     ground = float(hm.sample([64.0], [64.0])[0])
     cam = Camera(position=(64.0, ground + 0.5, 64.0), target=(100.0, ground, 100.0), width=64, height=64,
                  near=0.01, far=1e4)
-    pl = select(t, cam, ScreenErrorPolicy(1.0))
+    pl = select(t, cam, ScreenErrorPolicy(1.0), device=device)
     assert np.all(np.isfinite(pl.metric)) or np.all(pl.metric[pl.distance > 0] < 3e38)
     assert pl.level.max() == t.depth  # inside the box: infinite screen error, split to the bottom
     assert np.all(np.isfinite(pl.outer))
 
 
-def test_continuous_factors_shared_edges_bitwise(dem_terrain):
+def test_continuous_factors_shared_edges_bitwise(dem_terrain, device):
     cam = _cams(dem_terrain.heightmap)[1]
-    pl = select(dem_terrain, cam, ContinuousPolicy(target_px=6.0, level=3))
+    pl = select(dem_terrain, cam, ContinuousPolicy(target_px=6.0, level=3), device=device)
     assert (pl.level == 3).all()
     assert pl.outer.min() >= 1.0 and pl.outer.max() <= 64.0
     assert len(np.unique(pl.outer)) > 5  # actually continuous
@@ -223,10 +223,10 @@ def test_continuous_factors_shared_edges_bitwise(dem_terrain):
     assert n > 10
 
 
-def test_selection_is_deterministic(dem_terrain):
+def test_selection_is_deterministic(dem_terrain, device):
     cam = _cams(dem_terrain.heightmap)[2]
-    a = select(dem_terrain, cam, ScreenErrorPolicy(0.7))
-    b = select(dem_terrain, cam, ScreenErrorPolicy(0.7))
+    a = select(dem_terrain, cam, ScreenErrorPolicy(0.7), device=device)
+    b = select(dem_terrain, cam, ScreenErrorPolicy(0.7), device=device)
     for x, y in zip(a[:-1], b[:-1]):
         assert np.array_equal(x, y)
 
@@ -283,9 +283,9 @@ def test_policy_table_drives_config_policies_and_validation():
     assert SPACINGS == tuple(SPACING_CODES) == REFERENCE_SPACINGS
 
 
-def test_continuous_select_uses_the_one_factor_rule(dem_terrain):
+def test_continuous_select_uses_the_one_factor_rule(dem_terrain, device):
     cam = _cams(dem_terrain.heightmap)[1]
-    pl = select(dem_terrain, cam, ContinuousPolicy(target_px=6.0, level=3))
+    pl = select(dem_terrain, cam, ContinuousPolicy(target_px=6.0, level=3), device=device)
     px = edge_pixels(dem_terrain.heightmap, cam.position, cam.focal_px, pl.origin, pl.size)
     outer, inner = continuous_factors(px, 6.0)
     assert np.array_equal(outer.astype(np.float32), pl.outer) and np.array_equal(inner.astype(np.float32), pl.inner)
@@ -353,14 +353,14 @@ def _neighbour_levels_brute(pl, terrain):
     return out
 
 
-def test_tree_map_neighbour_levels_match_painted_grid():
+def test_tree_map_neighbour_levels_match_painted_grid(device):
     """The tree map's walk finds the same neighbour levels as a painted finest-level grid: every leaf drawn
     (a wide camera looking down), levels 1..5 with forced balance splits, roots beyond the grid (-1)."""
     hm = Heightmap.fbm(257, seed=3, dx=1.0, max_height=60.0)
-    t = Terrain.prepare(hm, roots=(3, 2), tess=4)
+    t = Terrain.prepare(hm, roots=(3, 2), tess=4, device=device)
     cam = Camera(position=(40.0, 70.0, 60.0), target=(40.0, 0.0, 60.0), up=(0, 0, -1), fov_y_deg=170.0,
                  width=64, height=64, near=0.1, far=5000.0)
-    pl = select(t, cam, DistancePolicy(thresholds=(1e9, 40.0, 40.0, 40.0, 40.0)))
+    pl = select(t, cam, DistancePolicy(thresholds=(1e9, 40.0, 40.0, 40.0, 40.0)), device=device)
     assert pl.stats["forced_splits"] > 0 and pl.stats["culled"] == 0 and len(np.unique(pl.level)) == 5
     nbr = _neighbour_levels_brute(pl, t)
     assert (nbr == -1).any() and np.array_equal(pl.neighbour_level, nbr)

@@ -34,9 +34,9 @@ def _path(hm: Heightmap, clearance: float, n: int = 2) -> list[Camera]:
     return flyover(hm, wps, clearance * ext, n, width=W, height=H)
 
 
-def _grid_mesh(hm: Heightmap, cam: Camera, dy: float = 0.0) -> Mesh:
+def _grid_mesh(hm: Heightmap, cam: Camera, dy: float = 0.0, device: str = "cpu") -> Mesh:
     e = cam.position
-    pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, (hm.origin[0] - e[0], e[1], hm.origin[1] - e[2]))
+    pos, uv, tri = grid_mesh(hm.heights, hm.dx, hm.dz, (hm.origin[0] - e[0], e[1], hm.origin[1] - e[2]), device=device)
     pos = pos.copy()
     pos[:, 1] += np.float32(dy)
     n = len(pos)
@@ -143,10 +143,10 @@ def test_surface_heights_match_the_bintree_surface_function(dem):
     np.testing.assert_allclose(got, want, atol=2e-3)  # float32 camera-relative vertices
 
 
-def test_surface_heights_of_the_grid_are_the_heights():
+def test_surface_heights_of_the_grid_are_the_heights(device):
     hm = Heightmap.example()
     cam = Camera.default_for(hm, 64, 48)
-    got = surface_heights(hm, _grid_mesh(hm, cam))
+    got = surface_heights(hm, _grid_mesh(hm, cam, device=device))
     assert not np.isnan(got).any()  # the outer boundary and the corners are covered too
     # grid_mesh subtracts the eye's height rounded to float32 (the pipeline's rule): half an ulp of it
     np.testing.assert_allclose(got, hm.heights, atol=float(np.spacing(np.float32(cam.position[1]))))
@@ -155,7 +155,7 @@ def test_surface_heights_of_the_grid_are_the_heights():
 # ------------------------------------------------------------------------------------------------
 # (b) a known vertical deviation
 # ------------------------------------------------------------------------------------------------
-def test_known_deviation_seen_straight_down():
+def test_known_deviation_seen_straight_down(device):
     """Flat ground at y = 0, the mesh raised by d, a camera at height Hc looking straight down with focal
     length f px: a sample at horizontal distance r from the axis projects at f r / Hc from the image
     centre and the raised point above it at f r / (Hc - d), so the error is f r d / (Hc (Hc - d))."""
@@ -163,10 +163,10 @@ def test_known_deviation_seen_straight_down():
     hc, d = 20.0, 0.5
     cam = Camera(position=(32.0, hc, 32.0), target=(32.0, 0.0, 32.0), up=(0.0, 0.0, -1.0), fov_y_deg=60.0,
                  width=200, height=200, near=0.1, far=100.0)
-    ref = _grid_mesh(hm, cam)
+    ref = _grid_mesh(hm, cam, device=device)
     depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                         cam.width, cam.height).depth
-    e = sample_error(hm, cam, _grid_mesh(hm, cam, dy=d), depth, keep_map=True)
+                         cam.width, cam.height, device=device).depth
+    e = sample_error(hm, cam, _grid_mesh(hm, cam, dy=d, device=device), depth, keep_map=True)
     jj, ii = np.meshgrid(np.arange(65.0), np.arange(65.0))
     r = np.hypot(jj - 32.0, ii - 32.0)
     expect = cam.focal_px * r * d / (hc * (hc - d))
@@ -177,16 +177,16 @@ def test_known_deviation_seen_straight_down():
     assert e.max_px == pytest.approx(expect[vis].max(), rel=1e-4)
 
 
-def test_known_deviation_seen_horizontally():
+def test_known_deviation_seen_horizontally(device):
     """A camera looking along -z with no pitch: a vertical offset d at view depth D moves f d / D px."""
     hm = Heightmap.from_array(np.zeros((65, 65), np.float32), 1.0)
     cam = Camera(position=(32.0, 3.0, 80.0), target=(32.0, 3.0, 0.0), fov_y_deg=60, width=200, height=150,
                  near=0.1, far=500.0)
     d = 0.25
-    ref = _grid_mesh(hm, cam)
+    ref = _grid_mesh(hm, cam, device=device)
     depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                         cam.width, cam.height).depth
-    e = sample_error(hm, cam, _grid_mesh(hm, cam, dy=d), depth, keep_map=True)
+                         cam.width, cam.height, device=device).depth
+    e = sample_error(hm, cam, _grid_mesh(hm, cam, dy=d, device=device), depth, keep_map=True)
     vis = ~np.isnan(e.error_map)
     view_depth = 80.0 - np.arange(65.0)[:, None] * np.ones((1, 65))
     np.testing.assert_allclose(e.error_map[vis], (cam.focal_px * d / view_depth)[vis], rtol=1e-4)
@@ -196,38 +196,38 @@ def test_known_deviation_seen_horizontally():
 # ------------------------------------------------------------------------------------------------
 # visibility, exclusions, validation
 # ------------------------------------------------------------------------------------------------
-def test_hidden_samples_are_those_behind_the_terrain():
+def test_hidden_samples_are_those_behind_the_terrain(device):
     """A wall of samples in front of the camera hides the ground behind it, and only that."""
     h = np.zeros((33, 33), np.float32)
     h[20, :] = 50.0  # a ridge one sample wide at z = 20, across the whole grid
     hm = Heightmap.from_array(h, 1.0)
     cam = Camera(position=(16.0, 5.0, 60.0), target=(16.0, 5.0, 0.0), fov_y_deg=90, width=128, height=128,
                  near=0.1, far=200.0)
-    ref = _grid_mesh(hm, cam)
+    ref = _grid_mesh(hm, cam, device=device)
     depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                         cam.width, cam.height).depth
-    e = sample_error(hm, cam, ref, depth, keep_map=True)
+                         cam.width, cam.height, device=device).depth
+    e = sample_error(hm, cam, ref, depth, keep_map=True, device=device)
     vis = ~np.isnan(e.error_map)
     assert not vis[:19].any()  # behind the ridge (its foot is at rows 19 and 21): all hidden
     assert vis[22:, 4:29].all()  # in front of it, inside the view: all visible
     assert e.hidden > 0 and e.max_px == 0.0
 
 
-def test_no_data_and_missing_surface_are_excluded_and_counted():
+def test_no_data_and_missing_surface_are_excluded_and_counted(device):
     h = np.zeros((33, 33), np.float32)
     h[10:13, 10:13] = np.nan
     hm = Heightmap.from_array(h, 1.0, allow_nan=True)
     cam = Camera(position=(16.0, 40.0, 16.1), target=(16.0, 0.0, 16.0), fov_y_deg=60, width=96, height=96,
                  near=0.1, far=200.0)
-    ref = _grid_mesh(hm, cam)
+    ref = _grid_mesh(hm, cam, device=device)
     depth = tw.rendering.rasterize(ref.positions, ref.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                         cam.width, cam.height).depth
-    e = sample_error(hm, cam, ref, depth)
+                         cam.width, cam.height, device=device).depth
+    e = sample_error(hm, cam, ref, depth, device=device)
     assert e.no_data == 9 and e.missing == 0 and e.max_px == 0.0
     # a mesh with a part cut away: the samples under it are visible but have no drawn surface
     keep = (ref.positions[ref.triangles][:, :, 0] + cam.position[0] < 20.0).all(axis=1)
     cut = Mesh(ref.positions, ref.eye, ref.triangles[keep], ref.uv, ref.level, ref.patch_id)
-    e2 = sample_error(hm, cam, cut, depth)
+    e2 = sample_error(hm, cam, cut, depth, device=device)
     assert e2.missing == 13 * 33 and e2.visible + e2.missing == e.visible
     assert e2.max_px == 0.0
 
@@ -249,19 +249,20 @@ def test_validation_names_the_argument():
 # ------------------------------------------------------------------------------------------------
 # (c) deterministic
 # ------------------------------------------------------------------------------------------------
-def test_identical_across_runs():
+def test_identical_across_runs(device):
     hm = Heightmap.example()
     cam = _path(hm, 0.02)[0]
-    grid = tw.render(Scene(hm, cam, outputs=("depth",)))
+    grid = tw.render(Scene(hm, cam, outputs=("depth",)), device=device)
     sc = Scene(hm, cam, outputs=("mesh",), mesh="lod", lod=LodConfig(tolerance_px=2.0, **LOD))
-    runs = [sample_error(hm, cam, tw.render(sc).mesh, grid.depth, keep_map=True) for _ in range(2)]
+    runs = [sample_error(hm, cam, tw.render(sc, device=device).mesh, grid.depth, keep_map=True, device=device)
+            for _ in range(2)]
     assert runs[0].visible > 1000 and runs[0].max_px > 0.0
     assert digest(runs[0].error_map) == digest(runs[1].error_map)
     assert runs[0].row() == runs[1].row()
     # the maps come from the frame-buffer pool: one a caller holds is never handed out again
     kept = runs[0].error_map.copy()
-    other = sample_error(hm, cam, tw.render(sc.with_(lod=LodConfig(tolerance_px=8.0, **LOD))).mesh, grid.depth,
-                         keep_map=True)
+    coarse = tw.render(sc.with_(lod=LodConfig(tolerance_px=8.0, **LOD)), device=device).mesh
+    other = sample_error(hm, cam, coarse, grid.depth, keep_map=True, device=device)
     assert other.error_map is not runs[0].error_map and other.max_px != runs[0].max_px
     assert digest(runs[0].error_map) == digest(kept) and digest(runs[1].error_map) == digest(kept)
 
@@ -318,6 +319,7 @@ def test_pop_when_the_selection_changes_is_bounded_by_the_two_errors():
     assert (p.pop_map[both] <= e0[both] + e1[both] + 1e-4).all()
 
 
+@pytest.mark.host_launches  # the reference is the CPU's
 def test_same_result_on_every_device(device):
     hm = Heightmap.example()
     cam = _path(hm, 0.02)[0]

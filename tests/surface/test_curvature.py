@@ -27,11 +27,12 @@ INNER = (slice(3, -3), slice(3, -3))
 EPS32 = float(np.finfo(np.float32).eps)
 
 
-def curv(h, method, dx=DX, dz=DZ, **kw):
-    return compute_curvature(np.asarray(h), method, dx=dx, dz=dz, **kw)
+def curv(h, method, dx=DX, dz=DZ, device="cpu", **kw):
+    return compute_curvature(np.asarray(h), method, dx=dx, dz=dz, device=device, **kw)
 
 
-def gis(h, scheme="zevenbergen_thorne", dx=DX, dz=DZ):
+def gis(h, scheme="zevenbergen_thorne", dx=DX, dz=DZ, device=None):
+    """The GIS schemes' curvatures (numpy, on the host whatever ``device`` a test runs)."""
     return np.stack(list(surface_curvature(np.asarray(h), scheme, dx=dx, dz=dz).values()), -1)
 
 
@@ -63,13 +64,13 @@ def test_flat_is_exactly_zero(base, device):
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("offset", [0.0, 8848.0])
-def test_sloped_plane_only_rounding(method, offset):
+def test_sloped_plane_only_rounding(method, offset, device):
     # the only curvature of a sloped plane is the rounding of its float32 samples: a second difference
     # of a few ulp of the largest height over the step^2 (plus a few eps of the slope for the
     # normal-based methods, which difference slopes read off unit normals)
     s = plane(0.3, -0.7)
     h, _, _ = grid(s, 40, 30, DX, DZ, offset=offset)
-    k = curv(h, method)
+    k = curv(h, method, device=device)
     ulp = float(np.spacing(np.float32(np.abs(h).max())))
     lmin = min(DX, DZ)
     bound = 4 * ulp / lmin**2 + 16 * EPS32 * (1 + 0.7**2) / lmin
@@ -101,10 +102,10 @@ CASES = [
 
 
 @pytest.mark.parametrize("method,kw,surf,bound", CASES, ids=[f"{c[0]}-{c[2].__name__}-{c[1]}" for c in CASES])
-def test_directional_error_bound(method, kw, surf, bound):
+def test_directional_error_bound(method, kw, surf, bound, device):
     s = surf()
-    assert err(s, method, **kw) < bound
-    assert err(s, method, swap=True, **kw) > 5 * bound
+    assert err(s, method, **kw, device=device) < bound
+    assert err(s, method, swap=True, **kw, device=device) > 5 * bound
 
 
 def test_direction_order_on_cylinder_ridge():
@@ -242,28 +243,28 @@ def test_surface_curvature_signs_and_ridge():
 # --- precision, stiff inputs ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("method", METHODS + SCHEMES)
-def test_everest_offset_bit_identical(method):
+def test_everest_offset_bit_identical(method, device):
     # millimetre relief 8,848 m up (multiples of the 0.98 mm float32 ulp there): differences relative
     # to the centre make the result bit-identical to the same relief at 0 m
     rng = np.random.default_rng(4)
     relief = np.round(rng.random((15, 18)) * 6) * 2.0**-10
     h = (8848.0 + relief).astype(np.float32)
     rel = relief.astype(np.float32)
-    f = gis if method in SCHEMES else curv
+    f = gis if method in SCHEMES else lambda *a: curv(*a, device=device)
     a = f(h, method, 0.01, 0.01)
     b = f(rel, method, 0.01, 0.01)
     assert np.array_equal(a, b)
 
 
 @pytest.mark.parametrize("scale_h,sp", [(1e-6, 1.0), (1e6, 1.0), (1.0, 1e-3), (1.0, 1e4)])
-def test_extreme_heights_and_spacings(scale_h, sp):
+def test_extreme_heights_and_spacings(scale_h, sp, device):
     # a paraboloid with heights 1e-6 / 1e6 times its spacing, or spacing 1e-3 / 1e4 m: three-vertex
     # keeps its relative error (float32 rounding only)
     s = paraboloid(0.05, -0.03, 0.02, 0.0)
     h, xx, zz = grid(s, 40, 30, DX, DZ)
     h = (h.astype(np.float64) * scale_h * sp).astype(np.float32)
     x, z = xx * sp, zz * sp
-    k = curv(h, "three_vertex", DX * sp, DZ * sp)
+    k = curv(h, "three_vertex", DX * sp, DZ * sp, device=device)
     # exact for the scaled surface h_s(x, z) = scale_h * sp * h(x / sp, z / sp)
     out = []
     for di, dj in ((0, 1), (1, 0), (1, 1), (-1, 1)):
@@ -277,15 +278,16 @@ def test_extreme_heights_and_spacings(scale_h, sp):
     rel = np.abs(k - ex)[INNER].max() / ex[INNER].max()
     assert rel < 1e-3, rel
     for m in METHODS + SCHEMES:
-        assert np.all(np.isfinite(gis(h, m, DX * sp, DZ * sp) if m in SCHEMES else curv(h, m, DX * sp, DZ * sp)))
+        k = gis(h, m, DX * sp, DZ * sp) if m in SCHEMES else curv(h, m, DX * sp, DZ * sp, device=device)
+        assert np.all(np.isfinite(k))
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_cliff_and_spike(method):
+def test_cliff_and_spike(method, device):
     h = np.zeros((9, 9), np.float32)
     h[:, 5:] = 1e4
     h[2, 2] = 5e3
-    k = curv(h, method, 1.0, 1.0)
+    k = curv(h, method, 1.0, 1.0, device=device)
     assert np.all(np.isfinite(k)) and np.all(k >= 0)
     kmax, _ = max_curvature(k)
     if method in ("three_vertex", "edge_angle"):
@@ -302,7 +304,7 @@ RADIUS = {"three_vertex": 1, "edge_angle": 1, "two_normal": 2, "three_normal": 2
 
 
 @pytest.mark.parametrize("method", METHODS + SCHEMES)
-def test_nan_hole_contained(method):
+def test_nan_hole_contained(method, device):
     # NaN stays exactly at the holes; values change only within the stencil radius (1 for the
     # 3-sample and 3x3 stencils, 2 for the normal-based methods: normals of the neighbours)
     h, _, _ = grid(sinusoid(), 24, 24, 1.0, 1.0)
@@ -310,7 +312,7 @@ def test_nan_hole_contained(method):
     holes = [(8, 9), (0, 3), (15, 15), (15, 16), (16, 15), (16, 16)]
     for ij in holes:
         holed[ij] = np.nan
-    f = gis if method in SCHEMES else curv
+    f = gis if method in SCHEMES else lambda *a: curv(*a, device=device)
     a = f(h, method, 1.0, 1.0)
     b = f(holed, method, 1.0, 1.0)
     nan = np.isnan(holed)
@@ -324,12 +326,12 @@ def test_nan_hole_contained(method):
     assert np.all(np.isnan(kmax[nan])) and np.all(kdir[nan] == -1) and np.all(kdir[~nan] >= 0)
 
 
-def test_nan_reinforced_radius():
+def test_nan_reinforced_radius(device):
     h, _, _ = grid(sinusoid(), 24, 24, 1.0, 1.0)
     holed = h.copy()
     holed[10, 10] = np.nan
-    a = curv(h, "three_normal", 1.0, 1.0, distance=3)
-    b = curv(holed, "three_normal", 1.0, 1.0, distance=3)
+    a = curv(h, "three_normal", 1.0, 1.0, distance=3, device=device)
+    b = curv(holed, "three_normal", 1.0, 1.0, distance=3, device=device)
     near = np.zeros(h.shape, bool)
     near[10 - 4:10 + 5, 10 - 4:10 + 5] = True  # normals (1) + the far pair (3)
     assert np.array_equal(a[~near], b[~near]) and np.isfinite(b[~np.isnan(holed)]).all()
@@ -338,11 +340,11 @@ def test_nan_reinforced_radius():
 # --- tiny grids -----------------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("shape", [(1, 1), (2, 2), (3, 3), (1, 4), (5, 1)])
-def test_tiny_grids(shape):
+def test_tiny_grids(shape, device):
     rng = np.random.default_rng(5)
     h = rng.random(shape).astype(np.float32)
     for m in METHODS:
-        k = curv(h, m, distance=2)
+        k = curv(h, m, distance=2, device=device)
         assert k.shape == (*shape, 4) and np.all(np.isfinite(k)) and np.all(k >= 0)
         if shape == (1, 1):
             assert np.all(k == 0)
@@ -353,17 +355,18 @@ def test_tiny_grids(shape):
     if shape == (3, 3):
         s = paraboloid()
         hh, xx, zz = grid(s, 2 * DX, 2 * DZ, DX, DZ)
-        k = curv(hh, "three_vertex")
+        k = curv(hh, "three_vertex", device=device)
         ex = exact_directional(s, xx, zz, DX, DZ)
         assert np.abs(k[1, 1] - ex[1, 1]).max() < 1e-5
 
 
 # --- determinism and validation ----------------------------------------------------------------------------
 
-def test_deterministic_on_dem():
+def test_deterministic_on_dem(device):
     hm = Heightmap.example()
     for m in METHODS:
-        assert digest(compute_curvature(hm, m, distance=2)) == digest(compute_curvature(hm, m, distance=2))
+        assert digest(compute_curvature(hm, m, distance=2, device=device)) == \
+            digest(compute_curvature(hm, m, distance=2, device=device))
 
 
 def test_bad_arguments():

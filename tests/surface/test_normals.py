@@ -40,19 +40,19 @@ def test_plane_exact_everywhere(method, device):
 
 
 @pytest.mark.parametrize("method,bound", [("sobel", 1e-4), ("edge", 1e-4), ("triangle", 0.1), ("quad", 0.1)])
-def test_paraboloid_interior_bound(method, bound):
+def test_paraboloid_interior_bound(method, bound, device):
     # Sobel and edge are central differences: exact on quadratics (only float32 rounding left);
     # triangle and quad average one-sided slopes: O(h^2) error, measured 0.078 and 0.083 degrees.
-    e = err_deg(paraboloid(), method)
+    e = err_deg(paraboloid(), method, device=device)
     assert e < bound
     # a swapped spacing (dx <-> dz) is caught by the same bound
-    assert err_deg(paraboloid(), method, swap=True) > 10 * bound
+    assert err_deg(paraboloid(), method, swap=True, device=device) > 10 * bound
 
 
 @pytest.mark.parametrize("method,bound", [("sobel", 0.035), ("edge", 0.025), ("triangle", 0.015), ("quad", 0.02)])
-def test_sphere_cap_bound(method, bound):
-    assert err_deg(sphere_cap(), method) < bound
-    assert err_deg(sphere_cap(), method, swap=True) > 10 * bound
+def test_sphere_cap_bound(method, bound, device):
+    assert err_deg(sphere_cap(), method, device=device) < bound
+    assert err_deg(sphere_cap(), method, swap=True, device=device) > 10 * bound
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -138,24 +138,25 @@ def test_constant_border_value_and_skip_on_high_plane():
 # --- precision and stiff inputs ------------------------------------------------------------------------
 
 @pytest.mark.parametrize("method", METHODS)
-def test_everest_offset_millimetre_relief(method):
+def test_everest_offset_millimetre_relief(method, device):
     # millimetre relief 8,848 m up: float32 keeps the samples to 0.98 mm; differencing between samples
     # (never summing heights first) gives bit-identical normals with and without the offset.
     rng = np.random.default_rng(3)
     relief = np.round(rng.random((16, 17)) * 8) * 2.0 ** -10  # multiples of the ulp at 8848 m
     h = (8848.0 + relief).astype(np.float32)
     rel = (h.astype(np.float64) - 8848.0).astype(np.float32)
-    assert np.array_equal(normals(h, method, 0.01, 0.01), normals(rel, method, 0.01, 0.01))
+    a, b = normals(h, method, 0.01, 0.01, device=device), normals(rel, method, 0.01, 0.01, device=device)
+    assert np.array_equal(a, b)
 
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("scale_h,sp", [(1e-6, 1.0), (1e6, 1.0), (1.0, 1e-3), (1.0, 1e4)])
-def test_extreme_heights_and_spacings(method, scale_h, sp):
+def test_extreme_heights_and_spacings(method, scale_h, sp, device):
     # a paraboloid whose heights are 1e-6 or 1e6 of the spacing, or with spacing 1e-3 / 1e4 m
     s = paraboloid()
     h, xx, zz = grid(s, 40, 30, DX, DZ)
     h = (h.astype(np.float64) * scale_h * sp).astype(np.float32)
-    n = normals(h, method, DX * sp, DZ * sp)
+    n = normals(h, method, DX * sp, DZ * sp, device=device)
     g = np.stack([-s.hx(xx, zz) * scale_h, np.ones_like(xx), -s.hz(xx, zz) * scale_h], -1)
     ex = g / np.linalg.norm(g, axis=-1, keepdims=True)
     assert np.all(np.isfinite(n)) and np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-6)
@@ -167,11 +168,11 @@ def test_extreme_heights_and_spacings(method, scale_h, sp):
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_cliff_and_spike_finite(method):
+def test_cliff_and_spike_finite(method, device):
     h = np.zeros((9, 9), np.float32)
     h[:, 5:] = 1e4  # a 10 km vertical step
     h[2, 2] = 5e3  # a one-sample spike
-    n = normals(h, method, 1.0, 1.0)
+    n = normals(h, method, 1.0, 1.0, device=device)
     assert np.all(np.isfinite(n)) and np.allclose(np.linalg.norm(n, axis=-1), 1, atol=1e-6)
     # beside the step the normal faces away from it: almost horizontal for the central differences,
     # about 45 degrees for triangle/quad (the average of a flat and a vertical facet normal)
@@ -182,14 +183,14 @@ def test_cliff_and_spike_finite(method):
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("border", ["constant", "clamp", "skip"])
-def test_nan_hole_contained(method, border):
+def test_nan_hole_contained(method, border, device):
     h, _, _ = grid(sinusoid(), 20, 20, 1.0, 1.0)
     holed = h.copy()
     holed[7, 9] = np.nan
     holed[0, 3] = np.nan  # a hole on the border
     holed[12:14, 4:6] = np.nan  # a 2x2 hole
-    a = normals(h, method, 1.0, 1.0, border=border)
-    b = normals(holed, method, 1.0, 1.0, border=border)
+    a = normals(h, method, 1.0, 1.0, border=border, device=device)
+    b = normals(holed, method, 1.0, 1.0, border=border, device=device)
     assert np.all(np.isfinite(b)) and np.allclose(np.linalg.norm(b, axis=-1), 1, atol=1e-6)
     near = np.zeros(h.shape, bool)
     for i, j in zip(*np.nonzero(np.isnan(holed)), strict=True):
@@ -201,11 +202,11 @@ def test_nan_hole_contained(method, border):
     assert angle_deg(a[ring], b[ring]).max() < 6.0
 
 
-def test_all_nan_but_one():
+def test_all_nan_but_one(device):
     h = np.full((3, 4), np.nan, np.float32)
     h[1, 1] = 5.0
     for m in METHODS:
-        n = normals(h, m)
+        n = normals(h, m, device=device)
         assert np.array_equal(n, np.broadcast_to(np.float32([0, 1, 0]), n.shape))
 
 
@@ -213,11 +214,11 @@ def test_all_nan_but_one():
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("shape", [(1, 1), (2, 2), (3, 3), (1, 5), (4, 1)])
-def test_tiny_grids(method, shape):
+def test_tiny_grids(method, shape, device):
     s = plane()
     h, xx, zz = grid(s, (shape[1] - 1) * DX, (shape[0] - 1) * DZ, DX, DZ)
     assert h.shape == shape
-    n = normals(h, method)
+    n = normals(h, method, device=device)
     assert n.shape == (*shape, 3) and np.all(np.isfinite(n))
     if shape == (1, 1):
         assert np.array_equal(n[0, 0], np.float32([0, 1, 0]))
@@ -227,30 +228,30 @@ def test_tiny_grids(method, shape):
 
 # --- normal map ----------------------------------------------------------------------------------------
 
-def test_normal_map_encoding():
-    flat = compute_normals(np.zeros((4, 5), np.float32), "sobel")
-    img = normal_map_image(flat)
+def test_normal_map_encoding(device):
+    flat = compute_normals(np.zeros((4, 5), np.float32), "sobel", device=device)
+    img = normal_map_image(flat, device=device)
     assert img.dtype == np.uint8 and img.shape == (4, 5, 3)
     assert np.all(img == np.uint8([128, 128, 255]))  # the blue of flat ground
-    assert np.all(normal_map_image(flat, layout="xyz") == np.uint8([128, 255, 128]))
+    assert np.all(normal_map_image(flat, layout="xyz", device=device) == np.uint8([128, 255, 128]))
     hm = Heightmap.example()
-    n = compute_normals(hm, "sobel", border="clamp")
-    rgb = normal_map_image(n)
+    n = compute_normals(hm, "sobel", border="clamp", device=device)
+    rgb = normal_map_image(n, device=device)
     back = decode_normal_map(rgb)
     assert angle_deg(n, back).max() < 0.6  # 8-bit quantisation: 1/255 per component
     # a slope rising to +x tilts the normal to -x: red below 128
-    ramp = compute_normals(np.tile(np.arange(5, dtype=np.float32), (3, 1)), "edge")
-    assert np.all(normal_map_image(ramp)[..., 0] < 128)
+    ramp = compute_normals(np.tile(np.arange(5, dtype=np.float32), (3, 1)), "edge", device=device)
+    assert np.all(normal_map_image(ramp, device=device)[..., 0] < 128)
     with pytest.raises(ValueError, match="layout"):
-        normal_map_image(flat, layout="zyx")
+        normal_map_image(flat, layout="zyx", device=device)
 
 
 # --- determinism and validation --------------------------------------------------------------------------
 
-def test_deterministic():
+def test_deterministic(device):
     hm = Heightmap.example()
     for m in METHODS:
-        assert digest(compute_normals(hm, m)) == digest(compute_normals(hm, m))
+        assert digest(compute_normals(hm, m, device=device)) == digest(compute_normals(hm, m, device=device))
 
 
 def test_bad_arguments():
