@@ -40,12 +40,14 @@ def machine() -> str:
     return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
-def write_result(stage: str, title: str, body: str) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
+def write_result(stage: str, title: str, body: str, out_dir: Path | None = None) -> Path:
+    """Write ``<out_dir or benchmarks/results>/<stage>.md`` (atomically) and print it."""
+    out_dir = RESULTS if out_dir is None else Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     cmd = "python " + " ".join([os.path.relpath(sys.argv[0], Path(__file__).resolve().parents[1]), *sys.argv[1:]])
     text = (f"## {title}\n\nCommand: `{cmd}` (from the repository root, in `.venv`)  \n"
             f"Run: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC on {machine()}\n\n{body.strip()}\n")
-    p = RESULTS / f"{stage}.md"
+    p = out_dir / f"{stage}.md"
     tmp = p.with_suffix(".md.tmp")
     tmp.write_text(text)
     tmp.replace(p)
