@@ -60,7 +60,7 @@ FBM_TARGETS = (50_000, 340_000, 1_000_000)
 
 def triangles_at(hm, cam, terrain, tol: float) -> int:
     sc = Scene(hm, camera=cam, mesh="lod", lod=LodConfig(tolerance_px=tol), outputs=("mesh",))
-    return int(render(sc, terrain=terrain).mesh.n_triangles)
+    return int(render(sc, terrain=terrain).mesh.n_triangles)  # selection is the same on every device
 
 
 def tolerance_for(hm, cam, terrain, target: int, iters: int = 10) -> tuple[float, int]:
@@ -80,9 +80,9 @@ def tolerance_for(hm, cam, terrain, target: int, iters: int = 10) -> tuple[float
     return best
 
 
-def ours_once(sc, terrain):
-    """One render: (select + mesh + raster ms, the stage records, the frame)."""
-    f = render(sc, terrain=terrain)
+def ours_once(sc, terrain, device: str = "cpu"):
+    """One render on ``device``: (select + mesh + raster ms, the stage records, the frame)."""
+    f = render(sc, terrain=terrain, device=device)
     st = {s.name: s for s in f.report.stages}
     return sum(st[s].time_ms for s in STAGES), st, f
 

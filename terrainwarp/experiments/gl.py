@@ -146,6 +146,8 @@ class _Target:
         self.depth = depth32f(ctx, self.width, self.height)
         self.fbo = ctx.framebuffer(color_attachments=[self.color], depth_attachment=self.depth)
         self.stats = Statistics(ctx)
+        self.timer = ctx.query(time=True)  # GL_TIME_ELAPSED: the GPU's own clock on a real GPU
+        self.last_gpu_ms = float("nan")  # the timer's milliseconds of the last timed draw
 
     def _clear(self) -> None:
         ctx, mgl = self.ctx, self._mgl
@@ -163,16 +165,20 @@ class _Target:
         return np.ascontiguousarray(ids), np.ascontiguousarray(dep)
 
     def _timed(self, draw, counters: bool) -> tuple[dict[str, int] | None, float, float]:
-        """Clear, then ``draw()`` inside the statistics queries (when ``counters``) and ``glFinish``: (counts,
-        wall s, CPU s of this process: every llvmpipe thread)."""
+        """Clear, then ``draw()`` inside the statistics queries (when ``counters``) and the timer query, and
+        ``glFinish``: (counts, wall s, CPU s of this process: every llvmpipe thread); the timer's milliseconds
+        (the draws on the GPU's clock) in ``last_gpu_ms``."""
         self._clear()
         t0, c0 = time.perf_counter(), time.process_time()
         if counters:
             self.stats.begin()
-        draw()
+        with self.timer:
+            draw()
         got = self.stats.end() if counters else None
         self.ctx.finish()
-        return got, time.perf_counter() - t0, time.process_time() - c0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        self.last_gpu_ms = self.timer.elapsed / 1e6
+        return got, wall, cpu
 
     def close(self) -> None:
         with self.ctx:
