@@ -18,6 +18,8 @@ from pathlib import Path
 
 import warp as wp
 
+import terrainwarp
+
 KERNELS_DIR = Path(__file__).resolve().parents[1] / "kernels"
 
 
@@ -60,7 +62,7 @@ def main() -> None:
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
-    wp.config.quiet = True
+    terrainwarp.configure(quiet=True)  # no greeting or driver warning in the table
     archs = nvrtc_archs()
     if args.arch not in archs:
         raise SystemExit(f"this Warp build's NVRTC cannot compile sm_{args.arch} (it can: {archs})")
