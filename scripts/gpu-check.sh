@@ -5,7 +5,8 @@
 #   gpu_frame.md          bench_terrain_frame's frames: CUDA, the 16 CPU cores, NVIDIA's OpenGL (bench_gpu_frame.py)
 #   tests.log             the device-parametrised tests on cuda:0 (pytest -k cuda)
 #   cuda_parity_nofma.md  the parity with fuse_fp=False in every module (is a float difference FMA contraction?)
-#   calibration.md        the GPU-cost model fitted to NVIDIA's GL frame times, where `terrainwarp calibrate` exists
+#   calibration_gpu.md    the GPU-cost model fitted to NVIDIA's GL frame times (benchmarks/gpu_calibrate.py), where
+#                         terrainwarp.experiments.calibrate exists
 #   codegen.md            every module compiled for sm_90 by NVRTC
 #   README.md             what ran, how long, what failed; run.log: everything printed
 #
@@ -146,12 +147,11 @@ stage "frame timings" 120 "${PY[@]}" benchmarks/bench_gpu_frame.py --device "$DE
 stage "device tests (-k $K)" 150 bash -c "${PY[*]} -m pytest -q -p no:cacheprovider --timeout 90 -k '$K or launches' \
   ${TESTS[*]} > '$OUTDIR/tests.log' 2>&1; rc=\$?; tail -4 '$OUTDIR/tests.log'; exit \$rc"
 stage "parity (fuse_fp off)" 100 "${PY[@]}" benchmarks/cuda_parity.py "${B[@]}" --size "$SIZE" --fuse-fp off --out "$OUTDIR"
-if "${PY[@]}" -m terrainwarp.cli calibrate --help >/dev/null 2>&1; then
-  stage "calibration (GL)" 60 bash -c "${PY[*]} -m terrainwarp.cli calibrate --gl --out '$WORK/cal' && \
-    { echo '## GPU-cost calibration on this machine'\''s OpenGL'; echo; cat '$WORK'/cal/*.md 2>/dev/null || ls '$WORK/cal'; } \
-    > '$OUTDIR/calibration.md'"
+if "${PY[@]}" -c "import terrainwarp.experiments.calibrate" >/dev/null 2>&1; then
+  (( QUICK )) && CAL=(--frames-per-family 2 --reps 1) || CAL=(--frames-per-family 20 --reps 3)
+  stage "calibration (GL)" 75 "${PY[@]}" benchmarks/gpu_calibrate.py "${CAL[@]}" --out "$OUTDIR"
 else
-  note "calibration: skipped (this checkout has no 'terrainwarp calibrate': the GPU-cost issue has not landed)"
+  note "calibration: skipped (no terrainwarp.experiments.calibrate in this checkout: the GPU-cost issue has not landed)"
 fi
 stage "codegen (sm_90 PTX)" 60 bash -c "${PY[*]} tests/cuda_codegen.py --workers $(nproc) > '$OUTDIR/codegen.md'"
 

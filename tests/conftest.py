@@ -28,3 +28,19 @@ def device(request):
         assert not rec.seen or name in rec.seen, f"nothing launched on {name}: {rec.seen}"
     else:
         assert not rec.elsewhere(name), f"a test on {name} launched kernels on another device: {rec.elsewhere(name)}"
+
+
+@pytest.fixture
+def jax_device(request, device):
+    """The test's Warp device as JAX's default device (the diff ops run their Warp kernels on the device of JAX's
+    arrays): the CPU, or JAX's GPU for "cuda:0". The scenes are drawn on the CPU (tw.rasterize), so the test is
+    marked ``host_launches``: the device fixture then checks that the op's kernels ran on the device."""
+    import jax  # lazy: heavy optional dependency
+
+    try:
+        dev = jax.devices("cpu" if device == "cpu" else "gpu")[0]
+    except RuntimeError:
+        pytest.skip(f"JAX has no backend for {device} here (Warp sees it)")
+    request.node.add_marker(pytest.mark.host_launches)
+    with jax.default_device(dev):
+        yield device
