@@ -142,6 +142,8 @@ TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/kernels/te
        tests/measure/test_sample_error.py tests/diff/test_ops.py tests/diff/test_interpolate.py)
 (( QUICK )) && TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/lod/test_lod.py)
 
+if [ "$MODE" = device ]; then LOAD=cpu,cuda:0; else LOAD=cpu; fi
+stage "compile (Warp's cache, $LOAD)" 90 "${PY[@]}" tests/cuda_codegen.py --load "$LOAD" --workers "$(nproc)"
 stage "parity (fuse_fp on)" 100 "${PY[@]}" benchmarks/cuda_parity.py "${B[@]}" --size "$SIZE" --out "$OUTDIR"
 stage "frame timings" 120 "${PY[@]}" benchmarks/bench_gpu_frame.py --device "$DEV" "${FRAME[@]}" --out "$OUTDIR"
 stage "device tests (-k $K)" 150 bash -c "${PY[*]} -m pytest -q -p no:cacheprovider --timeout 90 -k '$K or launches' \

@@ -6,6 +6,7 @@ The PTX lands in Warp's kernel cache, named by the module's content hash (as the
 module is not compiled again. Used by tests/kernels/test_cuda_codegen.py and by scripts/gpu-check.sh::
 
     python tests/cuda_codegen.py [--arch 90] [--workers 2]     # every module; prints a table
+    python tests/cuda_codegen.py --load cpu,cuda:0 --workers 16  # compile and load every module on the devices
 """
 
 from __future__ import annotations
@@ -57,12 +58,33 @@ def compile_all(arch: int = 90, workers: int = 2, names: list[str] | None = None
         return list(pool.map(lambda n: compile_ptx(n, arch), names))
 
 
+def load_all(devices: list[str], workers: int, fuse_fp: tuple[bool, ...] = (True, False)) -> list[str]:
+    """Compile and load every kernel module on ``devices``, ``workers`` modules at a time, once per ``fuse_fp``
+    setting (the parity check runs both): later processes find them in Warp's kernel cache. Returns a line a
+    setting."""
+    mods = [wp.get_module(importlib.import_module(n).__name__) for n in kernel_modules()]
+    out = []
+    for fuse in fuse_fp:
+        for m in mods:
+            wp.set_module_options({"fuse_fp": fuse}, m)
+        t0 = time.perf_counter()
+        wp.force_load(device=devices, modules=mods, max_workers=max(1, workers))
+        out.append(f"{len(mods)} modules loaded on {', '.join(devices)} with fuse_fp={fuse} in "
+                   f"{time.perf_counter() - t0:.1f} s ({workers} at a time)")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--arch", type=int, default=90)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--load", default=None, metavar="DEVICES", help="instead: compile and load every module on "
+                    "these devices (comma-separated), with fuse_fp on and off, into Warp's kernel cache")
     args = ap.parse_args()
     terrainwarp.configure(quiet=True)  # no greeting or driver warning in the table
+    if args.load:
+        print("\n".join(load_all(args.load.split(","), args.workers)))
+        return
     archs = nvrtc_archs()
     if args.arch not in archs:
         raise SystemExit(f"this Warp build's NVRTC cannot compile sm_{args.arch} (it can: {archs})")
