@@ -143,7 +143,11 @@ TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/kernels/te
 (( QUICK )) && TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/lod/test_lod.py)
 
 if [ "$MODE" = device ]; then LOAD=cpu,cuda:0; else LOAD=cpu; fi
-stage "compile (Warp's cache, $LOAD)" 90 "${PY[@]}" tests/cuda_codegen.py --load "$LOAD" --workers "$(nproc)"
+# every module compiled in parallel, then the parity's own variants (a module compiled at its first launch in a
+# process can hash differently from the module loaded whole) by tiny runs: the stages after it compile little
+stage "compile (Warp's cache, $LOAD)" 120 bash -c "${PY[*]} tests/cuda_codegen.py --load $LOAD --workers $(nproc) && \
+  ${PY[*]} benchmarks/cuda_parity.py ${B[*]} --size tiny --out $WORK/warm > /dev/null && \
+  ${PY[*]} benchmarks/cuda_parity.py ${B[*]} --size tiny --fuse-fp off --out $WORK/warm > /dev/null"
 stage "parity (fuse_fp on)" 100 "${PY[@]}" benchmarks/cuda_parity.py "${B[@]}" --size "$SIZE" --out "$OUTDIR"
 stage "frame timings" 120 "${PY[@]}" benchmarks/bench_gpu_frame.py --device "$DEV" "${FRAME[@]}" --out "$OUTDIR"
 stage "device tests (-k $K)" 150 bash -c "${PY[*]} -m pytest -q -p no:cacheprovider --timeout 90 -k '$K or launches' \
