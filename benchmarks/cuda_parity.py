@@ -160,6 +160,17 @@ def case_render(dev: str, sz: dict) -> dict:
             "depth": f.depth}
 
 
+def case_shade(dev: str, sz: dict) -> dict:
+    """render's image (normal map, shading, sRGB codes) and error (reference grid, sample and pixel error)."""
+    from terrainwarp import LodConfig, Scene, render
+
+    hm, cam = _scene(sz)
+    f = render(Scene(hm, camera=cam, mesh="lod", lod=LodConfig(tolerance_px=2.0), outputs=("image", "error")),
+               device=dev)
+    return {"image (sRGB codes)": f.image, "error map": f.error.error_map,
+            "image error map": f.error.image_error_map}
+
+
 def case_surface(dev: str, sz: dict) -> dict:
     from terrainwarp import compute_curvature, compute_normals
 
@@ -261,6 +272,7 @@ CASES: dict[str, tuple[str, Callable]] = {  # name -> (what must match: "int" ou
     "raster": ("coverage, triangle ids, depth, barycentrics", case_raster),
     "lod": ("pyramids and LOD selection (sse, distance)", case_lod),
     "render": ("a whole LOD frame through render()", case_render),
+    "shade": ("render's image and error outputs", case_shade),
     "surface": ("normals and curvature, every method", case_surface),
     "polytree": ("polygons at 20 tolerances", case_polytree),
     "bintree": ("tree and one frame's selection", case_bintree),
