@@ -9,9 +9,9 @@ low flyover at about 340k, tolerances bisected on the CPU as bench_terrain_frame
   a warm-up (the first render on a device compiles its modules), the terrain's pyramids prepared once,
   untimed. On CUDA each stage reads its outputs back to the host, as ``render`` returns numpy arrays: the time
   is the simulator's, transfers included. The device frame is compared with the CPU frame pixel by pixel.
-* gl: :class:`terrainwarp.experiments.gl.GLTerrain` drawing the frame's PatchList (batches of < 60,000 generated vertices, as
-  for llvmpipe): wall time from the patch upload to ``glFinish``, and the GPU's own time of the draws
-  (``GL_TIME_ELAPSED`` query), best of ``--reps``.
+* gl: :class:`terrainwarp.experiments.gl.GLTerrain` drawing the frame's PatchList (batches of < 60,000
+  generated vertices, as for llvmpipe): wall time from the patch upload to ``glFinish``, and the GPU's own
+  time of the draws (``GL_TIME_ELAPSED`` query), best of ``--reps``.
 
     .venv/bin/python benchmarks/bench_gpu_frame.py --device cuda:0 --out OUT   # on the GPU machine
     .venv/bin/python benchmarks/bench_gpu_frame.py --device cpu --quick        # a dry run here (DEM rows)
@@ -142,8 +142,8 @@ def main(argv=None) -> None:
             f"on `{args.device}` ({name}; `select` + `mesh` + `raster` from `render`'s report, outputs read back "
             f"to the host as `render` returns them, fastest of {args.reps} after a warm-up), terrainwarp on the "
             f"CPU's {threads()} kernel threads (the same), and the same PatchList drawn by "
-            f"{rows[0]['renderer']} through EGL with real tessellation shaders (`experiments.gl.GLTerrain`; wall: patch "
-            "upload to `glFinish`; GPU: `GL_TIME_ELAPSED` of the upload and the draws). `ids != cpu`: pixels "
+            f"{rows[0]['renderer']} through EGL with real tessellation shaders (`experiments.gl.GLTerrain`; wall: "
+            "patch upload to `glFinish`; GPU: `GL_TIME_ELAPSED` of the upload and the draws). `ids != cpu`: pixels "
             "whose triangle id differs between the device's frame and the CPU's; gl diffs against the CPU frame as in "
             "bench_terrain_frame.py. Ratios > 1: the device is faster.\n\n" + table(rows, args.device)
             + f"\n\nWhole benchmark: {time.perf_counter() - t0:.0f} s, Warp {wp.__version__}.\n")
