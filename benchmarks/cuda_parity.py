@@ -132,7 +132,9 @@ def case_raster(dev: str, sz: dict) -> dict:
     clip = clip_coordinates(pos, view, proj)  # on the CPU: the rasterizer's own inputs, the same bits
     fc = rasterize_clip(clip, tri, cam.width, cam.height, device=dev)
     fp = rasterize(pos, tri, view, proj, cam.width, cam.height, device=dev)  # the vertex transform on dev
-    return {"clip given: triangle_id": fc.triangle_id, "clip given: coverage": fc.triangle_id >= 0,
+    counted = rasterize_clip(clip, tri, cam.width, cam.height, counters=True, device=dev).counters
+    return {"clip given: counters": np.array([counted[k] for k in sorted(counted)], np.int64),
+            "clip given: triangle_id": fc.triangle_id, "clip given: coverage": fc.triangle_id >= 0,
             "clip given: depth": fc.depth, "clip given: barycentrics": fc.barycentrics,
             "transform on device: triangle_id": fp.triangle_id, "transform on device: depth": fp.depth}
 
@@ -269,7 +271,7 @@ def case_diff(dev: str, sz: dict) -> dict:
 CASES: dict[str, tuple[str, Callable]] = {  # name -> (what must match: "int" outputs exactly, floats in ulps)
     "tessellator": ("domain points (16.16 fixed point) and triangles", case_tessellator),
     "displacement": ("tessellate_patches: displaced positions, triangles", case_displacement),
-    "raster": ("coverage, triangle ids, depth, barycentrics", case_raster),
+    "raster": ("coverage, triangle ids, depth, barycentrics, pipeline statistics", case_raster),
     "lod": ("pyramids and LOD selection (sse, distance)", case_lod),
     "render": ("a whole LOD frame through render()", case_render),
     "shade": ("render's image and error outputs", case_shade),

@@ -11,7 +11,7 @@ held-out frames, and the wall-time model's weights.json.
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
 import sys
 import time
 from pathlib import Path
@@ -19,6 +19,14 @@ from pathlib import Path
 from _common import md_table, write_result
 
 NEEDS = {"martini": "pymartini", "delatin": "pydelatin"}
+
+
+def importable(name: str) -> bool:
+    try:
+        importlib.import_module(name)
+    except ImportError:
+        return False
+    return True
 
 
 def main(argv=None) -> int:
@@ -34,7 +42,7 @@ def main(argv=None) -> int:
         return 3
     from terrainwarp import Heightmap
 
-    fams = tuple(f for f in cal.FAMILIES if f not in NEEDS or importlib.util.find_spec(NEEDS[f]) is not None)
+    fams = tuple(f for f in cal.FAMILIES if f not in NEEDS or importable(NEEDS[f]))
     t0 = time.perf_counter()
     hm = Heightmap.example()
     rows = cal.measure(cal.calibration_frames(hm, args.frames_per_family, 0, fams), hm, reps=args.reps,

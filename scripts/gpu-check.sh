@@ -136,7 +136,8 @@ stage() {  # stage NAME LIMIT_S COMMAND...: run it for at most LIMIT_S (and neve
 }
 if (( QUICK )); then SIZE=tiny FRAME=(--quick --reps 1); else SIZE=full FRAME=(--reps 3); fi
 if [ "$MODE" = device ]; then B=(--b cuda:0); else B=(--b cpu --b-threads 1); fi
-TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/kernels/test_raster.py tests/lod/test_lod.py
+TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/kernels/test_raster.py tests/kernels/test_counters.py
+       tests/lod/test_lod.py
        tests/surface/test_normals.py tests/surface/test_curvature.py tests/lod/test_polytree.py
        tests/lod/test_bintree.py tests/lod/test_cdlod.py tests/lod/test_clipmaps.py tests/lod/test_chunked.py
        tests/measure/test_sample_error.py tests/diff/test_ops.py tests/diff/test_interpolate.py)
@@ -145,9 +146,10 @@ TESTS=(tests/test_launches.py tests/kernels/test_tessellator.py tests/kernels/te
 if [ "$MODE" = device ]; then LOAD=cpu,cuda:0; else LOAD=cpu; fi
 # every module compiled in parallel, then the parity's own variants (a module compiled at its first launch in a
 # process can hash differently from the module loaded whole) by tiny runs: the stages after it compile little
+WARM="${PY[*]} benchmarks/cuda_parity.py ${B[*]} --size tiny --out $WORK/warm > /dev/null"
+(( QUICK )) && WARM=true  # the quick parity is the tiny one
 stage "compile (Warp's cache, $LOAD)" 120 bash -c "${PY[*]} tests/cuda_codegen.py --load $LOAD --workers $(nproc) && \
-  ${PY[*]} benchmarks/cuda_parity.py ${B[*]} --size tiny --out $WORK/warm > /dev/null && \
-  ${PY[*]} benchmarks/cuda_parity.py ${B[*]} --size tiny --fuse-fp off --out $WORK/warm > /dev/null"
+  $WARM && ${WARM/--size tiny/--size tiny --fuse-fp off}"
 stage "parity (fuse_fp on)" 100 "${PY[@]}" benchmarks/cuda_parity.py "${B[@]}" --size "$SIZE" --out "$OUTDIR"
 stage "frame timings" 120 "${PY[@]}" benchmarks/bench_gpu_frame.py --device "$DEV" "${FRAME[@]}" --out "$OUTDIR"
 stage "device tests (-k $K)" 150 bash -c "${PY[*]} -m pytest -q -p no:cacheprovider --timeout 90 -k '$K or launches' \

@@ -37,7 +37,8 @@ def test_cpu_only_dry_run_runs_every_stage_and_writes_what_a_device_call_brings_
     assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-2000:]
     readme = (out / "README.md").read_text()
     for stage in ("compile (Warp's cache, cpu): ok", "parity (fuse_fp on): ok", "frame timings: ok",
-                  "device tests (-k cpu): ok", "parity (fuse_fp off): ok", "codegen (sm_90 PTX): ok"):
+                  "device tests (-k cpu): ok", "parity (fuse_fp off): ok", "calibration (GL): ok",
+                  "codegen (sm_90 PTX): ok"):
         assert stage in readme, readme
     files = sorted(f.name for f in out.iterdir())
     assert len(files) <= 8 and all(re.fullmatch(r"[A-Za-z0-9._-]+", f) for f in files)  # the device's limits
@@ -45,4 +46,5 @@ def test_cpu_only_dry_run_runs_every_stage_and_writes_what_a_device_call_brings_
     assert "0 mismatch(es)" in parity and parity.count("bit-identical") > 40
     assert re.search(r"\d+ passed", (out / "tests.log").read_text())
     assert "| tessellator |" in (out / "codegen.md").read_text()
+    assert "R^2 held out" in (out / "calibration_gpu.md").read_text()
     assert "Warp from .venv" in readme and "terrainwarp from" in (out / "run.log").read_text()

@@ -40,13 +40,13 @@ def _triangles(seed: int, m: int, spread: float = 1.3, clipped: bool = True) -> 
     return clip.reshape(-1, 4), tri
 
 
-def _sequential(clip: np.ndarray, tri: np.ndarray, width: int, height: int) -> dict[str, int]:
+def _sequential(clip: np.ndarray, tri: np.ndarray, width: int, height: int, device: str = "cpu") -> dict[str, int]:
     """The reference: one draw per triangle, the depth test (GL_LESS, cleared to 1.0) done here in submission
     order; the 2x2 quads and 4x4 blocks (window-aligned) each unclipped triangle covers."""
     zbuf = np.ones((height, width), np.float32)
     passed = quads = blocks = 0
     for t in range(len(tri)):
-        f = rasterize_clip(clip, tri[t:t + 1], width, height)
+        f = rasterize_clip(clip, tri[t:t + 1], width, height, device=device)
         cov = f.triangle_id >= 0
         ok = cov & (f.depth < zbuf)
         passed += int(ok.sum())
@@ -57,44 +57,45 @@ def _sequential(clip: np.ndarray, tri: np.ndarray, width: int, height: int) -> d
     return {"samples_passed": passed, "quads": quads, "blocks": blocks}
 
 
-def test_samples_passed_is_the_depth_test_in_submission_order():
+def test_samples_passed_is_the_depth_test_in_submission_order(device):
     clip, tri = _triangles(1, 300)
-    f = rasterize_clip(clip, tri, 96, 64, counters=True)
-    ref = _sequential(clip, tri, 96, 64)
+    f = rasterize_clip(clip, tri, 96, 64, counters=True, device=device)
+    ref = _sequential(clip, tri, 96, 64, device=device)
     assert f.counters["samples_passed"] == ref["samples_passed"]
     # overdraw in draw order counts: more passed than covered, fewer than drawn
     assert f.counters["pixels_covered"] < f.counters["samples_passed"] < f.counters["samples_covered"]
 
 
-def test_back_to_front_every_fragment_passes_and_front_to_back_only_the_first():
+def test_back_to_front_every_fragment_passes_and_front_to_back_only_the_first(device):
     w, h = 32, 16
     quad = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float32)
     layers = 6
     clip = np.concatenate([np.c_[quad, np.full(4, z), np.ones(4)] for z in np.linspace(0.8, -0.8, layers)])
     tri = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]) + 4 * k for k in range(layers)]).astype(np.int32)
-    back_to_front = rasterize_clip(clip.astype(np.float32), tri, w, h, counters=True).counters
-    front_to_back = rasterize_clip(clip.astype(np.float32), tri[::-1].copy(), w, h, counters=True).counters
+    back_to_front = rasterize_clip(clip.astype(np.float32), tri, w, h, counters=True, device=device).counters
+    front_to_back = rasterize_clip(clip.astype(np.float32), tri[::-1].copy(), w, h, counters=True,
+                                   device=device).counters
     assert back_to_front["samples_passed"] == layers * w * h
     assert front_to_back["samples_passed"] == w * h
     assert back_to_front["samples_covered"] == front_to_back["samples_covered"] == layers * w * h
 
 
-def test_quads_and_blocks_match_one_triangle_at_a_time():
+def test_quads_and_blocks_match_one_triangle_at_a_time(device):
     clip, tri = _triangles(2, 200, clipped=False)
-    f = rasterize_clip(clip, tri, 96, 64, counters=True)
-    ref = _sequential(clip, tri, 96, 64)
+    f = rasterize_clip(clip, tri, 96, 64, counters=True, device=device)
+    ref = _sequential(clip, tri, 96, 64, device=device)
     assert f.counters["fragment_shader_invocations"] == 4 * ref["quads"]
     assert f.counters["fragment_shader_invocations_llvmpipe"] == 16 * ref["blocks"]
     assert f.counters["clipping_output_primitives"] == len(tri)  # nothing to clip
 
 
-def test_a_frame_with_more_overlaps_than_records_is_drawn_again_with_room():
+def test_a_frame_with_more_overlaps_than_records_is_drawn_again_with_room(device):
     clip, tri = _triangles(3, 400, spread=0.2)  # every triangle over the middle of a small viewport
     raster._RECORDS.clear()
-    f = rasterize_clip(clip, tri, 64, 64, counters=True)
+    f = rasterize_clip(clip, tri, 64, 64, counters=True, device=device)
     assert raster._RECORDS, "the frame should have needed more than the first room"
-    again = rasterize_clip(clip, tri, 64, 64, counters=True)  # now with room from the start
-    ref = _sequential(clip, tri, 64, 64)
+    again = rasterize_clip(clip, tri, 64, 64, counters=True, device=device)  # now with room from the start
+    ref = _sequential(clip, tri, 64, 64, device=device)
     assert f.counters == again.counters
     assert f.counters["samples_passed"] == ref["samples_passed"]
 
@@ -156,18 +157,18 @@ def test_culled_clipped_triangles_leave_the_clipper_as_llvmpipe_counts_them():
         g.close()
 
 
-def test_draw_counters():
+def test_draw_counters(device):
     p = patch_draw_counters(10, 900, 1500, 4)
     assert (p["vertices_submitted"], p["tess_control_shader_patches"], p["tess_evaluation_shader_invocations"],
             p["primitives_generated"], p["draw_calls"], p["bytes_heightmap"]) == (40, 10, 900, 1500, 1, 900 * 16)
     # two quads sharing an edge: one draw references 6 vertices, two draws (a group) reference 4 each
     tri = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]], np.int32)
-    one = indexed_draw_counters(tri, 7)
+    one = indexed_draw_counters(tri, 7, device=device)
     assert (one["draw_calls"], one["vertex_shader_invocations"], one["vertices_submitted"]) == (1, 6, 12)
-    two = indexed_draw_counters(tri, 7, np.array([[0, 2], [2, 4]]), groups=np.array([[0, 2]]))
+    two = indexed_draw_counters(tri, 7, np.array([[0, 2], [2, 4]]), groups=np.array([[0, 2]]), device=device)
     assert (two["draw_calls"], two["vertex_shader_invocations"], two["bytes_index"]) == (2, 8, 48)
-    assert indexed_draw_counters(tri, 7, vertex_invocations=5, vertex_bytes=8)["bytes_vertex"] == 40
+    assert indexed_draw_counters(tri, 7, vertex_invocations=5, vertex_bytes=8, device=device)["bytes_vertex"] == 40
     c = frame_counters(two, {"samples_covered": 30, "fragment_shader_invocations": 40, "samples_passed": 25,
                              "pixels_covered": 20})
     assert c["quad_efficiency"] == 0.75 and c["overdraw"] == 1.25
-    assert indexed_draw_counters(np.zeros((0, 3), np.int32), 0)["draw_calls"] == 0
+    assert indexed_draw_counters(np.zeros((0, 3), np.int32), 0, device=device)["draw_calls"] == 0
