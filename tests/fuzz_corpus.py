@@ -240,7 +240,10 @@ def _geotiff(path: Path, a: np.ndarray, **profile: Any) -> bytes:
 
 
 def _geotiff_seeds(d: Path) -> dict[str, bytes]:
-    from rasterio.transform import from_origin  # lazy: heavy optional dependency
+    from affine import Affine  # lazy: heavy optional dependency (with rasterio)
+
+    def from_origin(west, north, xsize, ysize):  # rasterio's own multiplies Affines with * (deprecated)
+        return Affine(xsize, 0.0, west, 0.0, -ysize, north)
 
     f = (_terrain(64, 48, 5) * 900).astype(np.float32)
     f[3:6, 40:44] = -9999.0

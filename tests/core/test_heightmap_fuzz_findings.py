@@ -16,10 +16,15 @@ import warnings
 import numpy as np
 import pytest
 import rasterio
-from rasterio.transform import from_origin
+from affine import Affine
 
 from terrainwarp import Heightmap
 from terrainwarp.io.files import write_image
+
+
+def from_origin(west, north, xsize, ysize):
+    """rasterio.transform.from_origin without its deprecated Affine * Affine."""
+    return Affine(xsize, 0.0, west, 0.0, -ysize, north)
 
 
 def _npy(a: np.ndarray) -> bytes:

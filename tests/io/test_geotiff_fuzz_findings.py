@@ -13,13 +13,17 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from rasterio.transform import from_origin
 
 from terrainwarp import Heightmap
 from terrainwarp.heightmap import StreamedHeightmap
 from terrainwarp.io.geotiff import check_tiff_layout
 from terrainwarp.io.tiles import ArraySource, FbmSource, TileCache
 from terrainwarp.kernels.noise import MAX_OCTAVES
+
+
+def from_origin(west, north, xsize, ysize):
+    """rasterio.transform.from_origin without its deprecated Affine * Affine."""
+    return Affine(xsize, 0.0, west, 0.0, -ysize, north)
 
 
 def _geotiff(path, a, **profile):
@@ -103,8 +107,11 @@ def test_strip_offsets_beside_tile_sizes_and_a_plain_tiff_are_refused_too(tmp_pa
         Heightmap.load(p)
     # a TIFF without georeferencing goes to OpenImageIO, which decodes the tile as a strip: the same check
     q = tmp_path / "plain.tif"
-    with rasterio.open(q, "w", driver="GTiff", width=300, height=40, count=1, dtype="float32", tiled=True,
-                       blockxsize=256, blockysize=256) as d:
+    with warnings.catch_warnings():  # deliberately no georeferencing
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        d = rasterio.open(q, "w", driver="GTiff", width=300, height=40, count=1, dtype="float32", tiled=True,
+                          blockxsize=256, blockysize=256)
+    with d:
         d.write((np.random.default_rng(3).random((40, 300)) * 100).astype(np.float32), 1)
     check_tiff_layout(q)  # whole: passes
     _rename_tags(q, {322: 65000, 323: 65001})
