@@ -130,10 +130,11 @@ def test_fit_progress_bar_counts_every_step(scene, capsys, monkeypatch):
     fitted value's popping pass."""
     import tqdm
 
-    bars = {}
+    bars, held = {}, []
 
     class Counted(tqdm.tqdm):
         def close(self):  # tqdm may close a bar twice (its own __del__)
+            held.append(self)  # keep it alive: a freed bar's id() can be reused by the next one
             bars[id(self)] = (self.desc, self.n, self.total)
             super().close()
 
