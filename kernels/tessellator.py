@@ -47,7 +47,7 @@ from .pool import pooled_rows_array
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
-           "tessellate_device", "prepare_frame", "frame_device"]
+           "tessellate_device", "prepare_frame", "frame_device", "count_patches"]
 
 # the spacing names (OpenGL: equal_spacing, fractional_even_spacing, fractional_odd_spacing) and the codes the
 # kernels take: the one list of spacing names (terrainwarp.scene.SPACINGS and the reference tessellator derive theirs)
@@ -707,6 +707,29 @@ def _count_scan(o: np.ndarray, i: np.ndarray, code: int, device: str):
     wp.utils.array_scan(nv, v_off, inclusive=False)
     wp.utils.array_scan(nt, t_off, inclusive=False)
     return int(v_off.numpy()[p]), int(t_off.numpy()[p]), wo, wi, v_off, t_off
+
+
+def count_patches(outer, inner, spacing: str, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """The domain points and triangles each patch tessellates to, without emitting them (one count launch): what
+    :func:`tessellate_patches` would make of each patch (its ``tess_evaluation_shader_invocations`` and
+    ``primitives_generated`` per patch).
+
+    Args:
+        outer: (P, 4) float32 outer levels; inner: (P, 2) float32 inner levels; spacing: as
+            :func:`tessellate_patches`.
+
+    Returns:
+        (points (P,) int32, triangles (P,) int32).
+    """
+    o, i = _levels(outer, inner)
+    code = _spacing_code(spacing)
+    p = o.shape[0]
+    nv = wp.zeros(max(p, 1), dtype=wp.int32, device=device)
+    nt = wp.zeros(max(p, 1), dtype=wp.int32, device=device)
+    if p:
+        launch(_count_kernel, p, [wp.array(o, dtype=wp.vec4, device=device),
+                                  wp.array(i, dtype=wp.vec2, device=device), code], [nv, nt], device)
+    return nv.numpy()[:p].copy(), nt.numpy()[:p].copy()
 
 
 def _emit(wo, wi, code: int, v_off, t_off, out: _Out, device: str) -> None:

@@ -198,7 +198,8 @@ class Heightmap:
         h, source_dtype = _heights(f"path: {p}", arr, max_height, allow_nan)
         dx = 1.0 if dx is None else dx
         return cls(heights=h, dx=_positive("dx", dx), dz=_positive("dz", dz if dz is not None else dx), name=p.stem,
-                   meta={"source_dtype": str(source_dtype), "source": str(p)})
+                   meta={"source_dtype": str(source_dtype), "source": str(p),
+                         **({} if max_height is None else {"max_height": float(max_height)})})
 
     @classmethod
     def open(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *, band: int = 1,
@@ -269,7 +270,8 @@ class Heightmap:
                         octaves=octaves, gain=gain, lacunarity=lacunarity, ridged=ridged)
         h = src.read(1, 0, 0, int(rows), int(cols))
         return cls.from_array(h, src.dx, src.dz, name=src.name, meta={
-            "source": "fbm", "seed": src.seed, "feature_size": src.feature_size, "octaves": src.octaves,
+            "source": "fbm", "seed": src.seed, "max_height": src.max_height, "feature_size": src.feature_size,
+            "octaves": src.octaves,
             "gain": src.gain, "lacunarity": src.lacunarity, "ridged": src.ridged})
 
     # -- properties --------------------------------------------------------------------------------
@@ -292,6 +294,15 @@ class Heightmap:
     def has_nodata(self) -> bool:
         """True when some height is NaN (a no-data hole); worked out once (every LOD frame asks)."""
         return bool(np.isnan(self.heights).any())
+
+    @cached_property
+    def held(self) -> dict:
+        """What frames keep between calls, keyed by their settings: the pyramids of the LOD schemes a scene
+        draws by name (``LodConfig(policy="cdlod")``), shared by every setting of this heightmap. Not pickled."""
+        return {}
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "held"}
 
     def __repr__(self) -> str:
         lo, hi = self.height_range

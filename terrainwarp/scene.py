@@ -31,18 +31,25 @@ import inspect
 import json
 import math
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import tomli_w
+
 from .camera import Camera, flyover, orbit
 from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
+from .io.files import write_text
+from .io.tiles import FbmSource, GeoTiffSource
 from .kernels.checks import check_bool, check_choice, check_int, check_number, is_int
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
+from .schemes import SCHEMES
 
 __all__ = ["Scene", "LodConfig", "CameraPath", "SceneKey", "SCENE_FILE", "PolicySpec", "POLICY_TABLE", "OUTPUTS",
            "MESH_POLICIES", "LOD_POLICIES", "SPACINGS", "FILTERS", "MAX_TESS", "QUADTREE_TESS", "check_policy_numbers",
-           "check_tess", "check_roots", "PATH_PRESETS", "GROUND_CLEARANCE", "HIGH_CLEARANCE", "PATH_FOV_Y_DEG"]
+           "check_tess", "check_roots", "MAX_LOG_SCALE", "PATH_PRESETS", "GROUND_CLEARANCE", "HIGH_CLEARANCE",
+           "PATH_FOV_Y_DEG"]
 
 OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error", "counters")
 MESH_POLICIES = ("grid", "lod")
@@ -227,6 +234,8 @@ class LodConfig:
     Attributes:
         policy: ``"sse"`` (screen-space error, malafeev2014), ``"distance"`` (deaconu2021) or
             ``"continuous"`` (a uniform patch grid with per-edge fractional factors); see ``POLICY_TABLE``.
+            Or a registered scheme (:data:`terrainwarp.schemes.SCHEMES`: ``"cdlod"``, ``"clipmaps"``,
+            ``"chunked"``, yours), drawn by its mesh source with its knob values in ``params``.
         tolerance_px: sse policy: split while the projected geometric error exceeds this.
         k: distance policy: split while the eye is within ``k`` node sizes of the node's box.
         target_px: continuous policy: target pixels per triangle edge.
@@ -237,6 +246,14 @@ class LodConfig:
             quadtree policy (edges double toward finer neighbours), any integer in 1..64 for "continuous".
         spacing: ``"equal"``, ``"fractional_even"`` or ``"fractional_odd"``.
         filter: ``"bilinear"`` or ``"bicubic"`` height sampling in the domain shader.
+        level_log_scale: sse and distance policies: a natural-log multiplier of the split threshold per quadtree
+            level (entry L for level L; levels past the end: 0), each in [-10, 10]: level L splits while the
+            projected error exceeds ``tolerance_px * exp(m_L)`` (sse), or while the eye is within
+            ``k * size * exp(m_L)`` (distance). Empty: one threshold for every level.
+        params: a scheme's knob values by name (its main parameter, e.g. CDLOD's ``first_range``, and the
+            knobs it declares: :class:`terrainwarp.schemes.SchemeKnob`), checked against their ranges; a knob
+            left out takes its default. Empty for the quadtree policies. Kept as sorted (name, value) pairs; a
+            dict is accepted.
 
     The policy object a configuration selects with is ``terrainwarp.lod.make_policy(config)``.
     """
@@ -251,6 +268,8 @@ class LodConfig:
     tess: int = 16
     spacing: str = "equal"
     filter: str = "bilinear"
+    level_log_scale: tuple[float, ...] = ()
+    params: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: the checked, converted values
@@ -258,44 +277,93 @@ class LodConfig:
             for k in ("tolerance_px", "k", "target_px", "hysteresis"):
                 set_(k, check_number(k, getattr(self, k)))
             set_("level", check_int("level", self.level, 0))
-            check_choice("policy", self.policy, LOD_POLICIES)
+            check_choice("policy", self.policy, (*LOD_POLICIES, *SCHEMES))
             check_choice("spacing", self.spacing, SPACINGS)
             check_choice("filter", self.filter, FILTERS)
-            if self.policy != "continuous" and self.spacing == "fractional_odd":
+            quadtree = self.policy in POLICY_TABLE
+            if quadtree and self.policy != "continuous" and self.spacing == "fractional_odd":
                 # doubled edges (2L) are even: see QUADTREE_TESS
                 raise ValueError("spacing: fractional_odd cannot stitch doubled edges (2L is even); use "
                                  "'equal' or 'fractional_even' with a quadtree, or policy 'continuous'")
-            set_("tess", check_tess(self.tess, self.policy))
+            set_("tess", check_tess(self.tess, self.policy if quadtree else None))
             check_roots(self.roots)
             if isinstance(self.roots, list | tuple):
                 set_("roots", tuple(int(r) for r in self.roots))
             else:
                 set_("roots", int(self.roots))
-            check_policy_numbers(self.policy, float(self.value), float(self.hysteresis), int(self.level))
+            set_("level_log_scale", _log_scales(self.level_log_scale))
+            set_("params", _scheme_params(self.policy, self.params))
+            if quadtree:
+                check_policy_numbers(self.policy, float(self.value), float(self.hysteresis), int(self.level))
         except (TypeError, ValueError) as e:
             raise type(e)(f"lod.{e}") from None
 
     @property
     def spec(self) -> PolicySpec:
-        """The policy's row of ``POLICY_TABLE``."""
+        """The policy's row of ``POLICY_TABLE`` (ValueError for a scheme: it has a :class:`SchemeSpec`)."""
+        if self.policy not in POLICY_TABLE:
+            raise ValueError(f"policy: {self.policy!r} is a scheme (terrainwarp.schemes.SCHEMES), not a row of "
+                             f"POLICY_TABLE")
         return POLICY_TABLE[self.policy]
 
     @property
-    def value(self) -> float:
-        """The policy's parameter (``tolerance_px``, ``k`` or ``target_px``)."""
+    def is_scheme(self) -> bool:
+        """True when the policy is a registered scheme, drawn by its mesh source."""
+        return self.policy not in POLICY_TABLE
+
+    @property
+    def value(self) -> float | None:
+        """The policy's parameter (``tolerance_px``, ``k`` or ``target_px``; a scheme's main parameter from
+        ``params``, None when left to its default)."""
+        if self.is_scheme:
+            return dict(self.params).get(SCHEMES[self.policy].parameter)
         return getattr(self, POLICY_TABLE[self.policy].field)
+
+    def level_threshold_scale(self, level: int) -> float:
+        """``exp(level_log_scale[level])``: the factor of level ``level``'s split threshold (1 past the end)."""
+        return math.exp(self.level_log_scale[level]) if level < len(self.level_log_scale) else 1.0
 
     def with_policy(self, policy: str, value: float) -> LodConfig:
         """This configuration with one policy at one parameter value (the sweeps' and the fit's unit): the
         value goes to the policy's ``POLICY_TABLE`` field (``"sse"``: ``tolerance_px``, ``"distance"``:
         ``k``, ``"continuous"``: ``target_px``). Quadtree policies keep the spacing unless it is
         ``fractional_odd`` (which cannot stitch doubled edges: then ``equal``); the continuous policy uses
-        ``fractional_odd``."""
+        ``fractional_odd``. A scheme's value goes to its main parameter in ``params``."""
+        if policy in SCHEMES:  # the scheme's main parameter; its other knobs kept when the policy stays
+            kept = dict(self.params) if policy == self.policy else {}
+            return replace(self, policy=policy, params={**kept, SCHEMES[policy].parameter: value})
         if policy not in POLICY_TABLE:
-            raise ValueError(f"policy: expected one of {list(LOD_POLICIES)}, got {policy!r}")
+            raise ValueError(f"policy: expected one of {[*LOD_POLICIES, *SCHEMES]}, got {policy!r}")
         spec = POLICY_TABLE[policy]
         spacing = spec.spacing or ("equal" if self.spacing == "fractional_odd" else self.spacing)
         return replace(self, policy=policy, spacing=spacing, **{spec.field: float(value)})
+
+
+MAX_LOG_SCALE = 10.0  # |level_log_scale| at most: a factor of e^10 (22026) either way
+
+
+def _log_scales(v: object) -> tuple[float, ...]:
+    if not isinstance(v, list | tuple):
+        raise TypeError(f"level_log_scale: expected a list of numbers (one per level), got {v!r}")
+    return tuple(check_number(f"level_log_scale[{i}]", m, -MAX_LOG_SCALE, MAX_LOG_SCALE) for i, m in enumerate(v))
+
+
+def _scheme_params(policy: str, v: object) -> tuple[tuple[str, float], ...]:
+    """``params`` as sorted (name, value) pairs, checked against the scheme's knobs (empty for a quadtree policy)."""
+    if isinstance(v, Mapping):
+        items = list(v.items())
+    elif isinstance(v, list | tuple) and all(isinstance(p, list | tuple) and len(p) == 2 for p in v):
+        items = [tuple(p) for p in v]
+    else:
+        raise TypeError(f"params: expected a table of knob values, got {v!r}")
+    if not all(isinstance(k, str) for k, _ in items) or len({k for k, _ in items}) != len(items):
+        raise TypeError(f"params: expected distinct knob names, got {v!r}")
+    if policy not in SCHEMES:
+        if items:
+            raise ValueError(f"params: the quadtree policy {policy!r} takes its numbers as LodConfig fields, got "
+                             f"{sorted(k for k, _ in items)}")
+        return ()
+    return tuple(sorted(SCHEMES[policy].check_params(dict(items)).items()))
 
 
 _DEFAULT_WAYPOINTS = ((0.15, 0.85), (0.5, 0.55), (0.85, 0.15))
@@ -392,7 +460,8 @@ def _attribute_docs(cls: type) -> dict[str, str]:
 
 
 _TOML_TYPES = {"bool": "boolean", "int": "integer", "float": "number", "str": "string", "str | None": "string",
-               "float | None": "number", "tuple[tuple[float, float], ...]": "array of [x, z] pairs"}
+               "float | None": "number", "tuple[tuple[float, float], ...]": "array of [x, z] pairs",
+               "tuple[float, ...]": "array of numbers", "tuple[tuple[str, float], ...]": "table"}
 
 
 def _keys_of(cls: type) -> dict[str, SceneKey]:
@@ -539,6 +608,31 @@ class Scene:
         return info
 
     # -- files -------------------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The scene as a scene file's tables (:data:`SCENE_FILE`): what :meth:`save` writes, and what
+        :meth:`from_dict` reads back into a scene that renders the same frames. Every field is written, defaults
+        included, so the file does not depend on this version's defaults.
+
+        Raises:
+            ValueError: a heightmap a scene file cannot name (made from an array, or read with a window): save
+                it to a file (``np.save``) and load that.
+        """
+        cam = self.camera
+        return {"heightmap": _heightmap_table(self.heightmap),
+                "camera": {"position": list(cam.position), "target": list(cam.target), "up": list(cam.up),
+                           "fov_y_deg": cam.fov_y_deg, "width": cam.width, "height": cam.height, "near": cam.near,
+                           "far": cam.far},
+                "render": {"outputs": list(self.outputs), "mesh": self.mesh,
+                           "light_azimuth_deg": self.light_azimuth_deg,
+                           "light_elevation_deg": self.light_elevation_deg, "cull_back": self.cull_back,
+                           "shading": self.shading},
+                "lod": _table_of(self.lod), "path": _table_of(self.path)}
+
+    def save(self, path: str | Path) -> Path:
+        """Write the scene as a TOML scene file (:meth:`to_dict`; atomically: a failed write leaves no file and
+        an earlier file whole). :meth:`load` reads it back into a scene that renders the same frames."""
+        return write_text(Path(path), tomli_w.dumps(self.to_dict()))
+
     @classmethod
     def load(cls, path: str | Path) -> Scene:
         """Read a TOML scene file (see the module docstring)."""
@@ -576,6 +670,48 @@ class Scene:
         if "path" in data:
             kw["path"] = CameraPath.from_table(data["path"])
         return cls(heightmap=hm, camera=cam, name=name, **kw)
+
+
+def _table_of(config: LodConfig | CameraPath) -> dict[str, Any]:
+    """A config dataclass as its scene-file table: every field but those left None (and a path's keys of the
+    other kind), tuples as lists."""
+    out: dict[str, Any] = {}
+    skip = (set() if not isinstance(config, CameraPath) else
+            {"radius", "elevation"} if config.kind == "flyover" else {"waypoints", "clearance", "preset"})
+    for f in fields(config):
+        v = getattr(config, f.name)
+        if v is None or f.name in skip:
+            continue
+        if f.name == "params":
+            v = dict(v)
+        elif isinstance(v, tuple):
+            v = [list(x) if isinstance(x, tuple) else x for x in v]
+        out[f.name] = v
+    return out
+
+
+def _heightmap_table(hm: Heightmap | StreamedHeightmap) -> dict[str, Any]:
+    """The ``[heightmap]`` table that makes ``hm`` again: a bundled example, an fBm, or a file (absolute path,
+    with the spacing it was given)."""
+    meta = hm.meta or {}
+    stream = isinstance(hm, StreamedHeightmap)
+    if meta.get("source") == "fbm" or (stream and isinstance(hm.source, FbmSource)):
+        src = hm.source if stream else None
+        keys = ("seed", "max_height", "feature_size", "octaves", "gain", "lacunarity", "ridged")
+        fbm = {k: getattr(src, k) if src is not None else meta[k] for k in keys}
+        return {"fbm": {"rows": hm.shape[0], "cols": hm.shape[1], "dx": hm.dx, "dz": hm.dz, **fbm},
+                **({"stream": True} if stream else {})}
+    if stream and isinstance(hm.source, GeoTiffSource):
+        return {"path": str(Path(hm.source.path).resolve()), "dx": hm.dx, "dz": hm.dz, "stream": True}
+    if not stream and hm.name in EXAMPLES and str(meta.get("source", "")).startswith("matplotlib sample data"):
+        return {"example": hm.name}
+    source = meta.get("source")
+    reads_part = any(meta.get(k) not in (None, 1, False) for k in ("window", "bounds", "decimate"))
+    if not stream and isinstance(source, str) and Path(source).is_file() and not reads_part:
+        table = {"path": str(Path(source).resolve()), "dx": hm.dx, "dz": hm.dz}
+        return table | ({"max_height": meta["max_height"]} if "max_height" in meta else {})
+    raise ValueError(f"heightmap: {hm.name!r} was not read from a file, an example or fBm settings, so a scene "
+                     f"file cannot name it; save its heights (np.save) and load that file")
 
 
 def _camera_from(cam_d: object, hm: Heightmap | StreamedHeightmap) -> Camera | None:

@@ -1,15 +1,18 @@
 """The LOD scheme registry: the one place scheme names live.
 
-A *scheme* is a LOD method drawn as a :class:`terrainwarp.rendering.MeshSource` and tuned by one parameter:
-the built-in ``cdlod`` (CDLOD's first range, metres), ``clipmaps`` (the ring size n, odd) and ``chunked``
-(Cesium's maximum screen-space error, px), registered by :mod:`terrainwarp.rendering.sources`, and yours.
+A *scheme* is a LOD method drawn as a :class:`terrainwarp.rendering.MeshSource`, tuned by its main parameter
+and any further knobs it declares (:class:`SchemeKnob`): the built-in ``cdlod`` (CDLOD's first range, metres;
+its distance ratio, morph start and grid), ``clipmaps`` (the ring size n, odd; its levels and transition width)
+and ``chunked`` (Cesium's maximum screen-space error, px; its tile size), registered by
+:mod:`terrainwarp.rendering.sources`, and yours. A registered name is a ``LodConfig.policy``: a scene with
+``mesh = "lod"`` and ``lod = LodConfig(policy=NAME, params={...})`` draws it (its knob values in ``params``).
 A registered name is accepted wherever a scheme is: :func:`scheme_source` (then ``render(scene,
 source=...)``), the report sweep (``terrainwarp report --policies NAME``,
 :func:`terrainwarp.experiments.pareto.sweep`) and the fit (``fit_lod(scene, budget_px, policy=NAME)``,
 ``terrainwarp fit --policy NAME``)::
 
     def make(heightmap, value, *, cache, **params):      # -> a MeshSource at this parameter value
-        return MySource(heightmap, value, cache=cache)
+        return MySource(heightmap, value, cache=cache)      # params: your knobs' values, and device
 
     register_scheme("bands", make, parameter="near_m", lo=50.0, hi=20000.0, larger_is_finer=True)
 
@@ -33,13 +36,53 @@ from types import MappingProxyType, ModuleType
 from typing import Any
 
 from .heightmap import Heightmap
+from .kernels.checks import check_int, check_number
 
-__all__ = ["SchemeSpec", "SCHEMES", "register_scheme", "unregister_scheme", "get_scheme", "scheme_names",
-           "scheme_source", "scheme_range", "sweep_values", "load_plugin", "PLUGIN_FLAG"]
+__all__ = ["SchemeKnob", "SchemeSpec", "SCHEMES", "register_scheme", "unregister_scheme", "get_scheme", "scheme_names",
+           "scheme_source", "scheme_range", "scheme_default", "check_value", "sweep_values", "load_plugin",
+           "PLUGIN_FLAG"]
 
 #: Set (True) on a module :func:`load_plugin` ran from a file: it cannot be imported by name elsewhere (a
 #: worker process), so what it defines travels by value.
 PLUGIN_FLAG = "__terrainwarp_plugin__"
+
+
+@dataclass(frozen=True)
+class SchemeKnob:
+    """A scheme's knob beside its main parameter: a keyword of its ``make``, a key of ``LodConfig.params``, and
+    a dimension the multi-knob fit searches (:func:`terrainwarp.fit.knobs`).
+
+    Attributes:
+        name: the keyword (a Python identifier).
+        lo, hi: the range, both ends included.
+        default: the value when a scene does not give one (None: the scheme's own default, chosen per heightmap).
+        integer: an integer knob (values are rounded to the nearest integer, or to the nearest of ``choices``).
+        log: searched in log space (a ratio or a size; ``lo`` > 0).
+        choices: an integer knob's allowed values, ascending (None: every integer in the range).
+        structural: the value changes what the scheme prepares independently of the other knobs (its pyramids,
+            e.g. CDLOD's grid): sources made with another value do not share the prepared data.
+        doc: one line for listings.
+    """
+
+    name: str
+    lo: float
+    hi: float
+    default: float | None
+    integer: bool = False
+    log: bool = False
+    choices: tuple[int, ...] | None = None
+    structural: bool = False
+    doc: str = ""
+
+    def check(self, scheme: str, v: object) -> float | int:
+        """``v`` checked against the range (an integer knob's value an integer in ``choices`` when given)."""
+        where = f"{scheme}.{self.name}"
+        if self.integer:
+            i = check_int(where, v, int(math.ceil(self.lo)), int(math.floor(self.hi)))
+            if self.choices is not None and i not in self.choices:
+                raise ValueError(f"{where}: expected one of {list(self.choices)}, got {i}")
+            return i
+        return check_number(where, v, self.lo, self.hi)
 
 
 @dataclass(frozen=True)
@@ -65,6 +108,9 @@ class SchemeSpec:
             None: (``lo``, ``hi``), a zero ``lo`` raised to ``hi / 4096`` (searched in log space).
         builtin: registered by terrainwarp itself (cannot be replaced or removed).
         doc: one line for listings (``terrainwarp fit --help``, the API reference).
+        knobs: the scheme's further knobs (:class:`SchemeKnob`), keywords of ``make``.
+        default: the main parameter's value when a scene gives none (None: the geometric mean of the searched
+            range on the heightmap, :func:`scheme_range`).
     """
 
     name: str
@@ -78,6 +124,27 @@ class SchemeSpec:
     fit_range: Callable[[Heightmap, dict, dict], tuple[float, float]] | None = None
     builtin: bool = False
     doc: str = ""
+    knobs: tuple[SchemeKnob, ...] = ()
+    default: float | None = None
+
+    def knob(self, name: str) -> SchemeKnob:
+        """The further knob ``name``; ValueError naming the scheme's knobs otherwise."""
+        for k in self.knobs:
+            if k.name == name:
+                return k
+        raise ValueError(f"{self.name}: expected a knob of {[self.parameter, *(k.name for k in self.knobs)]}, "
+                         f"got {name!r}")
+
+    def check_params(self, params: Mapping[str, object]) -> dict[str, float | int]:
+        """A scene's ``LodConfig.params`` for this scheme, each key a knob (or the main parameter) and each value
+        in its range; returned checked and converted."""
+        out: dict[str, float | int] = {}
+        for k, v in params.items():
+            if k == self.parameter:
+                out[k] = check_value(self, v)
+            else:
+                out[k] = self.knob(k).check(self.name, v)
+        return out
 
 
 _REGISTRY: dict[str, SchemeSpec] = {}
@@ -89,13 +156,14 @@ def register_scheme(name: str, make: Callable[..., Any], *, parameter: str, lo: 
                     larger_is_finer: bool, odd_integer: bool = False,
                     sweep: Callable[[float, float], list[float]] | None = None,
                     fit_range: Callable[[Heightmap, dict, dict], tuple[float, float]] | None = None,
-                    replace: bool = False, doc: str = "", builtin: bool = False) -> SchemeSpec:
+                    replace: bool = False, doc: str = "", builtin: bool = False,
+                    knobs: tuple[SchemeKnob, ...] | list[SchemeKnob] = (), default: float | None = None) -> SchemeSpec:
     """Register a scheme under ``name`` (see :class:`SchemeSpec` for the arguments) and return its spec.
 
     Raises:
         ValueError: a name that is empty, not an identifier-like word, a quadtree policy's or a mesh
-            family's name, already registered (unless ``replace``, for a scheme that is not built in), or
-            an empty or inverted range.
+            family's name, already registered (unless ``replace``, for a scheme that is not built in),
+            an empty or inverted range, or a knob whose name repeats or whose range or default is invalid.
         TypeError: ``make`` (or ``sweep``, ``fit_range``) not callable.
     """
     if not isinstance(name, str) or not name or not name.replace("_", "a").replace("-", "a").isalnum():
@@ -114,8 +182,22 @@ def register_scheme(name: str, make: Callable[..., Any], *, parameter: str, lo: 
     lo, hi = float(lo), float(hi)
     if math.isnan(lo) or math.isnan(hi) or not (lo < hi) or math.isinf(lo):
         raise ValueError(f"lo, hi: expected a finite lo below hi, got {lo}, {hi}")
+    knobs = tuple(knobs)
+    names = [parameter, *(getattr(k, "name", None) for k in knobs)]
+    if not all(isinstance(k, SchemeKnob) for k in knobs) or len(set(names)) != len(names):
+        raise ValueError(f"knobs: expected SchemeKnob specs with names distinct from each other and from "
+                         f"{parameter!r}, got {names[1:]}")
+    for k in knobs:
+        if not (k.name.isidentifier() and math.isfinite(k.lo) and math.isfinite(k.hi) and k.lo < k.hi
+                and (not k.log or k.lo > 0)):
+            raise ValueError(f"knobs: {k.name!r} needs an identifier name and a finite range lo < hi (lo > 0 when "
+                             f"searched in log space), got {k.lo}, {k.hi}")
+        if k.default is not None:
+            k.check(name, k.default)
     spec = SchemeSpec(name, make, parameter, lo, hi, bool(larger_is_finer), bool(odd_integer), sweep, fit_range,
-                      builtin, doc)
+                      builtin, doc, knobs, None if default is None else float(default))
+    if default is not None:
+        check_value(spec, default)
     _REGISTRY[name] = spec
     return spec
 
@@ -143,27 +225,38 @@ def scheme_names(*, builtin: bool | None = None) -> tuple[str, ...]:
 def scheme_source(name: str, heightmap: Heightmap, value: float, *, cache: dict | None = None,
                   **params: Any) -> Any:
     """The mesh source of scheme ``name`` with its parameter at ``value`` (rounded up to the next odd integer
-    for an odd-integer parameter) and the scheme's other keyword ``params`` (e.g. ``device``).
+    for an odd-integer parameter) and the scheme's other keyword ``params`` (its knobs, checked against their
+    ranges, and e.g. ``device``).
 
     With a ``cache`` (a dict the caller keeps for one heightmap), what a scheme prepares independently of the
     value (the built-ins' pyramids) is made once and shared by every source made with it.
 
     Raises:
-        ValueError: an unknown name, or a value that is not finite or outside the scheme's range.
+        ValueError: an unknown name, or a value (or a knob's) that is not finite or outside its range.
+        TypeError: a value that is not a number (a knob's integer that is not an integer).
     """
     spec = get_scheme(name)
+    value = check_value(spec, value, "value")
+    for k in spec.knobs:
+        if k.name in params and params[k.name] is not None:
+            params[k.name] = k.check(name, params[k.name])
+    return spec.make(heightmap, value, cache={} if cache is None else cache, **params)
+
+
+def check_value(spec: SchemeSpec, value: object, name: str | None = None) -> float | int:
+    """The main parameter's ``value`` checked against ``spec``'s range (rounded up to the next odd integer for
+    an odd-integer parameter, then an ``int``); the error names ``name`` (default: the scheme's parameter)."""
+    name = f"{spec.name}.{spec.parameter}" if name is None else name
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise TypeError(f"value: expected a number, got {type(value).__name__}")
+        raise TypeError(f"{name}: expected a number, got {type(value).__name__}")
     value = float(value)
     if spec.odd_integer and math.isfinite(value):
         value = float(int(math.ceil(value)) | 1)
     zero_ok = not spec.larger_is_finer  # a zero threshold is full detail; a zero range is no range
     if not (math.isfinite(value) and spec.lo <= value <= spec.hi and (value != 0 or zero_ok)):
-        raise ValueError(f"value: expected a finite {spec.parameter} in the range of {name!r} "
+        raise ValueError(f"{name}: expected a finite {spec.parameter} in the range of {spec.name!r} "
                          f"({spec.lo:g}..{spec.hi:g}), got {value}")
-    if spec.odd_integer:
-        value = int(value)
-    return spec.make(heightmap, value, cache={} if cache is None else cache, **params)
+    return int(value) if spec.odd_integer else value
 
 
 def scheme_range(name: str, heightmap: Heightmap, *, cache: dict | None = None, **params: Any) -> tuple[float, float]:
@@ -175,6 +268,17 @@ def scheme_range(name: str, heightmap: Heightmap, *, cache: dict | None = None, 
         lo, hi = spec.fit_range(heightmap, {} if cache is None else cache, params)
         return float(lo), float(hi)
     return (spec.lo if spec.lo > 0 else spec.hi / 4096.0), spec.hi
+
+
+def scheme_default(name: str, heightmap: Heightmap, *, cache: dict | None = None, **params: Any) -> float | int:
+    """The main parameter's value a scene that gives none draws: the spec's ``default``, else the geometric mean
+    of :func:`scheme_range` on ``heightmap`` with the scheme's other ``params`` (snapped to an odd integer for an
+    odd-integer parameter)."""
+    spec = get_scheme(name)
+    if spec.default is not None:
+        return check_value(spec, spec.default)
+    lo, hi = scheme_range(name, heightmap, cache=cache, **params)
+    return check_value(spec, math.sqrt(lo * hi))
 
 
 def sweep_values(name: str, heightmap: Heightmap, quick: bool = False) -> list[float]:

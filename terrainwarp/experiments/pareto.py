@@ -216,7 +216,8 @@ def _register_user_schemes(sent: dict[str, bytes]) -> None:
         spec = pickle.loads(blob)
         register_scheme(name, spec.make, parameter=spec.parameter, lo=spec.lo, hi=spec.hi,
                         larger_is_finer=spec.larger_is_finer, odd_integer=spec.odd_integer, sweep=spec.sweep,
-                        fit_range=spec.fit_range, replace=name in SCHEMES, doc=spec.doc)
+                        fit_range=spec.fit_range, replace=name in SCHEMES, doc=spec.doc, knobs=spec.knobs,
+                        default=spec.default)
         _RECEIVED[name] = blob
 
 

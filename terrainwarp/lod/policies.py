@@ -11,15 +11,16 @@ terrain sample's per-edge screen size, and how it maps onto ``edge_pixels`` (not
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from types import ModuleType
 
 import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
-from ..scene import MAX_TESS, POLICY_TABLE, LodConfig, check_policy_numbers
+from ..scene import MAX_LOG_SCALE, MAX_TESS, POLICY_TABLE, LodConfig, check_policy_numbers
 
 __all__ = ["DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "Policy", "POLICY_CLASSES", "make_policy",
            "check_policy", "edge_pixels", "dx11_edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES"]
@@ -37,17 +38,20 @@ EDGES = (((0, 0), (0, 1)), ((0, 0), (1, 0)), ((1, 0), (1, 1)), ((0, 1), (1, 1)))
 @dataclass(frozen=True)
 class DistancePolicy:
     """Split while the distance from the eye to the node's box is below the level's threshold
-    (deaconu2021 "Rendering"). ``thresholds[L]`` in metres; default ``k * node_size(L)``."""
+    (deaconu2021 "Rendering"). ``thresholds[L]`` in metres; default ``k * node_size(L) * exp(level_scale[L])``
+    (``level_scale``: :attr:`terrainwarp.LodConfig.level_log_scale`; levels past its end: 0)."""
 
     k: float = 2.0
     thresholds: tuple[float, ...] | None = None
     hysteresis: float = 0.0
     code: int = 0
+    level_scale: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         check_policy_numbers("distance", self.k, self.hysteresis)
         if self.thresholds is not None and not all(np.isfinite(t) and t >= 0 for t in self.thresholds):
             raise ValueError("thresholds: expected finite distances >= 0 in metres")
+        _check_scales(self.level_scale)
 
     def threshold(self, level: int, node_size_m: float) -> float:
         """The split threshold (m) at ``level``, whose nodes are ``node_size_m`` metres wide."""
@@ -55,23 +59,26 @@ class DistancePolicy:
             if level >= len(self.thresholds):
                 return 0.0
             return float(self.thresholds[level])
-        return self.k * node_size_m
+        return self.k * node_size_m * _scale(self.level_scale, level)
 
 
 @dataclass(frozen=True)
 class ScreenErrorPolicy:
-    """Split while the projected geometric error exceeds ``tolerance_px`` pixels (malafeev2014; Cesium's
-    maximumScreenSpaceError): ``sse = geometric_error * focal_px / dist``."""
+    """Split while the projected geometric error exceeds ``tolerance_px * exp(level_scale[L])`` pixels at level L
+    (malafeev2014; Cesium's maximumScreenSpaceError): ``sse = geometric_error * focal_px / dist``
+    (``level_scale``: :attr:`terrainwarp.LodConfig.level_log_scale`; levels past its end: 0)."""
 
     tolerance_px: float = 1.0
     hysteresis: float = 0.0
     code: int = 1
+    level_scale: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         check_policy_numbers("sse", self.tolerance_px, self.hysteresis)
+        _check_scales(self.level_scale)
 
     def threshold(self, level: int, node_size_m: float) -> float:
-        return float(self.tolerance_px)
+        return float(self.tolerance_px) * _scale(self.level_scale, level)
 
 
 @dataclass(frozen=True)
@@ -92,6 +99,17 @@ class ContinuousPolicy:
         return 0.0
 
 
+def _check_scales(scales: tuple[float, ...]) -> None:
+    if not all(np.isfinite(m) and abs(m) <= MAX_LOG_SCALE for m in scales):
+        raise ValueError(f"level_scale: expected finite log multipliers in [-{MAX_LOG_SCALE:g}, {MAX_LOG_SCALE:g}], "
+                         f"got {scales!r}")
+
+
+def _scale(scales: tuple[float, ...], level: int) -> float:
+    """``exp(scales[level])``, 1 past the end (the same rule as :meth:`LodConfig.level_threshold_scale`)."""
+    return math.exp(scales[level]) if level < len(scales) else 1.0
+
+
 Policy = DistancePolicy | ScreenErrorPolicy | ContinuousPolicy
 POLICY_CLASSES: dict[str, type] = {"sse": ScreenErrorPolicy, "distance": DistancePolicy,
                                    "continuous": ContinuousPolicy}
@@ -102,9 +120,14 @@ def make_policy(config: LodConfig) -> Policy:
     given the row's parameter field, the hysteresis and the fields the row ``reads``."""
     if not isinstance(config, LodConfig):
         raise TypeError(f"config: expected a LodConfig, got {type(config).__name__}")
+    if config.is_scheme:
+        raise ValueError(f"config: the scheme {config.policy!r} is drawn by its mesh source "
+                         f"(terrainwarp.rendering.sources.scene_source), not by a quadtree policy object")
     spec = POLICY_TABLE[config.policy]
     kw = {spec.field: float(config.value), "hysteresis": float(config.hysteresis)}
     kw.update({f: int(getattr(config, f)) for f in spec.reads})
+    if config.level_log_scale and "level_scale" in {f.name for f in fields(POLICY_CLASSES[config.policy])}:
+        kw["level_scale"] = tuple(config.level_log_scale)
     return POLICY_CLASSES[config.policy](**kw)
 
 

@@ -71,7 +71,7 @@ from .streaming import StreamedPyramid
 
 __all__ = ["Terrain", "DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "PatchList", "LodState",
            "NodeMetrics", "node_metrics",
-           "select", "tile_key", "tile_from_key", "tile_name", "MAX_TESS"]
+           "select", "uniform_patches", "tile_key", "tile_from_key", "tile_name", "MAX_TESS"]
 
 _ZOOM_SHIFT = 58
 _Y_SHIFT = 29
@@ -528,6 +528,35 @@ def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, c
                      origin_cells.astype(**f32), s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
                      nbr.astype(**i32), dist.astype(**f32), metric.astype(**f32),
                      _gather_err(terrain, level, lx, ly), stats)
+
+
+def uniform_patches(terrain: Terrain, level: int, factor: float | None = None) -> PatchList:
+    """Every node of one ``level`` inside the grid as a patch, none culled, each tessellated with ``factor`` on
+    every edge and inside (default: the terrain's T): the surface a quadtree draws where that level is the leaf
+    level (the fit's models measure it once per level, :mod:`terrainwarp.fit.probe`). Key order; ``distance``
+    and ``metric`` 0; neighbour levels ``level`` (-1 at the grid's border)."""
+    level = check_int("level", level, 0, terrain.depth)
+    hm = terrain.heightmap
+    f = np.float32(terrain.tess if factor is None else factor)
+    cx, cy = terrain.cached("inside_counts", lambda: _inside_counts(terrain))[level]
+    yy, xx = np.meshgrid(np.arange(cy, dtype=np.int64), np.arange(cx, dtype=np.int64), indexing="ij")
+    lx, ly = xx.reshape(-1), yy.reshape(-1)
+    lv = np.full(len(lx), level, np.int32)
+    keys = tile_key(lv, lx, ly)
+    order = np.argsort(keys, kind="stable")
+    lx, ly, keys = lx[order], ly[order], keys[order]
+    s = terrain.root_cells / 2.0 ** level
+    origin_cells = np.stack([lx * s, ly * s], axis=1)
+    origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], 1)
+    size = np.tile(np.array([[s * hm.dx, s * hm.dz]]), (len(lx), 1))
+    # OpenGL edge order: u=0 (west), v=0 (north), u=1 (east), v=1 (south); -1 beyond the grid
+    nbr = np.stack([np.where(lx > 0, level, -1), np.where(ly > 0, level, -1), np.where(lx < cx - 1, level, -1),
+                    np.where(ly < cy - 1, level, -1)], 1).astype(np.int32)
+    zero = np.zeros(len(lx), np.float32)
+    return PatchList(lv, keys, origin, size, origin_cells.astype(np.float32), np.full(len(lx), s, np.float32),
+                     np.full((len(lx), 4), f, np.float32), np.full((len(lx), 2), f, np.float32), nbr, zero, zero,
+                     _gather_err(terrain, lv, lx, ly),
+                     {"patches": len(lx), "leaves": len(lx), "depth": terrain.depth, "tess": terrain.tess})
 
 
 def _edge_factors(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarray, nbr: np.ndarray,

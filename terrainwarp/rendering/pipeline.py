@@ -81,7 +81,7 @@ from ..measure.sample_error import PopStats, popping, sample_error
 from ..mesh import Draws, Mesh
 from ..scene import Scene
 from ..surface.differential import compute_curvature
-from .sources import MeshSource, StreamedSource, missing_members
+from .sources import MeshSource, StreamedSource, missing_members, scene_source
 
 __all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource", "pop_stats"]
 
@@ -336,6 +336,11 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
     if source is not None and missing_members(source):
         raise TypeError(f"source: expected a MeshSource (terrainwarp.rendering.SourceBase has the defaults), got "
                         f"{type(source).__name__} without {', '.join(missing_members(source))}")
+    if source is None and scene.mesh == "lod" and scene.lod.is_scheme:  # a scheme drawn by name
+        if patches is not None:
+            raise ValueError(f"patches: a held PatchList is drawn by a quadtree policy, got the scheme "
+                             f"{scene.lod.policy!r}")
+        source = scene_source(scene, device)
     if isinstance(hm, StreamedHeightmap):
         held = source is None  # the source the heightmap holds for this configuration, made by render
         source = _streamed_source(scene, terrain, source, patches, device)
@@ -355,7 +360,7 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
                           "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
                           "mesh_policy": kind, "outputs": list(scene.outputs), "stages_run": stages,
                           "device": device})
-    if kind == "lod":
+    if kind == "lod" or (scene.mesh == "lod" and scene.lod.is_scheme):
         report.info["lod"] = dict(scene.lod.__dict__)
     if kind == "source":
         report.info["source"] = type(source).__name__
@@ -599,6 +604,8 @@ def pop_stats(scene: Scene, previous: Camera, current: Frame, reference: Frame, 
     """
     if current.mesh is None or reference.depth is None:
         raise ValueError("current, reference: expected a frame with a mesh and a reference frame with depth")
+    if source is None and scene.mesh == "lod" and scene.lod.is_scheme:
+        source = scene_source(scene, device)
     if source is not None:
         held_mesh = source.held_mesh_for(previous, scene.camera)
     elif scene.mesh == "lod":

@@ -32,7 +32,7 @@ import copy
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Protocol, runtime_checkable
 
@@ -55,12 +55,20 @@ from ..lod.polytree import Polytree
 from ..lod.quadtree import LodState, PatchList, Terrain, select
 from ..lod.streaming import overview_windows
 from ..mesh import Mesh
-from ..scene import LodConfig
-from ..schemes import SCHEMES, SchemeSpec, register_scheme, scheme_range, scheme_source  # noqa: F401
+from ..scene import POLICY_TABLE, LodConfig, Scene
+from ..schemes import (  # noqa: F401 - SCHEMES, SchemeSpec, scheme_range: importable here as before
+    SCHEMES,
+    SchemeKnob,
+    SchemeSpec,
+    register_scheme,
+    scheme_default,
+    scheme_range,
+    scheme_source,
+)
 
 # SCHEMES, SchemeSpec, scheme_source and scheme_range are terrainwarp.schemes', importable here as before
 __all__ = ["MeshSource", "SourceBase", "missing_members", "StreamedSource", "PeerSource", "PolytreeSource",
-           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource"]
+           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource", "scene_source"]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -348,38 +356,72 @@ class ChunkedSource(_SchemeSource):
         return self.scheme.terrain.time_ms
 
 
+def scene_source(scene: Scene, device: str = "cpu") -> MeshSource:
+    """The mesh source that draws a LOD scene whose ``LodConfig.policy`` is a scheme (``render`` makes it):
+    :func:`terrainwarp.schemes.scheme_source` with the configuration's ``params`` (a main parameter left out
+    takes :func:`terrainwarp.schemes.scheme_default`), what the scheme prepares kept in the heightmap's
+    ``held`` cache per device, so every frame and every setting of one heightmap share its pyramids."""
+    hm, lod = scene.heightmap, scene.lod
+    if not lod.is_scheme:
+        raise ValueError(f"lod.policy: expected a registered scheme, got the quadtree policy {lod.policy!r}")
+    if not isinstance(hm, Heightmap) or isinstance(hm, StreamedHeightmap):
+        raise ValueError(f"lod.policy: the scheme {lod.policy!r} draws an in-memory Heightmap; a streamed heightmap "
+                         f"is drawn by the quadtree policies ({', '.join(POLICY_TABLE)})")
+    cache = hm.held.setdefault(("schemes", device), {})
+    params = dict(lod.params)
+    value = params.pop(SCHEMES[lod.policy].parameter, None)
+    if value is None:
+        value = scheme_default(lod.policy, hm, cache=cache, device=device, **params)
+    return scheme_source(lod.policy, hm, value, cache=cache, device=device, **params)
+
+
 # ------------------------------------------------------------------------------------------------
 # the built-in schemes, registered by name (terrainwarp.schemes)
 # ------------------------------------------------------------------------------------------------
-def _builtin(scheme_cls: type, source_cls: type, parameter: str) -> Callable[..., MeshSource]:
-    """The ``make`` of a built-in scheme: with a ``cache``, the schemes with pyramids (a
-    :class:`terrainwarp.lod.Terrain` field, which does not depend on the parameter: CDLOD and chunked) are
-    prepared once per keyword ``params`` and kept there; each source holds a copy with its own value."""
-    shares = "terrain" in {f.name for f in fields(scheme_cls)}
-
-    def make(heightmap: Heightmap, value: float, *, cache: dict, **params: Any) -> MeshSource:
-        if not shares:
-            return source_cls(scheme=scheme_cls(heightmap, **{parameter: value}, **params), cache=cache)
-        scheme = copy.copy(_base_scheme(scheme_cls, parameter, heightmap, cache, params))
-        setattr(scheme, parameter, value)
-        return source_cls(scheme=scheme, cache=cache)
-
-    return make
-
-
-def _base_scheme(scheme_cls: type, parameter: str, heightmap: Heightmap, cache: dict, params: dict) -> Any:
-    """The scheme with ``params`` whose pyramids every value shares (kept in ``cache``)."""
+def _shared(scheme_cls: type, heightmap: Heightmap, cache: dict, params: dict, **value: Any) -> Any:
+    """A copy of the scheme prepared once per structural keyword ``params`` (its pyramids, kept in ``cache``),
+    with ``value`` (the main parameter and the knobs that change no prepared data) set on the copy."""
     key = ("scheme", scheme_cls.__name__, tuple(sorted(params.items())))
     if key not in cache:
-        cache[key] = scheme_cls(heightmap, **{parameter: 1.0}, **params)  # any valid value: replaced per source
-    return cache[key]
+        name, v = next(iter(value.items()))
+        cache[key] = scheme_cls(heightmap, **{name: v}, **params)  # the other knobs are set per source
+    scheme = copy.copy(cache[key])
+    for k, v in value.items():
+        setattr(scheme, k, v)
+    return scheme
+
+
+def _make_cdlod(heightmap: Heightmap, value: float, *, cache: dict, ratio: float = 2.0,
+                morph_start_ratio: float = 0.7, grid: int = 32, **params: Any) -> CdlodSource:
+    """CDLOD at first range ``value`` (m); ``grid`` is structural (the pyramids have ``tess = grid``)."""
+    return CdlodSource(scheme=_shared(Cdlod, heightmap, cache, {"grid": grid, **params}, first_range=value,
+                                      ratio=ratio, morph_start_ratio=morph_start_ratio), cache=cache)
+
+
+def _make_clipmaps(heightmap: Heightmap, value: int, *, cache: dict, levels: int | None = None,
+                   transition_ratio: float = 0.1, **params: Any) -> ClipmapSource:
+    """Geometry clipmaps of ring size ``value`` (n, odd), ``levels`` (None: cover the terrain) and a transition
+    width of ``transition_ratio * n`` grid units (GPU Gems' n / 10 by default); nothing is prepared."""
+    m = (value - 1) // 2
+    w = min(transition_ratio * value, (m - 1) / 2)  # the widest the ring allows
+    return ClipmapSource(scheme=Clipmap(heightmap, n=value, levels=levels, transition=w, **params), cache=cache)
+
+
+def _make_chunked(heightmap: Heightmap, value: float, *, cache: dict, tile: int = 32,
+                  **params: Any) -> ChunkedSource:
+    """Chunked LOD at maximum error ``value`` (px); ``tile`` is structural (the pyramids have ``tess = tile``)."""
+    return ChunkedSource(scheme=_shared(ChunkedLod, heightmap, cache, {"tile": tile, **params}, max_sse_px=value),
+                         cache=cache)
 
 
 def _cdlod_range(heightmap: Heightmap, cache: dict, params: dict) -> tuple[float, float]:
-    """CDLOD's first range on ``heightmap``: from its seam-free :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range`
-    (at least one sample spacing) to twice the diagonal of the terrain's box (every point within the first range
-    from any eye over the terrain: full detail)."""
-    base = _base_scheme(Cdlod, "first_range", heightmap, cache, params)
+    """CDLOD's first range on ``heightmap`` (and the ``ratio`` and ``morph_start_ratio`` in ``params``): from
+    its seam-free :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range` (at least one sample spacing) to twice the
+    diagonal of the terrain's box (every point within the first range from any eye over the terrain: full
+    detail)."""
+    shaping = {k: params[k] for k in ("ratio", "morph_start_ratio") if params.get(k) is not None}
+    structural = {"grid": 32, **{k: v for k, v in params.items() if k not in shaping and v is not None}}
+    base = _shared(Cdlod, heightmap, cache, structural, first_range=1.0, **shaping)
     (x0, z0), (x1, z1) = heightmap.bounds_xz
     lo_h, hi_h = heightmap.height_range
     lo = max(base.min_first_range, min(heightmap.dx, heightmap.dz))
@@ -389,17 +431,31 @@ def _cdlod_range(heightmap: Heightmap, cache: dict, params: dict) -> tuple[float
 _STEPS = (8.0, 4.0, 2.0, 1.0)  # a report's settings of a built-in scheme: finer by each step's factor
 # first_range in metres: its lower end is the scheme's own min_first_range (seams below it), its upper end any
 # distance past the farthest visible point (everything at full detail); a report sweeps 8, 4, 2, 1 times the minimum
-register_scheme("cdlod", _builtin(Cdlod, CdlodSource, "first_range"), parameter="first_range", lo=0.0,
+register_scheme("cdlod", _make_cdlod, parameter="first_range", lo=0.0,
                 hi=math.inf, larger_is_finer=True, fit_range=_cdlod_range, builtin=True,
                 sweep=lambda lo, hi: [min(lo * f, hi) for f in _STEPS],
-                doc="CDLOD: distance-range quadtree selection with per-vertex morphing; first range, m")
+                doc="CDLOD: distance-range quadtree selection with per-vertex morphing; first range, m",
+                knobs=(SchemeKnob("ratio", 1.25, 4.0, 2.0, log=True,
+                                  doc="LOD distance ratio: each level's band is ratio times the previous one"),
+                       SchemeKnob("morph_start_ratio", 0.3, 0.95, 0.7,
+                                  doc="where in its band a level starts morphing (0.7: over the last 30%)"),
+                       SchemeKnob("grid", 8, 64, 32, integer=True, choices=(8, 16, 32, 64), structural=True,
+                                  doc="quads per node side (the render grid's resolution)")))
 # n odd, 2^k - 1 as GPU Gems': a report sweeps 255, 127, 63, 31
-register_scheme("clipmaps", _builtin(Clipmap, ClipmapSource, "n"), parameter="n", lo=15, hi=4095,
-                larger_is_finer=True, odd_integer=True, builtin=True,
+register_scheme("clipmaps", _make_clipmaps, parameter="n", lo=15, hi=4095,
+                larger_is_finer=True, odd_integer=True, builtin=True, default=255,
                 sweep=lambda lo, hi: [min(max(32 * f - 1, lo), hi) for f in _STEPS],
-                doc="geometry clipmaps: nested rings around the snapped viewer; ring size n, odd")
+                doc="geometry clipmaps: nested rings around the snapped viewer; ring size n, odd",
+                knobs=(SchemeKnob("levels", 1, 24, None, integer=True,
+                                  doc="rings drawn (default: enough for the coarsest to cover the terrain; fewer "
+                                      "leave the far terrain undrawn)"),
+                       SchemeKnob("transition_ratio", 0.02, 0.24, 0.1,
+                                  doc="transition width as a fraction of n (GPU Gems: 1/10), at most the ring's "
+                                      "half width")))
 # a report sweeps 1, 2, 4, 8 px (Cesium's default 2 among them)
-register_scheme("chunked", _builtin(ChunkedLod, ChunkedSource, "max_sse_px"), parameter="max_sse_px", lo=0.0,
-                hi=64.0, larger_is_finer=False, builtin=True,
+register_scheme("chunked", _make_chunked, parameter="max_sse_px", lo=0.0,
+                hi=64.0, larger_is_finer=False, builtin=True, default=2.0,
                 sweep=lambda lo, hi: [min(max(8.0 / f, lo), hi) for f in _STEPS],
-                doc="Chunked LOD with skirts: screen-space-error chunk selection; maximum error, px")
+                doc="Chunked LOD with skirts: screen-space-error chunk selection; maximum error, px",
+                knobs=(SchemeKnob("tile", 8, 64, 32, integer=True, choices=(8, 16, 32, 64), structural=True,
+                                  doc="quads per chunk side"),))

@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from terrainwarp import Camera, Heightmap, LodConfig, Scene
@@ -33,7 +34,8 @@ def test_camera_keys_without_a_position_are_applied():
     ({"lod": {"tess": 16.0}}, TypeError, r"lod.tess: expected an integer level"),
     ({"lod": {"roots": True}}, TypeError, r"lod.roots: expected an int or \(nx, nz\)"),
     ({"lod": {"spacing": 3}}, TypeError, r"lod.spacing: expected one of"),
-    ({"lod": {"policy": "ssee"}}, ValueError, r"lod.policy: expected one of \['sse', 'distance', 'continuous'\]"),
+    ({"lod": {"policy": "ssee"}}, ValueError,
+     r"lod.policy: expected one of \['sse', 'distance', 'continuous', 'cdlod', 'clipmaps', 'chunked'\]"),
     ({"heightmap": {"example": "jacksboro", "dx": math.nan}}, ValueError,
      r"heightmap.dx: applies to a 'path' heightmap only; an example takes its own spacing"),
     ({"heightmap": {"example": "jacksboro", "dx": -30}}, ValueError, r"heightmap.dx: applies to a 'path'"),
@@ -98,3 +100,55 @@ def test_the_command_refuses_a_string_number_in_one_line(tmp_path):
     assert r.returncode == 2 and r.stderr.strip() == \
         "terrainwarp: error: lod.tolerance_px: expected a number, got '1.0'"
     assert not (tmp_path / "o").exists()
+
+
+def _frame_digest(sc):
+    from conftest import digest
+
+    from terrainwarp import render
+
+    f = render(sc)
+    return digest(f.image), digest(f.depth)
+
+
+@pytest.mark.parametrize("lod", [
+    LodConfig(tolerance_px=1.5, level_log_scale=(0.0, 0.7, -0.4), hysteresis=0.2, tess=8),
+    LodConfig(policy="cdlod", params={"first_range": 900.0, "ratio": 2.5, "morph_start_ratio": 0.6, "grid": 16}),
+    LodConfig(policy="clipmaps", params={"n": 31, "transition_ratio": 0.2}),
+    LodConfig(policy="chunked", params={"max_sse_px": 3.0, "tile": 16}),
+])
+def test_a_scene_saved_to_toml_loads_back_and_renders_the_same_frame(tmp_path, lod):
+    hm = Heightmap.fbm(65, seed=3, dx=15.0, max_height=400.0)
+    sc = Scene(hm, camera=Camera.default_for(hm, 96, 64), mesh="lod", lod=lod, outputs=("image", "depth"),
+               path=CameraPath(n=3, preset="high"), name="saved")
+    back = Scene.load(sc.save(tmp_path / "saved.toml"))
+    assert back.lod == sc.lod and back.path == sc.path and back.camera == sc.camera and back.outputs == sc.outputs
+    assert np.array_equal(back.heightmap.heights, hm.heights) and (back.heightmap.dx, back.heightmap.dz) == (hm.dx,
+                                                                                                            hm.dz)
+    assert _frame_digest(back) == _frame_digest(sc)
+
+
+def test_saving_names_the_heightmap_a_scene_file_cannot_name(tmp_path):
+    hm = Heightmap.from_array(np.zeros((9, 9), np.float32), 5.0, name="scratch")
+    with pytest.raises(ValueError, match="heightmap: 'scratch' was not read from a file"):
+        Scene(hm).save(tmp_path / "x.toml")
+    assert not (tmp_path / "x.toml").exists()
+    np.save(tmp_path / "h.npy", np.arange(81, dtype=np.float32).reshape(9, 9))
+    sc = Scene(Heightmap.load(tmp_path / "h.npy", dx=4.0), name="file")
+    back = Scene.load(sc.save(tmp_path / "file.toml"))
+    assert np.array_equal(back.heightmap.heights, sc.heightmap.heights) and back.heightmap.dx == 4.0
+    assert Scene.from_dict(Scene(Heightmap.example()).to_dict()).heightmap.name == "jacksboro"
+
+
+@pytest.mark.parametrize(("lod", "err", "match"), [
+    ({"policy": "cdlod", "params": {"grid": 12}}, ValueError, r"lod.cdlod.grid: expected one of \[8, 16, 32, 64\]"),
+    ({"policy": "cdlod", "params": {"bogus": 1}}, ValueError, r"lod.cdlod: expected a knob of"),
+    ({"policy": "chunked", "params": {"max_sse_px": -1.0}}, ValueError, r"lod.chunked.max_sse_px"),
+    ({"policy": "sse", "params": {"grid": 16}}, ValueError, r"lod.params: the quadtree policy 'sse'"),
+    ({"policy": "cdlod", "params": "x"}, TypeError, r"lod.params: expected a table"),
+    ({"level_log_scale": [0.0, 11.0]}, ValueError, r"lod.level_log_scale\[1\]: expected a finite number"),
+    ({"level_log_scale": 1.0}, TypeError, r"lod.level_log_scale: expected a list"),
+])
+def test_scheme_knobs_and_level_scales_are_checked_in_the_scene_file(lod, err, match):
+    with pytest.raises(err, match=match):
+        Scene.from_dict({"heightmap": FBM, "lod": lod})

@@ -154,3 +154,52 @@ def test_sweep_values_stay_inside_the_range():
     assert schemes.sweep_values("clipmaps", hm) == [255.0, 127.0, 63.0, 31.0]
     assert schemes.sweep_values("chunked", hm, quick=True) == [2.0, 8.0]
     assert np.isclose(schemes.sweep_values("cdlod", hm)[0] / schemes.sweep_values("cdlod", hm)[-1], 8.0, rtol=1e-3)
+
+
+@pytest.mark.parametrize(("name", "params"), [
+    ("cdlod", {"first_range": 700.0, "ratio": 3.0, "morph_start_ratio": 0.5, "grid": 16}),
+    ("clipmaps", {"n": 31, "transition_ratio": 0.15}),
+    ("chunked", {"max_sse_px": 2.5, "tile": 16}),
+])
+def test_a_scheme_named_in_the_lod_config_draws_its_source(name, params):
+    """render of mesh='lod' with LodConfig(policy=<scheme>, params=...) is the frame of the scheme's source made
+    from the same values (bit for bit), and every knob changes what is drawn."""
+    from conftest import digest
+
+    hm = tw.Heightmap.fbm(129, seed=2, dx=20.0, max_height=500.0)
+    cam = tw.Scene(hm, camera=tw.Camera.default_for(hm, 128, 96)).camera_path(3)[1]  # near the ground: every level
+    sc = tw.Scene(hm, camera=cam, mesh="lod", outputs=("image", "depth", "mesh"),
+                  lod=tw.LodConfig(policy=name, params=params))
+    by_name = tw.render(sc)
+    rest = {k: v for k, v in params.items() if k != schemes.SCHEMES[name].parameter}
+    src = schemes.scheme_source(name, hm, params[schemes.SCHEMES[name].parameter], **rest)
+    by_source = tw.render(sc.with_(mesh="grid"), source=src)
+    assert digest(by_name.image) == digest(by_source.image) and digest(by_name.depth) == digest(by_source.depth)
+    assert by_name.report.info["lod"]["policy"] == name
+    spec = schemes.SCHEMES[name]
+    for k in spec.knobs:
+        other = [c for c in (k.choices or (k.lo, k.hi)) if c != params.get(k.name, k.default)][0]
+        changed = tw.render(sc.with_(lod=tw.LodConfig(policy=name, params={**params, k.name: other})))
+        assert digest(changed.mesh.positions) != digest(by_name.mesh.positions), k.name
+    default = tw.render(sc.with_(lod=tw.LodConfig(policy=name)))  # every knob at its default
+    assert default.mesh.n_triangles > 0
+
+
+def test_scheme_knobs_are_checked_when_registered(registered):
+    def make(hm, v, *, cache, **kw):  # pragma: no cover - never drawn here
+        raise AssertionError
+
+    for knobs, match in (((schemes.SchemeKnob("p", 0, 1, 0.5),), "distinct"),
+                         ((schemes.SchemeKnob("a", 1, 0, 0.5),), "lo < hi"),
+                         ((schemes.SchemeKnob("a", 0, 1, 0.5, log=True),), "lo > 0"),
+                         ((schemes.SchemeKnob("a", 0, 1, 2.0),), "mine.a")):
+        with pytest.raises(ValueError, match=match):
+            schemes.register_scheme("mine", make, parameter="p", lo=1, hi=2, larger_is_finer=True, knobs=knobs)
+    registered.append("mine")
+    spec = schemes.register_scheme("mine", make, parameter="p", lo=1, hi=2, larger_is_finer=True,
+                                   knobs=(schemes.SchemeKnob("n", 2, 9, 4, integer=True, choices=(2, 4, 8)),))
+    assert spec.check_params({"p": 1.5, "n": 8}) == {"p": 1.5, "n": 8}
+    with pytest.raises(ValueError, match=r"mine.n: expected one of \[2, 4, 8\]"):
+        spec.check_params({"n": 3})
+    with pytest.raises(TypeError, match="mine.n: expected an integer"):
+        spec.check_params({"n": 4.0})

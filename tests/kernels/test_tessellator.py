@@ -368,3 +368,19 @@ def test_reference_tessellator_bad_input_names_the_argument():
         reference_tessellate_patch([1, 1, 1, 1], [1, 1], "odd")
     with pytest.raises(TypeError, match="outer"):
         reference_tessellate_patch(["x"] * 4, [1, 1], "equal")
+
+
+@pytest.mark.parametrize("spacing", SPACINGS)
+def test_count_patches_equals_what_the_tessellator_emits(spacing, device):
+    """count_patches (the count launch alone) gives each patch's points and triangles as the emitting kernel makes
+    them, special levels (0, NaN, past 64) included."""
+    from terrainwarp.kernels.tessellator import count_patches
+
+    lv = _random_levels(300, 11)
+    pts, tris = count_patches(lv[:, :4], lv[:, 4:], spacing, device)
+    d = tessellate_domains(lv[:, :4], lv[:, 4:], spacing, device)
+    assert np.array_equal(pts, np.diff(d["vertex_offsets"]))
+    assert np.array_equal(tris, np.diff(d["triangle_offsets"]))
+    assert pts.dtype == np.int32 and tris.shape == (300,)
+    empty = count_patches(np.zeros((0, 4), np.float32), np.zeros((0, 2), np.float32), spacing, device)
+    assert empty[0].shape == (0,) and empty[1].shape == (0,)

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from terrainwarp import Camera, Heightmap, LodConfig, Scene, render
+from terrainwarp import Camera, Heightmap, LodConfig, Scene, check_watertight, render
 from terrainwarp.io.files import digest
 from terrainwarp.kernels import parallel
 from terrainwarp.kernels.parallel import set_threads
@@ -394,3 +394,48 @@ def test_terrain_bad_input_names_the_argument():
         Terrain.prepare(hm, tess=0)
     with pytest.raises(ValueError, match="roots"):
         Terrain.prepare(hm, roots=-2)
+
+
+def test_level_multipliers_move_one_level_threshold(device):
+    """level_log_scale multiplies one level's split threshold: zeros are the plain policy bit for bit; a coarser
+    multiplier at level 1 splits fewer level-1 nodes (sse), a finer one at level 1 of the distance policy more."""
+    hm = Heightmap.fbm(257, seed=5, dx=10.0, max_height=800.0)
+    cam = Scene(hm, camera=Camera.default_for(hm, 320, 240)).camera_path(3)[1]
+    t = Terrain.prepare(hm, roots=4, tess=8, device=device)
+    plain = select(t, cam, make_policy(LodConfig(tolerance_px=0.5, tess=8)), device=device)
+    zeros = select(t, cam, make_policy(LodConfig(tolerance_px=0.5, tess=8, level_log_scale=(0.0, 0.0, 0.0))),
+                   device=device)
+    assert np.array_equal(plain.key, zeros.key)
+    coarse = select(t, cam, make_policy(LodConfig(tolerance_px=0.5, tess=8, level_log_scale=(0.0, 2.0))),
+                    device=device)
+    assert len(coarse) < len(plain)
+    assert (coarse.level == 2).sum() > (plain.level == 2).sum()  # level-1 nodes split less: more level-2 leaves
+    near = select(t, cam, make_policy(LodConfig(policy="distance", k=1.0, tess=8)), device=device)
+    far = select(t, cam, make_policy(LodConfig(policy="distance", k=1.0, tess=8, level_log_scale=(0.0, 1.0))),
+                 device=device)
+    assert len(far) > len(near)
+    with pytest.raises(ValueError, match="level_scale"):
+        make_policy(LodConfig()).__class__(level_scale=(float("nan"),))
+
+
+def test_uniform_patches_tile_the_grid_at_one_level(device):
+    """uniform_patches(level): every node of the level inside the grid, their cells covering the grid exactly
+    once, factor T everywhere, tessellated into a watertight mesh."""
+    from terrainwarp.lod.quadtree import uniform_patches
+
+    hm = Heightmap.fbm(100, 77, seed=1, dx=5.0)
+    t = Terrain.prepare(hm, roots=2, tess=4, device=device)
+    for L in range(t.depth + 1):
+        pl = uniform_patches(t, L)
+        s = t.root_cells / 2**L
+        cells = np.zeros((hm.shape[0] - 1, hm.shape[1] - 1), int)
+        for (c0, r0) in pl.origin_cells:
+            cells[int(r0):int(r0 + s), int(c0):int(c0 + s)] += 1
+        assert (cells == 1).all(), L
+        assert (pl.outer == t.tess).all() and (pl.level == L).all() and np.all(np.diff(pl.key) > 0)
+    sc = Scene(hm, camera=Camera.default_for(hm, 64, 48), mesh="lod", lod=LodConfig(roots=2, tess=4),
+               outputs=("mesh",))
+    f = render(sc, t, patches=uniform_patches(t, 1), device=device)
+    assert check_watertight(f).n_cracks == 0
+    with pytest.raises(ValueError, match="level"):
+        uniform_patches(t, t.depth + 1)
