@@ -271,10 +271,25 @@ class Cdlod(SelectThenMesh):
                               np.concatenate(step).astype(np.float32), np.concatenate(lods).astype(np.int32), stats,
                               np.stack([ends - per, ends], 1).astype(np.int32), order)
 
+    def uniform(self, lod: int) -> CdlodSelection:
+        """Every node of one LOD inside the grid, as its four quadrants: the grid that LOD draws where it is drawn
+        whole (with :meth:`mesh` and ``morph=False``, the unmorphed surface the fit's probes measure)."""
+        t = self.terrain
+        lod = check_int("lod", lod, 0, self.levels - 1)
+        lvl = t.depth - lod
+        nx, nz = t.roots[0] << lvl, t.roots[1] << lvl
+        yy, xx = np.meshgrid(np.arange(nz, dtype=np.int64), np.arange(nx, dtype=np.int64), indexing="ij")
+        x, y = xx.reshape(-1), yy.reshape(-1)
+        keep = t.inside(lvl, x, y)
+        return self._quadrants([(x[keep], y[keep], lvl, lod)], {})
+
     # -- mesh -----------------------------------------------------------------------------------------
-    def mesh(self, camera: Camera, selection: CdlodSelection) -> Mesh:
-        """The selected quadrants' grids, morphed per vertex by the eye distance (one launch), as a Mesh."""
+    def mesh(self, camera: Camera, selection: CdlodSelection, *, morph: bool = True) -> Mesh:
+        """The selected quadrants' grids, morphed per vertex by the eye distance (one launch), as a Mesh
+        (``morph=False``: unmorphed)."""
         _, start, end = self.ranges()
+        if not morph:
+            start = np.full_like(start, math.inf)
         with np.errstate(invalid="ignore", divide="ignore"):
             inv = np.where(np.isfinite(start), 1.0 / (end - start), 0.0)
         ms = np.where(np.isfinite(start), start, 3e38)
