@@ -49,9 +49,11 @@ FACADE = PKG
 TOP_LAYER = len(LAYERS) - 1
 
 # Imports allowed inside a function body: heavy optional libraries, imported only when used. optax is
-# JAX's optimiser library (importing it imports JAX); cloudpickle is the serialiser of dask/distributed.
+# JAX's optimiser library (importing it imports JAX); cloudpickle is the serialiser of dask/distributed; optuna
+# and cma are the optional extra 'tune' (the fit's black-box baselines).
 LAZY_OK = frozenset({"jax", "optax", "matplotlib", "rasterio", "affine", "dask", "distributed", "cloudpickle",
-                     "pyvista", "skimage", "scipy", "pymartini", "pydelatin", "OpenImageIO", "tqdm", "moderngl"})
+                     "pyvista", "skimage", "scipy", "pymartini", "pydelatin", "OpenImageIO", "tqdm", "moderngl",
+                     "optuna", "cma"})
 
 
 # -- reading the tree --------------------------------------------------------------------------------
