@@ -30,7 +30,10 @@ from .experiments.calibrate import calibrate
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
 from .experiments.plots import plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
-from .fit.lod_fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_fit
+from .fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_convergence, plot_fit
+from .fit.baselines import BASELINES, run_baselines
+from .fit.exact import references_for
+from .fit.knobs import main_knob
 from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
 from .lod.policies import make_policy
@@ -189,11 +192,13 @@ def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: i
     sweep runner (:func:`terrainwarp.experiments.pareto.sweep`, dask.distributed): ``workers`` local worker
     processes (None: one per core) or an existing ``scheduler``; the workers prepare their own terrain and
     references, and the table is the same as in-process. ``cost_of``: the fit's cost (None: triangles)."""
+    knob = main_knob(policy, scene.heightmap, None if scene.lod.is_scheme else scene.lod).name
+
     def run(values: list[float]) -> list[Evaluation]:
         rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
                      device=device, scheduler=scheduler, workers=workers,
                      cost_model=None if cost_of is None else cost_of.model)
-        return evaluations_from_rows(rows, policy, values, None if cost_of is None or cost_of.name == "triangles"
+        return evaluations_from_rows(rows, policy, values, knob, None if cost_of is None or cost_of.name == "triangles"
                                      else cost_of)
 
     return run
@@ -206,32 +211,44 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     fit_cost = cost(args.cost)  # checked before the fit runs
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
-    res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, grid_points=args.grid_points,
-                  grid_evaluator=grid_evaluator, progress=not args.no_progress, max_pop_px=args.max_pop_px,
-                  cost=fit_cost)
+    refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
+    res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
+                  grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
+                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
     for b in args.curve_budgets:
-        r = fit_lod(sc, b, policy=args.policy, cameras=cams, progress=not args.no_progress,
-                    max_pop_px=args.max_pop_px, cost=fit_cost)
+        r = fit_lod(sc, b, policy=args.policy, cameras=cams, knobs=args.knobs, progress=not args.no_progress,
+                    max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
         if r.met:
             curve.append((b, r.validated.cost))
-    write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"}})
+    runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
+                         max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
+    write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
+                                  "baselines": runs})
     plot_fit(res, out / "fit.png", curve or None)
-    lines = _fit_report_lines(args, res, path, len(cams))
-    write_text(out / "report.md", "\n".join(lines))
+    res.scene.save(out / "fitted.toml")
+    if runs:
+        plot_convergence({"fit_lod": res.trace, **{m: r["trace"] for m, r in runs.items()}}, out / "convergence.png",
+                         title=f"{args.policy} at {args.budget_px:g} px", cost_label=res.cost)
+    write_text(out / "report.md", "\n".join(_fit_report_lines(args, res, path, len(cams), runs)))
     print(f"path: {path['text']}")
     print(res.message)
-    print(f"wrote: {out / 'fit.json'}, {out / 'fit.png'}, {out / 'report.md'}")
+    written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md"]
+    print("wrote: " + ", ".join(str(out / w) for w in written))
     return 0 if res.met else 1
 
 
-def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_cams: int) -> list[str]:
-    """The fit's report.md: the path, the fit against the grid search, the primary, image and pop errors."""
+def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_cams: int,
+                      runs: dict | None = None) -> list[str]:
+    """The fit's report.md: the path, the fit against the grid search and the baselines, the primary, image and
+    pop errors."""
     v, g = res.validated, res.grid
     pop = "" if args.max_pop_px is None else f", worst pair pop p99 <= {args.max_pop_px:g} px"
+    shown = ", ".join(f"{k} = {res.values[k]:.4g}" for k in res.knobs)
     lines = ["# Fit", "", f"policy {args.policy}, budget {args.budget_px:g} px{pop}, {n_cams} cameras", "",
+             f"Knobs fitted: {', '.join(res.knobs)}; the fitted scene is fitted.toml.", "",
              f"Camera path: {path['text']}.", "",
              "Error: the primary error (per visible heightmap sample, px; no triangulation floor). Beside it, "
              "the per-pixel grid-image error of the chosen setting (secondary; it carries a triangulation floor) "
@@ -240,7 +257,12 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
                 f"max over pairs of the pop p99 (the previous camera's selection held)") + ".", "",
              f"| method | value | worst p99 px | {res.cost}/frame | pipeline evaluations | wall s |",
              "|---|---|---|---|---|---|",
-             f"| fit | {res.value:.4g} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} | {res.wall_s:.1f} |"]
+             f"| fit | {shown} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} | {res.wall_s:.1f} |"]
+    for name, r in (runs or {}).items():
+        best = "none met the budget" if r["values"] is None else ", ".join(f"{k} = {x:.4g}"
+                                                                           for k, x in r["values"].items())
+        lines.append(f"| {name} | {best} | {r['worst_p99_px']:.3g} | {r['cost']:.4g} | {r['frames']} | "
+                     f"{r['wall_s']:.1f} |")
     if g:
         if g["value"] is None:
             lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} | "
@@ -436,7 +458,28 @@ def _add_report_fit(sub) -> None:
     ft.add_argument("--cost", default="triangles", metavar="COST",
                     help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model) or a "
                          "weights file of terrainwarp calibrate")
+    ft.add_argument("--knobs", type=_knob_list, default=None, metavar="A,B,C|all",
+                    help="the knobs to fit together (terrainwarp.fit.knobs; default: the policy's main knob alone)")
+    ft.add_argument("--baselines", type=_baseline_list, default=[], metavar="M,N",
+                    help=f"also run these tuners on the same exact evaluation ({','.join(BASELINES)}; the black-box "
+                         "ones need the extra 'tune'), for convergence.png")
+    ft.add_argument("--trials", type=_positive_int, default=150, help="settings each black-box tuner tries")
     ft.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _knob_list(text: str) -> list[str] | str:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise argparse.ArgumentTypeError("expected knob names separated by commas, or all")
+    return "all" if names == ["all"] else names
+
+
+def _baseline_list(text: str) -> list[str]:
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    bad = [n for n in names if n not in BASELINES]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"expected some of {','.join(BASELINES)}, got {text!r}")
+    return names
 
 
 def _add_calibrate(sub) -> None:
