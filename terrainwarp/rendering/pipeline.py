@@ -177,10 +177,15 @@ class Report:
         return "\n".join(f"{a:<{w0}}  {b:>{w1}}  {c}" for a, b, c in rows)
 
     def _repr_html_(self) -> str:
-        """The :meth:`table` as HTML (Jupyter), the frame cost under it."""
+        """The :meth:`table` as HTML (Jupyter), the frame cost under it; then the pipeline statistics, one row per
+        counter, when the scene asked for them."""
         rows = [(s.name, s.time_ms, s.counters) for s in self.stages] + [("total", self.total_ms, {})]
-        return html_table(("stage", "time_ms", "counters"), rows,
-                          caption=f"frame cost (select + mesh + raster): {self.frame_ms:.3g} ms")
+        out = html_table(("stage", "time_ms", "counters"), rows,
+                         caption=f"frame cost (select + mesh + raster): {self.frame_ms:.3g} ms")
+        if self.counters is None:
+            return out
+        return out + html_table(("pipeline statistic", "value"), list(self.counters.items()),
+                                caption="what a GPU would pay (terrainwarp.kernels.counters.PIPELINE_COUNTERS)")
 
 
 @dataclass

@@ -54,6 +54,12 @@ def test_report_error_and_fit_show_as_tables(shell, hm):
     rep = shell.display_formatter.format(f.report)[0]["text/html"]
     assert rep.startswith("<table><caption>frame cost (select + mesh + raster): ")
     assert [f"<td>{s.name}</td>" in rep for s in f.report.stages] == [True] * len(f.report.stages)
+    assert rep.count("<table>") == 1 and "pipeline statistic" not in rep  # no counters asked for: none shown
+    counted = tw.render(sc.with_(outputs=("depth", "counters"))).report
+    rep = shell.display_formatter.format(counted)[0]["text/html"]
+    assert rep.count("<table>") == 2
+    assert [f"<td>{k}</td><td>{v}</td>" in rep for k, v in counted.counters.items()
+            if isinstance(v, int)] == [True] * sum(isinstance(v, int) for v in counted.counters.values())
     err = shell.display_formatter.format(f.error)[0]["text/html"]
     assert f"<td>{f.error.p99_px:.4g}</td>" in err and "primary" in err and "crack pixels" in err
     fit = tw.fit_lod(sc, 2.0, policy="chunked", cameras=[cam])
