@@ -207,6 +207,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         elif prob.cands:
             good = calibrated_search(exact, prob.cands, budget_px, prob.snap, rel_tol=rel_tol, max_tries=max_tries,
                                      on_step=bar)
+            if len(prob.names) == 1:  # close the cost gap the model left on the exact pipeline's own bracket
+                good = _one_knob(exact, prob, budget_px, rel_tol, max_tries, seed=True)
         else:
             good = _one_knob(exact, prob, budget_px, rel_tol, max_tries)
         res = _result(exact, prob, good, budget_px, t0, cost_of)
@@ -223,11 +225,12 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
 
 
 def _one_knob(exact: Exact, prob: Problem, budget_px: float, rel_tol: float, max_tries: int,
-             newton=None) -> Evaluation | None:
-    """The main knob on the exact pipeline alone (the other fitted knobs at the scene's values)."""
+             newton=None, seed: bool = False) -> Evaluation | None:
+    """The main knob on the exact pipeline alone (the other fitted knobs at the scene's values); ``seed``: from the
+    bracket the tries so far give (:func:`terrainwarp.fit.search.bracket_search`)."""
     fixed = {n: v for n, v in prob.start.items() if n != prob.names[0]}
     return bracket_search(exact, prob.knob(prob.names[0]), fixed, budget_px, rel_tol=rel_tol,
-                          max_tries=max(max_tries, 12), newton=newton)
+                          max_tries=max(max_tries, 12), newton=newton, seed=seed)
 
 
 def _pixel_newton(exact: Exact, prob: Problem):

@@ -335,48 +335,73 @@ def _confirm_best(exact: Exact) -> None:
 # ------------------------------------------------------------------------------------------------
 def bracket_search(exact: Exact, knob: Knob, fixed: Mapping[str, float], budget: float, *, rel_tol: float = 0.02,
                    max_tries: int = 12, interpolate: bool = True,
-                   newton: Callable[[Evaluation, float], float] | None = None) -> Evaluation | None:
+                   newton: Callable[[Evaluation, float], float] | None = None,
+                   seed: bool = False) -> Evaluation | None:
     """One knob on the exact pipeline alone: bisection in its unit coordinate (log space for a log knob) and, with
     ``interpolate``, log-log interpolation of the worst error between the feasible and the infeasible end once both
     are known (leaning to the infeasible end), until the bracket's cost gap is within ``rel_tol`` or a try lands
     within ``rel_tol`` under the budget. Each try measures the cameras worst first (by their latest p99) and stops
     at the first over the budget. ``newton(e, log_target)``, when given, proposes the knob's next value until the
-    budget is bracketed (in place of the bisection midpoint). Returns the best feasible setting, or None."""
+    budget is bracketed (in place of the bisection midpoint). ``seed``: start from the bracket that the settings
+    already measured along this line (``fixed`` the same) give: the coarsest measured whole that meets the
+    constraints, the finest that does not. Returns the best feasible setting, or None."""
     fine, coarse = (0.0, 1.0) if knob.coarser_up is not False else (1.0, 0.0)
-    good: Evaluation | None = None
-    bad: Evaluation | None = None
     latest: dict[int, float] = {}
     target = math.log(budget * (1.0 - 0.5 * rel_tol))
 
     def pos(e: Evaluation) -> float:
         return knob.to_unit(e.values[knob.name])
 
-    t = 0.5
-    for _ in range(max_tries):
-        v = {**fixed, knob.name: knob.snap(knob.from_unit(t))}
-        order = sorted(range(len(exact.cams)), key=lambda k: (-latest.get(k, math.inf), k))
-        e = exact(v, order=order, stage="bracket")
-        for k, p in zip(e.frames if e.frames is not None else range(len(e.p99_px)), e.p99_px, strict=True):
-            latest[k] = p
-        if exact.meets(e):
-            good = e if good is None or abs(pos(e) - coarse) < abs(pos(good) - coarse) else good
-            if e.worst_p99 >= budget * (1 - rel_tol):
-                break
-        else:
-            bad = e if bad is None or abs(pos(e) - fine) < abs(pos(bad) - fine) else bad
+    good, bad = _bracket_of(exact, knob, fixed, pos, coarse) if seed else (None, None)
+    # a bracket narrower than 2 rel_tol in log (for an interpolating search) is not refined: the exact error is a
+    # step function of the knob (whole levels change at once), and a try inside so narrow a bracket rarely lands
+    # on another step while a feasible one costs the whole path
+    span = math.log(knob.hi / knob.lo) if knob.log and knob.lo > 0 else 1.0
+    narrow = 2.0 * rel_tol / max(span, 1e-9) if interpolate else 1e-3
+    if good is not None and good.worst_p99 >= budget * (1 - rel_tol):
+        return exact.best()  # a setting measured whole already lands within rel_tol under the budget
+    e = None
+    for _ in range(max_tries + 1):
+        if e is not None:
+            for k, p in zip(e.frames if e.frames is not None else range(len(e.p99_px)), e.p99_px, strict=True):
+                latest[k] = p
+            if exact.meets(e):
+                good = e if good is None or abs(pos(e) - coarse) < abs(pos(good) - coarse) else good
+                if e.worst_p99 >= budget * (1 - rel_tol):
+                    break
+            else:
+                bad = e if bad is None or abs(pos(e) - fine) < abs(pos(bad) - fine) else bad
         tg = fine if good is None else pos(good)
         tb = coarse if bad is None else pos(bad)
         if good is not None and bad is not None and (good.cost - bad.cost <= rel_tol * good.cost
-                                                     or abs(tg - tb) < 1e-3):
+                                                     or abs(tg - tb) < narrow):
             break
         t = 0.5 * (tg + tb)
-        if newton is not None and (good is None or bad is None):
+        if newton is not None and e is not None and (good is None or bad is None):
             t = min(max(knob.to_unit(newton(e, target)), 0.0), 1.0)
         if interpolate and good is not None and bad is not None:
             eg = max(math.log(max(good.worst_p99, FLOOR)), target - math.log(4.0))
             eb = max(math.log(max(bad.worst_p99, FLOOR)), target - math.log(4.0))
             f = (target - eg) / (eb - eg) if eb > eg else 0.5
             t = tg + min(max(f, 0.5), 0.7) * (tb - tg)
-        if exact.key({**fixed, knob.name: knob.snap(knob.from_unit(t))}) in exact.evals:
+        v = {**fixed, knob.name: knob.snap(knob.from_unit(t))}
+        if e is not None and exact.key(v) in exact.evals:
             break  # nothing left to learn in the bracket
+        if _ == max_tries:
+            break
+        order = sorted(range(len(exact.cams)), key=lambda k: (-latest.get(k, math.inf), k))
+        e = exact(v, order=order, stage="bracket")
     return exact.best()
+
+
+def _bracket_of(exact: Exact, knob: Knob, fixed: Mapping[str, float], pos: Callable[[Evaluation], float],
+                coarse: float) -> tuple[Evaluation | None, Evaluation | None]:
+    """The bracket the evaluations along ``knob``'s line (the other knobs at ``fixed``) give: (the coarsest measured
+    whole that meets the constraints, the finest that does not), None where there is none."""
+    line = [e for e in exact.evals.values()
+            if all(e.values.get(n) == v for n, v in fixed.items() if n != knob.name)]
+    ok = [e for e in line if e.complete and exact.meets(e)]
+    no = [e for e in line if not exact.meets(e)]
+    good = min(ok, key=lambda e: abs(pos(e) - coarse)) if ok else None
+    bad = max(no, key=lambda e: abs(pos(e) - coarse)) if no else None
+    return good, bad
