@@ -6,6 +6,7 @@ import sys
 import pytest
 
 from terrainwarp.cli import main
+from terrainwarp.scene import Scene
 
 
 def test_demo_writes_three_files(tmp_path, capsys):
@@ -214,3 +215,27 @@ def test_cli_stability_writes_report_and_rejects_bad_args(tmp_path):
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("terrainwarp: error:"), r.stderr
         assert not (tmp_path / "x").exists()
+
+
+def test_fit_with_knobs_and_baselines_writes_the_fitted_scene_and_the_convergence(tmp_path, capsys):
+    """``fit --knobs tess --baselines bisection,random``: the fitted setting is a scene file that loads back to the
+    fitted values, and the tuners ran on the same frames beside the fit."""
+    scene = tmp_path / "s.toml"
+    scene.write_text('[heightmap]\nfbm = { rows = 65, seed = 3, dx = 20.0, max_height = 400.0 }\n'
+                     '[camera]\nwidth = 64\nheight = 48\n[lod]\nroots = 4\ntess = 8\n')
+    out = tmp_path / "fit"
+    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress", "--knobs", "tess",
+                 "--baselines", "bisection,random", "--trials", "4", "--grid-points", "0", "--out", str(out)]) == 0
+    doc = json.loads((out / "fit.json").read_text())
+    assert doc["knobs"] == ["tolerance_px", "tess"] and set(doc["baselines"]) == {"bisection", "random"}
+    assert doc["baselines"]["random"]["settings"] <= 4 and doc["baselines"]["bisection"]["frames"] > 0
+    loaded = Scene.load(out / "fitted.toml")
+    assert loaded.lod.tess == doc["values"]["tess"] and loaded.lod.tolerance_px == pytest.approx(
+        doc["values"]["tolerance_px"])
+    assert (out / "convergence.png").stat().st_size > 0
+    capsys.readouterr()
+    assert main(["fit", str(scene), "--budget-px", "2", "--knobs", "warp_factor", "--no-progress",
+                 "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("terrainwarp: error: knobs: 'sse' has no knob ['warp_factor']") and err.count("\n") == 1
+    assert not (tmp_path / "bad").exists()
