@@ -15,8 +15,11 @@ anywhere below or above the percentile move it.
 0 when culled or at the deepest level; a node is a drawn leaf with probability ``prod(ancestors' split) * (1 -
 split)``. With a hysteresis band the cameras run in path order: a node split at the camera before (with its
 probability) splits above ``threshold * (1 - h)``, another above ``threshold * (1 + h)``, as the selection kernel
-does. Biases, left to the exact tries' calibration: the 2:1 balance's forced splits and the doubled edge factors
-are not in the relaxed model (both in ``hard``, which selects for real). CDLOD (:class:`CdlodModel`) and the
+does. The 2:1 balance is relaxed as well (:mod:`terrainwarp.fit.relaxed_tree`: a node is forced to split with the
+probability that a neighbour in the tree splits a child next to it). Bias left to the exact tries' calibration: the
+doubled edge factors are not in the relaxed model (they are in ``hard``, which selects for real). With a pop bound,
+each consecutive pair's pop p99 is modelled the same way, from the probabilities that a sample is drawn at one
+level for the camera before and at another now. CDLOD (:class:`CdlodModel`) and the
 continuous policy (:class:`ContinuousModel`) are below.
 
 **Cost.** Per camera, a linear function of what the selection draws (:data:`FEATURES`: patches, domain points,
@@ -46,6 +49,7 @@ from ..lod.quadtree import LodState, Terrain, node_metrics, select
 from ..scene import LodConfig
 from .knobs import LEVEL_SCALE, Knob
 from .probe import CameraProbe
+from .relaxed_tree import balance_maps, forces, inside_counts, node_of, subset, tree_probs
 from .search import Prediction
 
 __all__ = ["soft_quantile", "sorted_pairs", "QuadtreeModel", "hard_percentile"]
@@ -86,92 +90,6 @@ def hard_percentile(values: np.ndarray, q: float = 99.0) -> float:
     """numpy's percentile of the finite values (0 when there are none)."""
     v = values[np.isfinite(values)]
     return float(np.percentile(v, q)) if v.size else 0.0
-
-
-# ------------------------------------------------------------------------------------------------
-# the quadtree policies
-# ------------------------------------------------------------------------------------------------
-def _node_of(rows: np.ndarray, cols: np.ndarray, terrain: Terrain, level: int, inside: tuple[int, int]) -> np.ndarray:
-    """Each sample's node at ``level`` (row-major index in the level's full grid), the sample on a node's last
-    row or column given to the node before it when the next one lies outside the grid."""
-    s = terrain.root_cells / 2.0 ** level
-    nx = terrain.roots[0] << level
-    x = np.minimum(np.floor(cols / s).astype(np.int64), inside[0] - 1)
-    y = np.minimum(np.floor(rows / s).astype(np.int64), inside[1] - 1)
-    return (y * nx + x).astype(np.int32)
-
-
-def _inside_counts(terrain: Terrain) -> list[tuple[int, int]]:
-    """Per level, the columns and rows of nodes inside the grid (:meth:`Terrain.inside`'s rule)."""
-    out = []
-    for lv in range(terrain.depth + 1):
-        nx, nz = terrain.roots[0] << lv, terrain.roots[1] << lv
-        cx = int(terrain.inside(lv, np.arange(nx), np.zeros(nx, np.int64)).sum())
-        cy = int(terrain.inside(lv, np.zeros(nz, np.int64), np.arange(nz)).sum())
-        out.append((max(cx, 1), max(cy, 1)))
-    return out
-
-
-def _tree_probs(policy: list, force: list, vis: list, parents: list) -> tuple[list, list]:
-    """Top-down: each level's probability that a node is in the tree, and that it splits given that it is. A node
-    the descent reached (its parent split by the policy) splits by the policy or when forced; one a forced split
-    made (a leaf of the balance) splits only when forced."""
-    inside, total = [], []
-    desc = tree = vis[0]
-    for L in range(len(policy)):
-        if L:
-            desc = desc_prev[parents[L]] * policy[L - 1][parents[L]]  # noqa: F821 - set below, one level up
-            tree = tree_prev[parents[L]] * total[L - 1][parents[L]]  # noqa: F821
-        by_policy = desc * policy[L] / jnp.maximum(tree, 1e-12)
-        total.append(1.0 - (1.0 - by_policy) * (1.0 - force[L]))
-        inside.append(tree)
-        desc_prev, tree_prev = desc, tree  # noqa: F841
-    return inside, total
-
-
-def _forces(total: list, inside: list, vis: list, maps: list) -> list:
-    """Bottom-up, the 2:1 balance relaxed: the probability that a node is forced to split because a neighbour
-    across an edge is in the tree and split with an adjacent child that splits (a leaf two levels finer than it).
-    The two deepest levels are never forced."""
-    out = [jnp.zeros_like(v) for v in vis]
-    for L in range(len(total) - 3, -1, -1):
-        nbr, adj, ok = maps[L]
-        child = total[L + 1][adj] * ok  # (N_L, 8): each direction's two children of the neighbour touching the node
-        m = (inside[L] * total[L])[nbr]
-        out[L] = (1.0 - jnp.prod(1.0 - m * child, axis=1)) * vis[L]
-    return out
-
-
-def _balance_maps(terrain: Terrain) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Per level L below the two deepest: for each node, its neighbour in each direction (twice: one per adjacent
-    child), the neighbour's two children at L + 1 that touch it (west, north, east, south), and 1 where both
-    exist (row-major indices in each level's full grid)."""
-    out = []
-    for L in range(max(terrain.depth - 1, 0)):
-        nx, nz = terrain.roots[0] << L, terrain.roots[1] << L
-        yy, xx = np.meshgrid(np.arange(nz), np.arange(nx), indexing="ij")
-        x, y = xx.reshape(-1), yy.reshape(-1)
-        nbrs, adjs, oks = [], [], []
-        # (dx, dy) of the neighbour and its children's (cx, cy) offsets that touch this node
-        for dx, dy, kids in ((-1, 0, ((1, 0), (1, 1))), (0, -1, ((0, 1), (1, 1))), (1, 0, ((0, 0), (0, 1))),
-                             (0, 1, ((0, 0), (1, 0)))):
-            mx, my = x + dx, y + dy
-            inside = (mx >= 0) & (mx < nx) & (my >= 0) & (my < nz)
-            m = np.where(inside, my * nx + mx, 0)
-            for cx, cy in kids:
-                nbrs.append(m)
-                adjs.append(np.where(inside, (2 * my + cy) * (2 * nx) + 2 * mx + cx, 0))
-                oks.append(inside)
-        out.append((np.stack(nbrs, 1).astype(np.int32), np.stack(adjs, 1).astype(np.int32),
-                    np.stack(oks, 1).astype(np.float32)))
-    return out
-
-
-def _subset(total: int, n: int) -> np.ndarray:
-    """The indices of :meth:`CameraProbe.subset` (the same deterministic subset)."""
-    if total <= n:
-        return np.arange(total)
-    return np.sort(np.random.default_rng(0x7E55).choice(total, size=n, replace=False))
 
 
 def _relaxed_pops(leaves: list, data: dict[str, Any], depth: int) -> jnp.ndarray:
@@ -248,11 +166,11 @@ class QuadtreeModel:
 
     @cached_property
     def _balance_maps(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        return _balance_maps(self.terrain)
+        return balance_maps(self.terrain)
 
     @cached_property
     def _inside(self) -> list[tuple[int, int]]:
-        return _inside_counts(self.terrain)
+        return inside_counts(self.terrain)
 
     @cached_property
     def _pairs(self) -> dict[str, np.ndarray]:
@@ -268,7 +186,7 @@ class QuadtreeModel:
         gidx = np.zeros((len(subs), n), np.int32)
         mask = np.zeros((len(subs), n), np.float32)
         for c, p in enumerate(subs):
-            node = np.stack([_node_of(p.rows, p.cols, self.terrain, L, self._inside[L]) + offset[L]
+            node = np.stack([node_of(p.rows, p.cols, self.terrain, L, self._inside[L]) + offset[L]
                              for L in range(R)]).reshape(-1)  # resolution-major, as the probe's errors
             lv, perm = sorted_pairs(p)
             logv[c, :len(lv)] = lv
@@ -322,7 +240,7 @@ class QuadtreeModel:
         R = self.terrain.depth + 1
         idx_all = []
         for p, pairs in zip(self.probes[1:], self.pops, strict=True):
-            keep = _subset(len(p.rows), self.relaxed_samples)
+            keep = subset(len(p.rows), self.relaxed_samples)
             idx_all.append((p, pairs, keep))
         V = max(max((len(k) for _, _, k in idx_all), default=1), 1)
         P = R * (R - 1) // 2
@@ -333,7 +251,7 @@ class QuadtreeModel:
         mask = np.zeros((n, (P + 1) * V), np.float32)
         for c, (p, pairs, keep) in enumerate(idx_all):
             m = len(keep)
-            node[c, :, :m] = np.stack([_node_of(p.rows[keep], p.cols[keep], self.terrain, L, self._inside[L])
+            node[c, :, :m] = np.stack([node_of(p.rows[keep], p.cols[keep], self.terrain, L, self._inside[L])
                                        for L in range(R)])
             vals = np.concatenate([pairs[:, keep].reshape(-1), np.full(m, 1e-4, np.float32)])  # no change: 0 px
             flat = np.concatenate([(np.arange(P)[:, None] * V + np.arange(m)[None, :]).reshape(-1),
@@ -380,9 +298,9 @@ class QuadtreeModel:
                 split.append(s * vis_c[L])
             force = [jnp.zeros_like(v) for v in vis_c]
             for _ in range(2):  # the balance reads the tree it changes: two rounds
-                inside, total = _tree_probs(split, force, vis_c, parents)
-                force = _forces(total, inside, vis_c, self._balance_maps)
-            inside, total = _tree_probs(split, force, vis_c, parents)
+                inside, total = tree_probs(split, force, vis_c, parents)
+                force = forces(total, inside, vis_c, self._balance_maps)
+            inside, total = tree_probs(split, force, vis_c, parents)
             leaves = [r * (1.0 - s) * v for r, s, v in zip(inside, total, vis_c, strict=True)]
             splits = [r * s for r, s in zip(inside, total, strict=True)]
             cost = unit_cost * sum(jnp.sum(lf) for lf in leaves)
@@ -446,6 +364,6 @@ class QuadtreeModel:
             lx = np.rint(pl.origin_cells[sel, 0] / s).astype(np.int64)
             ly = np.rint(pl.origin_cells[sel, 1] / s).astype(np.int64)
             leaf[ly * nx + lx] = True
-            hit = leaf[_node_of(probe.rows, probe.cols, t, L, self._inside[L])]
+            hit = leaf[node_of(probe.rows, probe.cols, t, L, self._inside[L])]
             out[hit] = L
         return out
