@@ -113,15 +113,16 @@ def test_make_must_be_callable_and_replacing_needs_asking(registered):
 
 
 def test_the_fit_takes_a_registered_name(registered):
-    from terrainwarp.fit.lod_fit import knob
+    from terrainwarp.fit import knobs
 
     hm = tw.Heightmap.fbm(33, seed=1)
     schemes.register_scheme("odd", lambda *a, **k: None, parameter="n", lo=3, hi=99, larger_is_finer=True,
                             odd_integer=True)
     registered.append("odd")
-    k = knob("odd", hm)
-    assert (k.field, k.fit_range, k.coarser_up, k.odd_integer) == ("n", (3.0, 99.0), False, True)
-    assert k.snap(10.0) == 11.0
+    k = knobs("odd", hm)[0]
+    assert (k.name, k.lo, k.hi, k.coarser_up, k.integer) == ("n", 3.0, 99.0, False, True)
+    assert k.choices == tuple(float(v) for v in range(3, 100, 2))
+    assert k.snap(10.0) == 11
 
 
 def test_load_plugin_runs_a_file_once_and_imports_a_module(tmp_path, registered):
