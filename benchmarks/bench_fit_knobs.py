@@ -171,11 +171,17 @@ def main() -> None:
     ap.add_argument("--cost", default="triangles")
     ap.add_argument("--out-stage", default=None)
     ap.add_argument("--merge", default=None, help="stages of earlier runs (their JSON) to write as one section")
+    ap.add_argument("--refresh-one-knob", default=None,
+                    help="stages whose fit_lod runs (multi-knob, one-knob) to run again with this code")
     ap.add_argument("--merge-cost", default=None,
                     help="with --merge: stages of fit_lod runs with --cost llvmpipe (one-knob against multi-knob)")
     args = ap.parse_args()
+    if args.refresh_one_knob:
+        for st in args.refresh_one_knob.split(","):
+            refresh_one_knob(st, args)
     if args.merge:
         merge(args)
+    if args.merge or args.refresh_one_knob:
         return
     args.methods = [m for m in args.methods.split(",") if m]
     hm = (Heightmap.fbm(args.fbm, seed=1, dx=10.0, max_height=1500.0) if args.fbm else Heightmap.example())
@@ -263,6 +269,40 @@ def _fitted_for_model(args) -> str:
             "tries price every frame's counters), one knob against several, modelled ms per frame ("
             + "; ".join(c.replace("Command: ", "").replace("  ", "") for c in commands) + "):\n\n"
             + savings(results) + "\n")
+
+
+def refresh_one_knob(stage: str, args) -> None:
+    """Run each result's fits again with this code, the multi-knob fit (``fit_lod`` in its methods) and the one-knob
+    fit (the same problem, budget, path and references), and update its JSON; the baselines are kept."""
+    path = RESULTS / f"{stage}.json"
+    results = json.loads(path.read_text())
+    hm = Heightmap.example()
+    refs_cache: dict = {}
+    for r in results:
+        policy, _, lod_kw, pop = PROBLEMS[r["problem"]]
+        scene = Scene(hm, camera=Camera.default_for(hm, args.width, args.height), lod=LodConfig(**lod_kw))
+        cams = _jitter_path(scene, args.frames) if pop is not None else scene.camera_path(args.frames)
+        key = pop is not None
+        if key not in refs_cache:
+            refs_cache[key] = references_for(scene, cams)
+        if "fit_lod" in r["methods"]:
+            t0 = time.perf_counter()
+            m = fit_lod(scene, r["budget_px"], policy, cams, knobs=_knob_names(policy, PROBLEMS[r["problem"]][1],
+                                                                                scene),
+                        references=refs_cache[key], max_pop_px=pop, cost=args.cost)
+            r["methods"]["fit_lod"] = {
+                "frames": m.evaluations, "trace": m.trace, "best": m.validated.cost if m.met else math.inf,
+                "worst_p99": m.validated.worst_p99, "values": m.values, "met": m.met,
+                "settings": sum(1 for h in m.history if h["stage"] in ("try", "bracket")),
+                "wall_s": time.perf_counter() - t0}
+            print(f"{r['problem']} {r['budget_px']:g} px fit_lod: {r['methods']['fit_lod']['best']:.6g} in "
+                  f"{m.evaluations} frames", flush=True)
+        one = fit_lod(scene, r["budget_px"], policy, cams, references=refs_cache[key], max_pop_px=pop, cost=args.cost)
+        r["one_knob"] = {"frames": one.evaluations, "best": one.validated.cost if one.met else math.inf,
+                         "values": one.values, "met": one.met}
+        print(f"{r['problem']} {r['budget_px']:g} px one knob: {r['one_knob']['best']:.6g} in {one.evaluations} "
+              "frames", flush=True)
+    path.write_text(json.dumps(results, indent=1, default=float))
 
 
 def merge(args) -> None:

@@ -45,7 +45,7 @@ from ..schemes import SCHEMES
 from .baselines import grid_search
 from .exact import Evaluation, Exact, evaluate, references_for
 from .families import Problem, problem
-from .search import bracket_search, calibrated_search
+from .search import bracket_search, calibrated_search, close_to_bound
 
 __all__ = ["FitResult", "fit_lod", "Progress"]
 
@@ -207,8 +207,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         elif prob.cands:
             good = calibrated_search(exact, prob.cands, budget_px, prob.snap, rel_tol=rel_tol, max_tries=max_tries,
                                      on_step=bar)
-            if len(prob.names) == 1:  # close the cost gap the model left on the exact pipeline's own bracket
-                good = _one_knob(exact, prob, budget_px, rel_tol, max_tries, seed=True)
+            if good is not None:  # close the cost gap the model left on the exact pipeline's own bracket
+                good = _main_line(exact, prob, good, budget_px, rel_tol, max_tries)
         else:
             good = _one_knob(exact, prob, budget_px, rel_tol, max_tries)
         res = _result(exact, prob, good, budget_px, t0, cost_of)
@@ -231,6 +231,19 @@ def _one_knob(exact: Exact, prob: Problem, budget_px: float, rel_tol: float, max
     fixed = {n: v for n, v in prob.start.items() if n != prob.names[0]}
     return bracket_search(exact, prob.knob(prob.names[0]), fixed, budget_px, rel_tol=rel_tol,
                           max_tries=max(max_tries, 12), newton=newton, seed=seed)
+
+
+def _main_line(exact: Exact, prob: Problem, good: Evaluation, budget_px: float, rel_tol: float,
+               max_tries: int) -> Evaluation | None:
+    """The main knob on the exact pipeline, the other knobs at the best setting's values, from the bracket the tries
+    along that line give (:func:`terrainwarp.fit.search.bracket_search` with ``seed``): nothing is measured when a
+    try there already lands within ``rel_tol`` under the budget (or the pop bound) or the bracket's cost gap is
+    within ``rel_tol``."""
+    if close_to_bound(exact, good, rel_tol):
+        return good
+    fixed = {n: v for n, v in good.values.items() if n != prob.names[0]}
+    return bracket_search(exact, prob.knob(prob.names[0]), fixed, budget_px, rel_tol=rel_tol,
+                          max_tries=max_tries, seed=True)
 
 
 def _pixel_newton(exact: Exact, prob: Problem):

@@ -38,7 +38,7 @@ from .knobs import Knob
 from .optimise import Model, Prediction, reduced_gradient
 
 __all__ = ["Model", "Prediction", "Calibration", "Candidate", "reduced_gradient", "polish", "calibrated_search",
-           "bracket_search"]
+           "bracket_search", "close_to_bound"]
 
 FLOOR = 1e-3  # px: errors below this calibrate as this (a camera whose samples are all on vertices reads 0)
 
@@ -276,7 +276,7 @@ def calibrated_search(exact: Exact, cands: list[Candidate], budget: float, snap:
             continue
         e = _try(exact, cand, budget, snap)
         tries += 1
-        if exact.meets(e) and _close(exact, e, rel_tol):  # close under a bound: confirm it
+        if exact.meets(e) and close_to_bound(exact, e, rel_tol):  # close under a bound: confirm it
             whole = exact(e.values, stage="confirm")
             _calibrate(cand, whole, e.values)
             if exact.meets(whole):
@@ -290,7 +290,7 @@ def calibrated_search(exact: Exact, cands: list[Candidate], budget: float, snap:
     return exact.best()
 
 
-def _close(exact: Exact, e: Evaluation, rel_tol: float) -> bool:
+def close_to_bound(exact: Exact, e: Evaluation, rel_tol: float) -> bool:
     """Within ``rel_tol`` under the budget, or under the pop bound when there is one."""
     pop = exact.max_pop_px
     return e.worst_p99 >= exact.budget_px * (1 - rel_tol) or (pop is not None and e.worst_pop >= pop * (1 - rel_tol))
@@ -358,8 +358,8 @@ def bracket_search(exact: Exact, knob: Knob, fixed: Mapping[str, float], budget:
     # on another step while a feasible one costs the whole path
     span = math.log(knob.hi / knob.lo) if knob.log and knob.lo > 0 else 1.0
     narrow = 2.0 * rel_tol / max(span, 1e-9) if interpolate else 1e-3
-    if good is not None and good.worst_p99 >= budget * (1 - rel_tol):
-        return exact.best()  # a setting measured whole already lands within rel_tol under the budget
+    if good is not None and close_to_bound(exact, good, rel_tol):
+        return exact.best()  # a setting measured whole already lands within rel_tol under a bound
     e = None
     for _ in range(max_tries + 1):
         if e is not None:
@@ -367,7 +367,7 @@ def bracket_search(exact: Exact, knob: Knob, fixed: Mapping[str, float], budget:
                 latest[k] = p
             if exact.meets(e):
                 good = e if good is None or abs(pos(e) - coarse) < abs(pos(good) - coarse) else good
-                if e.worst_p99 >= budget * (1 - rel_tol):
+                if close_to_bound(exact, e, rel_tol):
                     break
             else:
                 bad = e if bad is None or abs(pos(e) - fine) < abs(pos(bad) - fine) else bad
