@@ -284,10 +284,33 @@ def calibrated_search(exact: Exact, cands: list[Candidate], budget: float, snap:
                 continue
         before = snap(cand.setting())
         _solve(cand, target, exact, first=False, on_step=on_step)
+        if not exact.meets(e) and cand.pred is not None:
+            _step_finer(cand, e, rel_tol)
         if cand.pred is not None and snap(cand.setting()) == before:
             done.add(id(cand))  # the model's next setting is the one just tried
     _confirm_best(exact)
     return exact.best()
+
+
+def _step_finer(cand: Candidate, e: Evaluation, rel_tol: float) -> None:
+    """After an infeasible try, the next setting's main knob at least a factor ``exp(2 rel_tol)`` finer than the one
+    tried: where the exact error is flat across a step of the selection (a whole level switches at once), the
+    calibrated model moves the knob too little to leave the step (or, read across the step, calls every setting
+    infeasible), and the candidate would end there. The search still stops once its cost cannot beat the best."""
+    main = cand.model.knobs[0]
+    tried, new = float(e.values[main.name]), float(cand.values[main.name])
+    f = math.exp(2.0 * rel_tol)
+    if main.coarser_up is False:
+        bound = min(tried * f, main.hi)
+        move = new < bound
+    else:
+        bound = max(tried / f, main.lo)
+        move = new > bound
+    if move or not cand.feasible:
+        cand.values = {**cand.values, main.name: bound}
+        cand.pred = cand.model.hard(cand.values)
+        cand.feasible = True  # a try worth its frame: the calibration read across a step is not to be trusted
+        cand.u = np.array([k.to_unit(cand.values[k.name]) for k in cand.model.knobs])
 
 
 def close_to_bound(exact: Exact, e: Evaluation, rel_tol: float) -> bool:
