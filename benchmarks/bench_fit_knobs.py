@@ -262,11 +262,13 @@ def _fitted_for_model(args) -> str:
         return ""
     results, commands = [], []
     for st in args.merge_cost.split(","):
-        results += json.loads((RESULTS / f"{st}.json").read_text())
-        commands += [ln.rstrip() for ln in (RESULTS / f"{st}.md").read_text().split("\n") if ln.startswith("Command:")]
+        results += json.loads(_run_file(f"{st}.json").read_text())
+        commands += [ln.rstrip() for ln in _run_file(f"{st}.md").read_text().split("\n") if ln.startswith("Command:")]
     return ("\nFitted for the modelled GPU cost instead (fit_lod with `cost=\"llvmpipe\"`: the relaxed model prices "
             "patches, domain points, vertices, clipped primitives and fragments by the shipped weights; the exact "
-            "tries price every frame's counters), one knob against several, modelled ms per frame ("
+            "tries price every frame's counters), one knob against several, modelled ms per frame; the multi-knob "
+            "fits here ran before every fit ended on the exact line through its best setting (they can only be "
+            "cheaper now) ("
             + "; ".join(c.replace("Command: ", "").replace("  ", "") for c in commands) + "):\n\n"
             + savings(results) + "\n")
 
@@ -305,11 +307,17 @@ def refresh_one_knob(stage: str, args) -> None:
     path.write_text(json.dumps(results, indent=1, default=float))
 
 
+def _run_file(name: str) -> Path:
+    """A component run's file: in results/, or in results/fit_knobs_runs/ where merged runs are kept."""
+    p = RESULTS / name
+    return p if p.exists() else RESULTS / "fit_knobs_runs" / name
+
+
 def merge(args) -> None:
     results, commands = [], []
     for st in args.merge.split(","):
-        results += json.loads((RESULTS / f"{st}.json").read_text())
-        head = (RESULTS / f"{st}.md").read_text().split("\n")
+        results += json.loads(_run_file(f"{st}.json").read_text())
+        head = _run_file(f"{st}.md").read_text().split("\n")
         commands += [ln for ln in head if ln.startswith("Command:") or ln.startswith("Run:")]
     body, _ = table(results, "triangles")
     text = ("\n".join(f"{c.rstrip()}  " for c in commands) + "\n\n"
@@ -318,17 +326,24 @@ def merge(args) -> None:
             "Every method evaluates settings on the same exact pipeline: a try measures the cameras worst first and "
             "stops at the first frame over the budget; `frames` counts the frames measured; `frames to target`: the "
             "frames after which its best setting measured on every camera was within 2% of the best cost any method "
-            f"found; black-box tuners run {args.trials} settings each (seed {args.seed}). `target met`: fit_lod "
+            f"found; black-box tuners run {args.trials} settings each (seed {args.seed}). The fit_lod rows and the "
+            "one-knob fits were run again with the final code (`--refresh-one-knob`, the baselines' rows kept); the "
+            "component runs are in `fit_knobs_runs/`. `target met`: fit_lod "
             "reached the target in at most 1/5 of the frames of the best black-box tuner that reached it (or none "
-            f"did). Convergence plots: `{args.merge.split(',')[0]}_<problem>_<budget>px.png` and the others' "
-            f"stages.\n\n{body}\n\nThe multi-knob fit against the one-knob fit (fit_lod, the main knob alone) at the "
+            f"did). Convergence plots: `{args.out_stage or 'fit_knobs'}_<problem>_<budget>px.png`.\n\n{body}\n\n"
+            "The multi-knob fit against the one-knob fit (fit_lod, the main knob alone) at the "
             f"same budget, in triangles:\n\n{savings(results)}\n\nThe same two settings priced by the shipped "
             f"llvmpipe cost model (modelled GPU ms per frame, mean over the path; fitted for triangles):\n\n"
             f"{priced(results, args.width, args.height, args.frames)}\n\nOne knob: fit_lod (knobs=None) against plain "
             f"bisection of the same knob on the same accounting:\n\n{one_knob_vs_bisection(results)}\n"
             + _fitted_for_model(args))
-    write_result(args.out_stage or "fit_knobs", "Multi-knob fits against black-box tuners (the bundled SRTM DEM)",
-                 text)
+    stage = args.out_stage or "fit_knobs"
+    write_result(stage, "Multi-knob fits against black-box tuners (the bundled SRTM DEM)", text)
+    for r in results:
+        best = min(m["best"] for m in r["methods"].values())
+        plot_convergence({m: v["trace"] for m, v in r["methods"].items()},
+                         RESULTS / f"{stage}_{r['problem']}_{r['budget_px']:g}px.png",
+                         title=f"{r['problem']} at {r['budget_px']:g} px", cost_label="triangles", target=best * 1.02)
 
 
 if __name__ == "__main__":
