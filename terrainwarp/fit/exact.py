@@ -222,6 +222,14 @@ def evaluations_from_rows(rows: list[dict], policy: str, values: list[float], kn
     return evs
 
 
+def prepared(terrains: dict[tuple, Terrain], heightmap, roots, tess: int, device: str) -> Terrain:
+    """The Terrain of (roots, tess) from ``terrains``, prepared and kept there on first use."""
+    key = (roots, tess)
+    if key not in terrains:
+        terrains[key] = Terrain.prepare(heightmap, roots=roots, tess=tess, device=device)
+    return terrains[key]
+
+
 # ------------------------------------------------------------------------------------------------
 # the evaluator every method of a fit calls
 # ------------------------------------------------------------------------------------------------
@@ -260,11 +268,7 @@ class Exact:
         lod = setting.lod
         if lod.is_scheme:
             return None
-        key = (lod.roots, lod.tess)
-        if key not in self.terrains:
-            self.terrains[key] = Terrain.prepare(setting.heightmap, roots=lod.roots, tess=lod.tess,
-                                                 device=self.device)
-        return self.terrains[key]
+        return prepared(self.terrains, setting.heightmap, lod.roots, lod.tess, self.device)
 
     def __call__(self, values: Mapping[str, float], *, order: list[int] | None = None,
                  measure: Collection[int] | None = None, stop: bool = True, stage: str = "try") -> Evaluation:

@@ -23,7 +23,7 @@ from ..measure.cost import Cost
 from ..rendering.pipeline import Frame, render
 from ..rendering.sources import scene_source
 from ..scene import POLICY_TABLE, Scene
-from .exact import references_for
+from .exact import prepared, references_for
 from .knobs import LEVEL_SCALE, Knob, apply, knobs, values_of
 from .probe import pop_pairs, probe_cameras, surfaces_of
 from .search import Calibration, Candidate
@@ -153,10 +153,7 @@ def _quadtree_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], c
         fixed_int = {n: int(v) for n, v in zip(ints, combo, strict=True)}
         base = prob.make({**prob.start, **fixed_int})
         lod = base.lod
-        key = (lod.roots, lod.tess)
-        if key not in prob.terrains:
-            prob.terrains[key] = Terrain.prepare(scene.heightmap, roots=lod.roots, tess=lod.tess, device=device)
-        terrain = prob.terrains[key]
+        terrain = prepared(prob.terrains, scene.heightmap, lod.roots, lod.tess, device)
         cont = [prob.knob(n) for n in prob.names if not prob.knob(n).integer
                 and not (n.startswith(LEVEL_SCALE) and int(n[len(LEVEL_SCALE):]) >= terrain.depth)]
         every = values_of(base, policy, [k.name for k in prob.all_knobs])  # the knobs not fitted keep the scene's
@@ -179,7 +176,6 @@ def _quadtree_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], c
     return out
 
 
-
 def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], cost_of: Cost | None, device: str,
                            on_step: Callable[[], None] | None) -> list[Candidate]:
     """One ContinuousModel per patch level (every level 0..D when ``level`` is fitted, else the scene's)."""
@@ -193,11 +189,7 @@ def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame],
     for level in (int(v) for v in levels):
         fixed = {"level": level}
         base = prob.make({**prob.start, **fixed})  # a deep level lays its patches out with a smaller T
-        key = (base.lod.roots, base.lod.tess)
-        if key not in prob.terrains:
-            prob.terrains[key] = Terrain.prepare(scene.heightmap, roots=base.lod.roots, tess=base.lod.tess,
-                                                 device=device)
-        terrain = prob.terrains[key]
+        terrain = prepared(prob.terrains, scene.heightmap, base.lod.roots, base.lod.tess, device)
         level = min(level, terrain.depth)
         patches = continuous_patches(terrain, cams, level, device)
         seen = np.unique(np.concatenate([pl.key for pl in patches])) if patches else np.zeros(0, np.int64)

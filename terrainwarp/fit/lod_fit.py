@@ -225,12 +225,12 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
 
 
 def _one_knob(exact: Exact, prob: Problem, budget_px: float, rel_tol: float, max_tries: int,
-             newton=None, seed: bool = False) -> Evaluation | None:
-    """The main knob on the exact pipeline alone (the other fitted knobs at the scene's values); ``seed``: from the
-    bracket the tries so far give (:func:`terrainwarp.fit.search.bracket_search`)."""
+             newton=None) -> Evaluation | None:
+    """The main knob on the exact pipeline alone (the other fitted knobs at the scene's values); ``newton``: the
+    step before the budget is bracketed (:func:`terrainwarp.fit.search.bracket_search`)."""
     fixed = {n: v for n, v in prob.start.items() if n != prob.names[0]}
     return bracket_search(exact, prob.knob(prob.names[0]), fixed, budget_px, rel_tol=rel_tol,
-                          max_tries=max(max_tries, 12), newton=newton, seed=seed)
+                          max_tries=max(max_tries, 12), newton=newton)
 
 
 def _main_line(exact: Exact, prob: Problem, good: Evaluation, budget_px: float, rel_tol: float,
