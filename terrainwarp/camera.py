@@ -39,6 +39,11 @@ def relative_origin(origin_xz: tuple[float, float] | np.ndarray,
     return (float(origin_xz[0]) - float(eye[0]), float(eye[1]), float(origin_xz[1]) - float(eye[2]))
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b of two float64 3-vectors: ``np.cross``'s products and differences, without its general-case cost."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def _vec3(name: str, v: object) -> tuple[float, float, float]:
     try:
         a = np.asarray(v, dtype=np.float64).reshape(-1)
@@ -136,15 +141,19 @@ class Camera:
             relative: if True, the translation is left out: the matrix for camera-relative positions
                 (world - eye), which is what the pipeline feeds the rasterizer.
         """
-        f = self.forward
-        s = np.cross(f, np.asarray(self.up))
-        s /= np.linalg.norm(s)
-        u = np.cross(s, f)
-        m = np.eye(4)
-        m[0, :3], m[1, :3], m[2, :3] = s, u, -f
-        if not relative:
-            m[:3, 3] = -m[:3, :3] @ np.asarray(self.position)
-        return m
+        key = "_view_relative" if relative else "_view"
+        m = self.__dict__.get(key)  # made once per camera (the fields are frozen): every stage of a frame asks
+        if m is None:
+            f = self.forward
+            s = _cross(f, np.asarray(self.up, np.float64))
+            s /= np.linalg.norm(s)
+            u = _cross(s, f)
+            m = np.eye(4)
+            m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+            if not relative:
+                m[:3, 3] = -m[:3, :3] @ np.asarray(self.position)
+            object.__setattr__(self, key, m)
+        return m.copy()
 
     def proj_matrix(self) -> np.ndarray:
         """OpenGL gluPerspective projection matrix, float64 (4, 4); clip z in [-w, w]."""
