@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch_one, record, replay
 from .sampling import sample_bilinear
 
 # ------------------------------------------------------------------------------------------------
@@ -554,7 +555,7 @@ def build_tree(heights: np.ndarray, origin: tuple[float, float], spacing: tuple[
     step = float(side) / grid
     h = wp.array(np.ascontiguousarray(heights, np.float32), dtype=wp.float32, device=device)
     vh = wp.empty(g1 * g1, dtype=wp.float32, device=device)
-    wp.launch(_heights_kernel, dim=g1 * g1, inputs=[h, g1, float(x0), float(z0), step, float(origin[0]),
+    launch_one(_heights_kernel, dim=g1 * g1, inputs=[h, g1, float(x0), float(z0), step, float(origin[0]),
                                                      float(origin[1]), float(spacing[0]), float(spacing[1]),
                                                      HEIGHT_METHODS[method]], outputs=[vh], device=device)
     init = np.full(n, -1, np.int32)
@@ -569,16 +570,16 @@ def build_tree(heights: np.ndarray, origin: tuple[float, float], spacing: tuple[
         off = (1 << level) - 1
         cnt = 1 << level
         if level < m:
-            wp.launch(_split_kernel, dim=cnt, inputs=[off, g1], outputs=[apex, b0, b1], device=device)
+            launch_one(_split_kernel, dim=cnt, inputs=[off, g1], outputs=[apex, b0, b1], device=device)
         slots.fill_(-1)
-        wp.launch(_link_write_kernel, dim=cnt, inputs=[off, g1, b0, b1], outputs=[slots], device=device)
-        wp.launch(_link_read_kernel, dim=cnt, inputs=[off, g1, b0, b1, slots], outputs=[bn], device=device)
+        launch_one(_link_write_kernel, dim=cnt, inputs=[off, g1, b0, b1], outputs=[slots], device=device)
+        launch_one(_link_read_kernel, dim=cnt, inputs=[off, g1, b0, b1, slots], outputs=[bn], device=device)
     lo = wp.zeros(n, dtype=wp.float32, device=device)
     hi = wp.zeros(n, dtype=wp.float32, device=device)
     off = (1 << m) - 1
-    wp.launch(_bounds_leaf_kernel, dim=1 << m, inputs=[off, apex, b0, b1, vh], outputs=[lo, hi], device=device)
+    launch_one(_bounds_leaf_kernel, dim=1 << m, inputs=[off, apex, b0, b1, vh], outputs=[lo, hi], device=device)
     for level in range(m - 1, -1, -1):
-        wp.launch(_bounds_up_kernel, dim=1 << level, inputs=[(1 << level) - 1], outputs=[lo, hi], device=device)
+        launch_one(_bounds_up_kernel, dim=1 << level, inputs=[(1 << level) - 1], outputs=[lo, hi], device=device)
     return {"apex": apex, "b0": b0, "b1": b1, "base_neighbour": bn, "lo": lo, "hi": hi, "vertex_height": vh,
             "grid": grid}
 
@@ -616,8 +617,8 @@ class Walk:
                     "positions": wp.empty(g1 * g1, dtype=wp.vec3, device=device),
                     "grid_id": wp.empty(g1 * g1, dtype=wp.int32, device=device),
                     "counts": wp.zeros(4, dtype=wp.int32, device=device)}
-        self.launch = wp.launch(_walk_kernel, dim=1, inputs=[f, *self.scratch], outputs=list(self.out.values()),
-                                device=device, record_cmd=True)
+        self.launch = record(_walk_kernel, dim=1, inputs=[f, *self.scratch], outputs=list(self.out.values()),
+                                device=device)
         self._views = None  # on the CPU, numpy views of the arrays: uploads and read-backs skip Warp
         if self.device.is_cpu:
             self._views = {k: a.numpy() for k, a in [*self.out.items(), ("planes", self.planes), ("vis", self.vis)]}
@@ -648,7 +649,7 @@ class Walk:
         if vis is not None:
             self._upload("vis", vis)
         self.launch.set_param_at_index(0, f)
-        self.launch.launch()
+        replay(self.launch)
         count, nv, forced, iters = (int(v) for v in self._host("counts", 4))
         return {"node": self._host("node", count), "triangles": self._host("triangles", 3 * count).reshape(-1, 3),
                 "positions": self._host("positions", nv).reshape(-1, 3), "grid_id": self._host("grid_id", nv),

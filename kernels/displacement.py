@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .parallel import empty, launch, view
+from .parallel import empty, launch, scan, view
 
 
 def hole_height(heights: np.ndarray) -> float:
@@ -165,7 +165,7 @@ def grid_mesh(heights: np.ndarray, dx: float, dz: float, rel_origin: tuple[float
         cnt = empty(cells, wp.int32, device)
         launch(_hole_count_kernel, (hh - 1, ww - 1), [h], [cnt], device)
         start = wp.empty_like(cnt)
-        wp.utils.array_scan(cnt, start, inclusive=False)
+        scan(cnt, start, inclusive=False)
         m = int(start.numpy()[-1] + cnt.numpy()[-1])
         tri = empty((max(m, 1), 3), wp.int32, device)
         if m:
@@ -302,7 +302,7 @@ def drop_nonfinite_triangles(positions: np.ndarray, triangles: np.ndarray,
     flag = empty(m, wp.int32, device)
     launch(_finite_tri_count_kernel, m, [pos, tri], [flag], device)
     start = wp.empty_like(flag)
-    wp.utils.array_scan(flag, start, inclusive=False)
+    scan(flag, start, inclusive=False)
     k = int(start.numpy()[-1] + flag.numpy()[-1])
     out_tri = empty((max(k, 1), 3), wp.int32, device)
     launch(_finite_tri_emit_kernel, m, [tri, flag, start], [out_tri], device)

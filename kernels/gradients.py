@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .parallel import atomic_add_i32, atomic_min_i32, launch
+from .parallel import atomic_add_i32, atomic_min_i32, launch, launch_one, scan
 from .raster import clip_barycentrics, pixel_ndc
 from .sampling import sample_bilinear
 
@@ -362,7 +362,7 @@ def group_by(keys: wp.array, nkeys: int) -> tuple[wp.array, wp.array]:
     count = wp.zeros(nkeys + 1, dtype=wp.int32, device=dev)
     launch(_count_kernel, n, [keys], [count], dev)
     start = wp.empty(nkeys + 1, dtype=wp.int32, device=dev)
-    wp.utils.array_scan(count, start, inclusive=False)
+    scan(count, start, inclusive=False)
     cursor = wp.clone(start)
     items = wp.empty(max(n, 1), dtype=wp.int32, device=dev)
     launch(_fill_kernel, n, [keys], [cursor, items], dev)
@@ -431,5 +431,5 @@ def displace_backward(uv: wp.array, g: wp.array, out_heights: wp.array, out_eye:
     part = wp.empty((nb, 3), dtype=wp.float32, device=dev)
     launch(_block_sum_kernel, nb, [g, block], [part], dev, min_items=1)
     total = wp.empty((1, 3), dtype=wp.float32, device=dev)
-    wp.launch(_block_sum_kernel, 1, inputs=[0, part, nb], outputs=[total], device=dev)
-    wp.launch(_negate_kernel, 3, inputs=[total], outputs=[out_eye], device=dev)
+    launch_one(_block_sum_kernel, 1, inputs=[0, part, nb], outputs=[total], device=dev)
+    launch_one(_negate_kernel, 3, inputs=[total], outputs=[out_eye], device=dev)

@@ -61,6 +61,24 @@ def box_outside(planes: wp.array(dtype=wp.vec4), lo: wp.vec3, hi: wp.vec3) -> in
     return out
 
 
+@wp.func
+def node_box(rel_origin: wp.vec3, node_size: wp.vec2, x: int, y: int, hmin: float, hmax: float):
+    """The box of node (x, y) of a level whose nodes are ``node_size`` metres, relative to the eye: (lo, hi)."""
+    lo = wp.vec3(rel_origin[0] + float(x) * node_size[0], hmin - rel_origin[1],
+                 rel_origin[2] + float(y) * node_size[1])
+    hi = wp.vec3(lo[0] + node_size[0], hmax - rel_origin[1], lo[2] + node_size[1])
+    return lo, hi
+
+
+@wp.func
+def box_distance(lo: wp.vec3, hi: wp.vec3) -> float:
+    """The distance from the eye (the origin) to the box [lo, hi]; 0 inside it."""
+    dx = wp.max(wp.max(lo[0], -hi[0]), 0.0)
+    dy = wp.max(wp.max(lo[1], -hi[1]), 0.0)
+    dz = wp.max(wp.max(lo[2], -hi[2]), 0.0)
+    return wp.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 @wp.kernel(enable_backward=False)
 def _select_kernel(
     offset: int,
@@ -89,14 +107,8 @@ def _select_kernel(
     k = wp.tid() + offset
     x = node_x[k]
     y = node_y[k]
-    lo = wp.vec3(rel_origin[0] + float(x) * node_size[0], hmin[k] - rel_origin[1],
-                 rel_origin[2] + float(y) * node_size[1])
-    hi = wp.vec3(lo[0] + node_size[0], hmax[k] - rel_origin[1], lo[2] + node_size[1])
-    # distance from the eye (the origin) to the box
-    dx = wp.max(wp.max(lo[0], -hi[0]), 0.0)
-    dy = wp.max(wp.max(lo[1], -hi[1]), 0.0)
-    dz = wp.max(wp.max(lo[2], -hi[2]), 0.0)
-    dist = wp.sqrt(dx * dx + dy * dy + dz * dz)
+    lo, hi = node_box(rel_origin, node_size, x, y, hmin[k], hmax[k])
+    dist = box_distance(lo, hi)
     out_dist[k] = dist
     culled = box_outside(planes, lo, hi)
     out_culled[k] = culled

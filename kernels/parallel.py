@@ -25,8 +25,10 @@ import ctypes
 import math
 import os
 import threading
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import numpy as np
 import warp as wp
@@ -196,6 +198,83 @@ def keep_frame_memory(enable: bool = True) -> bool:
 
 
 # ------------------------------------------------------------------------------------------------
+# the kernel clock: how much of a call's wall time its launches took
+# ------------------------------------------------------------------------------------------------
+_clock = threading.local()
+_load_lock = threading.RLock()
+_loaded: set = set()
+
+
+def load(kernel: wp.Kernel, device: str | wp.Device | None = None) -> None:
+    """Build (or read from the kernel cache) and load ``kernel``'s module on ``device`` once per process, under a
+    lock: Warp's code generation parses Python sources with ``ast``, which CPython 3.11 does not allow from two
+    threads at once (``SystemError: AST constructor recursion depth mismatch``), so the first frames of threads
+    that start together must not build a module side by side. Every launch helper here calls it."""
+    dev = wp.get_device(device)
+    key = (kernel.module, dev.alias)
+    if key in _loaded:
+        return
+    with _load_lock:
+        if key not in _loaded:
+            kernel.module.load(dev)
+            _loaded.add(key)
+
+
+@contextmanager
+def kernel_clock() -> Iterator[list[float]]:
+    """Time the launches this thread makes inside the block: yields a one-element list whose value grows by
+    the wall seconds of each launch (:func:`launch`, :func:`launch_one`, :func:`replay`, :func:`scan`: the
+    kernel and Warp's packing of its arguments, every chunk's thread included). Clocks nest: an inner block's
+    seconds count in the outer one too. What a caller spends outside them is host work: allocation, copies,
+    numpy, Python."""
+    outer = getattr(_clock, "acc", None)
+    acc = [0.0]
+    _clock.acc = acc
+    try:
+        yield acc
+    finally:
+        _clock.acc = outer
+        if outer is not None:
+            outer[0] += acc[0]
+
+
+def _timed(run: Callable[[], object]) -> object:
+    acc = getattr(_clock, "acc", None)
+    if acc is None:
+        return run()
+    t0 = time.perf_counter()
+    try:
+        return run()
+    finally:
+        acc[0] += time.perf_counter() - t0
+
+
+def launch_one(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), outputs: Sequence = (),
+               device: str | wp.Device | None = None) -> None:
+    """``wp.launch`` on one thread (a launch too small or too serial to split), on the :func:`kernel_clock`."""
+    load(kernel, device)
+    _timed(lambda: wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), device=device))
+
+
+def record(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), outputs: Sequence = (),
+           device: str | wp.Device | None = None) -> wp.Launch:
+    """A launch recorded once (``wp.launch(..., record_cmd=True)``, the module :func:`load`-ed first), to
+    :func:`replay` per frame without packing its arguments again."""
+    load(kernel, device)
+    return wp.launch(kernel, dim=dim, inputs=list(inputs), outputs=list(outputs), device=device, record_cmd=True)
+
+
+def replay(cmd: wp.Launch) -> None:
+    """Replay a launch recorded with ``wp.launch(..., record_cmd=True)``, on the :func:`kernel_clock`."""
+    _timed(cmd.launch)
+
+
+def scan(values: wp.array, out: wp.array, inclusive: bool = False) -> None:
+    """``wp.utils.array_scan`` (the prefix sum of count -> scan -> emit), on the :func:`kernel_clock`."""
+    _timed(lambda: wp.utils.array_scan(values, out, inclusive=inclusive))
+
+
+# ------------------------------------------------------------------------------------------------
 # launch
 # ------------------------------------------------------------------------------------------------
 
@@ -253,6 +332,12 @@ def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), o
     dev = wp.get_device(device)
     if shape[0] <= 0 or math.prod(shape) == 0:
         return
+    load(kernel, dev)
+    _timed(lambda: _split_launch(kernel, shape, inputs, outputs, dev, parts, min_items, oversplit))
+
+
+def _split_launch(kernel: wp.Kernel, shape: tuple[int, ...], inputs: Sequence, outputs: Sequence, dev: wp.Device,
+                  parts: bool, min_items: int, oversplit: int) -> None:
     head = (0, 0) if parts else (0,)
     if not dev.is_cpu or threads() == 1:
         wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
@@ -261,7 +346,6 @@ def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), o
     if len(ranges) == 1:
         wp.launch(kernel, dim=shape, inputs=[*head, *inputs], outputs=list(outputs), device=dev)
         return
-    kernel.module.load(dev)  # compile / load once, here, before any thread launches it
     order = iter(range(len(ranges)))  # next() on it is atomic under the GIL
 
     def work() -> None:

@@ -55,7 +55,7 @@ import numpy as np
 import warp as wp
 
 from .checks import check_int
-from .parallel import launch, threads
+from .parallel import launch, launch_one, record, replay, scan, threads
 
 FLAG_LOW_J = 1  # a merge across (part of) the polygon's j0 side was tried and failed
 FLAG_HIGH_J = 2  # ... across its j1 side
@@ -1138,10 +1138,10 @@ class MergeState:
         split = self.depth - self.SPLIT_BELOW
         split_up = self._marked is not None and threads() > 1 and split >= 1
         if split_up:
-            cmds = [wp.launch(_mark_top_kernel, dim=1, inputs=[a, 0, split], device=dev, record_cmd=True),
-                    wp.launch(_top_finish_kernel, dim=1, inputs=[a, 0, split, 0], device=dev, record_cmd=True)]
+            cmds = [record(_mark_top_kernel, dim=1, inputs=[a, 0, split], device=dev),
+                    record(_top_finish_kernel, dim=1, inputs=[a, 0, split, 0], device=dev)]
         else:
-            cmds = [wp.launch(_pass_kernel, dim=1, inputs=[a, 0], device=dev, record_cmd=True)]
+            cmds = [record(_pass_kernel, dim=1, inputs=[a, 0], device=dev)]
         chunks, ms = [], []
         used = 0
         for t in range(t_n):
@@ -1157,7 +1157,7 @@ class MergeState:
             if split_up:
                 self._split_pass(cmds, t, split)
             else:
-                cmds[0].launch()
+                replay(cmds[0])
             new = int(self._used[0]) if self._used is not None else int(a.out_used.numpy()[0])
             ms.append((time.perf_counter() - t0) * 1e3)
             last, used = new - used, new
@@ -1175,13 +1175,13 @@ class MergeState:
     def _split_pass(self, cmds, t: int, split: int) -> None:
         """Pass t on every thread when it merges enough nodes at the subtree levels, else in one."""
         mark, finish = cmds
-        mark.launch()
+        replay(mark)
         parallel = int(self._marked[1:split + 1].sum()) >= self.PARALLEL_MIN_NODES
         if parallel:
             launch(_subtree_kernel, 4 ** self.SPLIT_BELOW, [self.arrays, t, split], device=self.device, parts=True,
                    min_items=1, oversplit=4)  # subtrees differ in how many of their nodes a pass merges
         finish.set_param_at_index(3, 0 if parallel else 1)
-        finish.launch()
+        replay(finish)
 
     def run_pass(self, tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Merge at ``tol`` (not below the last tolerance); returns the root's polygons: rects (P, 4) int32
@@ -1253,7 +1253,7 @@ def paint(rects: np.ndarray, shape_cells: tuple[int, int], device: str = "cpu") 
     hits = wp.zeros((ch, cw), dtype=wp.int32, device=device)
     if len(rects):
         r = wp.array(np.ascontiguousarray(rects, np.int32), dtype=wp.vec4i, device=device)
-        wp.launch(_paint_kernel, dim=len(rects), inputs=[r], outputs=[label, hits], device=device)
+        launch_one(_paint_kernel, dim=len(rects), inputs=[r], outputs=[label, hits], device=device)
     return label.numpy(), hits.numpy()
 
 
@@ -1277,14 +1277,14 @@ def triangulate_tiling(heights: np.ndarray, rects: np.ndarray, label: np.ndarray
     r = wp.array(np.ascontiguousarray(rects, np.int32), dtype=wp.vec4i, device=device)
     count = wp.zeros(p + 1, dtype=wp.int32, device=device)
     used = wp.zeros(hh * ww + 1, dtype=wp.int32, device=device)
-    wp.launch(_tri_count_kernel, dim=p, inputs=[lab, r, ww], outputs=[count, used], device=device)
+    launch_one(_tri_count_kernel, dim=p, inputs=[lab, r, ww], outputs=[count, used], device=device)
     off = wp.empty(p + 1, dtype=wp.int32, device=device)
-    wp.utils.array_scan(count, off, inclusive=False)
+    scan(count, off, inclusive=False)
     remap = wp.empty(hh * ww + 1, dtype=wp.int32, device=device)
-    wp.utils.array_scan(used, remap, inclusive=False)
+    scan(used, remap, inclusive=False)
     m = int(off.numpy()[p])
     tri = wp.zeros((max(m, 1), 3), dtype=wp.int32, device=device)
-    wp.launch(_tri_emit_kernel, dim=p, inputs=[h, lab, r, off, remap, float(dx), float(dz)], outputs=[tri],
+    launch_one(_tri_emit_kernel, dim=p, inputs=[h, lab, r, off, remap, float(dx), float(dz)], outputs=[tri],
               device=device)
     used_np = used.numpy()[:hh * ww]
     vid = np.flatnonzero(used_np)
@@ -1302,7 +1302,7 @@ def morph_targets(src: np.ndarray, coarse_rects: np.ndarray, coarse_label: np.nd
     lab = wp.array(np.ascontiguousarray(coarse_label, np.int32), dtype=wp.int32, device=device)
     r = wp.array(np.ascontiguousarray(coarse_rects, np.int32), dtype=wp.vec4i, device=device)
     out = wp.empty(n, dtype=wp.vec2i, device=device)
-    wp.launch(_morph_target_kernel, dim=n, inputs=[s, lab, r], outputs=[out], device=device)
+    launch_one(_morph_target_kernel, dim=n, inputs=[s, lab, r], outputs=[out], device=device)
     return out.numpy().reshape(n, 2)
 
 
@@ -1317,7 +1317,7 @@ def morph_positions(heights: np.ndarray, src: np.ndarray, dst: np.ndarray, s: fl
         h = wp.array(np.ascontiguousarray(heights, np.float32), dtype=wp.float32, device=device)
         a = wp.array(np.ascontiguousarray(src, np.int32), dtype=wp.vec2i, device=device)
         b = wp.array(np.ascontiguousarray(dst, np.int32), dtype=wp.vec2i, device=device)
-        wp.launch(_morph_positions_kernel, dim=n, inputs=[h, a, b, float(s), float(dx), float(dz),
+        launch_one(_morph_positions_kernel, dim=n, inputs=[h, a, b, float(s), float(dx), float(dz),
                                                            wp.vec3(*rel_origin)], outputs=[out], device=device)
     return out.numpy()[:n].reshape(n, 3)
 

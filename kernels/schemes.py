@@ -16,12 +16,14 @@ seen from +y. Every launch goes through :func:`.parallel.launch` (one launch per
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 
 from .displacement import write_quad
-from .lod import box_outside
-from .parallel import empty, launch, view
+from .lod import box_distance, box_outside, node_box
+from .parallel import empty, launch, record, replay, scan, view
 from .sampling import sample_bilinear
 
 # ------------------------------------------------------------------------------------------------
@@ -418,6 +420,168 @@ def _clipmap_stitch_kernel(
 # ------------------------------------------------------------------------------------------------
 # host wrappers
 # ------------------------------------------------------------------------------------------------
+# CDLOD selection: the whole quadtree walk in one launch
+# ------------------------------------------------------------------------------------------------
+@wp.func
+def _cdlod_item(out_item: wp.array2d(dtype=wp.float32), out_int: wp.array2d(dtype=wp.int32), i: int,
+                ox: wp.float64, oy: wp.float64, size: wp.float64, step: wp.float64, lod: int):
+    out_item[i, 0] = wp.float32(ox)
+    out_item[i, 1] = wp.float32(oy)
+    out_item[i, 2] = wp.float32(size)
+    out_item[i, 3] = wp.float32(step)
+    out_int[i, 0] = lod
+
+
+@wp.func
+def _farther_than(x: int, y: int, size: wp.vec2d, rel: wp.vec3d, mn: float, mx: float, limit: wp.float64) -> int:
+    """1 when the farthest point of node (x, y)'s box (float64, from the eye) lies past ``limit``."""
+    x0 = rel[0] + wp.float64(x) * size[0]
+    z0 = rel[2] + wp.float64(y) * size[1]
+    fx = wp.max(wp.abs(x0), wp.abs(x0 + size[0]))
+    fz = wp.max(wp.abs(z0), wp.abs(z0 + size[1]))
+    fy = wp.max(wp.abs(wp.float64(mn) - rel[1]), wp.abs(wp.float64(mx) - rel[1]))
+    if wp.sqrt(fx * fx + fy * fy + fz * fz) > limit:
+        return 1
+    return 0
+
+
+@wp.kernel(enable_backward=False)
+def _cdlod_select_kernel(
+    hmin: wp.array(dtype=wp.float32),
+    hmax: wp.array(dtype=wp.float32),
+    level_start: wp.array(dtype=wp.int32),
+    inside: wp.array(dtype=wp.vec2i),
+    roots: wp.vec2i,
+    depth: int,
+    size32: wp.array(dtype=wp.vec2),
+    size64: wp.array(dtype=wp.vec2d),
+    eye: wp.array(dtype=wp.vec3),
+    eye64: wp.array(dtype=wp.vec3d),
+    planes: wp.array(dtype=wp.vec4),
+    ranges: wp.array2d(dtype=wp.float64),
+    levels: int,
+    root_cells: wp.float64,
+    grid: int,
+    front: wp.array3d(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
+    # outputs
+    out_item: wp.array2d(dtype=wp.float32),
+    out_int: wp.array2d(dtype=wp.int32),
+    out_n: wp.array(dtype=wp.int64),
+):
+    """One thread walks the tree level by level (see :meth:`CdlodTree.select`)."""
+    rel = eye[0]
+    rel64 = eye64[0]
+    n = int(0)
+    for ry in range(roots[1]):
+        for rx in range(roots[0]):
+            front[0, n, 0] = rx
+            front[0, n, 1] = ry
+            n += 1
+    p = int(0)
+    q = int(0)  # quadrants emitted
+    o = int(0)  # entries of the draw order
+    d = int(0)  # draws
+    visited = int(0)
+    culled = int(0)
+    too_small = int(0)
+    wholes = int(0)
+    singles = int(0)
+    for lvl in range(depth + 1):
+        lod = depth - lvl
+        cnt = inside[lvl]
+        m = int(0)
+        for i in range(n):  # nodes whose origin lies inside the grid (and the first root)
+            x = front[p, i, 0]
+            y = front[p, i, 1]
+            if (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0):
+                front[p, m, 0] = x
+                front[p, m, 1] = y
+                m += 1
+        n = m
+        if n == 0:
+            break
+        visited += n
+        base = level_start[lvl]
+        width = roots[0] << lvl
+        sz = size32[lvl]
+        r_in = ranges[lod, 0]
+        r_split = wp.float64(-1.0)
+        if lod > 0:
+            r_split = ranges[lod - 1, 0]
+        n_whole = int(0)
+        for i in range(n):  # 0 culled, 1 drawn as the parent's quadrant, 2 drawn whole, 3 split
+            x = front[p, i, 0]
+            y = front[p, i, 1]
+            k = base + y * width + x
+            lo, hi = node_box(rel, sz, x, y, hmin[k], hmax[k])
+            dist = wp.float64(box_distance(lo, hi))
+            kind = int(0)
+            if box_outside(planes, lo, hi) != 0:
+                culled += 1
+            elif not (dist < r_in):
+                kind = 1
+            elif dist < r_split:
+                kind = 3
+            else:
+                kind = 2
+                n_whole += 1
+            code[i] = kind
+        s = root_cells / wp.float64(1 << lvl)
+        if lvl > 0:  # a parent draws these quadrants with its grid: lod + 1
+            st = root_cells / wp.float64(1 << (lvl - 1)) / wp.float64(grid)
+            for i in range(n):
+                if code[i] == 1:
+                    _cdlod_item(out_item, out_int, q, wp.float64(front[p, i, 0]) * s, wp.float64(front[p, i, 1]) * s,
+                                s, st, lod + 1)
+                    out_int[o, 1] = q
+                    out_int[d, 2] = o
+                    out_int[d, 3] = o + 1
+                    q += 1
+                    o += 1
+                    d += 1
+                    singles += 1
+        half = s / wp.float64(2.0)
+        st = s / wp.float64(grid)
+        j = int(0)
+        for i in range(n):
+            if code[i] == 2:  # four quadrants: quadrant c of the level's j-th whole node at q + c n_whole + j
+                x = front[p, i, 0]
+                y = front[p, i, 1]
+                for c in range(4):
+                    e = q + c * n_whole + j
+                    _cdlod_item(out_item, out_int, e, wp.float64(x) * s + wp.float64(c % 2) * half,
+                                wp.float64(y) * s + wp.float64(c / 2) * half, half, st, lod)
+                    out_int[o + c, 1] = e
+                out_int[d, 2] = o
+                out_int[d, 3] = o + 4
+                o += 4
+                d += 1
+                j += 1
+                if lod + 1 < levels:
+                    k = base + y * width + x
+                    too_small += _farther_than(x, y, size64[lvl], rel64, hmin[k], hmax[k], ranges[lod + 1, 1])
+        q += 4 * n_whole
+        wholes += n_whole
+        m = int(0)
+        for c in range(4):  # the children of the split nodes, quadrant by quadrant
+            for i in range(n):
+                if code[i] == 3:
+                    front[1 - p, m, 0] = 2 * front[p, i, 0] + c % 2
+                    front[1 - p, m, 1] = 2 * front[p, i, 1] + c / 2
+                    m += 1
+        p = 1 - p
+        n = m
+    out_n[0] = wp.int64(q)
+    out_n[1] = wp.int64(d)
+    out_n[2] = wp.int64(visited)
+    out_n[3] = wp.int64(culled)
+    out_n[4] = wp.int64(too_small)
+    out_n[5] = wp.int64(wholes)
+    out_n[6] = wp.int64(singles)
+
+
+# ------------------------------------------------------------------------------------------------
 MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
@@ -553,7 +717,7 @@ def clipmap_mesh(heights: np.ndarray | wp.array, origin: np.ndarray, spacing: np
         verts[0], holes, *lv, wp.array(np.ascontiguousarray(planes, np.float32), dtype=wp.vec4, device=device),
         *grid], outputs=[cnt], device=device, min_items=1)
     start = wp.empty_like(cnt)
-    wp.utils.array_scan(cnt, start, inclusive=False)
+    scan(cnt, start, inclusive=False)
     n_quad_tri = int(start.numpy()[-1] + cnt.numpy()[-1])
     # stitches of the levels with a coarser one: they come first among the levels (finest first)
     nt = n_quad_tri + n_stitch
@@ -584,3 +748,86 @@ def _clipmap_draws(cnt: np.ndarray, start: np.ndarray, coarser: np.ndarray, n: i
             stitch += 2 * (n - 1)
         groups.append((g0, len(draws)))
     return np.asarray(draws, np.int32).reshape(-1, 2), np.asarray(groups, np.int32).reshape(-1, 2)
+
+
+class CdlodTree:
+    """CDLOD's selection (Strugar 2010) over one quadtree, in one launch: a single thread walks the tree level
+    by level, as the reference walks it in one recursion.
+
+    Built once per terrain: the per-level min/max pyramids as one array, the per-level tables, and the frame's
+    buffers, with the launch recorded once (``wp.launch(...)``) and replayed per frame, the
+    frame's inputs written into its input arrays. One selection runs at a time (a lock); the results are
+    copies."""
+
+    def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], root_cells: float,
+                 sizes: list[tuple[float, float]], grid: int, device: str = "cpu") -> None:
+        """``stats``: per level (min, max, ...) arrays (nz << L, nx << L); ``inside``: (depth + 1, 2) int, per
+        level the columns and rows of nodes whose origin lies inside the grid; ``sizes``: per level node size
+        in metres (float64); ``grid``: quads per node side."""
+        mn = np.concatenate([np.ascontiguousarray(a[0], np.float32).reshape(-1) for a in stats])
+        mx = np.concatenate([np.ascontiguousarray(a[1], np.float32).reshape(-1) for a in stats])
+        start = np.cumsum([0] + [a[0].size for a in stats[:-1]]).astype(np.int32)
+        ins = np.ascontiguousarray(inside, np.int32)
+        sz = np.asarray(sizes, np.float64)
+        self.levels = len(stats)
+        self.grid = int(grid)
+        self.capacity = cap = 4 * (int(ins[-1, 0]) * int(ins[-1, 1]) + 1)  # quadrants: 4 per finest node inside
+        n_roots = int(roots[0]) * int(roots[1])
+        self._lock = threading.Lock()
+        self._eye, self._eye64 = empty(1, wp.vec3, device), empty(1, wp.vec3d, device)
+        self._planes, self._ranges = empty(6, wp.vec4, device), empty((self.levels, 2), wp.float64, device)
+        self._item, self._ints = empty((cap, 4), wp.float32, device), empty((cap, 4), wp.int32, device)
+        self._counts = empty(8, wp.int64, device)
+        self._cmd = record(_cdlod_select_kernel, dim=1, inputs=[
+            wp.array(mn, dtype=wp.float32, device=device), wp.array(mx, dtype=wp.float32, device=device),
+            wp.array(start, dtype=wp.int32, device=device), wp.array(ins, dtype=wp.vec2i, device=device),
+            wp.vec2i(int(roots[0]), int(roots[1])), self.levels - 1,
+            wp.array(sz.astype(np.float32), dtype=wp.vec2, device=device), wp.array(sz, dtype=wp.vec2d, device=device),
+            self._eye, self._eye64, self._planes, self._ranges, self.levels, float(root_cells), self.grid,
+            wp.empty((2, max(cap, n_roots), 2), dtype=wp.int32, device=device),
+            wp.empty(max(cap, n_roots), dtype=wp.int32, device=device)],
+            outputs=[self._item, self._ints, self._counts], device=device)
+        self._cpu = wp.get_device(device).is_cpu
+        if self._cpu:  # the buffers' memory, seen from numpy once (on the CPU it is the same memory)
+            self._host = [a.numpy() for a in (self._eye, self._eye64, self._planes, self._ranges, self._item,
+                                              self._ints, self._counts)]
+
+    def select(self, rel_origin: tuple[float, float, float], planes: np.ndarray, ranges: np.ndarray,
+               morph_start: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The selection for one camera.
+
+        Per level, the nodes whose origin lies inside the grid are tested: culled when their box is outside the
+        frustum; drawn as their parent's quadrant (with the parent's grid, lod + 1) when the box lies beyond
+        ``ranges[lod]``; split when it lies within ``ranges[lod - 1]``; else drawn whole, as its four quadrants,
+        and counted ``too_small`` when its farthest point lies past ``morph_start[lod + 1]``. The children of
+        split nodes are the next level's nodes, quadrant by quadrant ((0, 0), (1, 0), (0, 1), (1, 1) blocks).
+
+        Args:
+            rel_origin: :func:`terrainwarp.camera.relative_origin` of the heightmap (float32 for the boxes,
+                float64 for the ``too_small`` check).
+            planes: (6, 4) float32 frustum planes (:func:`.lod.frustum_planes`).
+            ranges: (levels,) float64 range of each LOD (0 finest; the coarsest infinite); morph_start:
+                (levels,) float64.
+
+        Returns:
+            origin (Q, 2) float32 quadrant corner in cells, size (Q,) float32, step (Q,) float32 vertex spacing,
+            lod (Q,) int32, draws (D, 2) int32 ranges of ``order`` (a whole node's four quadrants, or one parent
+            quadrant), order (Q,) int32, and counts (7,) int64: quadrants, draws, nodes visited, culled,
+            too_small, whole nodes, parent quadrants. Quadrants come level by level: parent quadrants, then the
+            whole nodes' quadrants (quadrant by quadrant); ``order`` takes them node by node.
+        """
+        inputs = (self._eye, self._eye64, self._planes, self._ranges)
+        with self._lock:
+            eye, eye64, pl, r, f, i, n = self._host if self._cpu else [a.numpy() for a in inputs] + [None] * 3
+            eye[0], eye64[0], pl[:] = rel_origin, rel_origin, planes
+            r[:, 0], r[:, 1] = ranges, morph_start
+            if not self._cpu:
+                for a, h in zip(inputs, (eye, eye64, pl, r), strict=True):
+                    a.assign(h)
+            replay(self._cmd)
+            if not self._cpu:
+                f, i, n = self._item.numpy(), self._ints.numpy(), self._counts.numpy()
+            n = n.copy()
+            q, d = int(n[0]), int(n[1])
+            return f[:q, :2].copy(), f[:q, 2].copy(), f[:q, 3].copy(), i[:q, 0].copy(), i[:d, 2:4].copy(), \
+                i[:q, 1].copy(), n[:7]

@@ -42,7 +42,7 @@ import numpy as np
 import warp as wp
 
 from .counters import patch_draw_counters
-from .parallel import empty, launch, view
+from .parallel import empty, launch, scan, view
 from .pool import pooled_rows_array
 from .sampling import sample_height
 
@@ -704,8 +704,8 @@ def _count_scan(o: np.ndarray, i: np.ndarray, code: int, device: str):
         launch(_count_kernel, p, [wo, wi, code], [nv, nt], device)
     v_off = wp.empty(p + 1, dtype=wp.int32, device=device)
     t_off = wp.empty(p + 1, dtype=wp.int32, device=device)
-    wp.utils.array_scan(nv, v_off, inclusive=False)
-    wp.utils.array_scan(nt, t_off, inclusive=False)
+    scan(nv, v_off, inclusive=False)
+    scan(nt, t_off, inclusive=False)
     return int(v_off.numpy()[p]), int(t_off.numpy()[p]), wo, wi, v_off, t_off
 
 

@@ -19,6 +19,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .parallel import launch_one
+
 
 @wp.func
 def _occluded(e: wp.vec3, t: wp.vec3, blk: wp.array2d(dtype=wp.float32), bx0: float, bz0: float, inv_bs: float,
@@ -78,7 +80,7 @@ def cell_node_visibility(eyes: np.ndarray, targets: np.ndarray, blockers: np.nda
     t = np.ascontiguousarray(targets, np.float32)
     out = wp.zeros((e.shape[0], t.shape[0]), dtype=wp.uint8, device=device)
     if e.shape[0] and t.shape[0]:
-        wp.launch(_cell_node_kernel, dim=(e.shape[0], t.shape[0]),
+        launch_one(_cell_node_kernel, dim=(e.shape[0], t.shape[0]),
                   inputs=[wp.array(e, dtype=wp.vec3, device=device), wp.array(t, dtype=wp.vec3, device=device),
                           wp.array(np.ascontiguousarray(blockers, np.float32), dtype=wp.float32, device=device),
                           float(blocker_origin[0]), float(blocker_origin[1]), 1.0 / float(blocker_size),

@@ -27,8 +27,8 @@ per-edge factor compared with the ``continuous`` policy.
 
 **Where we had to choose.**
 
-* The quadtree is :class:`terrainwarp.lod.Terrain` (its min/max pyramids, its node boxes and frustum test,
-  through :func:`terrainwarp.kernels.lod.select_level`), with ``tess = grid`` so the finest level draws one
+* The quadtree is :class:`terrainwarp.lod.Terrain` (its min/max pyramids, its node boxes and frustum test), walked
+  in one launch (:class:`terrainwarp.kernels.schemes.CdlodTree`), with ``tess = grid`` so the finest level draws one
   vertex per sample. ``levels`` fixes the tree depth (roots are added to cover the grid).
 * The coarsest level has an infinite range (the reference stops at a visibility distance): the whole
   terrain is drawn, as every other scheme here draws it, so coverage can be compared.
@@ -53,11 +53,10 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels.checks import check_int, check_number
-from ..kernels.lod import select_level
-from ..kernels.schemes import cdlod_mesh
+from ..kernels.schemes import CdlodTree, cdlod_mesh
 from ..mesh import Draws, Mesh
-from .quadtree import Terrain, tile_key
-from .scheme import SelectThenMesh, root_nodes, view_of
+from .quadtree import Terrain
+from .scheme import SelectThenMesh, view_of
 
 __all__ = ["Cdlod", "CdlodSelection", "cdlod_ranges"]
 
@@ -153,11 +152,15 @@ class Cdlod(SelectThenMesh):
         self.terrain = Terrain.prepare(self.heightmap, roots=roots, tess=self.grid, depth=self.levels - 1,
                                        device=self.device)
         self._h = None
+        self._ranges = None
 
     # -- ranges ---------------------------------------------------------------------------------------
     def ranges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(range, morph_start, morph_end) of LOD 0 .. levels-1 (:func:`cdlod_ranges`)."""
-        return cdlod_ranges(self.first_range, self.ratio, self.morph_start_ratio, self.levels)
+        key = (self.first_range, self.ratio, self.morph_start_ratio, self.levels)
+        if self._ranges is None or self._ranges[0] != key:  # the knobs are fields a fit may set between frames
+            self._ranges = (key, cdlod_ranges(*key))
+        return tuple(a.copy() for a in self._ranges[1])
 
     @property
     def min_first_range(self) -> float:
@@ -179,97 +182,22 @@ class Cdlod(SelectThenMesh):
 
     # -- selection ------------------------------------------------------------------------------------
     def select(self, camera: Camera) -> CdlodSelection:
-        """The quadrants to draw from ``camera`` (host selection, one select-level launch per tree level)."""
+        """The quadrants to draw from ``camera``: the tree walked in one launch
+        (:class:`terrainwarp.kernels.schemes.CdlodTree`)."""
         t = self.terrain
         rng, start, _ = self.ranges()
         rel, planes = view_of(self.heightmap, camera)
-        x, y = root_nodes(t)
-        out: list[tuple[np.ndarray, np.ndarray, int, int]] = []  # (x, y, tree level, lod of the drawn grid)
-        visited = culled = too_small = 0
-        for lvl in range(t.depth + 1):
-            keep = t.inside(lvl, x, y)
-            x, y = x[keep], y[keep]
-            if not len(x):
-                break
-            lod = t.depth - lvl
-            visited += len(x)
-            size = t.node_size_world(lvl)
-            _, cu, dist, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.stats_at(lvl, x, y),
-                                          rel, size, planes, 0, 0.0, camera.focal_px, 0.0, False,
-                                          np.zeros(0, np.int64), device=self.device)
-            vis = cu == 0
-            culled += int((~vis).sum())
-            in_range = dist < rng[lod]
-            parent_quadrant = vis & ~in_range  # only below the roots: the parent draws this quadrant
-            if parent_quadrant.any():
-                out.append((x[parent_quadrant], y[parent_quadrant], lvl, lod + 1))
-            split = vis & in_range & (dist < rng[lod - 1]) if lod > 0 else np.zeros(len(x), bool)
-            whole = vis & in_range & ~split
-            if whole.any():
-                out.append((x[whole], y[whole], lvl, lod))
-                too_small += self._too_small(x[whole], y[whole], lvl, lod, rel, start)
-            x, y = np.concatenate([2 * x[split], 2 * x[split] + 1, 2 * x[split], 2 * x[split] + 1]), \
-                np.concatenate([2 * y[split], 2 * y[split], 2 * y[split] + 1, 2 * y[split] + 1])
-        return self._quadrants(out, {"nodes_visited": visited, "culled": culled, "too_small": too_small,
-                                     "levels": self.levels})
-
-    def _too_small(self, x: np.ndarray, y: np.ndarray, lvl: int, lod: int, rel: tuple[float, float, float],
-                   start: np.ndarray) -> int:
-        """Nodes whose farthest point lies past the next coarser level's morph start (the reference's check)."""
-        if lod + 1 >= self.levels:
-            return 0
-        t = self.terrain
-        sx, sz = t.node_size_world(lvl)
-        mn, mx, _ = t.stats[lvl]
-        x0 = rel[0] + x * sx
-        z0 = rel[2] + y * sz
-        fx = np.maximum(np.abs(x0), np.abs(x0 + sx))
-        fz = np.maximum(np.abs(z0), np.abs(z0 + sz))
-        fy = np.maximum(np.abs(mn[y, x] - rel[1]), np.abs(mx[y, x] - rel[1]))
-        return int((np.sqrt(fx * fx + fy * fy + fz * fz) > start[lod + 1]).sum())
-
-    def _quadrants(self, parts: list, stats: dict) -> CdlodSelection:
-        """Each drawn node as its four quadrants, each parent quadrant as itself (cells, float32). ``stats``:
-        ``whole_nodes`` and ``quadrant_draws``; ``draws``: the reference's draw calls, a whole node's four
-        quadrants together, a parent's quadrant alone (the reference draws a partly selected node quadrant by
-        quadrant)."""
-        t = self.terrain
-        org, size, step, lods, calls = [], [], [], [], []
-        whole = single = 0
-        base = 0
-        for x, y, lvl, lod in parts:
-            s = t.root_cells / 2.0 ** lvl
-            st = t.root_cells / 2.0 ** (t.depth - lod) / self.grid  # the drawn level's vertex spacing
-            k = len(x)
-            if lod == t.depth - lvl:  # a whole node: its four quadrants
-                q = s / 2
-                for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
-                    org.append(np.stack([x * s + dx * q, y * s + dy * q], 1))
-                    size.append(np.full(k, q))
-                    step.append(np.full(k, st))
-                    lods.append(np.full(k, lod))
-                calls.append(base + np.arange(k)[:, None] + k * np.arange(4)[None, :])  # node by node
-                whole += k
-                base += 4 * k
-            else:  # a quadrant of the parent, drawn with the parent's grid
-                org.append(np.stack([x * s, y * s], 1))
-                size.append(np.full(k, s))
-                step.append(np.full(k, st))
-                lods.append(np.full(k, lod))
-                calls.append(base + np.arange(k)[:, None])
-                single += k
-                base += k
-        stats.update(whole_nodes=whole, quadrant_draws=single)
-        if not org:
-            z = np.zeros(0, np.float32)
-            return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
-        stats["quadrants"] = int(sum(len(a) for a in size))
-        order = np.concatenate([c.reshape(-1) for c in calls]).astype(np.int32)
-        per = np.concatenate([np.full(len(c), c.shape[1]) for c in calls])
-        ends = np.cumsum(per)
-        return CdlodSelection(np.concatenate(org).astype(np.float32), np.concatenate(size).astype(np.float32),
-                              np.concatenate(step).astype(np.float32), np.concatenate(lods).astype(np.int32), stats,
-                              np.stack([ends - per, ends], 1).astype(np.int32), order)
+        tree = t.cached(("cdlod_tree", self.grid, self.device), lambda: CdlodTree(
+            t.stats, t.inside_counts(), t.roots, t.root_cells, [t.node_size_world(lv) for lv in range(t.depth + 1)],
+            self.grid, device=self.device))
+        origin, size, step, lod, draws, order, n = tree.select(rel, planes, rng, start)
+        stats = {"nodes_visited": int(n[2]), "culled": int(n[3]), "too_small": int(n[4]), "levels": self.levels,
+                 "whole_nodes": int(n[5]), "quadrant_draws": int(n[6])}
+        if len(size):
+            stats["quadrants"] = int(n[0])
+            return CdlodSelection(origin, size, step, lod, stats, draws, order)
+        z = np.zeros(0, np.float32)
+        return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
 
     def uniform(self, lod: int) -> CdlodSelection:
         """Every node of one LOD inside the grid, as its four quadrants: the grid that LOD draws where it is drawn

@@ -239,6 +239,11 @@ class Terrain:
         """True for nodes whose origin lies inside the sample grid (others are never drawn)."""
         return _inside_many(self, int(level), x, y)
 
+    def inside_counts(self) -> np.ndarray:
+        """(depth + 1, 2) int64: per level, the columns and rows of nodes whose origin lies inside the grid
+        (:meth:`inside` is ``x < columns and y < rows``, or the first root)."""
+        return self.cached("inside_counts", lambda: _inside_counts(self))
+
 
 # ------------------------------------------------------------------------------------------------
 # selection result
@@ -594,8 +599,7 @@ def _inside_counts(terrain: Terrain) -> np.ndarray:
 
 def _inside_many(terrain: Terrain, lv: int | np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """True for nodes (lv, x, y) whose origin lies inside the sample grid (and the first root always)."""
-    counts = terrain.cached("inside_counts", lambda: _inside_counts(terrain))
-    c = counts[lv]
+    c = terrain.inside_counts()[lv]
     return (x < c[..., 0]) & (y < c[..., 1]) | ((x == 0) & (y == 0))
 
 

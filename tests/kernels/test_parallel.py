@@ -7,11 +7,14 @@ digests (``.venv/bin/python tests/kernels/test_parallel.py``), to compare two ve
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -115,6 +118,73 @@ def test_launch_gives_each_chunk_its_offset_and_part():
     got = out.numpy()
     assert np.array_equal(got % 1000, np.repeat(np.arange(9), 2).reshape(9, 2))
     assert np.array_equal(got // 1000, np.repeat([0, 0, 0, 1, 1, 1, 2, 2, 2], 2).reshape(9, 2))
+
+
+@wp.kernel(enable_backward=False)
+def _spin_kernel(offset: int, n: int, out: wp.array(dtype=wp.float32)):
+    i = wp.tid() + offset
+    acc = float(0.0)  # noqa: UP018 -- a mutable Warp float
+    for k in range(n):
+        acc = acc + wp.sin(float(i + k))
+    out[i] = acc
+
+
+def test_the_kernel_clock_counts_launches_of_its_thread_and_nests():
+    out = wp.zeros(64, dtype=wp.float32)
+    parallel.launch_one(_spin_kernel, 64, [0, 10], [out])  # loaded
+    t0 = time.perf_counter()
+    with parallel.kernel_clock() as outer:
+        sum(range(200_000))  # host work: not on the clock
+        with parallel.kernel_clock() as inner:
+            parallel.launch(_spin_kernel, 64, [20_000], [out], min_items=1)
+            parallel.launch_one(_spin_kernel, 64, [0, 20_000], [out])
+            cmd = parallel.record(_spin_kernel, 64, [0, 20_000], [out])
+            parallel.replay(cmd)
+        seen = []
+        other = threading.Thread(target=lambda: seen.append(parallel.launch_one(_spin_kernel, 64, [0, 20_000], [out])))
+        other.start()
+        other.join()  # another thread's launch is not this thread's
+    assert 0 < inner[0] <= outer[0] and outer[0] == pytest.approx(inner[0])  # the other thread's launch left out
+    assert outer[0] < time.perf_counter() - t0
+    with parallel.kernel_clock() as idle:
+        sum(range(100_000))
+    assert idle[0] == 0.0
+
+
+def test_threads_that_start_together_load_a_new_module_once():
+    """Eight threads launch kernels of a module no one has loaded, at once: no error, every result right
+    (CPython 3.11's ast cannot parse from two threads at once; the first load is under a lock)."""
+    src = ("import warp as wp\n\n@wp.kernel(enable_backward=False)\n"
+           "def k(offset: int, out: wp.array(dtype=wp.int32)):\n    i = wp.tid() + offset\n    out[i] = i * {m}\n")
+    mods = []
+    with tempfile.TemporaryDirectory() as d:
+        for m in range(2):
+            path = os.path.join(d, f"tw_fresh_{os.getpid()}_{m}.py")
+            with open(path, "w") as f:
+                f.write(src.format(m=m + 2))
+            spec = importlib.util.spec_from_file_location(f"tw_fresh_{os.getpid()}_{m}", path)
+            mod = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(mod)
+            mods.append(mod)
+        start, errors, results = threading.Barrier(8), [], {}
+
+        def work(t: int) -> None:
+            try:
+                start.wait()
+                m = t % 2
+                out = wp.zeros(16, dtype=wp.int32)
+                parallel.launch_one(mods[m].k, 16, [0], [out])
+                results[t] = (m, out.numpy().copy())
+            except Exception as e:  # noqa: BLE001 - every failure is the finding
+                errors.append(repr(e))
+
+        ths = [threading.Thread(target=work, args=(t,)) for t in range(8)]
+        for th in ths:
+            th.start()
+        for th in ths:
+            th.join()
+    assert not errors
+    assert all(np.array_equal(v, np.arange(16) * (m + 2)) for m, v in results.values()) and len(results) == 8
 
 
 def test_set_threads_validates():

@@ -2,6 +2,7 @@
 its finest setting, deterministic; and the DX11 sample's edge factor against the continuous policy's."""
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -17,8 +18,11 @@ from scheme_checks import (
 
 from terrainwarp import Heightmap
 from terrainwarp.camera import Camera
+from terrainwarp.kernels.lod import select_level
 from terrainwarp.lod.cdlod import Cdlod, cdlod_ranges
 from terrainwarp.lod.policies import dx11_edge_pixels, edge_pixels
+from terrainwarp.lod.quadtree import tile_key
+from terrainwarp.lod.scheme import root_nodes, view_of
 from terrainwarp.measure.sample_error import surface_heights
 from terrainwarp.rendering.sources import CdlodSource
 
@@ -55,6 +59,93 @@ def test_crack_free_on_a_ground_path_and_from_above(hm, cdlod):
     cam = top_down(hm, 240.0)
     assert len(set(cdlod.select(cam).lod.tolist())) >= 2
     assert_fills_view(hm, cam, src, "cdlod")
+
+
+def _per_level_walk(c: Cdlod, camera: Camera):
+    """The selection as numpy walks it, one select_level launch per tree level: (origin, size, step, lod, draws,
+    order, stats) with the quadrants in the order the one-launch walk emits them."""
+    t = c.terrain
+    rng, start, _ = c.ranges()
+    rel, planes = view_of(c.heightmap, camera)
+    x, y = root_nodes(t)
+    items, calls = [], []  # items: (x0, y0, size, step, lod) per quadrant
+    st = {"nodes_visited": 0, "culled": 0, "too_small": 0, "whole_nodes": 0, "quadrant_draws": 0}
+    for lvl in range(t.depth + 1):
+        keep = t.inside(lvl, x, y)
+        x, y = x[keep], y[keep]
+        if not len(x):
+            break
+        lod = t.depth - lvl
+        st["nodes_visited"] += len(x)
+        _, cu, dist, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.stats_at(lvl, x, y), rel,
+                                      t.node_size_world(lvl), planes, 0, 0.0, camera.focal_px, 0.0, False,
+                                      np.zeros(0, np.int64))
+        vis = cu == 0
+        st["culled"] += int((~vis).sum())
+        near = dist < rng[lod]
+        split = vis & near & (dist < rng[lod - 1]) if lod > 0 else np.zeros(len(x), bool)
+        whole = vis & near & ~split
+        s = t.root_cells / 2.0 ** lvl
+        for i in np.flatnonzero(vis & ~near):  # the parent draws this quadrant with its grid
+            calls.append([len(items)])
+            items.append((x[i] * s, y[i] * s, s, t.root_cells / 2.0 ** (lvl - 1) / c.grid, lod + 1))
+            st["quadrant_draws"] += 1
+        w = np.flatnonzero(whole)
+        base = len(items)
+        items += [(x[i] * s + (q % 2) * s / 2, y[i] * s + (q // 2) * s / 2, s / 2, s / c.grid, lod)
+                  for q in range(4) for i in w]
+        calls += [[base + j + q * len(w) for q in range(4)] for j in range(len(w))]
+        st["whole_nodes"] += len(w)
+        if lod + 1 < c.levels and len(w):  # the reference's "visibility distance too small"
+            sx, sz = t.node_size_world(lvl)
+            mn, mx, _ = t.stats[lvl]
+            x0, z0 = rel[0] + x[w] * sx, rel[2] + y[w] * sz
+            fx, fz = np.maximum(np.abs(x0), np.abs(x0 + sx)), np.maximum(np.abs(z0), np.abs(z0 + sz))
+            fy = np.maximum(np.abs(mn[y[w], x[w]] - rel[1]), np.abs(mx[y[w], x[w]] - rel[1]))
+            st["too_small"] += int((np.sqrt(fx * fx + fy * fy + fz * fz) > start[lod + 1]).sum())
+        x = np.concatenate([2 * x[split] + q % 2 for q in range(4)])
+        y = np.concatenate([2 * y[split] + q // 2 for q in range(4)])
+    it = np.array(items, np.float64).reshape(-1, 5)
+    order = np.array([k for cl in calls for k in cl], np.int32)
+    ends = np.cumsum([len(cl) for cl in calls]).astype(np.int32)
+    draws = np.stack([ends - np.diff(ends, prepend=0), ends], 1).reshape(-1, 2).astype(np.int32)
+    return (it[:, :2].astype(np.float32), it[:, 2].astype(np.float32), it[:, 3].astype(np.float32),
+            it[:, 4].astype(np.int32), draws, order, st)
+
+
+@pytest.mark.parametrize("scale", [0.3, 1.0, 4.0])
+def test_one_launch_walk_equals_the_per_level_walk(hm, scale):
+    """Every quadrant, draw and count of the one-launch selection equals numpy's walk with one launch per level,
+    below the smallest safe first range (nodes too_small), at it and far above it (parent quadrants)."""
+    c = Cdlod(hm, 1.0, grid=8)
+    c.first_range = c.min_first_range * scale
+    cams = ground_path(hm, 4) + [top_down(hm, 240.0), ground_path(hm, 2, width=300, height=40)[1]]
+    seen = {"too_small": 0, "quadrant_draws": 0, "culled": 0}
+    for cam in cams:
+        sel = c.select(cam)
+        origin, size, step, lod, draws, order, st = _per_level_walk(c, cam)
+        for got, want in ((sel.origin, origin), (sel.size, size), (sel.step, step), (sel.lod, lod),
+                          (sel.draws, draws), (sel.order, order)):
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+        assert {k: sel.stats[k] for k in st} == st and sel.stats["quadrants"] == len(size)
+        for k in seen:
+            seen[k] += st[k]
+    assert seen["culled"] > 0
+    if scale < 1.0:
+        assert seen["too_small"] > 0
+    if scale > 1.0:
+        assert seen["quadrant_draws"] > 0
+
+
+def test_selection_from_many_threads_equals_the_serial_one(hm, cdlod):
+    """One tree, selected from four threads at once (its buffers are shared under a lock): the serial results."""
+    cams = ground_path(hm, 8)
+    serial = [cdlod.select(cam) for cam in cams]
+    with ThreadPoolExecutor(4) as pool:
+        for _ in range(5):
+            for want, got in zip(serial, pool.map(cdlod.select, cams), strict=True):
+                assert np.array_equal(want.origin, got.origin) and np.array_equal(want.order, got.order)
+                assert want.stats == got.stats
 
 
 def _lod_map(sel, shape):
