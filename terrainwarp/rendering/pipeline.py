@@ -42,6 +42,8 @@ report     (none: the report of whatever ran)
 =========  ==================================================
 
 Frame cost (:attr:`Report.frame_ms`) is select + mesh + raster, for every kind of mesh: this simulator's CPU time.
+:attr:`Report.host_ms` is the part of the whole call (:attr:`Report.render_ms`) spent outside kernel launches
+(:func:`terrainwarp.kernels.parallel.kernel_clock`): the report's ``host`` line.
 What a GPU would pay is :attr:`Report.counters` (a scene that asks for ``"counters"``): the pipeline statistics of
 the frame's draws as the family issues them (the mesh stage: the tessellator's patch draw, or the mesh's indexed
 draws, :class:`terrainwarp.mesh.Draws`) and of the rasterizer (:attr:`terrainwarp.kernels.raster.Fragments.
@@ -71,6 +73,7 @@ from ..io.files import atomic_path, output_set, write_image, write_json
 from ..kernels.counters import frame_counters, indexed_draw_counters
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
+from ..kernels.parallel import kernel_clock
 from ..kernels.raster import clip_coordinates, rasterize
 from ..kernels.shading import shade, splat_map
 from ..kernels.tessellator import tessellate_patches
@@ -136,10 +139,18 @@ class Report:
     stages: list[StageRecord] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
     counters: dict[str, int | float] | None = None
+    render_ms: float = 0.0  # the whole render() call, wall time
+    kernel_ms: float = 0.0  # the part of it spent inside kernel launches (kernels.parallel.kernel_clock)
 
     @property
     def total_ms(self) -> float:
         return float(sum(s.time_ms for s in self.stages))
+
+    @property
+    def host_ms(self) -> float:
+        """The render() call's wall time outside kernel launches: validation, allocation, copies, numpy and
+        Python between the launches (what a frame of this simulator pays beside its kernels)."""
+        return max(self.render_ms - self.kernel_ms, 0.0)
 
     def stage(self, name: str) -> StageRecord | None:
         return next((s for s in self.stages if s.name == name), None)
@@ -158,7 +169,8 @@ class Report:
         return self.stage_ms("select") + self.stage_ms("mesh") + self.stage_ms("raster")
 
     def to_dict(self) -> dict:
-        out = {"info": self.info, "total_ms": self.total_ms,
+        out = {"info": self.info, "total_ms": self.total_ms, "render_ms": self.render_ms, "kernel_ms": self.kernel_ms,
+               "host_ms": self.host_ms,
                "stages": [{"name": s.name, "time_ms": s.time_ms, **s.counters} for s in self.stages]}
         if self.counters is not None:
             out["counters"] = dict(self.counters)
@@ -169,6 +181,7 @@ class Report:
         for s in self.stages:
             rows.append((s.name, f"{s.time_ms:.1f}", ", ".join(f"{k}={v}" for k, v in s.counters.items())))
         rows.append(("total", f"{self.total_ms:.1f}", ""))
+        rows.append(("host", f"{self.host_ms:.1f}", self._host_line()))
         if self.counters is not None:
             rows.append(("counters", "", ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                                    for k, v in self.counters.items())))
@@ -176,10 +189,16 @@ class Report:
         w1 = max(len(r[1]) for r in rows)
         return "\n".join(f"{a:<{w0}}  {b:>{w1}}  {c}" for a, b, c in rows)
 
+    def _host_line(self) -> str:
+        share = 100.0 * self.host_ms / self.render_ms if self.render_ms > 0 else 0.0
+        return (f"render() {self.render_ms:.1f} ms: kernels {self.kernel_ms:.1f} ms, outside kernels "
+                f"{self.host_ms:.1f} ms ({share:.0f}%)")
+
     def _repr_html_(self) -> str:
         """The :meth:`table` as HTML (Jupyter), the frame cost under it; then the pipeline statistics, one row per
         counter, when the scene asked for them."""
-        rows = [(s.name, s.time_ms, s.counters) for s in self.stages] + [("total", self.total_ms, {})]
+        rows = [(s.name, s.time_ms, s.counters) for s in self.stages] + [("total", self.total_ms, {}),
+                                                                        ("host", self.host_ms, self._host_line())]
         out = html_table(("stage", "time_ms", "counters"), rows,
                          caption=f"frame cost (select + mesh + raster): {self.frame_ms:.3g} ms")
         if self.counters is None:
@@ -569,17 +588,21 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
     """
-    run = _start(scene, terrain, state, reference, source, patches, device)
-    for name in run.stages:
-        rec = StageRecord(name, 0.0)
-        t0 = time.perf_counter()
-        ms = _STAGES[name](run, rec)
-        rec.time_ms = (time.perf_counter() - t0) * 1e3 if ms is None else ms
-        run.frame.report.stages.append(rec)
-    if run.counting:
-        run.frame.report.counters = frame_counters(run.draw_counters or {}, run.raster_counters or {})
+    start = time.perf_counter()
+    with kernel_clock() as in_kernels:
+        run = _start(scene, terrain, state, reference, source, patches, device)
+        for name in run.stages:
+            rec = StageRecord(name, 0.0)
+            t0 = time.perf_counter()
+            ms = _STAGES[name](run, rec)
+            rec.time_ms = (time.perf_counter() - t0) * 1e3 if ms is None else ms
+            run.frame.report.stages.append(rec)
+        if run.counting:
+            run.frame.report.counters = frame_counters(run.draw_counters or {}, run.raster_counters or {})
     if "depth" not in scene.outputs:
         run.frame.depth = None
+    report = run.frame.report
+    report.render_ms, report.kernel_ms = (time.perf_counter() - start) * 1e3, in_kernels[0] * 1e3
     return run.frame
 
 

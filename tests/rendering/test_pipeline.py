@@ -56,6 +56,19 @@ def test_report_lists_stages_with_counters(demo_frame):
     assert d["info"]["stages_run"] == ["normal_map", "mesh", "raster", "shade"]
 
 
+def test_the_report_splits_the_call_into_kernels_and_host():
+    hm = Heightmap.fbm(65, seed=2)
+    f = render(Scene(hm, mesh="lod", lod=LodConfig(roots=4, tess=8), outputs=("depth",)))
+    r = f.report
+    assert r.render_ms >= r.total_ms > 0 and 0 < r.kernel_ms < r.render_ms
+    assert r.host_ms == pytest.approx(r.render_ms - r.kernel_ms)
+    host = [line for line in r.table().splitlines() if line.startswith("host")]
+    assert len(host) == 1 and "outside kernels" in host[0] and f"{r.kernel_ms:.1f}" in host[0]
+    d = r.to_dict()
+    assert d["render_ms"] == r.render_ms and d["kernel_ms"] == r.kernel_ms and d["host_ms"] == r.host_ms
+    assert "outside kernels" in r._repr_html_()
+
+
 def test_only_needed_stages_run():
     hm = Heightmap.fbm(33, seed=2)
     assert stages_for(("depth",)) == ["mesh", "raster"]
