@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 
 from .checks import check_bool, is_int
-from .parallel import atomic_add_i32, atomic_min_u64, launch, max_parts
+from .parallel import atomic_add_i32, atomic_min_u64, launch, launch_one, max_parts, scan
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import Lease, host_layout, pooled, pooled_array, take
 
@@ -908,16 +908,17 @@ def _resolve_ids_kernel(
     """Decode the depth|id keys of the flagged screen tiles (``dirty``) of one band of TILE window rows
     (``bands``: those with a flagged tile) into the triangle id and window depth of each drawn pixel, and set
     the key back to empty: unflagged tiles hold no drawn key, so the buffer is then clear for the next
-    frame. Row by row (memory order); background pixels are not written (the images start filled with
-    -1 and 1.0). Covered pixels are counted into ``out_covered[part]``."""
+    frame. Row by row (memory order); every pixel of the band is written, background as -1 and 1.0 (the
+    host fills the bands without a flagged tile). Covered pixels are counted into ``out_covered[part]``."""
     ty = bands[wp.tid() + offset]
     tiles_x = (width + TILE - 1) / TILE
     covered = wp.int64(0)
     for y in range(ty * TILE, wp.min(ty * TILE + TILE, height)):
         p0 = (height - 1 - y) * width
         for tx in range(tiles_x):
+            x1 = wp.min(tx * TILE + TILE, width)
             if dirty[ty * tiles_x + tx] != 0:
-                for x in range(tx * TILE, wp.min(tx * TILE + TILE, width)):
+                for x in range(tx * TILE, x1):
                     p = p0 + x
                     k = out_key[p]
                     if k != wp.uint64(0xFFFFFFFFFFFFFFFF):
@@ -925,6 +926,13 @@ def _resolve_ids_kernel(
                         out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
                         out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
                         covered += wp.int64(1)
+                    else:
+                        out_id[p] = -1
+                        out_depth[p] = 1.0
+            else:
+                for x in range(tx * TILE, x1):
+                    out_id[p0 + x] = -1
+                    out_depth[p0 + x] = 1.0
     wp.atomic_add(out_covered, part, covered)  # one writer per part on the CPU; a true atomic on CUDA
 
 
@@ -1078,7 +1086,7 @@ class Fragments:
             out = _filled((hh, ww), wp.vec2, 0.0, self._device)  # the background; the kernel writes covered pixels
             if len(bands):
                 ndc_x = wp.empty(ww, dtype=float, device=self._device)
-                wp.launch(_ndc_x_kernel, ww, [0, ww], [ndc_x], device=self._device)
+                launch_one(_ndc_x_kernel, ww, [0, ww], [ndc_x], device=self._device)
                 launch(_barycentrics_kernel, len(bands),
                        [as_warp(bands, wp.int32, self._device), as_warp(dirty, wp.int32, self._device), ndc_x,
                         ids.reshape((hh, ww)), self._clip, self._tris], [out], self._device,
@@ -1164,6 +1172,21 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
     return np.flatnonzero(dirty.reshape(-1, _tiles_x(width)).any(axis=1)).astype(np.int32)
 
 
+def _band_gaps(bands: np.ndarray, width: int, height: int) -> list[tuple[int, int]]:
+    """The [start, stop) pixel ranges (memory order: image row 0 at the top) of the runs of tile bands not in
+    ``bands`` (sorted band numbers, from window row 0 up)."""
+    n = (height + TILE - 1) // TILE
+    drawn = np.zeros(n + 2, bool)
+    drawn[0] = drawn[-1] = True
+    drawn[np.asarray(bands) + 1] = True
+    edges = np.flatnonzero(np.diff(drawn.astype(np.int8)))  # first band of each gap, then one past its last
+    out = []
+    for b0, b1 in zip(edges[::2], edges[1::2], strict=True):
+        y0, y1 = b0 * TILE, min(b1 * TILE, height)  # window rows [y0, y1) -> image rows (height - y1, height - y0]
+        out.append(((height - y1) * width, (height - y0) * width))
+    return out
+
+
 # Output images (ids, depth, barycentrics) on the CPU come from the frame-buffer pool (parallel.pooled): a frame's
 # images are the caller's, but once the caller holds no view of one any more, the next frame of that size takes it
 # again. Freshly allocated frame-sized memory costs page faults on its first write (~5-10 ms for a 1080p frame's
@@ -1195,8 +1218,15 @@ def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: st
     npx = width * height
     flags = dirty.numpy()
     bands = _bands(flags, width)
-    out_id = _filled(npx, wp.int32, -1, device)
-    out_depth = _filled(npx, wp.float32, 1.0, device)
+    if wp.get_device(device).is_cpu:  # the kernel writes every pixel of its bands; the others are filled here
+        out_id, out_depth = _image(*host_layout(npx, wp.int32)), _image(*host_layout(npx, wp.float32))
+        for lo, hi in _band_gaps(bands, width, height):
+            out_id[lo:hi], out_depth[lo:hi] = -1, 1.0
+        out_id = wp.array(out_id, dtype=wp.int32, device=device, copy=False)
+        out_depth = wp.array(out_depth, dtype=wp.float32, device=device, copy=False)
+    else:
+        out_id = _filled(npx, wp.int32, -1, device)
+        out_depth = _filled(npx, wp.float32, 1.0, device)
     covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
     if len(bands):
         launch(_resolve_ids_kernel, len(bands), [as_warp(bands, wp.int32, device), dirty, width, height],
@@ -1287,7 +1317,7 @@ def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height:
         total = int(stats.numpy()[:, 5].sum())
         if total:
             tile_start = wp.empty_like(tile_count)
-            wp.utils.array_scan(tile_count, tile_start, inclusive=False)
+            scan(tile_count, tile_start, inclusive=False)
             cursor = wp.zeros_like(tile_count)
             tri_list = wp.empty(total, dtype=wp.int32, device=device)
             launch(_bin_kernel, m, [clip, tri_wp, big, width, height, cb, gb, tiles_x, tile_start],
@@ -1401,7 +1431,7 @@ def transform_warp(positions: wp.array, view: object, proj: object) -> wp.array:
     positions -> (n,) vec4 clip coordinates, bit-identical to what :func:`rasterize` uses."""
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     out = wp.zeros(positions.shape[0], dtype=wp.vec4, device=positions.device, requires_grad=positions.requires_grad)
-    wp.launch(_transform_kernel, dim=positions.shape[0], inputs=[positions, wp.mat44(*mvp.reshape(-1).tolist())],
+    launch_one(_transform_kernel, dim=positions.shape[0], inputs=[positions, wp.mat44(*mvp.reshape(-1).tolist())],
               outputs=[out], device=positions.device)
     return out
 
@@ -1423,7 +1453,7 @@ def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr
     """
     out = wp.zeros(pix_id.shape, dtype=wp.float32, device=attr.device,
                    requires_grad=bool(clip.requires_grad or attr.requires_grad))
-    wp.launch(interpolate_kernel, dim=pix_id.shape, inputs=[pix_id, clip, triangles, attr], outputs=[out],
+    launch_one(interpolate_kernel, dim=pix_id.shape, inputs=[pix_id, clip, triangles, attr], outputs=[out],
               device=attr.device)
     return out
 
