@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import tokenize
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -32,6 +33,7 @@ from .kernels.checks import check_int, is_number
 __all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree"]
 
 EXAMPLES = ("jacksboro", "topobathy")
+HOST_SAMPLES = 64  # Heightmap.sample of at most this many bilinear points runs on the host (the same bits)
 
 
 def _positive(name: str, v: object) -> float:
@@ -314,6 +316,9 @@ class Heightmap:
         """Heights at world (x, z), float32, by the device's bilinear or bicubic filter."""
         xa = np.asarray(x, dtype=np.float64)
         za = np.asarray(z, dtype=np.float64)
+        if method == "bilinear" and max(xa.size, za.size) <= HOST_SAMPLES:  # a launch costs more than the points
+            h = self.heights
+            return _bilinear_on_host(lambda i, j: h[i, j], self.shape, self.origin, self.dx, self.dz, xa, za)
         u = (xa - self.origin[0]) / self.dx
         v = (za - self.origin[1]) / self.dz
         return sampling.sample_grid(self.heights, u, v, method)
@@ -519,24 +524,7 @@ class StreamedHeightmap:
         reads the 2 x 2 samples around it from the tiles."""
         if method != "bilinear":
             raise ValueError(f"method: a streamed heightmap samples 'bilinear', got {method!r}")
-        xa, za = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64))
-        shape = xa.shape
-        hh, ww = self.shape
-        # the kernel's steps: float32 grid coordinates, clamped to the grid, then floor
-        u = np.clip(((xa.reshape(-1) - self.origin[0]) / self.dx).astype(np.float32), 0, np.float32(ww - 1))
-        v = np.clip(((za.reshape(-1) - self.origin[1]) / self.dz).astype(np.float32), 0, np.float32(hh - 1))
-        j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-        h00 = self._values(i0, j0)
-        h01 = self._values(i0, np.minimum(j0 + 1, ww - 1))
-        h10 = self._values(np.minimum(i0 + 1, hh - 1), j0)
-        h11 = self._values(np.minimum(i0 + 1, hh - 1), np.minimum(j0 + 1, ww - 1))
-        fu, fv = u - j0.astype(np.float32), v - i0.astype(np.float32)
-        # sampling.sample_bilinear's float32 operations, in its order (the tests compare bit for bit)
-        b, c, d = h01 - h00, h10 - h00, h11 - h00
-        top = np.float32(0.0) + (b - np.float32(0.0)) * fu
-        bot = c + (d - c) * fu
-        out = h00 + (top + (bot - top) * fv)
-        return out.reshape(shape)
+        return _bilinear_on_host(self._values, self.shape, self.origin, self.dx, self.dz, x, z)
 
     def _values(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """Full-resolution samples (i, j), gathered tile by tile."""
@@ -548,3 +536,22 @@ class StreamedHeightmap:
             out[m] = self.tiles.tile(1, ti, tj)[i[m] - ti * TILE, j[m] - tj * TILE]
         return out
 
+
+def _bilinear_on_host(values: Callable[[np.ndarray, np.ndarray], np.ndarray], shape: tuple[int, int],
+                      origin: tuple[float, float], dx: float, dz: float, x: object, z: object) -> np.ndarray:
+    """Bilinear heights at world (x, z), float32, bit for bit the device's filter (``sampling.sample_bilinear``):
+    its float32 steps in its order, on the host. ``values(i, j)`` gives the samples (i, j) (int64 arrays)."""
+    xa, za = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(z, dtype=np.float64))
+    out_shape = xa.shape
+    hh, ww = shape
+    # the kernel's steps: float32 grid coordinates, clamped to the grid, then floor
+    u = np.clip(((xa.reshape(-1) - origin[0]) / dx).astype(np.float32), 0, np.float32(ww - 1))
+    v = np.clip(((za.reshape(-1) - origin[1]) / dz).astype(np.float32), 0, np.float32(hh - 1))
+    j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    j1, i1 = np.minimum(j0 + 1, ww - 1), np.minimum(i0 + 1, hh - 1)
+    h00, h01, h10, h11 = values(i0, j0), values(i0, j1), values(i1, j0), values(i1, j1)
+    fu, fv = u - j0.astype(np.float32), v - i0.astype(np.float32)
+    b, c, d = h01 - h00, h10 - h00, h11 - h00
+    top = np.float32(0.0) + (b - np.float32(0.0)) * fu
+    bot = c + (d - c) * fu
+    return (h00 + (top + (bot - top) * fv)).reshape(out_shape)

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from terrainwarp import Heightmap
+from terrainwarp.heightmap import HOST_SAMPLES
 from terrainwarp.kernels.sampling import sample_grid
 
 
@@ -62,3 +63,18 @@ def test_heightmap_sample_world_coordinates_and_clamp():
 def test_bad_method():
     with pytest.raises(ValueError, match="method"):
         sample_grid(np.zeros((2, 2), np.float32), [0.0], [0.0], "nearest")
+
+
+def test_a_few_points_sampled_on_the_host_are_the_kernels_bits():
+    """Heightmap.sample of at most HOST_SAMPLES points runs on the host: the device filter's bits, inside, outside
+    and on the grid's samples and border."""
+    for hm in (Heightmap.example(), Heightmap.fbm(65, seed=3, dx=7.3, max_height=900.0)):
+        rng = np.random.default_rng(1)
+        (x0, z0), (x1, z1) = hm.bounds_xz
+        x, z = rng.uniform(x0 - 50, x1 + 50, 4 * HOST_SAMPLES), rng.uniform(z0 - 50, z1 + 50, 4 * HOST_SAMPLES)
+        x[:HOST_SAMPLES] = np.round(x[:HOST_SAMPLES] / hm.dx) * hm.dx + hm.origin[0]  # on sample columns
+        want = sample_grid(hm.heights, (x - hm.origin[0]) / hm.dx, (z - hm.origin[1]) / hm.dz, "bilinear")
+        got = np.concatenate([hm.sample(x[i:i + HOST_SAMPLES], z[i:i + HOST_SAMPLES])
+                              for i in range(0, len(x), HOST_SAMPLES)])
+        assert got.dtype == np.float32 and np.array_equal(got.view(np.uint32), want.view(np.uint32))
+        assert hm.sample(x[0], z[0]).shape == ()
