@@ -79,6 +79,19 @@ def box_distance(lo: wp.vec3, hi: wp.vec3) -> float:
     return wp.sqrt(dx * dx + dy * dy + dz * dz)
 
 
+@wp.func
+def screen_error(e: float, dist: float, focal_px: float) -> float:
+    """A node's screen-space error in pixels: ``e * focal_px / dist``; at ``dist == 0`` 3e38 when ``e > 0``, 0
+    otherwise."""
+    sse = float(0.0)
+    if e > 0.0:
+        if dist > 0.0:
+            sse = e * focal_px / dist
+        else:
+            sse = 3.0e38
+    return sse
+
+
 @wp.kernel(enable_backward=False)
 def _select_kernel(
     offset: int,
@@ -122,13 +135,7 @@ def _select_kernel(
         if dist < thr:
             split = 1
     else:
-        e = gerr[k]
-        sse = float(0.0)
-        if e > 0.0:
-            if dist > 0.0:
-                sse = e * focal_px / dist
-            else:
-                sse = 3.0e38
+        sse = screen_error(gerr[k], dist, focal_px)
         out_metric[k] = sse
         thr = threshold * wp.where(prev, 1.0 - hysteresis, 1.0 + hysteresis)
         if sse > thr:

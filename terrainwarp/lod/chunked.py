@@ -43,16 +43,14 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels.checks import check_number
-from ..kernels.lod import select_level
-from ..kernels.schemes import chunk_mesh
+from ..kernels.schemes import ChunkTree, chunk_mesh
 from ..mesh import Draws, Mesh
 from .quadtree import Terrain, tile_key
-from .scheme import SelectThenMesh, root_nodes, view_of
+from .scheme import SelectThenMesh, view_of
 
 __all__ = ["ChunkedLod", "ChunkSelection", "DEFAULT_MAX_SSE_PX"]
 
 DEFAULT_MAX_SSE_PX = 2.0  # Cesium's maximumScreenSpaceError default
-_PROBES = ((-1, 0), (0, -1), (1, 0), (0, 1))  # across edges u=0 (west), v=0 (north), u=1 (east), v=1 (south)
 
 
 @dataclass(frozen=True)
@@ -117,75 +115,26 @@ class ChunkedLod(SelectThenMesh):
 
     # -- selection ------------------------------------------------------------------------------------
     def select(self, camera: Camera) -> ChunkSelection:
-        """Screen-space-error selection (one select-level launch per tree level), neighbours and skirts."""
+        """Screen-space-error selection (the tree walked in one launch, :class:`terrainwarp.kernels.schemes.
+        ChunkTree`), neighbours and skirts."""
         t = self.terrain
         rel, planes = view_of(self.heightmap, camera)
-        x, y = root_nodes(t)
-        leaves: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []  # level, x, y, culled
-        visited = 0
-        for lvl in range(t.depth + 1):
-            keep = t.inside(lvl, x, y)
-            x, y = x[keep], y[keep]
-            if not len(x):
-                break
-            visited += len(x)
-            sp, cu, _, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.stats_at(lvl, x, y),
-                                        rel, t.node_size_world(lvl), planes, 1, float(self.max_sse_px),
-                                        camera.focal_px, 0.0, lvl < t.depth, np.zeros(0, np.int64),
-                                        device=self.device)
-            split = sp.astype(bool)
-            leaf = ~split
-            leaves.append((np.full(int(leaf.sum()), lvl, np.int64), x[leaf], y[leaf], cu[leaf].astype(bool)))
-            x, y = np.concatenate([2 * x[split], 2 * x[split] + 1, 2 * x[split], 2 * x[split] + 1]), \
-                np.concatenate([2 * y[split], 2 * y[split], 2 * y[split] + 1, 2 * y[split] + 1])
-        level, lx, ly, culled = (np.concatenate(a) for a in zip(*leaves))
-        return self._selection(level, lx, ly, culled, {"nodes_visited": visited, "culled": int(culled.sum())})
+        tree = t.cached(("chunk_tree", self.device), lambda: ChunkTree(
+            t.stats, t.inside_counts(), t.roots, [t.node_size_world(lv) for lv in range(t.depth + 1)],
+            device=self.device))
+        level, lx, ly, culled, nbr_level, nbr_err, err, visited = tree.select(rel, planes, float(self.max_sse_px),
+                                                                              camera.focal_px)
+        return self._selection(level, lx, ly, culled, nbr_level, nbr_err, err,
+                               {"nodes_visited": visited, "culled": int(culled.sum())})
 
-    def _error(self, level: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        out = np.zeros(len(level), np.float32)
-        for lv in np.unique(level):
-            m = level == lv
-            out[m] = self.terrain.stats[int(lv)][2][y[m], x[m]]
-        return out
-
-    def _neighbours(self, level: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(C, 4) level and error of the leaf across each edge (probing just outside the edge's first finest
-        cell; a leaf at the chunk's level or coarser covers the whole edge, and a finer one has at most the
-        error of the chunk-sized node it lies in, which is what is used then). -1 and 0 where none."""
-        t = self.terrain
-        d = t.depth
-        keys = np.sort(tile_key(level, x, y))
-        nbr_level = np.full((len(level), 4), -1, np.int64)
-        nbr_err = np.zeros((len(level), 4), np.float32)
-        shift = d - level
-        fx0, fy0 = x << shift, y << shift
-        size = np.int64(1) << shift
-        for e, (px, py) in enumerate(_PROBES):
-            fx = np.where(px < 0, fx0 - 1, np.where(px > 0, fx0 + size, fx0))
-            fy = np.where(py < 0, fy0 - 1, np.where(py > 0, fy0 + size, fy0))
-            ok = (fx >= 0) & (fy >= 0) & (fx < (t.roots[0] << d)) & (fy < (t.roots[1] << d))
-            for k in range(d + 1):  # the leaf holding the probe: the one level whose ancestor key is a leaf
-                ax, ay = np.where(ok, fx >> (d - k), 0), np.where(ok, fy >> (d - k), 0)
-                kk = tile_key(np.full(len(level), k), ax, ay)
-                pos = np.minimum(np.searchsorted(keys, kk), len(keys) - 1)
-                hit = ok & (keys[pos] == kk) & (nbr_level[:, e] < 0)
-                nbr_level[hit, e] = k
-            found = nbr_level[:, e] >= 0
-            at = np.minimum(nbr_level[:, e], level)  # a finer neighbour: the chunk-sized node holding it
-            ax, ay = fx >> np.maximum(d - at, 0), fy >> np.maximum(d - at, 0)
-            nbr_err[found, e] = self._error(at[found], ax[found], ay[found])
-        return nbr_level.astype(np.int32), nbr_err
-
-    def _selection(self, level: np.ndarray, x: np.ndarray, y: np.ndarray, culled: np.ndarray,
-                   stats: dict) -> ChunkSelection:
+    def _selection(self, level: np.ndarray, x: np.ndarray, y: np.ndarray, culled: np.ndarray, nbr_level: np.ndarray,
+                   nbr_err: np.ndarray, err: np.ndarray, stats: dict) -> ChunkSelection:
         """The drawn chunks (inside the grid, not culled) sorted by key, with neighbours and skirts; the culled
         leaves take part as neighbours."""
         t = self.terrain
-        nbr_level, nbr_err = self._neighbours(level, x, y)
         order = np.argsort(tile_key(level, x, y), kind="stable")
         order = order[~culled[order]]
-        level, x, y, nbr_level, nbr_err = level[order], x[order], y[order], nbr_level[order], nbr_err[order]
-        err = self._error(level, x, y)
+        level, x, y, nbr_level, nbr_err, err = (a[order] for a in (level, x, y, nbr_level, nbr_err, err))
         s = t.root_cells / np.exp2(level.astype(np.float64))
         mask = ((nbr_level >= 0) << np.arange(4)).sum(axis=1).astype(np.int32)
         if self.skirt_depth is None:

@@ -13,7 +13,10 @@ from scheme_checks import (
     top_down,
 )
 
+from terrainwarp.kernels.lod import select_level
 from terrainwarp.lod.chunked import ChunkedLod
+from terrainwarp.lod.quadtree import tile_key
+from terrainwarp.lod.scheme import root_nodes, view_of
 from terrainwarp.rendering.sources import ChunkedSource
 
 TILE = 8
@@ -27,6 +30,66 @@ def hm():
 @pytest.fixture(scope="module")
 def chunked(hm):
     return ChunkedLod(hm, 1.0, tile=TILE)
+
+
+def _per_level_walk(ch: ChunkedLod, camera):
+    """Leaves, neighbours and errors as numpy finds them, one select_level launch per tree level and a key search
+    per probe and level (what the one-launch walk replaced)."""
+    t, d = ch.terrain, ch.terrain.depth
+    rel, planes = view_of(ch.heightmap, camera)
+    x, y = root_nodes(t)
+    parts, visited = [], 0
+    for lvl in range(d + 1):
+        keep = t.inside(lvl, x, y)
+        x, y = x[keep], y[keep]
+        if not len(x):
+            break
+        visited += len(x)
+        sp, cu, _, _ = select_level(x, y, tile_key(np.full(len(x), lvl), x, y), t.stats_at(lvl, x, y), rel,
+                                    t.node_size_world(lvl), planes, 1, float(ch.max_sse_px), camera.focal_px, 0.0,
+                                    lvl < d, np.zeros(0, np.int64))
+        leaf = sp == 0
+        parts.append((np.full(int(leaf.sum()), lvl, np.int64), x[leaf], y[leaf], cu[leaf] != 0))
+        split = ~leaf
+        x = np.concatenate([2 * x[split] + q % 2 for q in range(4)])
+        y = np.concatenate([2 * y[split] + q // 2 for q in range(4)])
+    level, lx, ly, culled = (np.concatenate(a) for a in zip(*parts, strict=True))
+    err_of = lambda lv, ax, ay: np.array([t.stats[int(a)][2][j, i] for a, i, j in zip(lv, ax, ay, strict=True)],  # noqa: E731
+                                         np.float32).reshape(-1)
+    keys = set(tile_key(level, lx, ly).tolist())
+    nbr = np.full((len(level), 4), -1, np.int32)
+    nerr = np.zeros((len(level), 4), np.float32)
+    for j in range(len(level)):
+        size = 1 << (d - level[j])
+        fx0, fy0 = lx[j] * size, ly[j] * size
+        for e, (fx, fy) in enumerate(((fx0 - 1, fy0), (fx0, fy0 - 1), (fx0 + size, fy0), (fx0, fy0 + size))):
+            if not (0 <= fx < t.roots[0] << d and 0 <= fy < t.roots[1] << d):
+                continue
+            hit = [k for k in range(d + 1) if int(tile_key(np.array([k]), np.array([fx >> (d - k)]),
+                                                           np.array([fy >> (d - k)]))[0]) in keys]
+            nbr[j, e] = hit[0]
+            at = min(hit[0], level[j])
+            nerr[j, e] = err_of([at], [fx >> (d - at)], [fy >> (d - at)])[0]
+    return level, lx, ly, culled, nbr, nerr, err_of(level, lx, ly), visited
+
+
+@pytest.mark.parametrize("sse", [0.5, 4.0])
+def test_one_launch_walk_equals_the_per_level_walk(hm, sse):
+    """Every leaf, neighbour level and error of the one-launch walk equals numpy's per-level walk's."""
+    ch = ChunkedLod(hm, sse, tile=TILE)
+    tree_of = lambda: ch.terrain.cached(("chunk_tree", ch.device), lambda: None)  # noqa: E731 - made by select
+    cams = ground_path(hm, 3) + [top_down(hm, 240.0)]
+    culled = nbrs = 0
+    for cam in cams:
+        ch.select(cam)
+        rel, planes = view_of(hm, cam)
+        got = tree_of().select(rel, planes, float(sse), cam.focal_px)
+        want = _per_level_walk(ch, cam)
+        for g, w in zip(got, want, strict=True):
+            assert np.array_equal(g, w) and (not isinstance(g, np.ndarray) or g.dtype == w.dtype)
+        culled += int(want[3].sum())
+        nbrs += int((want[4] > want[0][:, None]).sum())
+    assert culled > 0 and nbrs > 0  # culled leaves and finer neighbours were part of it
 
 
 def _edge_heights(hm, origin, step, size, e, t):
