@@ -152,13 +152,13 @@ def test_the_kernel_clock_counts_launches_of_its_thread_and_nests():
 
 
 def test_threads_that_start_together_load_a_new_module_once():
-    """Eight threads launch kernels of a module no one has loaded, at once: no error, every result right
+    """Eight threads launch the kernel of a module no one has loaded, at once: no error, every result right
     (CPython 3.11's ast cannot parse from two threads at once; the first load is under a lock)."""
     src = ("import warp as wp\n\n@wp.kernel(enable_backward=False)\n"
            "def k(offset: int, out: wp.array(dtype=wp.int32)):\n    i = wp.tid() + offset\n    out[i] = i * {m}\n")
     mods = []
     with tempfile.TemporaryDirectory() as d:
-        for m in range(2):
+        for m in range(1):
             path = os.path.join(d, f"tw_fresh_{os.getpid()}_{m}.py")
             with open(path, "w") as f:
                 f.write(src.format(m=m + 2))
@@ -171,7 +171,7 @@ def test_threads_that_start_together_load_a_new_module_once():
         def work(t: int) -> None:
             try:
                 start.wait()
-                m = t % 2
+                m = 0
                 out = wp.zeros(16, dtype=wp.int32)
                 parallel.launch_one(mods[m].k, 16, [0], [out])
                 results[t] = (m, out.numpy().copy())
