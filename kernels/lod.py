@@ -28,10 +28,12 @@ that are not in the tree. Neighbour levels cost a few lookups per edge, linear i
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import warp as wp
 
-from .parallel import launch
+from .parallel import empty, launch, record, replay
 
 
 @wp.func
@@ -278,26 +280,32 @@ def _edge_level(tree: TreeMap, level_of: wp.array(dtype=wp.int32), lv: int, nbx:
     return level_of[c - 1]
 
 
-@wp.kernel(enable_backward=False)
-def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.int32),
-                      y: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32),
-                      tree: TreeMap, depth: int, nz: int,
-                      out: wp.array2d(dtype=wp.int32)):
-    i = wp.tid() + offset
-    lv = level[i]
-    xi = x[i]
-    yi = y[i]
+@wp.func
+def edge_levels(tree: TreeMap, level_of: wp.array(dtype=wp.int32), lv: int, xi: int, yi: int, depth: int,
+                nz: int) -> wp.vec4i:
+    """The largest ``level_of`` of the leaves across node (lv, xi, yi)'s west, north, east and south edges,
+    probed just outside each edge at 1/4 and 3/4 of its length (-1 beyond the root grid)."""
     sh = depth - lv
     s = 1 << sh
     q1 = s / 4
     q3 = (3 * s) / 4
     x0 = xi << sh
     y0 = yi << sh
-    # probes just outside each edge at 1/4 and 3/4 of its length: west, north, east, south
-    out[i, 0] = _edge_level(tree, level_of, lv, xi - 1, yi, x0 - 1, y0 + q1, x0 - 1, y0 + q3, depth, nz)
-    out[i, 1] = _edge_level(tree, level_of, lv, xi, yi - 1, x0 + q1, y0 - 1, x0 + q3, y0 - 1, depth, nz)
-    out[i, 2] = _edge_level(tree, level_of, lv, xi + 1, yi, x0 + s, y0 + q1, x0 + s, y0 + q3, depth, nz)
-    out[i, 3] = _edge_level(tree, level_of, lv, xi, yi + 1, x0 + q1, y0 + s, x0 + q3, y0 + s, depth, nz)
+    return wp.vec4i(_edge_level(tree, level_of, lv, xi - 1, yi, x0 - 1, y0 + q1, x0 - 1, y0 + q3, depth, nz),
+                    _edge_level(tree, level_of, lv, xi, yi - 1, x0 + q1, y0 - 1, x0 + q3, y0 - 1, depth, nz),
+                    _edge_level(tree, level_of, lv, xi + 1, yi, x0 + s, y0 + q1, x0 + s, y0 + q3, depth, nz),
+                    _edge_level(tree, level_of, lv, xi, yi + 1, x0 + q1, y0 + s, x0 + q3, y0 + s, depth, nz))
+
+
+@wp.kernel(enable_backward=False)
+def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.int32),
+                      y: wp.array(dtype=wp.int32), level_of: wp.array(dtype=wp.int32),
+                      tree: TreeMap, depth: int, nz: int,
+                      out: wp.array2d(dtype=wp.int32)):
+    i = wp.tid() + offset
+    e = edge_levels(tree, level_of, level[i], x[i], y[i], depth, nz)
+    for k in range(4):
+        out[i, k] = e[k]
 
 
 DENSE_MAX_CELLS = 1 << 26  # a deeper complete tree (256 MiB of int32 cells) gets the hash table
@@ -434,3 +442,381 @@ def neighbour_levels(tree: TreeMapHost, roots: tuple[int, int], depth: int, leve
     launch(_neighbour_kernel, n, inputs=[_i32(level, dev), _i32(x, dev), _i32(y, dev), _i32(level_of, dev),
                                          tree.view(), int(depth), int(roots[1])], outputs=[out], device=dev)
     return out.numpy()
+
+
+# ------------------------------------------------------------------------------------------------
+# a quadtree walked by one thread in one launch (CDLOD, chunked LOD, the quadtree policies)
+# ------------------------------------------------------------------------------------------------
+@wp.func
+def walk_roots(front: wp.array3d(dtype=wp.int32), roots: wp.vec2i) -> int:
+    """The root nodes, row by row, into frontier 0; returns their count."""
+    n = int(0)
+    for ry in range(roots[1]):
+        for rx in range(roots[0]):
+            front[0, n, 0] = rx
+            front[0, n, 1] = ry
+            n += 1
+    return n
+
+
+@wp.func
+def keep_inside(front: wp.array3d(dtype=wp.int32), p: int, n: int, cnt: wp.vec2i) -> int:
+    """Frontier ``p`` compacted to the nodes whose origin lies inside the grid (and the first root); returns
+    their count."""
+    m = int(0)
+    for i in range(n):
+        x = front[p, i, 0]
+        y = front[p, i, 1]
+        if (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0):
+            front[p, m, 0] = x
+            front[p, m, 1] = y
+            m += 1
+    return m
+
+
+@wp.func
+def push_children(front: wp.array3d(dtype=wp.int32), p: int, n: int, code: wp.array(dtype=wp.int32),
+                   split: int) -> int:
+    """The children of the nodes of frontier ``p`` whose code is ``split`` into frontier ``1 - p``, quadrant by
+    quadrant ((0, 0), (1, 0), (0, 1), (1, 1) blocks, as numpy concatenates them); returns their count."""
+    m = int(0)
+    for c in range(4):
+        for i in range(n):
+            if code[i] == split:
+                front[1 - p, m, 0] = 2 * front[p, i, 0] + c % 2
+                front[1 - p, m, 1] = 2 * front[p, i, 1] + c / 2
+                m += 1
+    return m
+
+
+class TreeWalk:
+    """A quadtree walked by one thread in one launch (CDLOD's and chunked LOD's selections), as their references
+    walk it in one recursion. Built once per terrain: the per-level pyramids as one array each, the per-level
+    tables and the frame's buffers, with the launch recorded once (:func:`.parallel.record`) and replayed per
+    frame, the frame's inputs written into its input arrays. One selection runs at a time (a lock)."""
+
+    def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
+                 device: str, pyramids: int) -> None:
+        """``stats``: per level (min, max, geometric error) arrays (nz << L, nx << L), the first ``pyramids`` of
+        them read; ``inside``: (depth + 1, 2) int, per level the columns and rows of nodes whose origin lies inside
+        the grid; ``sizes``: per level node size in metres (float64)."""
+        self.levels = len(stats)
+        ins = np.ascontiguousarray(inside, np.int32)
+        self.capacity = cap = 4 * (int(ins[-1, 0]) * int(ins[-1, 1]) + 1)  # 4 quadrants per finest node inside
+        n_roots = int(roots[0]) * int(roots[1])
+        sz = np.asarray(sizes, np.float64)
+
+        def pyramid(k: int) -> wp.array:
+            return wp.array(np.concatenate([np.ascontiguousarray(a[k], np.float32).reshape(-1) for a in stats]),
+                            dtype=wp.float32, device=device)
+
+        self.tree = [*(pyramid(k) for k in range(pyramids)),
+                     wp.array(np.cumsum([0] + [a[0].size for a in stats[:-1]]).astype(np.int32), dtype=wp.int32,
+                              device=device),
+                     wp.array(ins, dtype=wp.vec2i, device=device), wp.vec2i(int(roots[0]), int(roots[1])),
+                     self.levels - 1, wp.array(sz.astype(np.float32), dtype=wp.vec2, device=device)]
+        self.size64 = wp.array(sz, dtype=wp.vec2d, device=device)
+        self.scratch = [wp.empty((2, max(cap, n_roots), 2), dtype=wp.int32, device=device),
+                        wp.empty(max(cap, n_roots), dtype=wp.int32, device=device)]
+        self._lock = threading.Lock()
+        self._cpu = wp.get_device(device).is_cpu
+        self.device = device
+
+    def _record(self, kernel: wp.Kernel, inputs: list, outputs: list) -> None:
+        """Record the walk's launch: the tree, then ``self._args`` (holding the per-frame ``inputs``, which
+        :meth:`_run` writes)."""
+        self._inputs, self._outputs = inputs, outputs
+        self._cmd = record(kernel, 1, [*self.tree, *self._args], outputs, self.device)
+        self._host_in = [a.numpy() for a in inputs] if self._cpu else None
+        self._host_out = [a.numpy() for a in outputs] if self._cpu else None
+
+    def _run(self, values: list) -> list[np.ndarray]:
+        """Write ``values`` into the input arrays, replay the launch; the outputs as numpy (copy what is kept: the
+        buffers are the next frame's). Call under the lock."""
+        host = self._host_in if self._cpu else [a.numpy() for a in self._inputs]
+        for h, v in zip(host, values, strict=True):
+            h[...] = v
+        if not self._cpu:
+            for a, h in zip(self._inputs, host, strict=True):
+                a.assign(h)
+        replay(self._cmd)
+        return self._host_out if self._cpu else [a.numpy() for a in self._outputs]
+
+
+@wp.func
+def _tile_key(lv: int, x: int, y: int) -> wp.int64:
+    """As the host's ``tile_key``: level << 58 | y << 29 | x."""
+    return (wp.int64(lv) << wp.int64(58)) | (wp.int64(y) << wp.int64(29)) | wp.int64(x)
+
+
+@wp.func
+def _add_node(nodes: wp.array2d(dtype=wp.int32), dm: wp.array2d(dtype=wp.float32), j: int, lv: int, x: int, y: int,
+              flags: int, dist: float, metric: float):
+    """Node j of the tiling: level, x, y, flags (1 culled, 2 outside the grid, 4 alive), distance, metric."""
+    nodes[j, 0] = lv
+    nodes[j, 1] = x
+    nodes[j, 2] = y
+    nodes[j, 3] = flags
+    dm[j, 0] = dist
+    dm[j, 1] = metric
+
+
+@wp.func
+def _evaluate_node(hmin: wp.array(dtype=wp.float32), hmax: wp.array(dtype=wp.float32),
+                   herr: wp.array(dtype=wp.float32), k: int, rel: wp.vec3, size: wp.vec2, x: int, y: int,
+                   planes: wp.array(dtype=wp.vec4), code: int, focal: float):
+    """(culled, distance, metric) of a node, as :func:`_select_kernel` works them out."""
+    lo, hi = node_box(rel, size, x, y, hmin[k], hmax[k])
+    dist = box_distance(lo, hi)
+    metric = dist
+    if code != 0:
+        metric = screen_error(herr[k], dist, focal)
+    return box_outside(planes, lo, hi), dist, metric
+
+
+@wp.kernel(enable_backward=False)
+def _quadtree_select_kernel(
+    hmin: wp.array(dtype=wp.float32),
+    hmax: wp.array(dtype=wp.float32),
+    herr: wp.array(dtype=wp.float32),
+    level_start: wp.array(dtype=wp.int32),
+    inside: wp.array(dtype=wp.vec2i),
+    roots: wp.vec2i,
+    depth: int,
+    size32: wp.array(dtype=wp.vec2),
+    eye: wp.array(dtype=wp.vec3),
+    planes: wp.array(dtype=wp.vec4),
+    thresholds: wp.array(dtype=wp.float32),
+    params: wp.array(dtype=wp.float32),
+    ints: wp.array(dtype=wp.int32),
+    prev: wp.array(dtype=wp.int64),
+    front: wp.array3d(dtype=wp.int32),
+    code: wp.array(dtype=wp.int32),
+    tree: TreeMap,
+    nodes: wp.array2d(dtype=wp.int32),
+    dm: wp.array2d(dtype=wp.float32),
+    level_of: wp.array(dtype=wp.int32),
+    bad: wp.array(dtype=wp.int32),
+    # outputs
+    out_patch: wp.array2d(dtype=wp.int32),
+    out_f: wp.array2d(dtype=wp.float32),
+    out_split: wp.array2d(dtype=wp.int32),
+    out_n: wp.array(dtype=wp.int64),
+):
+    """One thread: the descent, the 2:1 balance, and the drawn leaves in key order with their neighbours' levels
+    (see :meth:`QuadtreeWalk.select`). ``params``: focal px, hysteresis; ``ints``: policy code (0 distance, 1
+    screen error), the fixed level of the continuous policy (-1 none), the previous frame's split keys (in
+    ``prev``, sorted). The tree map is all 0 on entry and is left all 0."""
+    rel = eye[0]
+    focal = params[0]
+    hyst = params[1]
+    pcode = ints[0]
+    fixed = ints[1]
+    n_prev = ints[2]
+    n = walk_roots(front, roots)
+    p = int(0)
+    nn = int(0)  # nodes of the tiling
+    ns = int(0)  # split nodes
+    visited = int(0)
+    for lvl in range(depth + 1):
+        cnt = inside[lvl]
+        m = int(0)
+        for i in range(n):  # outside the grid: a leaf that only completes the tiling
+            x = front[p, i, 0]
+            y = front[p, i, 1]
+            if (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0):
+                front[p, m, 0] = x
+                front[p, m, 1] = y
+                m += 1
+            else:
+                _add_node(nodes, dm, nn, lvl, x, y, 7, 0.0, 0.0)
+                nn += 1
+        n = m
+        if n == 0:
+            break
+        visited += n
+        base = level_start[lvl]
+        width = roots[0] << lvl
+        thr0 = thresholds[lvl]
+        can = lvl < depth
+        if fixed >= 0:
+            can = lvl < fixed
+        for i in range(n):
+            x = front[p, i, 0]
+            y = front[p, i, 1]
+            culled, dist, metric = _evaluate_node(hmin, hmax, herr, base + y * width + x, rel, size32[lvl], x, y,
+                                                  planes, pcode, focal)
+            was = False
+            if n_prev > 0:
+                was = _was_split(prev, n_prev, _tile_key(lvl, x, y))
+            split = int(0)
+            if pcode == 0:
+                if dist < thr0 * wp.where(was, 1.0 + hyst, 1.0 - hyst):
+                    split = 1
+            elif metric > thr0 * wp.where(was, 1.0 - hyst, 1.0 + hyst):
+                split = 1
+            if culled != 0 or not can:
+                split = 0
+            if fixed >= 0 and lvl < fixed:
+                split = 1  # a uniform grid: everything splits down to the level
+            code[i] = split
+            if split == 1:
+                out_split[ns, 0] = lvl
+                out_split[ns, 1] = x
+                out_split[ns, 2] = y
+                ns += 1
+                tree.dense[_tree_cell(lvl, x, y, roots[0], roots[0] * roots[1])] = -1
+            else:
+                _add_node(nodes, dm, nn, lvl, x, y, 4 + culled, dist, metric)
+                nn += 1
+        n = push_children(front, p, n, code, 1)
+        p = 1 - p
+    n_roots = roots[0] * roots[1]
+    for j in range(nn):
+        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = j + 1
+        level_of[j] = nodes[j, 0]
+    # 2:1 balance: every pass splits at once the leaves with a neighbour more than one level finer
+    first_child = nn
+    forced = int(0)
+    for _ in range(4 * (depth + 1) + 8):
+        nb = int(0)
+        for j in range(nn):
+            if nodes[j, 3] == 4 or nodes[j, 3] == 5:  # alive, inside the grid
+                e = edge_levels(tree, level_of, nodes[j, 0], nodes[j, 1], nodes[j, 2], depth, roots[1])
+                if wp.max(wp.max(e[0], e[1]), wp.max(e[2], e[3])) > nodes[j, 0] + 1:
+                    bad[nb] = j
+                    nb += 1
+        if nb == 0:
+            break
+        forced += nb
+        for b in range(nb):
+            j = bad[b]
+            lv = nodes[j, 0]
+            nodes[j, 3] = nodes[j, 3] & 3  # no longer alive
+            out_split[ns, 0] = lv
+            out_split[ns, 1] = nodes[j, 1]
+            out_split[ns, 2] = nodes[j, 2]
+            ns += 1
+            tree.dense[_tree_cell(lv, nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = -1
+            cnt = inside[lv + 1]
+            for c in range(4):
+                x = 2 * nodes[j, 1] + c % 2
+                y = 2 * nodes[j, 2] + c / 2
+                flags = int(4)
+                if not ((x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0)):
+                    flags = 6
+                _add_node(nodes, dm, nn, lv + 1, x, y, flags, 0.0, 0.0)
+                level_of[nn] = lv + 1
+                tree.dense[_tree_cell(lv + 1, x, y, roots[0], n_roots)] = nn + 1
+                nn += 1
+    for j in range(first_child, nn):  # the balance's children that stayed leaves: their own stats
+        if nodes[j, 3] >= 4:
+            lv = nodes[j, 0]
+            x = nodes[j, 1]
+            y = nodes[j, 2]
+            ccode = pcode
+            if fixed >= 0:
+                ccode = 0
+            culled, dist, metric = _evaluate_node(hmin, hmax, herr, level_start[lv] + y * (roots[0] << lv) + x, rel,
+                                                  size32[lv], x, y, planes, ccode, focal)
+            nodes[j, 3] = nodes[j, 3] | culled
+            dm[j, 0] = dist
+            dm[j, 1] = metric
+    leaves = int(0)
+    culled_leaves = int(0)
+    for j in range(nn):  # level_of for the patches' neighbours: -1 outside the grid
+        f = nodes[j, 3]
+        if f >= 4 and (f & 2) == 0:
+            leaves += 1
+            culled_leaves += f & 1
+        if (f & 2) != 0:
+            level_of[j] = -1
+    q = int(0)
+    cell = int(0)
+    for lv in range(depth + 1):  # the drawn leaves in key order: the map level by level, row-major
+        for _c in range(n_roots << (2 * lv)):
+            v = tree.dense[cell]
+            cell += 1
+            if v > 0:
+                j = v - 1
+                if nodes[j, 3] == 4:
+                    x = nodes[j, 1]
+                    y = nodes[j, 2]
+                    e = edge_levels(tree, level_of, lv, x, y, depth, roots[1])
+                    out_patch[q, 0] = lv
+                    out_patch[q, 1] = x
+                    out_patch[q, 2] = y
+                    for k in range(4):
+                        out_patch[q, 3 + k] = e[k]
+                    out_f[q, 0] = dm[j, 0]
+                    out_f[q, 1] = dm[j, 1]
+                    out_f[q, 2] = herr[level_start[lv] + y * (roots[0] << lv) + x]
+                    q += 1
+    for j in range(nn):  # the map all 0 again
+        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = 0
+    for j in range(ns):
+        tree.dense[_tree_cell(out_split[j, 0], out_split[j, 1], out_split[j, 2], roots[0], n_roots)] = 0
+    out_n[0] = wp.int64(q)
+    out_n[1] = wp.int64(visited)
+    out_n[2] = wp.int64(leaves)
+    out_n[3] = wp.int64(culled_leaves)
+    out_n[4] = wp.int64(forced)
+    out_n[5] = wp.int64(ns)
+
+
+class QuadtreeWalk(TreeWalk):
+    """The quadtree policies' selection (:func:`terrainwarp.lod.select`) over one in-memory terrain with a dense
+    tree map, in one launch (see :class:`TreeWalk`)."""
+
+    def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
+                 device: str = "cpu") -> None:
+        super().__init__(stats, inside, roots, sizes, device, 3)
+        depth = self.levels - 1
+        self.tree_map = TreeMapHost(roots, depth, device)
+        if self.tree_map.sparse:
+            raise ValueError("roots, depth: the complete tree is too deep for a dense tree map")
+        cells = self.tree_map.cells
+        inputs = [empty(1, wp.vec3, device), empty(6, wp.vec4, device), empty(self.levels, wp.float32, device),
+                  empty(2, wp.float32, device), empty(3, wp.int32, device), empty(cells, wp.int64, device)]
+        self._args = [*inputs, wp.empty((2, cells, 2), dtype=wp.int32, device=device),
+                      wp.empty(cells, dtype=wp.int32, device=device), self.tree_map.view(),
+                      wp.empty((cells, 4), dtype=wp.int32, device=device),
+                      wp.empty((cells, 2), dtype=wp.float32, device=device),
+                      wp.empty(cells, dtype=wp.int32, device=device), wp.empty(cells, dtype=wp.int32, device=device)]
+        self._record(_quadtree_select_kernel, inputs, [
+            empty((cells, 7), wp.int32, device), empty((cells, 3), wp.float32, device),
+            empty((cells, 3), wp.int32, device), empty(6, wp.int64, device)])
+
+    def select(self, rel_origin: tuple[float, float, float], planes: np.ndarray, thresholds: np.ndarray,
+               focal_px: float, hysteresis: float, code: int, fixed_level: int,
+               prev_split: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The selection for one camera, as :func:`terrainwarp.lod.select` makes it: the descent from the roots
+        (per level: nodes outside the grid are leaves that only complete the tiling; the others split by the
+        policy, ``code`` 0 distance below ``thresholds[level]`` or 1 screen error above it, with hysteresis
+        against the keys of ``prev_split`` (sorted); culled nodes and the deepest level do not split;
+        ``fixed_level`` >= 0: every node splits down to it, the continuous policy), then the 2:1 balance (pass
+        after pass, every leaf with a neighbour more than one level finer split at once), then the stats of the
+        balance's children.
+
+        Returns:
+            level, x, y (P,) int32 of the drawn leaves (inside the grid, not culled) in key order, their
+            neighbours' levels (P, 4) int32 (-1 beyond the grid), distance, metric and geometric error (P,)
+            float32; the split nodes' (level, x, y) (S, 3) int32; and nodes visited, leaves, culled leaves,
+            forced splits.
+        """
+        prev = np.asarray(prev_split, np.int64)
+        with self._lock:
+            n_prev = len(prev)
+            host = self._host_in if self._cpu else None
+            if host is not None:
+                host[5][:n_prev] = prev
+                vals = [rel_origin, planes, thresholds, (focal_px, hysteresis), (code, fixed_level, n_prev), host[5]]
+            else:
+                buf = np.zeros(self.tree_map.cells, np.int64)
+                buf[:n_prev] = prev
+                vals = [rel_origin, planes, thresholds, (focal_px, hysteresis), (code, fixed_level, n_prev), buf]
+            patch, f, split, n = self._run(vals)
+            q, ns = int(n[0]), int(n[5])
+            return (patch[:q, 0].copy(), patch[:q, 1].copy(), patch[:q, 2].copy(), patch[:q, 3:7].copy(),
+                    f[:q, 0].copy(), f[:q, 1].copy(), f[:q, 2].copy(), split[:ns].copy(), int(n[1]), int(n[2]),
+                    int(n[3]), int(n[4]))

@@ -16,14 +16,12 @@ seen from +y. Every launch goes through :func:`.parallel.launch` (one launch per
 
 from __future__ import annotations
 
-import threading
-
 import numpy as np
 import warp as wp
 
 from .displacement import write_quad
-from .lod import box_distance, box_outside, node_box, screen_error
-from .parallel import empty, launch, record, replay, scan, view
+from .lod import TreeWalk, box_distance, box_outside, keep_inside, node_box, push_children, screen_error, walk_roots
+from .parallel import empty, launch, scan, view
 from .sampling import sample_bilinear
 
 # ------------------------------------------------------------------------------------------------
@@ -445,48 +443,6 @@ def _farther_than(x: int, y: int, size: wp.vec2d, rel: wp.vec3d, mn: float, mx: 
     return 0
 
 
-@wp.func
-def _roots(front: wp.array3d(dtype=wp.int32), roots: wp.vec2i) -> int:
-    """The root nodes, row by row, into frontier 0; returns their count."""
-    n = int(0)
-    for ry in range(roots[1]):
-        for rx in range(roots[0]):
-            front[0, n, 0] = rx
-            front[0, n, 1] = ry
-            n += 1
-    return n
-
-
-@wp.func
-def _keep_inside(front: wp.array3d(dtype=wp.int32), p: int, n: int, cnt: wp.vec2i) -> int:
-    """Frontier ``p`` compacted to the nodes whose origin lies inside the grid (and the first root); returns
-    their count."""
-    m = int(0)
-    for i in range(n):
-        x = front[p, i, 0]
-        y = front[p, i, 1]
-        if (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0):
-            front[p, m, 0] = x
-            front[p, m, 1] = y
-            m += 1
-    return m
-
-
-@wp.func
-def _push_children(front: wp.array3d(dtype=wp.int32), p: int, n: int, code: wp.array(dtype=wp.int32),
-                   split: int) -> int:
-    """The children of the nodes of frontier ``p`` whose code is ``split`` into frontier ``1 - p``, quadrant by
-    quadrant ((0, 0), (1, 0), (0, 1), (1, 1) blocks, as numpy concatenates them); returns their count."""
-    m = int(0)
-    for c in range(4):
-        for i in range(n):
-            if code[i] == split:
-                front[1 - p, m, 0] = 2 * front[p, i, 0] + c % 2
-                front[1 - p, m, 1] = 2 * front[p, i, 1] + c / 2
-                m += 1
-    return m
-
-
 @wp.kernel(enable_backward=False)
 def _chunk_select_kernel(
     hmin: wp.array(dtype=wp.float32),
@@ -503,10 +459,12 @@ def _chunk_select_kernel(
     front: wp.array3d(dtype=wp.int32),
     code: wp.array(dtype=wp.int32),
     leaf_map: wp.array(dtype=wp.int32),
-    # outputs
     out_leaf: wp.array2d(dtype=wp.int32),
     out_nbr: wp.array2d(dtype=wp.int32),
     out_err: wp.array2d(dtype=wp.float32),
+    # outputs
+    out_chunk: wp.array2d(dtype=wp.int32),
+    out_chunk_err: wp.array2d(dtype=wp.float32),
     out_n: wp.array(dtype=wp.int64),
 ):
     """One thread walks the tree level by level, splitting while a node's screen-space error exceeds
@@ -515,12 +473,12 @@ def _chunk_select_kernel(
     rel = eye[0]
     max_sse = view[0]
     focal = view[1]
-    n = _roots(front, roots)
+    n = walk_roots(front, roots)
     p = int(0)
     q = int(0)
     visited = int(0)
     for lvl in range(depth + 1):
-        n = _keep_inside(front, p, n, inside[lvl])
+        n = keep_inside(front, p, n, inside[lvl])
         if n == 0:
             break
         visited += n
@@ -543,7 +501,7 @@ def _chunk_select_kernel(
                 out_leaf[q, 2] = y
                 out_leaf[q, 3] = kind
                 q += 1
-        n = _push_children(front, p, n, code, 2)
+        n = push_children(front, p, n, code, 2)
         p = 1 - p
     for j in range(q):  # every leaf, culled or not, marked on the map
         lv = out_leaf[j, 0]
@@ -578,11 +536,24 @@ def _chunk_select_kernel(
                 at = wp.min(found, lv)
                 err = herr[level_start[at] + (fy >> (depth - at)) * (roots[0] << at) + (fx >> (depth - at))]
             out_err[j, e] = err
-    for j in range(q):
-        lv = out_leaf[j, 0]
-        leaf_map[level_start[lv] + out_leaf[j, 2] * (roots[0] << lv) + out_leaf[j, 1]] = 0
+    d = int(0)
+    cells = level_start[depth] + (roots[0] * roots[1] << (2 * depth))
+    for cell in range(cells):  # the drawn chunks in key order: the map level by level, row-major
+        v = leaf_map[cell]
+        if v > 0:
+            j = v - 1
+            if out_leaf[j, 3] == 0:
+                for k in range(3):
+                    out_chunk[d, k] = out_leaf[j, k]
+                for k in range(4):
+                    out_chunk[d, 3 + k] = out_nbr[j, k]
+                    out_chunk_err[d, k] = out_err[j, k]
+                out_chunk_err[d, 4] = out_err[j, 4]
+                d += 1
+            leaf_map[cell] = 0
     out_n[0] = wp.int64(q)
     out_n[1] = wp.int64(visited)
+    out_n[2] = wp.int64(d)
 
 
 @wp.kernel(enable_backward=False)
@@ -612,7 +583,7 @@ def _cdlod_select_kernel(
     """One thread walks the tree level by level (see :meth:`CdlodTree.select`)."""
     rel = eye[0]
     rel64 = eye64[0]
-    n = _roots(front, roots)
+    n = walk_roots(front, roots)
     p = int(0)
     q = int(0)  # quadrants emitted
     o = int(0)  # entries of the draw order
@@ -624,7 +595,7 @@ def _cdlod_select_kernel(
     singles = int(0)
     for lvl in range(depth + 1):
         lod = depth - lvl
-        n = _keep_inside(front, p, n, inside[lvl])
+        n = keep_inside(front, p, n, inside[lvl])
         if n == 0:
             break
         visited += n
@@ -689,7 +660,7 @@ def _cdlod_select_kernel(
                     too_small += _farther_than(x, y, size64[lvl], rel64, hmin[k], hmax[k], ranges[lod + 1, 1])
         q += 4 * n_whole
         wholes += n_whole
-        n = _push_children(front, p, n, code, 3)
+        n = push_children(front, p, n, code, 3)
         p = 1 - p
     out_n[0] = wp.int64(q)
     out_n[1] = wp.int64(d)
@@ -869,66 +840,12 @@ def _clipmap_draws(cnt: np.ndarray, start: np.ndarray, coarser: np.ndarray, n: i
     return np.asarray(draws, np.int32).reshape(-1, 2), np.asarray(groups, np.int32).reshape(-1, 2)
 
 
-class _TreeWalk:
-    """A quadtree walked by one thread in one launch (CDLOD's and chunked LOD's selections), as their references
-    walk it in one recursion. Built once per terrain: the per-level pyramids as one array each, the per-level
-    tables and the frame's buffers, with the launch recorded once (:func:`.parallel.record`) and replayed per
-    frame, the frame's inputs written into its input arrays. One selection runs at a time (a lock)."""
-
-    def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
-                 device: str, pyramids: int) -> None:
-        """``stats``: per level (min, max, geometric error) arrays (nz << L, nx << L), the first ``pyramids`` of
-        them read; ``inside``: (depth + 1, 2) int, per level the columns and rows of nodes whose origin lies inside
-        the grid; ``sizes``: per level node size in metres (float64)."""
-        self.levels = len(stats)
-        ins = np.ascontiguousarray(inside, np.int32)
-        self.capacity = cap = 4 * (int(ins[-1, 0]) * int(ins[-1, 1]) + 1)  # 4 quadrants per finest node inside
-        n_roots = int(roots[0]) * int(roots[1])
-        sz = np.asarray(sizes, np.float64)
-
-        def pyramid(k: int) -> wp.array:
-            return wp.array(np.concatenate([np.ascontiguousarray(a[k], np.float32).reshape(-1) for a in stats]),
-                            dtype=wp.float32, device=device)
-
-        self.tree = [*(pyramid(k) for k in range(pyramids)),
-                     wp.array(np.cumsum([0] + [a[0].size for a in stats[:-1]]).astype(np.int32), dtype=wp.int32,
-                              device=device),
-                     wp.array(ins, dtype=wp.vec2i, device=device), wp.vec2i(int(roots[0]), int(roots[1])),
-                     self.levels - 1, wp.array(sz.astype(np.float32), dtype=wp.vec2, device=device)]
-        self.size64 = wp.array(sz, dtype=wp.vec2d, device=device)
-        self.scratch = [wp.empty((2, max(cap, n_roots), 2), dtype=wp.int32, device=device),
-                        wp.empty(max(cap, n_roots), dtype=wp.int32, device=device)]
-        self._lock = threading.Lock()
-        self._cpu = wp.get_device(device).is_cpu
-        self.device = device
-
-    def _record(self, kernel: wp.Kernel, inputs: list, outputs: list) -> None:
-        """Record the walk's launch: the tree, then ``self._args`` (holding the per-frame ``inputs``, which
-        :meth:`_run` writes)."""
-        self._inputs, self._outputs = inputs, outputs
-        self._cmd = record(kernel, 1, [*self.tree, *self._args], outputs, self.device)
-        self._host_in = [a.numpy() for a in inputs] if self._cpu else None
-        self._host_out = [a.numpy() for a in outputs] if self._cpu else None
-
-    def _run(self, values: list) -> list[np.ndarray]:
-        """Write ``values`` into the input arrays, replay the launch; the outputs as numpy (copy what is kept: the
-        buffers are the next frame's). Call under the lock."""
-        host = self._host_in if self._cpu else [a.numpy() for a in self._inputs]
-        for h, v in zip(host, values, strict=True):
-            h[...] = v
-        if not self._cpu:
-            for a, h in zip(self._inputs, host, strict=True):
-                a.assign(h)
-        replay(self._cmd)
-        return self._host_out if self._cpu else [a.numpy() for a in self._outputs]
-
-
-class CdlodTree(_TreeWalk):
-    """CDLOD's selection (Strugar 2010) over one quadtree, in one launch (see :class:`_TreeWalk`)."""
+class CdlodTree(TreeWalk):
+    """CDLOD's selection (Strugar 2010) over one quadtree, in one launch (see :class:`TreeWalk`)."""
 
     def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], root_cells: float,
                  sizes: list[tuple[float, float]], grid: int, device: str = "cpu") -> None:
-        """As :class:`_TreeWalk`; ``root_cells``: a root node's side in cells; ``grid``: quads per node side."""
+        """As :class:`TreeWalk`; ``root_cells``: a root node's side in cells; ``grid``: quads per node side."""
         super().__init__(stats, inside, roots, sizes, device, 2)
         self.grid = int(grid)
         cap = self.capacity
@@ -971,8 +888,8 @@ class CdlodTree(_TreeWalk):
                 i[:q, 1].copy(), n[:7]
 
 
-class ChunkTree(_TreeWalk):
-    """Chunked LOD's selection (Ulrich 2002) over one quadtree, in one launch (see :class:`_TreeWalk`)."""
+class ChunkTree(TreeWalk):
+    """Chunked LOD's selection (Ulrich 2002) over one quadtree, in one launch (see :class:`TreeWalk`)."""
 
     def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
                  device: str = "cpu") -> None:
@@ -981,9 +898,11 @@ class ChunkTree(_TreeWalk):
         nodes = sum(a[0].size for a in stats)
         self._args = [*inputs, *self.scratch, wp.zeros(nodes, dtype=wp.int32, device=device)]
         cap = self.capacity
-        self._record(_chunk_select_kernel, inputs, [
-            empty((cap, 4), wp.int32, device), empty((cap, 4), wp.int32, device),
-            empty((cap, 5), wp.float32, device), empty(2, wp.int64, device)])
+        self._args += [wp.empty((cap, 4), dtype=wp.int32, device=device),
+                       wp.empty((cap, 4), dtype=wp.int32, device=device),
+                       wp.empty((cap, 5), dtype=wp.float32, device=device)]
+        self._record(_chunk_select_kernel, inputs, [empty((cap, 7), wp.int32, device),
+                                                    empty((cap, 5), wp.float32, device), empty(3, wp.int64, device)])
 
     def select(self, rel_origin: tuple[float, float, float], planes: np.ndarray, max_sse_px: float,
                focal_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
@@ -992,18 +911,18 @@ class ChunkTree(_TreeWalk):
         times ``focal_px`` over its box's distance, float32) exceeds ``max_sse_px`` is split, below the deepest
         level; the others are leaves. Children come quadrant by quadrant, as in :class:`CdlodTree`.
 
-        Each leaf's neighbours: per edge (west, north, east, south: u = 0, v = 0, u = 1, v = 1), the level of the
-        leaf holding the finest cell just outside the edge's first one (a leaf at the chunk's level or coarser
+        The drawn chunks (the leaves not culled) come in key order (level, then row, then column) with their
+        neighbours: per edge (west, north, east, south: u = 0, v = 0, u = 1, v = 1), the level of the leaf (culled
+        or not) holding the finest cell just outside the edge's first one (a leaf at the chunk's level or coarser
         covers the whole edge), -1 beyond the root grid; and its geometric error, or that of the chunk-sized node
         holding it when it is finer (0 where none).
 
         Returns:
-            level, x, y (L,) int64 and culled (L,) bool of the leaves, level by level in frontier order; their
-            neighbour levels (L, 4) int32 and errors (L, 4) float32; their own geometric errors (L,) float32; and
-            the nodes visited.
+            level, x, y (C,) int64 of the drawn chunks; their neighbour levels (C, 4) int32 and errors (C, 4)
+            float32; their own geometric errors (C,) float32; leaves, nodes visited.
         """
         with self._lock:
-            leaf, nbr, err, n = self._run([rel_origin, planes, (max_sse_px, focal_px)])
-            q = int(n[0])
-            return (leaf[:q, 0].astype(np.int64), leaf[:q, 1].astype(np.int64), leaf[:q, 2].astype(np.int64),
-                    leaf[:q, 3] != 0, nbr[:q].copy(), err[:q, :4].copy(), err[:q, 4].copy(), int(n[1]))
+            chunk, err, n = self._run([rel_origin, planes, (max_sse_px, focal_px)])
+            d = int(n[2])
+            return (chunk[:d, 0].astype(np.int64), chunk[:d, 1].astype(np.int64), chunk[:d, 2].astype(np.int64),
+                    chunk[:d, 3:7].copy(), err[:d, :4].copy(), err[:d, 4].copy(), int(n[0]), int(n[1]))

@@ -45,7 +45,7 @@ from ..heightmap import Heightmap
 from ..kernels.checks import check_number
 from ..kernels.schemes import ChunkTree, chunk_mesh
 from ..mesh import Draws, Mesh
-from .quadtree import Terrain, tile_key
+from .quadtree import Terrain
 from .scheme import SelectThenMesh, view_of
 
 __all__ = ["ChunkedLod", "ChunkSelection", "DEFAULT_MAX_SSE_PX"]
@@ -122,26 +122,15 @@ class ChunkedLod(SelectThenMesh):
         tree = t.cached(("chunk_tree", self.device), lambda: ChunkTree(
             t.stats, t.inside_counts(), t.roots, [t.node_size_world(lv) for lv in range(t.depth + 1)],
             device=self.device))
-        level, lx, ly, culled, nbr_level, nbr_err, err, visited = tree.select(rel, planes, float(self.max_sse_px),
-                                                                              camera.focal_px)
-        return self._selection(level, lx, ly, culled, nbr_level, nbr_err, err,
-                               {"nodes_visited": visited, "culled": int(culled.sum())})
-
-    def _selection(self, level: np.ndarray, x: np.ndarray, y: np.ndarray, culled: np.ndarray, nbr_level: np.ndarray,
-                   nbr_err: np.ndarray, err: np.ndarray, stats: dict) -> ChunkSelection:
-        """The drawn chunks (inside the grid, not culled) sorted by key, with neighbours and skirts; the culled
-        leaves take part as neighbours."""
-        t = self.terrain
-        order = np.argsort(tile_key(level, x, y), kind="stable")
-        order = order[~culled[order]]
-        level, x, y, nbr_level, nbr_err, err = (a[order] for a in (level, x, y, nbr_level, nbr_err, err))
+        level, x, y, nbr_level, nbr_err, err, leaves, visited = tree.select(rel, planes, float(self.max_sse_px),
+                                                                            camera.focal_px)
         s = t.root_cells / np.exp2(level.astype(np.float64))
         mask = ((nbr_level >= 0) << np.arange(4)).sum(axis=1).astype(np.int32)
         if self.skirt_depth is None:
             skirt = err + nbr_err.max(axis=1, initial=0.0) + self._slack
         else:
             skirt = np.full(len(level), self.skirt_depth)
-        stats["chunks"] = int(len(level))
+        stats = {"nodes_visited": visited, "culled": leaves - len(level), "chunks": int(len(level))}
         return ChunkSelection(level, x, y, np.stack([x * s, y * s], 1).astype(np.float32),
                               (s / t.tess).astype(np.float32), err, nbr_level, nbr_err, skirt.astype(np.float32),
                               mask, stats)

@@ -47,6 +47,8 @@ from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import write_text
 from ..kernels.checks import check_int
 from ..kernels.lod import (
+    DENSE_MAX_CELLS,
+    QuadtreeWalk,
     TreeMapHost,
     frustum_planes,
     mark_nodes,
@@ -413,6 +415,9 @@ def select(terrain: Terrain, camera: Camera, policy: Policy | None = None, state
     check_policy(policy)
     view = _view(terrain, camera)
     prev = state.split_keys if (state is not None and policy.hysteresis > 0) else np.zeros(0, np.int64)
+    if terrain.provider is None and terrain.roots[0] * terrain.roots[1] * (4 ** (terrain.depth + 1) - 1) // 3 \
+            <= DENSE_MAX_CELLS:
+        return _select_in_one_launch(terrain, camera, view, policy, prev, state, device)
     tree, split_keys, visited = _descend(terrain, view, policy, prev, device)
     tree, forced = _balance(terrain, view, policy, tree, split_keys, device)
     if state is not None:
@@ -420,6 +425,28 @@ def select(terrain: Terrain, camera: Camera, policy: Policy | None = None, state
         state.split_keys = np.unique(sk)
         state.frames += 1
     return _patch_list(terrain, camera, policy, tree, {"nodes_visited": visited, "forced_splits": forced})
+
+
+def _select_in_one_launch(terrain: Terrain, camera: Camera, view: _View, policy: Policy, prev: np.ndarray,
+                          state: LodState | None, device: str) -> PatchList:
+    """:func:`select` for an in-memory terrain whose complete tree fits a dense tree map: the descent, the
+    balance and the drawn leaves in key order in one launch (:class:`terrainwarp.kernels.lod.QuadtreeWalk`),
+    the same patches as :func:`_descend`, :func:`_balance` and :func:`_patch_list` make."""
+    depth = terrain.depth
+    walk = terrain.cached(("quadtree_walk", device), lambda: QuadtreeWalk(
+        terrain.stats, terrain.inside_counts(), terrain.roots, [terrain.node_size_world(lv) for lv in range(depth + 1)],
+        device=device))
+    continuous = isinstance(policy, ContinuousPolicy)
+    thresholds = np.array([0.0 if continuous else policy.threshold(lv, max(terrain.node_size_world(lv)))
+                           for lv in range(depth + 1)], np.float32)
+    level, lx, ly, nbr, dist, metric, err, split, visited, leaves, culled, forced = walk.select(
+        view.rel_origin, view.planes, thresholds, view.focal_px, float(policy.hysteresis),
+        0 if continuous else policy.code, min(policy.level, depth) if continuous else -1, prev)
+    if state is not None:
+        state.split_keys = np.unique(tile_key(split[:, 0], split[:, 1], split[:, 2]))
+        state.frames += 1
+    return _assemble(terrain, camera, policy, level, lx, ly, dist, metric, nbr, err,
+                     {"nodes_visited": visited, "leaves": leaves, "culled": culled, "forced_splits": forced})
 
 
 def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
@@ -509,30 +536,37 @@ def _balance(terrain: Terrain, view: _View, policy: Policy, tree: _Tree, split_k
 def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, counts: dict) -> PatchList:
     """The drawn leaves (inside the grid, not culled) in key order, with their neighbours' levels, world
     extents and edge factors; ``counts``: the descent's ``nodes_visited`` and the balance's ``forced_splits``."""
-    hm = terrain.heightmap
-    nx, nz = terrain.roots
     nodes = tree.nodes
     leaf = nodes.alive & ~nodes.outside
     drawn = leaf & ~nodes.culled
     n_culled = int((leaf & nodes.culled).sum())
     draw = tree.key_order(drawn)  # deterministic order: by key
     level, lx, ly, dist, metric = (a[draw] for a in (nodes.level, nodes.x, nodes.y, nodes.dist, nodes.metric))
-    keys = tile_key(level, lx, ly) if len(draw) else np.zeros(0, np.int64)
     nbr = tree.neighbour_levels(np.where(nodes.outside, -1, nodes.level), draw)
+    return _assemble(terrain, camera, policy, level, lx, ly, dist, metric, nbr, _gather_err(terrain, level, lx, ly),
+                     {**counts, "leaves": int(leaf.sum()), "culled": n_culled})
+
+
+def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarray, lx: np.ndarray, ly: np.ndarray,
+              dist: np.ndarray, metric: np.ndarray, nbr: np.ndarray, err: np.ndarray, counts: dict) -> PatchList:
+    """The PatchList of the drawn leaves (key order): world extents and edge factors; ``counts``: nodes_visited,
+    leaves, culled, forced_splits."""
+    hm = terrain.heightmap
+    nx, nz = terrain.roots
+    keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
     s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
     origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
     origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
     size = np.stack([s_cells * hm.dx, s_cells * hm.dz], axis=1)
     outer, inner = _edge_factors(terrain, camera, policy, level, nbr, origin, size)
-    stats = {"nodes_visited": counts["nodes_visited"], "leaves": int(leaf.sum()), "culled": n_culled,
+    stats = {"nodes_visited": counts["nodes_visited"], "leaves": counts["leaves"], "culled": counts["culled"],
              "patches": int(len(level)), "forced_splits": counts["forced_splits"],
              "max_level": int(level.max()) if len(level) else -1, "roots": nx * nz, "depth": terrain.depth,
              "tess": terrain.tess}
     f32, i32 = {"dtype": np.float32, "copy": False}, {"dtype": np.int32, "copy": False}
     return PatchList(level.astype(**i32), keys.astype(np.int64, copy=False), origin, size,
                      origin_cells.astype(**f32), s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
-                     nbr.astype(**i32), dist.astype(**f32), metric.astype(**f32),
-                     _gather_err(terrain, level, lx, ly), stats)
+                     nbr.astype(**i32), dist.astype(**f32), metric.astype(**f32), err, stats)
 
 
 def uniform_patches(terrain: Terrain, level: int, factor: float | None = None) -> PatchList:

@@ -75,7 +75,8 @@ def _per_level_walk(ch: ChunkedLod, camera):
 
 @pytest.mark.parametrize("sse", [0.5, 4.0])
 def test_one_launch_walk_equals_the_per_level_walk(hm, sse):
-    """Every leaf, neighbour level and error of the one-launch walk equals numpy's per-level walk's."""
+    """Every drawn chunk (key order), neighbour level and error of the one-launch walk, and its counts, equal
+    numpy's per-level walk's."""
     ch = ChunkedLod(hm, sse, tile=TILE)
     tree_of = lambda: ch.terrain.cached(("chunk_tree", ch.device), lambda: None)  # noqa: E731 - made by select
     cams = ground_path(hm, 3) + [top_down(hm, 240.0)]
@@ -84,11 +85,14 @@ def test_one_launch_walk_equals_the_per_level_walk(hm, sse):
         ch.select(cam)
         rel, planes = view_of(hm, cam)
         got = tree_of().select(rel, planes, float(sse), cam.focal_px)
-        want = _per_level_walk(ch, cam)
+        level, lx, ly, cu, nbr, nerr, err, visited = _per_level_walk(ch, cam)
+        order = np.argsort(tile_key(level, lx, ly), kind="stable")
+        order = order[~cu[order]]  # the drawn chunks in key order
+        want = (*(a[order] for a in (level, lx, ly, nbr, nerr, err)), len(level), visited)
         for g, w in zip(got, want, strict=True):
             assert np.array_equal(g, w) and (not isinstance(g, np.ndarray) or g.dtype == w.dtype)
-        culled += int(want[3].sum())
-        nbrs += int((want[4] > want[0][:, None]).sum())
+        culled += int(cu.sum())
+        nbrs += int((nbr > level[:, None]).sum())
     assert culled > 0 and nbrs > 0  # culled leaves and finer neighbours were part of it
 
 

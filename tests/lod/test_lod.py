@@ -16,6 +16,7 @@ from terrainwarp.lod import (
     continuous_factors,
     edge_pixels,
     make_policy,
+    quadtree,
     select,
     tile_from_key,
     tile_key,
@@ -439,3 +440,42 @@ def test_uniform_patches_tile_the_grid_at_one_level(device):
     assert check_watertight(f).n_cracks == 0
     with pytest.raises(ValueError, match="level"):
         uniform_patches(t, t.depth + 1)
+
+
+def multi_launch_select(terrain, camera, policy, state=None):
+    """The selection as the multi-launch path makes it (one select-level launch per level, the balance's passes
+    and the neighbour levels each a launch; a streamed terrain's path): the reference of the one-launch walk."""
+    view = quadtree._view(terrain, camera)
+    prev = state.split_keys if (state is not None and policy.hysteresis > 0) else np.zeros(0, np.int64)
+    tree, split_keys, visited = quadtree._descend(terrain, view, policy, prev, "cpu")
+    tree, forced = quadtree._balance(terrain, view, policy, tree, split_keys, "cpu")
+    if state is not None:
+        state.split_keys = np.unique(np.concatenate(split_keys) if split_keys else np.zeros(0, np.int64))
+        state.frames += 1
+    return quadtree._patch_list(terrain, camera, policy, tree, {"nodes_visited": visited, "forced_splits": forced})
+
+
+def test_the_one_launch_selection_equals_the_multi_launch_path():
+    """Every field and count of every PatchList, and the hysteresis state along a path, for the three policies
+    (with hysteresis and level multipliers) on terrains whose grids leave nodes outside, with forced splits."""
+    policies = [ScreenErrorPolicy(1.0), ScreenErrorPolicy(0.3, hysteresis=0.2),
+                ScreenErrorPolicy(2.0, level_scale=(0.5, -0.5, 0.3)), DistancePolicy(k=2.0),
+                DistancePolicy(k=6.0, hysteresis=0.1), ContinuousPolicy(target_px=4.0, level=2)]
+    forced = 0
+    for hm, roots, tess in ((Heightmap.fbm(129, seed=5, dx=10.0, max_height=300.0), 4, 8),
+                            (Heightmap.fbm(200, seed=2, dx=5.0, max_height=200.0), 3, 4)):
+        t = Terrain.prepare(hm, roots=roots, tess=tess)
+        cam0 = Camera.default_for(hm, width=160, height=100)
+        cams = Scene(heightmap=hm, camera=cam0).camera_path(4) + [cam0]
+        for policy in policies:
+            s1, s2 = LodState(), LodState()
+            for cam in cams:
+                got, want = select(t, cam, policy, s1), multi_launch_select(t, cam, policy, s2)
+                for name, a, b in zip(got._fields, got, want, strict=True):
+                    if isinstance(a, np.ndarray):
+                        assert a.dtype == b.dtype and np.array_equal(a, b), name
+                    else:
+                        assert a == b, name
+                assert np.array_equal(s1.split_keys, s2.split_keys)
+                forced += got.stats["forced_splits"]
+    assert forced > 0
