@@ -199,6 +199,49 @@ class Cdlod(SelectThenMesh):
         z = np.zeros(0, np.float32)
         return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
 
+    def _quadrants(self, parts: list, stats: dict) -> CdlodSelection:
+        """Each drawn node as its four quadrants, each parent quadrant as itself (cells, float32). ``stats``:
+        ``whole_nodes`` and ``quadrant_draws``; ``draws``: the reference's draw calls, a whole node's four
+        quadrants together, a parent's quadrant alone (the reference draws a partly selected node quadrant by
+        quadrant)."""
+        t = self.terrain
+        org, size, step, lods, calls = [], [], [], [], []
+        whole = single = 0
+        base = 0
+        for x, y, lvl, lod in parts:
+            s = t.root_cells / 2.0 ** lvl
+            st = t.root_cells / 2.0 ** (t.depth - lod) / self.grid  # the drawn level's vertex spacing
+            k = len(x)
+            if lod == t.depth - lvl:  # a whole node: its four quadrants
+                q = s / 2
+                for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+                    org.append(np.stack([x * s + dx * q, y * s + dy * q], 1))
+                    size.append(np.full(k, q))
+                    step.append(np.full(k, st))
+                    lods.append(np.full(k, lod))
+                calls.append(base + np.arange(k)[:, None] + k * np.arange(4)[None, :])  # node by node
+                whole += k
+                base += 4 * k
+            else:  # a quadrant of the parent, drawn with the parent's grid
+                org.append(np.stack([x * s, y * s], 1))
+                size.append(np.full(k, s))
+                step.append(np.full(k, st))
+                lods.append(np.full(k, lod))
+                calls.append(base + np.arange(k)[:, None])
+                single += k
+                base += k
+        stats.update(whole_nodes=whole, quadrant_draws=single)
+        if not org:
+            z = np.zeros(0, np.float32)
+            return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
+        stats["quadrants"] = int(sum(len(a) for a in size))
+        order = np.concatenate([c.reshape(-1) for c in calls]).astype(np.int32)
+        per = np.concatenate([np.full(len(c), c.shape[1]) for c in calls])
+        ends = np.cumsum(per)
+        return CdlodSelection(np.concatenate(org).astype(np.float32), np.concatenate(size).astype(np.float32),
+                              np.concatenate(step).astype(np.float32), np.concatenate(lods).astype(np.int32), stats,
+                              np.stack([ends - per, ends], 1).astype(np.int32), order)
+
     def uniform(self, lod: int) -> CdlodSelection:
         """Every node of one LOD inside the grid, as its four quadrants: the grid that LOD draws where it is drawn
         whole (with :meth:`mesh` and ``morph=False``, the unmorphed surface the fit's probes measure)."""
