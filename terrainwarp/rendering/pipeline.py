@@ -25,7 +25,8 @@ error          the primary error at the heightmap's samples (terrainwarp.measure
 =============  =============================================================================
 
 Which run, by output (LOD scenes add ``prepare`` and ``select`` wherever ``mesh`` runs; a source adds
-``select``):
+``select``), is one table (``_NEEDS``: the stages, and what they must make for the output: mesh attributes,
+the barycentric image); :func:`plan_for` turns a scene's outputs into the :class:`Plan` every stage reads:
 
 =========  ==================================================
 output     stages
@@ -58,6 +59,7 @@ selection of the previous camera and the current one, both drawn for the current
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -86,20 +88,46 @@ from ..scene import Scene
 from ..surface.differential import compute_curvature
 from .sources import MeshSource, StreamedSource, missing_members, scene_source
 
-__all__ = ["render", "Frame", "Report", "StageRecord", "stages_for", "MeshSource", "pop_stats"]
+__all__ = ["render", "Frame", "Report", "StageRecord", "Plan", "plan_for", "stages_for", "MeshSource", "pop_stats"]
 
 STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
-_NEEDS = {
-    "image": {"normal_map", "mesh", "raster", "shade"},
-    "normals": {"normal_map", "mesh", "raster", "shade"},
-    "depth": {"mesh", "raster"},
-    "mesh": {"mesh"},
-    "patches": {"select"},
-    "error": {"mesh", "raster", "reference", "error"},
-    "curvature": {"curvature"},
-    "report": set(),
-    "counters": {"mesh", "raster"},
+# The one table of what each output needs: the stages that make it, and what those stages must make for it
+# (mesh "attributes": uv, level and patch id; raster "barycentrics": the perspective-correct barycentric image).
+_NEEDS: dict[str, tuple[frozenset[str], frozenset[str]]] = {
+    "image": (frozenset({"normal_map", "mesh", "raster", "shade"}), frozenset({"attributes", "barycentrics"})),
+    "normals": (frozenset({"normal_map", "mesh", "raster", "shade"}), frozenset({"attributes", "barycentrics"})),
+    "depth": (frozenset({"mesh", "raster"}), frozenset()),
+    "mesh": (frozenset({"mesh"}), frozenset({"attributes"})),
+    "patches": (frozenset({"select"}), frozenset()),
+    "error": (frozenset({"mesh", "raster", "reference", "error"}), frozenset({"barycentrics"})),
+    "curvature": (frozenset({"curvature"}), frozenset()),
+    "report": (frozenset(), frozenset()),
+    "counters": (frozenset({"mesh", "raster"}), frozenset()),
 }
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What one render of a scene runs and makes, from :data:`_NEEDS`: worked out once per kind of call
+    (:func:`plan_for`, cached) and read by the stages.
+
+    Attributes:
+        stages: the stages to run, in pipeline order.
+        attributes: the mesh carries uv, level and patch id (shading and the mesh output read them; depth,
+            error and counters frames read positions and triangles only).
+        barycentrics: the visibility pass makes the barycentric image (shading and the error interpolate with it).
+        image: shading encodes the 8-bit image; normals: shading writes per-pixel normals.
+        depth: the frame keeps its depth image (asked for; otherwise made for the error and dropped).
+        counters: the mesh and raster stages count their pipeline statistics.
+    """
+
+    stages: tuple[str, ...]
+    attributes: bool
+    barycentrics: bool
+    image: bool
+    normals: bool
+    depth: bool
+    counters: bool
 
 
 def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool = False,
@@ -108,9 +136,21 @@ def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool 
 
     ``mesh``: ``"grid"``, ``"lod"`` or ``"source"`` (a prebuilt :class:`MeshSource`); ``have_patches``: a LOD
     scene drawn from a given (held) PatchList, which needs no ``select`` and no ``prepare``."""
+    return list(plan_for(tuple(outputs), mesh, have_terrain, have_patches).stages)
+
+
+@functools.lru_cache(maxsize=256)
+def plan_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool = False, have_patches: bool = False,
+             provides_normals: bool = False) -> Plan:
+    """The :class:`Plan` of a render: its scene's ``outputs`` and ``mesh`` kind (``"grid"``, ``"lod"`` or
+    ``"source"``), whether the caller holds a Terrain or a PatchList (no ``prepare``; no ``select`` either), and
+    whether a source's meshes carry their normals (no ``normal_map``)."""
     need: set[str] = set()
+    made: set[str] = set()
     for o in outputs:
-        need |= _NEEDS[o]
+        stages, what = _NEEDS[o]
+        need |= stages
+        made |= what
     if mesh in ("lod", "source"):
         if "mesh" in need:
             need.add("select")
@@ -120,7 +160,10 @@ def stages_for(outputs: tuple[str, ...], mesh: str = "grid", have_terrain: bool 
             need.add("prepare")
     else:
         need.discard("select")
-    return [s for s in STAGE_ORDER if s in need]
+    if mesh == "source" and provides_normals:
+        need.discard("normal_map")
+    return Plan(tuple(s for s in STAGE_ORDER if s in need), "attributes" in made, "barycentrics" in made,
+                "image" in outputs, "normals" in outputs, "depth" in outputs, "counters" in outputs)
 
 
 @dataclass
@@ -308,7 +351,7 @@ class _Run:
 
     scene: Scene
     frame: Frame
-    stages: list[str]
+    plan: Plan
     device: str
     terrain: Terrain | None = None
     state: LodState | None = None
@@ -323,7 +366,7 @@ class _Run:
 
     @property
     def counting(self) -> bool:
-        return "counters" in self.scene.outputs
+        return self.plan.counters
 
     @property
     def kind(self) -> str:
@@ -377,9 +420,9 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
             raise TypeError(f"patches: expected a PatchList, got {type(patches).__name__}")
         if kind != "lod":
             raise ValueError(f"patches: a held PatchList is drawn by a LOD scene (mesh='lod'), got {kind!r}")
-    stages = stages_for(scene.outputs, kind, have_terrain=terrain is not None, have_patches=patches is not None)
-    if source is not None and source.provides_normals:  # the source's mesh carries its normals
-        stages = [st for st in stages if st != "normal_map"]
+    plan = plan_for(tuple(scene.outputs), kind, terrain is not None, patches is not None,
+                    bool(source is not None and source.provides_normals))
+    stages = list(plan.stages)
     report = Report(info={"scene": scene.name, "heightmap": hm.name, "shape": list(hm.shape),
                           "dx": hm.dx, "dz": hm.dz, "width": cam.width, "height": cam.height,
                           "mesh_policy": kind, "outputs": list(scene.outputs), "stages_run": stages,
@@ -390,7 +433,7 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         report.info["source"] = type(source).__name__
     if patches is not None:
         report.info["held_patches"] = len(patches)
-    return _Run(scene, Frame(scene=scene, report=report, patches=patches), stages, device, terrain, state,
+    return _Run(scene, Frame(scene=scene, report=report, patches=patches), plan, device, terrain, state,
                 reference, source)
 
 
@@ -465,7 +508,8 @@ def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
         mesh, ms = frame.mesh, run.source_mesh_ms
         n_patches = len(frame.patches) if frame.patches is not None else 0
     elif kind == "lod":
-        mesh, n_patches, ms = _lod_mesh(run.scene, frame.patches, run.nmap, run.device), len(frame.patches), None
+        mesh, n_patches, ms = _lod_mesh(run.scene, frame.patches, run.nmap, run.plan.attributes, run.device), \
+            len(frame.patches), None
     else:
         mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
     frame.mesh = mesh
@@ -496,8 +540,8 @@ def _stage_raster(run: _Run, rec: StageRecord) -> None:
     rec.counters.update(frags.stats)
     run.raster_counters = frags.counters
     # the perspective-correct barycentric image (computed on first access) is part of the visibility pass
-    # only when a later stage interpolates with it: depth alone leaves it out
-    if "shade" in run.stages or "error" in run.stages:
+    # only when a later stage interpolates with it (the plan): depth alone leaves it out
+    if run.plan.barycentrics:
         frame.barycentrics = frags.barycentrics
     frame.triangle_id = frags.triangle_id
     frame.depth = frags.depth
@@ -511,15 +555,14 @@ def _stage_shade(run: _Run, rec: StageRecord) -> None:
                                  mode=scene.shading, level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv,
                                  azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,
                                  height_range=run.scene.heightmap.height_range,  # one tint for every mesh
-                                 encode="image" in scene.outputs,  # only what is asked
-                                 want_normals="normals" in scene.outputs,
+                                 encode=run.plan.image, want_normals=run.plan.normals,  # only what is asked
                                  device=run.device, **_shade_inputs(run))
     if scene.shading != "hillshade":
         rec.counters.update(counters)
     rec.counters["pixels"] = int(frame.triangle_id.size)
-    if "image" in scene.outputs:
+    if run.plan.image:
         frame.image = rgb  # 8-bit sRGB, encoded by the shading kernel
-    if "normals" in scene.outputs:
+    if run.plan.normals:
         frame.normals = pix_n
 
 
@@ -591,7 +634,7 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
     start = time.perf_counter()
     with kernel_clock() as in_kernels:
         run = _start(scene, terrain, state, reference, source, patches, device)
-        for name in run.stages:
+        for name in run.plan.stages:
             rec = StageRecord(name, 0.0)
             t0 = time.perf_counter()
             ms = _STAGES[name](run, rec)
@@ -599,7 +642,7 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
             run.frame.report.stages.append(rec)
         if run.counting:
             run.frame.report.counters = frame_counters(run.draw_counters or {}, run.raster_counters or {})
-    if "depth" not in scene.outputs:
+    if not run.plan.depth:
         run.frame.depth = None
     report = run.frame.report
     report.render_ms, report.kernel_ms = (time.perf_counter() - start) * 1e3, in_kernels[0] * 1e3
@@ -680,17 +723,15 @@ def _grid_mesh(hm: Heightmap, cam: Camera, nmap: np.ndarray | None, device: str)
                 patch_id=np.zeros(n, np.int32), normals=None if nmap is None else nmap.reshape(-1, 3))
 
 
-def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, device: str) -> Mesh:
-    """Tessellate and displace the selected patches in one launch (the GPU's single draw call)."""
+def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, attributes: bool, device: str) -> Mesh:
+    """Tessellate and displace the selected patches in one launch (the GPU's single draw call); uv, level and
+    patch id only with ``attributes`` (the plan's)."""
     hm = scene.heightmap
     cam = scene.camera
-    # depth and error frames read positions and triangles only: uv, level and patch id are made for shading,
-    # normals and the mesh output
-    rich = nmap is not None or any(o in ("image", "normals", "mesh") for o in scene.outputs)
     t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
                             "inner": patches.inner, "level": patches.level}, hm.heights, hm.dx, hm.dz,
                            cam.position, spacing=scene.lod.spacing, filter=scene.lod.filter, origin=hm.origin,
-                           device=device, need=("uv", "level", "patch_id") if rich else ())
+                           device=device, need=("uv", "level", "patch_id") if attributes else ())
     normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
     positions, triangles = t.positions, t.triangles
     if hm.has_nodata:  # no-data holes: no triangle may touch a vertex that sampled NaN

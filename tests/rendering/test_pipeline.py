@@ -12,7 +12,7 @@ from terrainwarp.lod.peers import delatin_mesh
 from terrainwarp.lod.polytree import build_polytree, default_tolerances
 from terrainwarp.measure.sample_error import popping
 from terrainwarp.rendering import rasterize
-from terrainwarp.rendering.pipeline import pop_stats, stages_for
+from terrainwarp.rendering.pipeline import plan_for, pop_stats, stages_for
 from terrainwarp.rendering.sources import BintreeSource, PeerSource, PolytreeSource, scheme_source
 
 
@@ -67,6 +67,19 @@ def test_the_report_splits_the_call_into_kernels_and_host():
     d = r.to_dict()
     assert d["render_ms"] == r.render_ms and d["kernel_ms"] == r.kernel_ms and d["host_ms"] == r.host_ms
     assert "outside kernels" in r._repr_html_()
+
+
+def test_one_plan_per_kind_of_call_says_what_each_stage_makes():
+    depth = plan_for(("depth",), "lod", True)
+    assert depth.stages == ("select", "mesh", "raster") and not (depth.attributes or depth.barycentrics)
+    err = plan_for(("error",), "lod", True)
+    assert err.barycentrics and not err.attributes and not err.depth
+    img = plan_for(("image", "depth"), "source", provides_normals=True)
+    assert img.attributes and img.barycentrics and img.image and img.depth and not img.normals
+    assert "normal_map" not in img.stages and "normal_map" in plan_for(("image",), "source").stages
+    assert plan_for(("mesh",), "grid").attributes and plan_for(("depth",), "lod", True) is depth  # worked out once
+    f = render(Scene(Heightmap.fbm(33, seed=2), mesh="lod", lod=LodConfig(roots=2, tess=4), outputs=("depth",)))
+    assert f.mesh.uv is None and f.barycentrics is None and f.depth is not None  # what the plan leaves out
 
 
 def test_only_needed_stages_run():
