@@ -467,6 +467,8 @@ def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.i
                         written += wp.int64(1)
                     if counting and old != wp.uint64(0xFFFFFFFFFFFFFFFF):
                         _record_overlap(cnt, row + x, key, old)
+            elif first <= last:
+                break  # past the row's run: a convex triangle covers no more of it
             e0 += e0dx
             e1 += e1dx
             e2 += e2dx
