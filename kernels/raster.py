@@ -908,10 +908,10 @@ def _resolve_ids_kernel(
     out_covered: wp.array(dtype=wp.int64),
 ):
     """Decode the depth|id keys of the flagged screen tiles (``dirty``) of one band of TILE window rows
-    (``bands``: those with a flagged tile) into the triangle id and window depth of each drawn pixel, and set
-    the key back to empty: unflagged tiles hold no drawn key, so the buffer is then clear for the next
-    frame. Row by row (memory order); every pixel of the band is written, background as -1 and 1.0 (the
-    host fills the bands without a flagged tile). Covered pixels are counted into ``out_covered[part]``."""
+    (``bands``) into the triangle id and window depth of each drawn pixel, and set the key back to empty:
+    unflagged tiles hold no drawn key, so the buffer is then clear for the next frame. Row by row (memory
+    order); every pixel of the band is written, background as -1 and 1.0. Covered pixels are counted into
+    ``out_covered[part]``."""
     ty = bands[wp.tid() + offset]
     tiles_x = (width + TILE - 1) / TILE
     covered = wp.int64(0)
@@ -1174,21 +1174,6 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
     return np.flatnonzero(dirty.reshape(-1, _tiles_x(width)).any(axis=1)).astype(np.int32)
 
 
-def _band_gaps(bands: np.ndarray, width: int, height: int) -> list[tuple[int, int]]:
-    """The [start, stop) pixel ranges (memory order: image row 0 at the top) of the runs of tile bands not in
-    ``bands`` (sorted band numbers, from window row 0 up)."""
-    n = (height + TILE - 1) // TILE
-    drawn = np.zeros(n + 2, bool)
-    drawn[0] = drawn[-1] = True
-    drawn[np.asarray(bands) + 1] = True
-    edges = np.flatnonzero(np.diff(drawn.astype(np.int8)))  # first band of each gap, then one past its last
-    out = []
-    for b0, b1 in zip(edges[::2], edges[1::2], strict=True):
-        y0, y1 = b0 * TILE, min(b1 * TILE, height)  # window rows [y0, y1) -> image rows (height - y1, height - y0]
-        out.append(((height - y1) * width, (height - y0) * width))
-    return out
-
-
 # Output images (ids, depth, barycentrics) on the CPU come from the frame-buffer pool (parallel.pooled): a frame's
 # images are the caller's, but once the caller holds no view of one any more, the next frame of that size takes it
 # again. Freshly allocated frame-sized memory costs page faults on its first write (~5-10 ms for a 1080p frame's
@@ -1219,16 +1204,13 @@ def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: st
     pixels covered)."""
     npx = width * height
     flags = dirty.numpy()
-    bands = _bands(flags, width)
-    if wp.get_device(device).is_cpu:  # the kernel writes every pixel of its bands; the others are filled here
-        out_id, out_depth = _image(*host_layout(npx, wp.int32)), _image(*host_layout(npx, wp.float32))
-        for lo, hi in _band_gaps(bands, width, height):
-            out_id[lo:hi], out_depth[lo:hi] = -1, 1.0
-        out_id = wp.array(out_id, dtype=wp.int32, device=device, copy=False)
-        out_depth = wp.array(out_depth, dtype=wp.float32, device=device, copy=False)
+    bands = np.arange((height + TILE - 1) // TILE, dtype=np.int32)  # every band: the kernel writes every pixel
+    if wp.get_device(device).is_cpu:
+        out_id = wp.array(_image(*host_layout(npx, wp.int32)), dtype=wp.int32, device=device, copy=False)
+        out_depth = wp.array(_image(*host_layout(npx, wp.float32)), dtype=wp.float32, device=device, copy=False)
     else:
-        out_id = _filled(npx, wp.int32, -1, device)
-        out_depth = _filled(npx, wp.float32, 1.0, device)
+        out_id, out_depth = wp.empty(npx, dtype=wp.int32, device=device), wp.empty(npx, dtype=wp.float32,
+                                                                                   device=device)
     covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
     if len(bands):
         launch(_resolve_ids_kernel, len(bands), [as_warp(bands, wp.int32, device), dirty, width, height],
