@@ -601,9 +601,10 @@ def _quadtree_select_kernel(
     out_patch: wp.array2d(dtype=wp.int32),
     out_f: wp.array2d(dtype=wp.float32),
     out_split: wp.array2d(dtype=wp.int32),
+    out_key: wp.array(dtype=wp.int64),
     out_n: wp.array(dtype=wp.int64),
 ):
-    """One thread: the descent, the 2:1 balance, and the drawn leaves in key order with their neighbours' levels
+    """One thread: the descent, the 2:1 balance, and the drawn leaves and their keys with their neighbours' levels
     (see :meth:`QuadtreeWalk.select`). ``params``: focal px, hysteresis; ``ints``: policy code (0 distance, 1
     screen error), the fixed level of the continuous policy (-1 none), the previous frame's split keys (in
     ``prev``, sorted). The tree map is all 0 on entry and is left all 0."""
@@ -732,26 +733,22 @@ def _quadtree_select_kernel(
         if (f & 2) != 0:
             level_of[j] = -1
     q = int(0)
-    cell = int(0)
-    for lv in range(depth + 1):  # the drawn leaves in key order: the map level by level, row-major
-        for _c in range(n_roots << (2 * lv)):
-            v = tree.dense[cell]
-            cell += 1
-            if v > 0:
-                j = v - 1
-                if nodes[j, 3] == 4:
-                    x = nodes[j, 1]
-                    y = nodes[j, 2]
-                    e = edge_levels(tree, level_of, lv, x, y, depth, roots[1])
-                    out_patch[q, 0] = lv
-                    out_patch[q, 1] = x
-                    out_patch[q, 2] = y
-                    for k in range(4):
-                        out_patch[q, 3 + k] = e[k]
-                    out_f[q, 0] = dm[j, 0]
-                    out_f[q, 1] = dm[j, 1]
-                    out_f[q, 2] = herr[level_start[lv] + y * (roots[0] << lv) + x]
-                    q += 1
+    for j in range(nn):  # the drawn leaves (the host puts them in key order)
+        if nodes[j, 3] == 4:
+            lv = nodes[j, 0]
+            x = nodes[j, 1]
+            y = nodes[j, 2]
+            e = edge_levels(tree, level_of, lv, x, y, depth, roots[1])
+            out_patch[q, 0] = lv
+            out_patch[q, 1] = x
+            out_patch[q, 2] = y
+            for k in range(4):
+                out_patch[q, 3 + k] = e[k]
+            out_f[q, 0] = dm[j, 0]
+            out_f[q, 1] = dm[j, 1]
+            out_f[q, 2] = herr[level_start[lv] + y * (roots[0] << lv) + x]
+            out_key[q] = _tile_key(lv, x, y)
+            q += 1
     for j in range(nn):  # the map all 0 again
         tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = 0
     for j in range(ns):
@@ -785,7 +782,7 @@ class QuadtreeWalk(TreeWalk):
                       wp.empty(cells, dtype=wp.int32, device=device), wp.empty(cells, dtype=wp.int32, device=device)]
         self._record(_quadtree_select_kernel, inputs, [
             empty((cells, 7), wp.int32, device), empty((cells, 3), wp.float32, device),
-            empty((cells, 3), wp.int32, device), empty(6, wp.int64, device)])
+            empty((cells, 3), wp.int32, device), empty(cells, wp.int64, device), empty(6, wp.int64, device)])
 
     def select(self, rel_origin: tuple[float, float, float], planes: np.ndarray, thresholds: np.ndarray,
                focal_px: float, hysteresis: float, code: int, fixed_level: int,
@@ -815,8 +812,9 @@ class QuadtreeWalk(TreeWalk):
                 buf = np.zeros(self.tree_map.cells, np.int64)
                 buf[:n_prev] = prev
                 vals = [rel_origin, planes, thresholds, (focal_px, hysteresis), (code, fixed_level, n_prev), buf]
-            patch, f, split, n = self._run(vals)
+            patch, f, split, key, n = self._run(vals)
             q, ns = int(n[0]), int(n[5])
-            return (patch[:q, 0].copy(), patch[:q, 1].copy(), patch[:q, 2].copy(), patch[:q, 3:7].copy(),
-                    f[:q, 0].copy(), f[:q, 1].copy(), f[:q, 2].copy(), split[:ns].copy(), int(n[1]), int(n[2]),
-                    int(n[3]), int(n[4]))
+            order = np.argsort(key[:q])  # key order (the keys are distinct)
+            patch, f = patch[order], f[order]
+            return (patch[:, 0].copy(), patch[:, 1].copy(), patch[:, 2].copy(), patch[:, 3:7].copy(), f[:, 0].copy(),
+                    f[:, 1].copy(), f[:, 2].copy(), split[:ns].copy(), int(n[1]), int(n[2]), int(n[3]), int(n[4]))
