@@ -154,6 +154,39 @@ def _exchange_i32(a: wp.array(dtype=wp.int32), i: int, v: int) -> int:
     ...
 
 
+@wp.func_native("""
+uint64_t* k = wp::address(key, p0);
+int32_t* ids = wp::address(out_id, p0);
+float* dep = wp::address(out_depth, p0);
+int64_t covered = 0;
+if (flagged != 0) {
+    for (int i = 0; i < n; ++i) {
+        uint64_t v = k[i];
+        uint32_t hi = (uint32_t)(v >> 32);
+        float d;
+        __builtin_memcpy(&d, &hi, 4);
+        bool c = v != 0xFFFFFFFFFFFFFFFFull;
+        ids[i] = c ? (int32_t)(uint32_t)v : -1;
+        dep[i] = c ? d : 1.0f;
+        k[i] = 0xFFFFFFFFFFFFFFFFull;
+        covered += c ? 1 : 0;
+    }
+} else {
+    for (int i = 0; i < n; ++i) {
+        ids[i] = -1;
+        dep[i] = 1.0f;
+    }
+}
+return covered;
+""")
+def _resolve_run(key: wp.array(dtype=wp.uint64), out_id: wp.array(dtype=wp.int32),
+                 out_depth: wp.array(dtype=wp.float32), p0: int, n: int, flagged: int) -> wp.int64:
+    """Pixels p0 .. p0 + n - 1 of one image row: with ``flagged``, each key decoded into its triangle id and
+    window depth (-1 and 1.0 where the key is empty) and set back to empty; else background. A straight loop
+    over contiguous memory the compiler vectorises. Returns the pixels covered."""
+    ...
+
+
 @wp.func
 def _record_overlap(cnt: Counting, p: int, key: wp.uint64, held: wp.uint64):
     """A fragment (depth|id ``key``) found ``held`` at pixel p (:class:`Counting` mode 1): both appended to the
@@ -917,24 +950,16 @@ def _resolve_ids_kernel(
     covered = wp.int64(0)
     for y in range(ty * TILE, wp.min(ty * TILE + TILE, height)):
         p0 = (height - 1 - y) * width
-        for tx in range(tiles_x):
-            x1 = wp.min(tx * TILE + TILE, width)
-            if dirty[ty * tiles_x + tx] != 0:
-                for x in range(tx * TILE, x1):
-                    p = p0 + x
-                    k = out_key[p]
-                    if k != wp.uint64(0xFFFFFFFFFFFFFFFF):
-                        out_key[p] = wp.uint64(0xFFFFFFFFFFFFFFFF)
-                        out_id[p] = int(k & wp.uint64(0xFFFFFFFF))
-                        out_depth[p] = bits_float(wp.uint32(k >> wp.uint64(32)))
-                        covered += wp.int64(1)
-                    else:
-                        out_id[p] = -1
-                        out_depth[p] = 1.0
-            else:
-                for x in range(tx * TILE, x1):
-                    out_id[p0 + x] = -1
-                    out_depth[p0 + x] = 1.0
+        x0 = int(0)  # runs of tiles flagged alike, one straight loop each
+        for tx in range(1, tiles_x + 1):
+            flag = int(dirty[ty * tiles_x + tx - 1] != 0)
+            ends = tx == tiles_x
+            if not ends:
+                ends = int(dirty[ty * tiles_x + tx] != 0) != flag
+            if ends:
+                x1 = wp.min(tx * TILE, width)
+                covered += _resolve_run(out_key, out_id, out_depth, p0 + x0, x1 - x0, flag)
+                x0 = x1
     wp.atomic_add(out_covered, part, covered)  # one writer per part on the CPU; a true atomic on CUDA
 
 
