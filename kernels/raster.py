@@ -162,9 +162,9 @@ int64_t covered = 0;
 if (flagged != 0) {
     for (int i = 0; i < n; ++i) {
         uint64_t v = k[i];
-        uint32_t hi = (uint32_t)(v >> 32);
-        float d;
-        __builtin_memcpy(&d, &hi, 4);
+        union { uint32_t u; float f; } b;
+        b.u = (uint32_t)(v >> 32);
+        float d = b.f;
         bool c = v != 0xFFFFFFFFFFFFFFFFull;
         ids[i] = c ? (int32_t)(uint32_t)v : -1;
         dep[i] = c ? d : 1.0f;
