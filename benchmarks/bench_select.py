@@ -70,7 +70,7 @@ def spread(values: list[int], what: str) -> str:
     return f"{np.median(values):.0f} / {max(values)} {what}"
 
 
-def rows_for(name: str, hm: Heightmap) -> tuple[list[list[object]], list[object]]:
+def rows_for(name: str, hm: Heightmap, launches: list) -> tuple[list[list[object]], list[object]]:
     cams = Scene(heightmap=hm, camera=Camera.default_for(hm, width=WIDTH, height=HEIGHT)).camera_path(FRAMES)
     rows = []
 
@@ -88,6 +88,9 @@ def rows_for(name: str, hm: Heightmap) -> tuple[list[list[object]], list[object]
                for r, x in zip(refs, sels, strict=True)), "the walks must agree"
     row("CDLOD, one launch per level (replaced)", "same", walk_ms, walk_kern, "same", "same", 0.3)
     ratio = [name, f"{walk_ms / ms:.1f}x"]
+    replay_us, launch_us = c.terrain.cached(("cdlod_tree", c.grid, c.device), lambda: None).launch_cost()
+    launches.append([name, "CDLOD walk (20 arguments)", f"{replay_us:.1f}", f"{launch_us:.1f}",
+                     f"{launch_us - replay_us:.1f}"])
 
     ch = ChunkedLod(hm, 2.0, tile=32)
     ms, kern, sels = timed(ch.select, cams)
@@ -123,9 +126,9 @@ def main() -> None:
     maps = [("DEM 403x344", Heightmap.example())]
     if not args.quick:
         maps.append(("fBm 4097^2", Heightmap.fbm(4097, seed=7, dx=10.0, max_height=800.0)))
-    rows, ratios = [], []
+    rows, ratios, launches = [], [], []
     for name, hm in maps:
-        r, q = rows_for(name, hm)
+        r, q = rows_for(name, hm, launches)
         rows += r
         ratios.append(q)
     body = (f"Median over the {FRAMES} frames of each heightmap's default camera path at {WIDTH}x{HEIGHT} (after a "
@@ -137,6 +140,10 @@ def main() -> None:
                         "host ms", "target ms", "met"], rows)
             + "\n\nThe walks they replaced / one launch (same process, same cameras, equal selections):\n\n"
             + md_table(["heightmap", "CDLOD", "quadtree sse 1 px"], ratios)
+            + "\n\nWhat recording the launch saves (`TreeWalk.launch_cost`: best of 200 of a replay of the recorded "
+              "launch against `wp.launch` of the same launch, its arguments packed again; the walk itself included in "
+              "both):\n\n"
+            + md_table(["heightmap", "launch", "replay us", "wp.launch us", "saved per frame us"], launches)
             + f"\n\nWhole benchmark: {time.perf_counter() - t0:.0f} s.")
     print(body)
     if not args.quick:

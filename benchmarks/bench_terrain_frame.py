@@ -15,7 +15,8 @@ Per frame, in the same process:
   thread beside the drawing thread, which runs the shaders and the tessellator) and LP_NUM_THREADS=0
   (rasterization in the drawing thread too: one core, like ours).
 * ``render()``: the whole call's wall time: the three stages and the rest of the call (building the
-  report); a depth-only scene leaves the barycentric image out, as it does the shading.
+  report); a depth-only scene leaves the barycentric image out, as it does the shading. ``host``: the fastest
+  render's time outside kernel launches (``Report.host_ms``: allocation, copies, numpy, Python), and its share.
 * CPU time (``time.process_time``, every thread of the process), least of the runs: ours = ``select`` +
   ``tessellate_patches`` + ``rasterize`` called directly as ``render`` calls them, gl = the draws above;
   the work done, which a loaded shared machine disturbs far less than wall time.
@@ -155,7 +156,8 @@ def measure(label: str, hm, cam, terrain, cfg: LodConfig, children: bool, reps: 
     dz = np.abs(f.depth[both] - gdep[both])
     r = {"frame": label, "tol": cfg.tolerance_px, "patches": len(pl), "triangles": f.mesh.n_triangles,
          "draws": len(ranges), **{f"{s}_ms": st[s].time_ms for s in STAGES}, "ours_ms": total,
-         "render_ms": t_render * 1e3,
+         "render_ms": t_render * 1e3, "host_ms": f.report.host_ms,
+         "host_pct": 100 * f.report.host_ms / f.report.render_ms,
          "gl_ms": t_gl * 1e3, "gl1_ms": t_gl1 * 1e3, "gl0_ms": t_gl0 * 1e3,
          "ours_cpu_ms": c_ours * 1e3, "gl_cpu_ms": c_gl * 1e3, "gl1_cpu_ms": c_gl1 * 1e3, "gl0_cpu_ms": c_gl0 * 1e3,
          "covered": int(cov.sum()), "cov_diff": int((cov != gcov).sum()), "patch_diff": int((pids != gids).sum()),
@@ -205,11 +207,11 @@ def main(argv=None) -> None:
     wall = md_table(
         ["frame", "sse tol px", "patches", "triangles", "draws", "select ms", "mesh ms", "raster ms", "ours ms",
          "gl ms", "gl / ours", "gl LP1 ms", "LP1 / ours", "gl LP0 ms", "LP0 / ours", "render() ms",
-         "gl / render()"],
+         "gl / render()", "host ms", "host %"],
         [[r["frame"], round(r["tol"], 4), r["patches"], r["triangles"], r["draws"], r["select_ms"], r["mesh_ms"],
           r["raster_ms"], r["ours_ms"], r["gl_ms"], r["gl_ms"] / r["ours_ms"], r["gl1_ms"],
           r["gl1_ms"] / r["ours_ms"], r["gl0_ms"], r["gl0_ms"] / r["ours_ms"], r["render_ms"],
-          r["gl_ms"] / r["render_ms"]] for r in rows])
+          r["gl_ms"] / r["render_ms"], r["host_ms"], r["host_pct"]] for r in rows])
     cpu = md_table(
         ["frame", "triangles", "ours CPU ms", "gl CPU ms", "gl LP1 CPU ms", "gl LP0 CPU ms", "gl LP0 CPU / ours CPU",
          "px covered", "coverage diff px", "patch diff px", "max abs dz"],
@@ -248,7 +250,8 @@ def main(argv=None) -> None:
         "gl / ours (> 1: we are faster). `render() ms` is the whole `render` call, best of the same runs: "
         "the three stages and the rest of the call; a depth-only scene makes no barycentric image (the "
         "pipeline computes it only for the shade and error stages), as llvmpipe's fragment shader here "
-        "interpolates nothing. Policy: "
+        "interpolates nothing. `host ms`: the fastest render's time outside kernel launches (`Report.host_ms`: "
+        "allocation, copies, numpy and Python between the launches) and its share of that render. Policy: "
         "screen-space error (`LodConfig` defaults: 16 roots, T = 16, equal spacing) at the tolerance shown. "
         "Camera `Camera.default_for` (the whole terrain in view); the fBm "
         "(`Heightmap.fbm(1025, seed=7, dx=10, max_height=800)`) tolerances are bisected for about 50k, 340k and "

@@ -29,6 +29,7 @@ that are not in the tree. Neighbour levels cost a few lookups per edge, linear i
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import warp as wp
@@ -526,9 +527,26 @@ class TreeWalk:
         """Record the walk's launch: the tree, then ``self._args`` (holding the per-frame ``inputs``, which
         :meth:`_run` writes)."""
         self._inputs, self._outputs = inputs, outputs
+        self._kernel = kernel
         self._cmd = record(kernel, 1, [*self.tree, *self._args], outputs, self.device)
         self._host_in = [a.numpy() for a in inputs] if self._cpu else None
         self._host_out = [a.numpy() for a in outputs] if self._cpu else None
+
+    def launch_cost(self, repeat: int = 200) -> tuple[float, float]:
+        """(µs per replay of the recorded launch, µs per ``wp.launch`` of the same launch, its arguments packed
+        again), best of ``repeat`` each, on the last frame's inputs: what recording saves per frame."""
+        args = [*self.tree, *self._args]
+        out = []
+        with self._lock:
+            for run in (lambda: self._cmd.launch(),
+                        lambda: wp.launch(self._kernel, dim=1, inputs=args, outputs=self._outputs, device=self.device)):
+                best = float("inf")
+                for _ in range(repeat):
+                    t0 = time.perf_counter()
+                    run()
+                    best = min(best, time.perf_counter() - t0)
+                out.append(best * 1e6)
+        return out[0], out[1]
 
     def _run(self, values: list) -> list[np.ndarray]:
         """Write ``values`` into the input arrays, replay the launch; the outputs as numpy (copy what is kept: the
