@@ -816,8 +816,8 @@ class QuadtreeWalk(TreeWalk):
         Returns:
             level, x, y (P,) int32 of the drawn leaves (inside the grid, not culled) in key order, their
             neighbours' levels (P, 4) int32 (-1 beyond the grid), distance, metric and geometric error (P,)
-            float32; the split nodes' (level, x, y) (S, 3) int32; and nodes visited, leaves, culled leaves,
-            forced splits.
+            float32, their keys (P,) int64 (level << 58 | y << 29 | x); the split nodes' (level, x, y) (S, 3)
+            int32; and nodes visited, leaves, culled leaves, forced splits.
         """
         prev = np.asarray(prev_split, np.int64)
         with self._lock:
@@ -835,4 +835,5 @@ class QuadtreeWalk(TreeWalk):
             order = np.argsort(key[:q])  # key order (the keys are distinct)
             patch, f = patch[order], f[order]
             return (patch[:, 0].copy(), patch[:, 1].copy(), patch[:, 2].copy(), patch[:, 3:7].copy(), f[:, 0].copy(),
-                    f[:, 1].copy(), f[:, 2].copy(), split[:ns].copy(), int(n[1]), int(n[2]), int(n[3]), int(n[4]))
+                    f[:, 1].copy(), f[:, 2].copy(), key[order], split[:ns].copy(), int(n[1]), int(n[2]), int(n[3]),
+                    int(n[4]))

@@ -439,14 +439,14 @@ def _select_in_one_launch(terrain: Terrain, camera: Camera, view: _View, policy:
     continuous = isinstance(policy, ContinuousPolicy)
     thresholds = np.array([0.0 if continuous else policy.threshold(lv, max(terrain.node_size_world(lv)))
                            for lv in range(depth + 1)], np.float32)
-    level, lx, ly, nbr, dist, metric, err, split, visited, leaves, culled, forced = walk.select(
+    level, lx, ly, nbr, dist, metric, err, keys, split, visited, leaves, culled, forced = walk.select(
         view.rel_origin, view.planes, thresholds, view.focal_px, float(policy.hysteresis),
         0 if continuous else policy.code, min(policy.level, depth) if continuous else -1, prev)
     if state is not None:
         state.split_keys = np.unique(tile_key(split[:, 0], split[:, 1], split[:, 2]))
         state.frames += 1
     return _assemble(terrain, camera, policy, level, lx, ly, dist, metric, nbr, err,
-                     {"nodes_visited": visited, "leaves": leaves, "culled": culled, "forced_splits": forced})
+                     {"nodes_visited": visited, "leaves": leaves, "culled": culled, "forced_splits": forced}, keys)
 
 
 def _descend(terrain: Terrain, view: _View, policy: Policy, prev: np.ndarray,
@@ -548,12 +548,14 @@ def _patch_list(terrain: Terrain, camera: Camera, policy: Policy, tree: _Tree, c
 
 
 def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarray, lx: np.ndarray, ly: np.ndarray,
-              dist: np.ndarray, metric: np.ndarray, nbr: np.ndarray, err: np.ndarray, counts: dict) -> PatchList:
+              dist: np.ndarray, metric: np.ndarray, nbr: np.ndarray, err: np.ndarray, counts: dict,
+              keys: np.ndarray | None = None) -> PatchList:
     """The PatchList of the drawn leaves (key order): world extents and edge factors; ``counts``: nodes_visited,
-    leaves, culled, forced_splits."""
+    leaves, culled, forced_splits; ``keys``: their tile keys when known."""
     hm = terrain.heightmap
     nx, nz = terrain.roots
-    keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
+    if keys is None:
+        keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
     s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
     origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
     origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
