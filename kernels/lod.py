@@ -1,4 +1,10 @@
-"""Per-node LOD maths for quadtree selection: one launch per level over that level's candidate nodes.
+"""Per-node LOD maths for quadtree selection, and the quadtree walked in one launch.
+
+Two ways to select: :func:`select_level`, one launch per level over that level's candidate nodes (the path of a
+streamed terrain, whose node stats are worked out on demand), and :class:`TreeWalk` (:class:`QuadtreeWalk`, and
+CDLOD's and chunked LOD's in :mod:`.schemes`): one thread walks the whole tree in one recorded, replayed launch,
+with the same per-node maths (:func:`node_box`, :func:`box_distance`, :func:`screen_error`, :func:`box_outside`),
+so both make the same selection.
 
 For each node: its box (x/z extent, min/max height) relative to the eye, the distance from the eye to
 the box (0 when the eye is inside it: a defined case, never a division by zero), a frustum test of
@@ -24,6 +30,7 @@ nodes row-major after the levels above it, like the terrain's per-level pyramids
 for a leaf, ``-1`` for a split node and 0 for a node inside a coarser leaf. The leaf containing any
 finest-level cell is then found by walking from a guessed level: down through split nodes, up through nodes
 that are not in the tree. Neighbour levels cost a few lookups per edge, linear in the number of leaves.
+:class:`QuadtreeWalk` keeps one dense map per terrain, all 0 between frames (each walk clears what it marked).
 """
 
 from __future__ import annotations

@@ -395,7 +395,10 @@ def _root_grid(terrain: Terrain) -> tuple[np.ndarray, np.ndarray]:
 
 def select(terrain: Terrain, camera: Camera, policy: Policy | None = None, state: LodState | None = None,
            device: str = "cpu") -> PatchList:
-    """Select the visible patches of a frame.
+    """Select the visible patches of a frame: the descent from the roots, the 2:1 balance, the neighbours' levels
+    and the edge factors; in one launch for an in-memory terrain whose complete tree fits a dense tree map
+    (:class:`terrainwarp.kernels.lod.QuadtreeWalk`), else level by level (a streamed terrain); the same patches
+    either way.
 
     Args:
         terrain: the prepared terrain (:meth:`Terrain.prepare`).
