@@ -2,9 +2,9 @@
 
 Two ways to select: :func:`select_level`, one launch per level over that level's candidate nodes (the path of a
 streamed terrain, whose node stats are worked out on demand), and :class:`TreeWalk` (:class:`QuadtreeWalk`, and
-CDLOD's and chunked LOD's in :mod:`.schemes`): one thread walks the whole tree in one recorded, replayed launch,
-with the same per-node maths (:func:`node_box`, :func:`box_distance`, :func:`screen_error`, :func:`box_outside`),
-so both make the same selection.
+CDLOD's and chunked LOD's in :mod:`terrainwarp.kernels.schemes`): one thread walks the whole tree in one
+recorded, replayed launch, with the same per-node maths (:func:`node_box`, :func:`box_distance`,
+:func:`screen_error`, :func:`box_outside`), so both make the same selection.
 
 For each node: its box (x/z extent, min/max height) relative to the eye, the distance from the eye to
 the box (0 when the eye is inside it: a defined case, never a division by zero), a frustum test of
