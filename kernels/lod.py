@@ -497,17 +497,40 @@ def push_children(front: wp.array3d(dtype=wp.int32), p: int, n: int, code: wp.ar
     return m
 
 
+@wp.struct
+class QuadTree:
+    """A terrain's quadtree as the one-launch walks read it: every level's node minima, maxima and geometric errors,
+    level after level (rows of ``roots[0] << level`` nodes from ``level_start[level]``), per level the columns and
+    rows of nodes whose origin lies inside the grid, the root grid, the deepest level and the node size in metres
+    (float32, the box test's)."""
+
+    hmin: wp.array(dtype=wp.float32)
+    hmax: wp.array(dtype=wp.float32)
+    herr: wp.array(dtype=wp.float32)
+    level_start: wp.array(dtype=wp.int32)
+    inside: wp.array(dtype=wp.vec2i)
+    roots: wp.vec2i
+    depth: int
+    size32: wp.array(dtype=wp.vec2)
+
+
+@wp.func
+def node_index(qt: QuadTree, lv: int, x: int, y: int) -> int:
+    """Where node (lv, x, y) lies in the tree's per-level arrays."""
+    return qt.level_start[lv] + y * (qt.roots[0] << lv) + x
+
+
 class TreeWalk:
-    """A quadtree walked by one thread in one launch (CDLOD's and chunked LOD's selections), as their references
-    walk it in one recursion. Built once per terrain: the per-level pyramids as one array each, the per-level
-    tables and the frame's buffers, with the launch recorded once (:func:`.parallel.record`) and replayed per
-    frame, the frame's inputs written into its input arrays. One selection runs at a time (a lock)."""
+    """A quadtree walked by one thread in one launch (the quadtree policies', CDLOD's and chunked LOD's selections),
+    as their references walk it in one recursion. Built once per terrain: the tree (:class:`QuadTree`) and the
+    frame's buffers, with the launch recorded once (:func:`.parallel.record`) and replayed per frame, the frame's
+    inputs written into its input arrays. One selection runs at a time (a lock)."""
 
     def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
-                 device: str, pyramids: int) -> None:
-        """``stats``: per level (min, max, geometric error) arrays (nz << L, nx << L), the first ``pyramids`` of
-        them read; ``inside``: (depth + 1, 2) int, per level the columns and rows of nodes whose origin lies inside
-        the grid; ``sizes``: per level node size in metres (float64)."""
+                 device: str) -> None:
+        """``stats``: per level (min, max, geometric error) arrays (nz << L, nx << L); ``inside``: (depth + 1, 2)
+        int, per level the columns and rows of nodes whose origin lies inside the grid; ``sizes``: per level node
+        size in metres (float64)."""
         self.levels = len(stats)
         ins = np.ascontiguousarray(inside, np.int32)
         self.capacity = cap = 4 * (int(ins[-1, 0]) * int(ins[-1, 1]) + 1)  # 4 quadrants per finest node inside
@@ -518,11 +541,14 @@ class TreeWalk:
             return wp.array(np.concatenate([np.ascontiguousarray(a[k], np.float32).reshape(-1) for a in stats]),
                             dtype=wp.float32, device=device)
 
-        self.tree = [*(pyramid(k) for k in range(pyramids)),
-                     wp.array(np.cumsum([0] + [a[0].size for a in stats[:-1]]).astype(np.int32), dtype=wp.int32,
-                              device=device),
-                     wp.array(ins, dtype=wp.vec2i, device=device), wp.vec2i(int(roots[0]), int(roots[1])),
-                     self.levels - 1, wp.array(sz.astype(np.float32), dtype=wp.vec2, device=device)]
+        t = QuadTree()
+        t.hmin, t.hmax, t.herr = pyramid(0), pyramid(1), pyramid(2)
+        t.level_start = wp.array(np.cumsum([0] + [a[0].size for a in stats[:-1]]).astype(np.int32), dtype=wp.int32,
+                                 device=device)
+        t.inside = wp.array(ins, dtype=wp.vec2i, device=device)
+        t.roots, t.depth = wp.vec2i(int(roots[0]), int(roots[1])), self.levels - 1
+        t.size32 = wp.array(sz.astype(np.float32), dtype=wp.vec2, device=device)
+        self.tree = t
         self.size64 = wp.array(sz, dtype=wp.vec2d, device=device)
         self.scratch = [wp.empty((2, max(cap, n_roots), 2), dtype=wp.int32, device=device),
                         wp.empty(max(cap, n_roots), dtype=wp.int32, device=device)]
@@ -535,14 +561,14 @@ class TreeWalk:
         :meth:`_run` writes)."""
         self._inputs, self._outputs = inputs, outputs
         self._kernel = kernel
-        self._cmd = record(kernel, 1, [*self.tree, *self._args], outputs, self.device)
+        self._cmd = record(kernel, 1, [self.tree, *self._args], outputs, self.device)
         self._host_in = [a.numpy() for a in inputs] if self._cpu else None
         self._host_out = [a.numpy() for a in outputs] if self._cpu else None
 
     def launch_cost(self, repeat: int = 200) -> tuple[float, float]:
         """(µs per replay of the recorded launch, µs per ``wp.launch`` of the same launch, its arguments packed
         again), best of ``repeat`` each, on the last frame's inputs: what recording saves per frame."""
-        args = [*self.tree, *self._args]
+        args = [self.tree, *self._args]
         out = []
         with self._lock:
             for run in (lambda: self._cmd.launch(),
@@ -587,28 +613,21 @@ def _add_node(nodes: wp.array2d(dtype=wp.int32), dm: wp.array2d(dtype=wp.float32
 
 
 @wp.func
-def _evaluate_node(hmin: wp.array(dtype=wp.float32), hmax: wp.array(dtype=wp.float32),
-                   herr: wp.array(dtype=wp.float32), k: int, rel: wp.vec3, size: wp.vec2, x: int, y: int,
-                   planes: wp.array(dtype=wp.vec4), code: int, focal: float):
-    """(culled, distance, metric) of a node, as :func:`_select_kernel` works them out."""
-    lo, hi = node_box(rel, size, x, y, hmin[k], hmax[k])
+def _evaluate_node(qt: QuadTree, lv: int, x: int, y: int, rel: wp.vec3, planes: wp.array(dtype=wp.vec4), code: int,
+                   focal: float):
+    """(culled, distance, metric) of node (lv, x, y), as :func:`_select_kernel` works them out."""
+    k = node_index(qt, lv, x, y)
+    lo, hi = node_box(rel, qt.size32[lv], x, y, qt.hmin[k], qt.hmax[k])
     dist = box_distance(lo, hi)
     metric = dist
     if code != 0:
-        metric = screen_error(herr[k], dist, focal)
+        metric = screen_error(qt.herr[k], dist, focal)
     return box_outside(planes, lo, hi), dist, metric
 
 
 @wp.kernel(enable_backward=False)
 def _quadtree_select_kernel(
-    hmin: wp.array(dtype=wp.float32),
-    hmax: wp.array(dtype=wp.float32),
-    herr: wp.array(dtype=wp.float32),
-    level_start: wp.array(dtype=wp.int32),
-    inside: wp.array(dtype=wp.vec2i),
-    roots: wp.vec2i,
-    depth: int,
-    size32: wp.array(dtype=wp.vec2),
+    qt: QuadTree,
     eye: wp.array(dtype=wp.vec3),
     planes: wp.array(dtype=wp.vec4),
     thresholds: wp.array(dtype=wp.float32),
@@ -639,13 +658,13 @@ def _quadtree_select_kernel(
     pcode = ints[0]
     fixed = ints[1]
     n_prev = ints[2]
-    n = walk_roots(front, roots)
+    n = walk_roots(front, qt.roots)
     p = int(0)
     nn = int(0)  # nodes of the tiling
     ns = int(0)  # split nodes
     visited = int(0)
-    for lvl in range(depth + 1):
-        cnt = inside[lvl]
+    for lvl in range(qt.depth + 1):
+        cnt = qt.inside[lvl]
         m = int(0)
         for i in range(n):  # outside the grid: a leaf that only completes the tiling
             x = front[p, i, 0]
@@ -661,17 +680,14 @@ def _quadtree_select_kernel(
         if n == 0:
             break
         visited += n
-        base = level_start[lvl]
-        width = roots[0] << lvl
         thr0 = thresholds[lvl]
-        can = lvl < depth
+        can = lvl < qt.depth
         if fixed >= 0:
             can = lvl < fixed
         for i in range(n):
             x = front[p, i, 0]
             y = front[p, i, 1]
-            culled, dist, metric = _evaluate_node(hmin, hmax, herr, base + y * width + x, rel, size32[lvl], x, y,
-                                                  planes, pcode, focal)
+            culled, dist, metric = _evaluate_node(qt, lvl, x, y, rel, planes, pcode, focal)
             was = False
             if n_prev > 0:
                 was = _was_split(prev, n_prev, _tile_key(lvl, x, y))
@@ -691,24 +707,24 @@ def _quadtree_select_kernel(
                 out_split[ns, 1] = x
                 out_split[ns, 2] = y
                 ns += 1
-                tree.dense[_tree_cell(lvl, x, y, roots[0], roots[0] * roots[1])] = -1
+                tree.dense[_tree_cell(lvl, x, y, qt.roots[0], qt.roots[0] * qt.roots[1])] = -1
             else:
                 _add_node(nodes, dm, nn, lvl, x, y, 4 + culled, dist, metric)
                 nn += 1
         n = push_children(front, p, n, code, 1)
         p = 1 - p
-    n_roots = roots[0] * roots[1]
+    n_roots = qt.roots[0] * qt.roots[1]
     for j in range(nn):
-        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = j + 1
+        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.roots[0], n_roots)] = j + 1
         level_of[j] = nodes[j, 0]
     # 2:1 balance: every pass splits at once the leaves with a neighbour more than one level finer
     first_child = nn
     forced = int(0)
-    for _ in range(4 * (depth + 1) + 8):
+    for _ in range(4 * (qt.depth + 1) + 8):
         nb = int(0)
         for j in range(nn):
             if nodes[j, 3] == 4 or nodes[j, 3] == 5:  # alive, inside the grid
-                e = edge_levels(tree, level_of, nodes[j, 0], nodes[j, 1], nodes[j, 2], depth, roots[1])
+                e = edge_levels(tree, level_of, nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.depth, qt.roots[1])
                 if wp.max(wp.max(e[0], e[1]), wp.max(e[2], e[3])) > nodes[j, 0] + 1:
                     bad[nb] = j
                     nb += 1
@@ -723,8 +739,8 @@ def _quadtree_select_kernel(
             out_split[ns, 1] = nodes[j, 1]
             out_split[ns, 2] = nodes[j, 2]
             ns += 1
-            tree.dense[_tree_cell(lv, nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = -1
-            cnt = inside[lv + 1]
+            tree.dense[_tree_cell(lv, nodes[j, 1], nodes[j, 2], qt.roots[0], n_roots)] = -1
+            cnt = qt.inside[lv + 1]
             for c in range(4):
                 x = 2 * nodes[j, 1] + c % 2
                 y = 2 * nodes[j, 2] + c / 2
@@ -733,7 +749,7 @@ def _quadtree_select_kernel(
                     flags = 6
                 _add_node(nodes, dm, nn, lv + 1, x, y, flags, 0.0, 0.0)
                 level_of[nn] = lv + 1
-                tree.dense[_tree_cell(lv + 1, x, y, roots[0], n_roots)] = nn + 1
+                tree.dense[_tree_cell(lv + 1, x, y, qt.roots[0], n_roots)] = nn + 1
                 nn += 1
     for j in range(first_child, nn):  # the balance's children that stayed leaves: their own stats
         if nodes[j, 3] >= 4:
@@ -743,8 +759,7 @@ def _quadtree_select_kernel(
             ccode = pcode
             if fixed >= 0:
                 ccode = 0
-            culled, dist, metric = _evaluate_node(hmin, hmax, herr, level_start[lv] + y * (roots[0] << lv) + x, rel,
-                                                  size32[lv], x, y, planes, ccode, focal)
+            culled, dist, metric = _evaluate_node(qt, lv, x, y, rel, planes, ccode, focal)
             nodes[j, 3] = nodes[j, 3] | culled
             dm[j, 0] = dist
             dm[j, 1] = metric
@@ -763,7 +778,7 @@ def _quadtree_select_kernel(
             lv = nodes[j, 0]
             x = nodes[j, 1]
             y = nodes[j, 2]
-            e = edge_levels(tree, level_of, lv, x, y, depth, roots[1])
+            e = edge_levels(tree, level_of, lv, x, y, qt.depth, qt.roots[1])
             out_patch[q, 0] = lv
             out_patch[q, 1] = x
             out_patch[q, 2] = y
@@ -771,13 +786,13 @@ def _quadtree_select_kernel(
                 out_patch[q, 3 + k] = e[k]
             out_f[q, 0] = dm[j, 0]
             out_f[q, 1] = dm[j, 1]
-            out_f[q, 2] = herr[level_start[lv] + y * (roots[0] << lv) + x]
+            out_f[q, 2] = qt.herr[node_index(qt, lv, x, y)]
             out_key[q] = _tile_key(lv, x, y)
             q += 1
     for j in range(nn):  # the map all 0 again
-        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], roots[0], n_roots)] = 0
+        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.roots[0], n_roots)] = 0
     for j in range(ns):
-        tree.dense[_tree_cell(out_split[j, 0], out_split[j, 1], out_split[j, 2], roots[0], n_roots)] = 0
+        tree.dense[_tree_cell(out_split[j, 0], out_split[j, 1], out_split[j, 2], qt.roots[0], n_roots)] = 0
     out_n[0] = wp.int64(q)
     out_n[1] = wp.int64(visited)
     out_n[2] = wp.int64(leaves)
@@ -792,7 +807,7 @@ class QuadtreeWalk(TreeWalk):
 
     def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
                  device: str = "cpu") -> None:
-        super().__init__(stats, inside, roots, sizes, device, 3)
+        super().__init__(stats, inside, roots, sizes, device)
         depth = self.levels - 1
         self.tree_map = TreeMapHost(roots, depth, device)
         if self.tree_map.sparse:

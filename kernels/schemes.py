@@ -20,7 +20,18 @@ import numpy as np
 import warp as wp
 
 from .displacement import write_quad
-from .lod import TreeWalk, box_distance, box_outside, keep_inside, node_box, push_children, screen_error, walk_roots
+from .lod import (
+    QuadTree,
+    TreeWalk,
+    box_distance,
+    box_outside,
+    keep_inside,
+    node_box,
+    node_index,
+    push_children,
+    screen_error,
+    walk_roots,
+)
 from .parallel import empty, launch, scan, view
 from .sampling import sample_bilinear
 
@@ -445,14 +456,7 @@ def _farther_than(x: int, y: int, size: wp.vec2d, rel: wp.vec3d, mn: float, mx: 
 
 @wp.kernel(enable_backward=False)
 def _chunk_select_kernel(
-    hmin: wp.array(dtype=wp.float32),
-    hmax: wp.array(dtype=wp.float32),
-    herr: wp.array(dtype=wp.float32),
-    level_start: wp.array(dtype=wp.int32),
-    inside: wp.array(dtype=wp.vec2i),
-    roots: wp.vec2i,
-    depth: int,
-    size32: wp.array(dtype=wp.vec2),
+    qt: QuadTree,
     eye: wp.array(dtype=wp.vec3),
     planes: wp.array(dtype=wp.vec4),
     view: wp.array(dtype=wp.float32),
@@ -473,26 +477,26 @@ def _chunk_select_kernel(
     rel = eye[0]
     max_sse = view[0]
     focal = view[1]
-    n = walk_roots(front, roots)
+    n = walk_roots(front, qt.roots)
     p = int(0)
     q = int(0)
     visited = int(0)
-    for lvl in range(depth + 1):
-        n = keep_inside(front, p, n, inside[lvl])
+    for lvl in range(qt.depth + 1):
+        n = keep_inside(front, p, n, qt.inside[lvl])
         if n == 0:
             break
         visited += n
-        base = level_start[lvl]
-        width = roots[0] << lvl
+        base = qt.level_start[lvl]
+        width = qt.roots[0] << lvl
         for i in range(n):  # 0 a leaf in view, 1 a culled leaf, 2 split
             x = front[p, i, 0]
             y = front[p, i, 1]
             k = base + y * width + x
-            lo, hi = node_box(rel, size32[lvl], x, y, hmin[k], hmax[k])
+            lo, hi = node_box(rel, qt.size32[lvl], x, y, qt.hmin[k], qt.hmax[k])
             kind = int(0)
             if box_outside(planes, lo, hi) != 0:
                 kind = 1
-            elif lvl < depth and screen_error(herr[k], box_distance(lo, hi), focal) > max_sse:
+            elif lvl < qt.depth and screen_error(qt.herr[k], box_distance(lo, hi), focal) > max_sse:
                 kind = 2
             code[i] = kind
             if kind != 2:
@@ -505,14 +509,14 @@ def _chunk_select_kernel(
         p = 1 - p
     for j in range(q):  # every leaf, culled or not, marked on the map
         lv = out_leaf[j, 0]
-        leaf_map[level_start[lv] + out_leaf[j, 2] * (roots[0] << lv) + out_leaf[j, 1]] = j + 1
+        leaf_map[node_index(qt, lv, out_leaf[j, 1], out_leaf[j, 2])] = j + 1
     for j in range(q):
         lv = out_leaf[j, 0]
-        shift = depth - lv
+        shift = qt.depth - lv
         fx0 = out_leaf[j, 1] << shift
         fy0 = out_leaf[j, 2] << shift
         size = 1 << shift
-        out_err[j, 4] = herr[level_start[lv] + out_leaf[j, 2] * (roots[0] << lv) + out_leaf[j, 1]]
+        out_err[j, 4] = qt.herr[node_index(qt, lv, out_leaf[j, 1], out_leaf[j, 2])]
         for e in range(4):  # the finest cell just outside the edge's first one: west, north, east, south
             fx = fx0
             fy = fy0
@@ -525,19 +529,19 @@ def _chunk_select_kernel(
             else:
                 fy = fy0 + size
             found = int(-1)
-            if fx >= 0 and fy >= 0 and fx < (roots[0] << depth) and fy < (roots[1] << depth):
-                for k in range(depth + 1):  # the leaf holding it: the one level where its ancestor is a leaf
+            if fx >= 0 and fy >= 0 and fx < (qt.roots[0] << qt.depth) and fy < (qt.roots[1] << qt.depth):
+                for k in range(qt.depth + 1):  # the leaf holding it: the one level where its ancestor is a leaf
                     if found < 0:
-                        if leaf_map[level_start[k] + (fy >> (depth - k)) * (roots[0] << k) + (fx >> (depth - k))] != 0:
+                        if leaf_map[node_index(qt, k, fx >> (qt.depth - k), fy >> (qt.depth - k))] != 0:
                             found = k
             out_nbr[j, e] = found
             err = float(0.0)
             if found >= 0:  # a finer neighbour: the chunk-sized node holding it
                 at = wp.min(found, lv)
-                err = herr[level_start[at] + (fy >> (depth - at)) * (roots[0] << at) + (fx >> (depth - at))]
+                err = qt.herr[node_index(qt, at, fx >> (qt.depth - at), fy >> (qt.depth - at))]
             out_err[j, e] = err
     d = int(0)
-    cells = level_start[depth] + (roots[0] * roots[1] << (2 * depth))
+    cells = qt.level_start[qt.depth] + (qt.roots[0] * qt.roots[1] << (2 * qt.depth))
     for cell in range(cells):  # the drawn chunks in key order: the map level by level, row-major
         v = leaf_map[cell]
         if v > 0:
@@ -558,13 +562,7 @@ def _chunk_select_kernel(
 
 @wp.kernel(enable_backward=False)
 def _cdlod_select_kernel(
-    hmin: wp.array(dtype=wp.float32),
-    hmax: wp.array(dtype=wp.float32),
-    level_start: wp.array(dtype=wp.int32),
-    inside: wp.array(dtype=wp.vec2i),
-    roots: wp.vec2i,
-    depth: int,
-    size32: wp.array(dtype=wp.vec2),
+    qt: QuadTree,
     size64: wp.array(dtype=wp.vec2d),
     eye: wp.array(dtype=wp.vec3),
     eye64: wp.array(dtype=wp.vec3d),
@@ -583,7 +581,7 @@ def _cdlod_select_kernel(
     """One thread walks the tree level by level (see :meth:`CdlodTree.select`)."""
     rel = eye[0]
     rel64 = eye64[0]
-    n = walk_roots(front, roots)
+    n = walk_roots(front, qt.roots)
     p = int(0)
     q = int(0)  # quadrants emitted
     o = int(0)  # entries of the draw order
@@ -593,15 +591,15 @@ def _cdlod_select_kernel(
     too_small = int(0)
     wholes = int(0)
     singles = int(0)
-    for lvl in range(depth + 1):
-        lod = depth - lvl
-        n = keep_inside(front, p, n, inside[lvl])
+    for lvl in range(qt.depth + 1):
+        lod = qt.depth - lvl
+        n = keep_inside(front, p, n, qt.inside[lvl])
         if n == 0:
             break
         visited += n
-        base = level_start[lvl]
-        width = roots[0] << lvl
-        sz = size32[lvl]
+        base = qt.level_start[lvl]
+        width = qt.roots[0] << lvl
+        sz = qt.size32[lvl]
         r_in = ranges[lod, 0]
         r_split = wp.float64(-1.0)
         if lod > 0:
@@ -611,7 +609,7 @@ def _cdlod_select_kernel(
             x = front[p, i, 0]
             y = front[p, i, 1]
             k = base + y * width + x
-            lo, hi = node_box(rel, sz, x, y, hmin[k], hmax[k])
+            lo, hi = node_box(rel, sz, x, y, qt.hmin[k], qt.hmax[k])
             dist = wp.float64(box_distance(lo, hi))
             kind = int(0)
             if box_outside(planes, lo, hi) != 0:
@@ -657,7 +655,7 @@ def _cdlod_select_kernel(
                 j += 1
                 if lod + 1 < levels:
                     k = base + y * width + x
-                    too_small += _farther_than(x, y, size64[lvl], rel64, hmin[k], hmax[k], ranges[lod + 1, 1])
+                    too_small += _farther_than(x, y, size64[lvl], rel64, qt.hmin[k], qt.hmax[k], ranges[lod + 1, 1])
         q += 4 * n_whole
         wholes += n_whole
         n = push_children(front, p, n, code, 3)
@@ -846,7 +844,7 @@ class CdlodTree(TreeWalk):
     def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], root_cells: float,
                  sizes: list[tuple[float, float]], grid: int, device: str = "cpu") -> None:
         """As :class:`TreeWalk`; ``root_cells``: a root node's side in cells; ``grid``: quads per node side."""
-        super().__init__(stats, inside, roots, sizes, device, 2)
+        super().__init__(stats, inside, roots, sizes, device)
         self.grid = int(grid)
         cap = self.capacity
         inputs = [empty(1, wp.vec3, device), empty(1, wp.vec3d, device), empty(6, wp.vec4, device),
@@ -893,7 +891,7 @@ class ChunkTree(TreeWalk):
 
     def __init__(self, stats: list, inside: np.ndarray, roots: tuple[int, int], sizes: list[tuple[float, float]],
                  device: str = "cpu") -> None:
-        super().__init__(stats, inside, roots, sizes, device, 3)
+        super().__init__(stats, inside, roots, sizes, device)
         inputs = [empty(1, wp.vec3, device), empty(6, wp.vec4, device), empty(2, wp.float32, device)]
         nodes = sum(a[0].size for a in stats)
         self._args = [*inputs, *self.scratch, wp.zeros(nodes, dtype=wp.int32, device=device)]
