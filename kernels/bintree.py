@@ -618,7 +618,7 @@ class Walk:
                     "grid_id": wp.empty(g1 * g1, dtype=wp.int32, device=device),
                     "counts": wp.zeros(4, dtype=wp.int32, device=device)}
         self.launch = record(_walk_kernel, dim=1, inputs=[f, *self.scratch], outputs=list(self.out.values()),
-                                device=device)
+                             device=device)
         self._views = None  # on the CPU, numpy views of the arrays: uploads and read-backs skip Warp
         if self.device.is_cpu:
             self._views = {k: a.numpy() for k, a in [*self.out.items(), ("planes", self.planes), ("vis", self.vis)]}

@@ -468,6 +468,13 @@ def walk_roots(front: wp.array3d(dtype=wp.int32), roots: wp.vec2i) -> int:
 
 
 @wp.func
+def is_inside(cnt: wp.vec2i, x: int, y: int) -> wp.bool:
+    """Node (x, y) of a level with ``cnt`` columns and rows of nodes inside the grid has its origin inside (the
+    first root always), as the host's ``Terrain.inside``."""
+    return (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0)
+
+
+@wp.func
 def keep_inside(front: wp.array3d(dtype=wp.int32), p: int, n: int, cnt: wp.vec2i) -> int:
     """Frontier ``p`` compacted to the nodes whose origin lies inside the grid (and the first root); returns
     their count."""
@@ -475,7 +482,7 @@ def keep_inside(front: wp.array3d(dtype=wp.int32), p: int, n: int, cnt: wp.vec2i
     for i in range(n):
         x = front[p, i, 0]
         y = front[p, i, 1]
-        if (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0):
+        if is_inside(cnt, x, y):
             front[p, m, 0] = x
             front[p, m, 1] = y
             m += 1
@@ -533,8 +540,7 @@ class TreeWalk:
         size in metres (float64)."""
         self.levels = len(stats)
         ins = np.ascontiguousarray(inside, np.int32)
-        self.capacity = cap = 4 * (int(ins[-1, 0]) * int(ins[-1, 1]) + 1)  # 4 quadrants per finest node inside
-        n_roots = int(roots[0]) * int(roots[1])
+        self.capacity = 4 * (int(ins[-1, 0]) * int(ins[-1, 1]) + 1)  # 4 quadrants per finest node inside
         sz = np.asarray(sizes, np.float64)
 
         def pyramid(k: int) -> wp.array:
@@ -549,12 +555,14 @@ class TreeWalk:
         t.roots, t.depth = wp.vec2i(int(roots[0]), int(roots[1])), self.levels - 1
         t.size32 = wp.array(sz.astype(np.float32), dtype=wp.vec2, device=device)
         self.tree = t
-        self.size64 = wp.array(sz, dtype=wp.vec2d, device=device)
-        self.scratch = [wp.empty((2, max(cap, n_roots), 2), dtype=wp.int32, device=device),
-                        wp.empty(max(cap, n_roots), dtype=wp.int32, device=device)]
         self._lock = threading.Lock()
         self._cpu = wp.get_device(device).is_cpu
         self.device = device
+
+    def _frontier(self, n: int) -> list[wp.array]:
+        """The walk's scratch for frontiers of up to ``n`` nodes: two frontiers of (x, y) and a code per node."""
+        return [wp.empty((2, n, 2), dtype=wp.int32, device=self.device),
+                wp.empty(n, dtype=wp.int32, device=self.device)]
 
     def _record(self, kernel: wp.Kernel, inputs: list, outputs: list) -> None:
         """Record the walk's launch: the tree, then ``self._args`` (holding the per-frame ``inputs``, which
@@ -669,7 +677,7 @@ def _quadtree_select_kernel(
         for i in range(n):  # outside the grid: a leaf that only completes the tiling
             x = front[p, i, 0]
             y = front[p, i, 1]
-            if (x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0):
+            if is_inside(cnt, x, y):
                 front[p, m, 0] = x
                 front[p, m, 1] = y
                 m += 1
@@ -745,7 +753,7 @@ def _quadtree_select_kernel(
                 x = 2 * nodes[j, 1] + c % 2
                 y = 2 * nodes[j, 2] + c / 2
                 flags = int(4)
-                if not ((x < cnt[0] and y < cnt[1]) or (x == 0 and y == 0)):
+                if not is_inside(cnt, x, y):
                     flags = 6
                 _add_node(nodes, dm, nn, lv + 1, x, y, flags, 0.0, 0.0)
                 level_of[nn] = lv + 1
@@ -815,8 +823,7 @@ class QuadtreeWalk(TreeWalk):
         cells = self.tree_map.cells
         inputs = [empty(1, wp.vec3, device), empty(6, wp.vec4, device), empty(self.levels, wp.float32, device),
                   empty(2, wp.float32, device), empty(3, wp.int32, device), empty(cells, wp.int64, device)]
-        self._args = [*inputs, wp.empty((2, cells, 2), dtype=wp.int32, device=device),
-                      wp.empty(cells, dtype=wp.int32, device=device), self.tree_map.view(),
+        self._args = [*inputs, *self._frontier(cells), self.tree_map.view(),
                       wp.empty((cells, 4), dtype=wp.int32, device=device),
                       wp.empty((cells, 2), dtype=wp.float32, device=device),
                       wp.empty(cells, dtype=wp.int32, device=device), wp.empty(cells, dtype=wp.int32, device=device)]

@@ -1285,7 +1285,7 @@ def triangulate_tiling(heights: np.ndarray, rects: np.ndarray, label: np.ndarray
     m = int(off.numpy()[p])
     tri = wp.zeros((max(m, 1), 3), dtype=wp.int32, device=device)
     launch_one(_tri_emit_kernel, dim=p, inputs=[h, lab, r, off, remap, float(dx), float(dz)], outputs=[tri],
-              device=device)
+               device=device)
     used_np = used.numpy()[:hh * ww]
     vid = np.flatnonzero(used_np)
     verts = np.stack([vid // ww, vid % ww], 1).astype(np.int32)

@@ -427,9 +427,7 @@ def _clipmap_stitch_kernel(
 
 
 # ------------------------------------------------------------------------------------------------
-# host wrappers
-# ------------------------------------------------------------------------------------------------
-# CDLOD selection: the whole quadtree walk in one launch
+# kernels: CDLOD's and chunked LOD's selections, the whole quadtree walked in one launch
 # ------------------------------------------------------------------------------------------------
 @wp.func
 def _cdlod_item(out_item: wp.array2d(dtype=wp.float32), out_int: wp.array2d(dtype=wp.int32), i: int,
@@ -670,6 +668,8 @@ def _cdlod_select_kernel(
 
 
 # ------------------------------------------------------------------------------------------------
+# host wrappers
+# ------------------------------------------------------------------------------------------------
 MeshArrays = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
@@ -849,7 +849,8 @@ class CdlodTree(TreeWalk):
         cap = self.capacity
         inputs = [empty(1, wp.vec3, device), empty(1, wp.vec3d, device), empty(6, wp.vec4, device),
                   empty((self.levels, 2), wp.float64, device)]
-        self._args = [self.size64, *inputs, self.levels, float(root_cells), self.grid, *self.scratch]
+        self._args = [wp.array(np.asarray(sizes, np.float64), dtype=wp.vec2d, device=device), *inputs, self.levels,
+                      float(root_cells), self.grid, *self._frontier(max(cap, int(roots[0]) * int(roots[1])))]
         self._record(_cdlod_select_kernel, inputs,
                      [empty((cap, 4), wp.float32, device), empty((cap, 4), wp.int32, device),
                       empty(8, wp.int64, device)])
@@ -894,8 +895,9 @@ class ChunkTree(TreeWalk):
         super().__init__(stats, inside, roots, sizes, device)
         inputs = [empty(1, wp.vec3, device), empty(6, wp.vec4, device), empty(2, wp.float32, device)]
         nodes = sum(a[0].size for a in stats)
-        self._args = [*inputs, *self.scratch, wp.zeros(nodes, dtype=wp.int32, device=device)]
         cap = self.capacity
+        self._args = [*inputs, *self._frontier(max(cap, int(roots[0]) * int(roots[1]))),
+                      wp.zeros(nodes, dtype=wp.int32, device=device)]
         self._args += [wp.empty((cap, 4), dtype=wp.int32, device=device),
                        wp.empty((cap, 4), dtype=wp.int32, device=device),
                        wp.empty((cap, 5), dtype=wp.float32, device=device)]
@@ -903,7 +905,7 @@ class ChunkTree(TreeWalk):
                                                     empty((cap, 5), wp.float32, device), empty(3, wp.int64, device)])
 
     def select(self, rel_origin: tuple[float, float, float], planes: np.ndarray, max_sse_px: float,
-               focal_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+               focal_px: float) -> tuple[np.ndarray, ...]:
         """The leaves for one camera: per level, the nodes whose origin lies inside the grid are tested; a node
         whose box is outside the frustum is a culled leaf; one whose screen-space error (its geometric error
         times ``focal_px`` over its box's distance, float32) exceeds ``max_sse_px`` is split, below the deepest
