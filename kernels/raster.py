@@ -930,7 +930,6 @@ def _tile_kernel(
 def _resolve_ids_kernel(
     offset: int,
     part: int,
-    bands: wp.array(dtype=wp.int32),
     dirty: wp.array(dtype=wp.int32),
     width: int,
     height: int,
@@ -940,12 +939,12 @@ def _resolve_ids_kernel(
     out_depth: wp.array(dtype=wp.float32),
     out_covered: wp.array(dtype=wp.int64),
 ):
-    """Decode the depth|id keys of the flagged screen tiles (``dirty``) of one band of TILE window rows
-    (``bands``) into the triangle id and window depth of each drawn pixel, and set the key back to empty:
-    unflagged tiles hold no drawn key, so the buffer is then clear for the next frame. Row by row (memory
-    order); every pixel of the band is written, background as -1 and 1.0. Covered pixels are counted into
-    ``out_covered[part]``."""
-    ty = bands[wp.tid() + offset]
+    """Decode the depth|id keys of the flagged screen tiles (``dirty``) of one band of TILE window rows (band
+    ``ty``, from window row 0 up) into the triangle id and window depth of each drawn pixel, and set the key back
+    to empty: unflagged tiles hold no drawn key, so the buffer is then clear for the next frame. Row by row
+    (memory order); every pixel of the band is written, background as -1 and 1.0. Covered pixels are counted
+    into ``out_covered[part]``."""
+    ty = wp.tid() + offset
     tiles_x = (width + TILE - 1) / TILE
     covered = wp.int64(0)
     for y in range(ty * TILE, wp.min(ty * TILE + TILE, height)):
@@ -1212,6 +1211,13 @@ def _image(shape: tuple[int, ...], dtype: type) -> np.ndarray:
     return pooled(shape, dtype, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
 
 
+def _output(shape: int | tuple[int, ...], dtype: type, device: str) -> wp.array:
+    """A new output array, uninitialised (on the CPU a kept image, see _image, or a new one)."""
+    if not wp.get_device(device).is_cpu:
+        return wp.empty(shape, dtype=dtype, device=device)
+    return wp.array(_image(*host_layout(shape, dtype)), dtype=dtype, device=device, copy=False)
+
+
 def _filled(shape: int | tuple[int, ...], dtype: type, value: float, device: str) -> wp.array:
     """A new output array holding ``value`` everywhere (on the CPU a kept image, see _image, or a new one)."""
     shape = (shape,) if isinstance(shape, int) else tuple(shape)
@@ -1228,23 +1234,15 @@ def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: st
     pixel is background, filled on the host. -> (ids (H, W), depth (H, W), device ids, the tile flags (int32),
     pixels covered)."""
     npx = width * height
-    flags = dirty.numpy()
-    bands = np.arange((height + TILE - 1) // TILE, dtype=np.int32)  # every band: the kernel writes every pixel
-    if wp.get_device(device).is_cpu:
-        out_id = wp.array(_image(*host_layout(npx, wp.int32)), dtype=wp.int32, device=device, copy=False)
-        out_depth = wp.array(_image(*host_layout(npx, wp.float32)), dtype=wp.float32, device=device, copy=False)
-    else:
-        out_id, out_depth = wp.empty(npx, dtype=wp.int32, device=device), wp.empty(npx, dtype=wp.float32,
-                                                                                   device=device)
+    out_id, out_depth = _output(npx, wp.int32, device), _output(npx, wp.float32, device)  # the kernel writes all
     covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
-    if len(bands):
-        launch(_resolve_ids_kernel, len(bands), [as_warp(bands, wp.int32, device), dirty, width, height],
-               [key, out_id, out_depth, covered], device, parts=True, min_items=_MIN_PIXELS // (TILE * width) + 1)
+    launch(_resolve_ids_kernel, (height + TILE - 1) // TILE, [dirty, width, height], [key, out_id, out_depth, covered],
+           device, parts=True, min_items=_MIN_PIXELS // (TILE * width) + 1)
     ids = out_id.numpy().reshape(height, width)
     depth = out_depth.numpy().reshape(height, width)
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
-    return ids, depth, out_id, flags, int(covered.numpy().sum())
+    return ids, depth, out_id, dirty.numpy(), int(covered.numpy().sum())
 
 
 # Counting: the lists' heads of a frame of that size, all -1, on scratch leases of the frame-buffer pool (pool.take)
@@ -1441,7 +1439,7 @@ def transform_warp(positions: wp.array, view: object, proj: object) -> wp.array:
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     out = wp.zeros(positions.shape[0], dtype=wp.vec4, device=positions.device, requires_grad=positions.requires_grad)
     launch_one(_transform_kernel, dim=positions.shape[0], inputs=[positions, wp.mat44(*mvp.reshape(-1).tolist())],
-              outputs=[out], device=positions.device)
+               outputs=[out], device=positions.device)
     return out
 
 
@@ -1463,7 +1461,7 @@ def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr
     out = wp.zeros(pix_id.shape, dtype=wp.float32, device=attr.device,
                    requires_grad=bool(clip.requires_grad or attr.requires_grad))
     launch_one(interpolate_kernel, dim=pix_id.shape, inputs=[pix_id, clip, triangles, attr], outputs=[out],
-              device=attr.device)
+               device=attr.device)
     return out
 
 
