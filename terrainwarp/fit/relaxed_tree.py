@@ -23,13 +23,11 @@ def node_of(rows: np.ndarray, cols: np.ndarray, terrain: Terrain, level: int, in
 
 
 def inside_counts(terrain: Terrain) -> list[tuple[int, int]]:
-    """Per level, the columns and rows of nodes inside the grid (:meth:`Terrain.inside`'s rule)."""
+    """Per level, the columns and rows of nodes inside the grid (:meth:`Terrain.inside`'s rule: those of
+    :meth:`Terrain.inside_counts`, and the first root, which is always inside)."""
     out = []
-    for lv in range(terrain.depth + 1):
-        nx, nz = terrain.roots[0] << lv, terrain.roots[1] << lv
-        cx = int(terrain.inside(lv, np.arange(nx), np.zeros(nx, np.int64)).sum())
-        cy = int(terrain.inside(lv, np.zeros(nz, np.int64), np.arange(nz)).sum())
-        out.append((max(cx, 1), max(cy, 1)))
+    for c0, c1 in terrain.inside_counts():
+        out.append((max(int(c0) if c1 > 0 else 0, 1), max(int(c1) if c0 > 0 else 0, 1)))
     return out
 
 

@@ -192,12 +192,8 @@ class Cdlod(SelectThenMesh):
             self.grid, device=self.device))
         origin, size, step, lod, draws, order, n = tree.select(rel, planes, rng, start)
         stats = {"nodes_visited": int(n[2]), "culled": int(n[3]), "too_small": int(n[4]), "levels": self.levels,
-                 "whole_nodes": int(n[5]), "quadrant_draws": int(n[6])}
-        if len(size):
-            stats["quadrants"] = int(n[0])
-            return CdlodSelection(origin, size, step, lod, stats, draws, order)
-        z = np.zeros(0, np.float32)
-        return CdlodSelection(np.zeros((0, 2), np.float32), z, z, np.zeros(0, np.int32), {**stats, "quadrants": 0})
+                 "whole_nodes": int(n[5]), "quadrant_draws": int(n[6]), "quadrants": int(n[0])}
+        return CdlodSelection(origin, size, step, lod, stats, draws, order)
 
     def _quadrants(self, parts: list, stats: dict) -> CdlodSelection:
         """Each drawn node as its four quadrants, each parent quadrant as itself (cells, float32). ``stats``:

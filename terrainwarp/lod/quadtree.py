@@ -582,7 +582,7 @@ def uniform_patches(terrain: Terrain, level: int, factor: float | None = None) -
     level = check_int("level", level, 0, terrain.depth)
     hm = terrain.heightmap
     f = np.float32(terrain.tess if factor is None else factor)
-    cx, cy = terrain.cached("inside_counts", lambda: _inside_counts(terrain))[level]
+    cx, cy = terrain.inside_counts()[level]
     yy, xx = np.meshgrid(np.arange(cy, dtype=np.int64), np.arange(cx, dtype=np.int64), indexing="ij")
     lx, ly = xx.reshape(-1), yy.reshape(-1)
     lv = np.full(len(lx), level, np.int32)
