@@ -319,6 +319,12 @@ def _neighbour_kernel(offset: int, level: wp.array(dtype=wp.int32), x: wp.array(
 DENSE_MAX_CELLS = 1 << 26  # a deeper complete tree (256 MiB of int32 cells) gets the hash table
 
 
+def tree_cells(roots: tuple[int, int], depth: int) -> int:
+    """The nodes of the complete tree over ``roots`` = (nx, nz) root nodes, levels 0..depth: a dense tree map's
+    cells (more than ``DENSE_MAX_CELLS``: the map is a hash table)."""
+    return int(roots[0]) * int(roots[1]) * ((4 ** (int(depth) + 1) - 1) // 3)
+
+
 def _slots(keys: np.ndarray, mask: int) -> np.ndarray:
     h = keys.astype(np.uint64) * np.uint64(11400714819323198485)  # wraps, as the kernel's uint64
     return (h >> np.uint64(24)).astype(np.int64) & np.int64(mask)
@@ -330,7 +336,7 @@ class TreeMapHost:
 
     def __init__(self, roots: tuple[int, int], depth: int, device: str = "cpu"):
         self.roots, self.depth, self.device = (int(roots[0]), int(roots[1])), int(depth), device
-        self.cells = roots[0] * roots[1] * ((4 ** (depth + 1) - 1) // 3)
+        self.cells = tree_cells(roots, depth)
         self.sparse = self.cells > DENSE_MAX_CELLS
         if self.sparse:
             self.dense = wp.zeros(1, dtype=wp.int32, device=device)

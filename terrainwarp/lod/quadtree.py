@@ -54,6 +54,7 @@ from ..kernels.lod import (
     mark_nodes,
     neighbour_levels,
     select_level,
+    tree_cells,
     tree_leaves,
     tree_map,
 )
@@ -418,8 +419,7 @@ def select(terrain: Terrain, camera: Camera, policy: Policy | None = None, state
     check_policy(policy)
     view = _view(terrain, camera)
     prev = state.split_keys if (state is not None and policy.hysteresis > 0) else np.zeros(0, np.int64)
-    if terrain.provider is None and terrain.roots[0] * terrain.roots[1] * (4 ** (terrain.depth + 1) - 1) // 3 \
-            <= DENSE_MAX_CELLS:
+    if terrain.provider is None and tree_cells(terrain.roots, terrain.depth) <= DENSE_MAX_CELLS:
         return _select_in_one_launch(terrain, camera, view, policy, prev, state, device)
     tree, split_keys, visited = _descend(terrain, view, policy, prev, device)
     tree, forced = _balance(terrain, view, policy, tree, split_keys, device)
