@@ -49,7 +49,7 @@ def test_camera_keys_without_a_position_are_applied():
     ({"render": {"cull_back": "yes"}}, TypeError, r"cull_back: expected true or false, got 'yes'"),
     ({"render": {"light_azimuth_deg": math.inf}}, ValueError, r"light_azimuth_deg: expected a finite number"),
     ({"render": {"outputs": ["image", "depht"]}}, ValueError, r"outputs: unknown \['depht'\]"),
-    ({"path": {"kind": "spiral"}}, ValueError, r"path.kind: expected one of \['flyover', 'orbit'\]"),
+    ({"path": {"kind": "spiral"}}, ValueError, r"path.kind: expected one of \['flyover', 'orbit', 'cameras'\]"),
     ({"path": {"n": 0}}, ValueError, r"path.n: expected an integer >= 1 and <= 100000, got 0"),
     ({"path": {"n": "8"}}, TypeError, r"path.n: expected an integer, got '8'"),
     ({"path": {"radius": 0.5}}, ValueError, r"path.radius: does not apply to kind = 'flyover'"),
