@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, Viewport
 from ..heightmap import StreamedHeightmap
 from ..io.display import html_table
 from ..kernels.checks import check_int, check_number
@@ -45,7 +45,9 @@ from ..schemes import SCHEMES
 from .baselines import grid_search
 from .exact import Evaluation, Exact, evaluate, references_for
 from .families import Problem, problem
+from .rescale import pixel_knobs
 from .search import bracket_search, calibrated_search, close_to_bound
+from .verdict import annotate
 
 __all__ = ["FitResult", "fit_lod", "Progress"]
 
@@ -67,6 +69,13 @@ class FitResult:
         history: the fit's steps (the relaxed rounds, the polishes, the exact tries); trace: (exact frames, best
             confirmed cost) each time the best improved.
         grid: the grid search baseline of the one-knob fit, when asked for.
+        viewports: the viewports the cameras were drawn at (the first is the scene's ``viewport``, where the pixel
+            knobs are measured).
+        binding: the constraint that holds the setting (:func:`terrainwarp.fit.verdict.binding_constraint`: the
+            budget on camera k, the pop budget, or the main knob at a range limit); at_limits: the fitted knobs on
+            an end of their range; sparse: the validated frames whose p99 rests on too few samples
+            (:func:`terrainwarp.fit.verdict.sparse_frames`); image_floor_p99_px: per camera, the family's
+            full-detail image error (the floor of ``validated.image_p99_px``).
     """
 
     policy: str
@@ -86,6 +95,11 @@ class FitResult:
     knobs: list[str] = field(default_factory=list)
     model_s: float = 0.0
     trace: list[tuple[int, float]] = field(default_factory=list)
+    viewports: list[Viewport] = field(default_factory=list)
+    binding: dict = field(default_factory=dict)
+    at_limits: list[dict] = field(default_factory=list)
+    sparse: list[dict] = field(default_factory=list)
+    image_floor_p99_px: list[float] = field(default_factory=list)
 
     @property
     def value(self) -> float:
@@ -112,14 +126,26 @@ class FitResult:
                 "message": self.message, "evaluations": self.evaluations, "mesh_only_frames": self.mesh_only_frames,
                 "wall_s": self.wall_s, "model_s": self.model_s,
                 "error": "primary: per visible heightmap sample, px (terrainwarp.measure.sample_error); "
-                         "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor)",
+                         "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor: "
+                         "image_floor_p99_px, the family's own full-detail frame's, per camera)",
+                **self._engine_dict(),
                 "validated": None if v is None else {"p99_px": v.p99_px, "max_px": v.max_px,
-                                                     "image_p99_px": v.image_p99_px, "pop_p99_px": v.pop_p99_px,
+                                                     "image_p99_px": v.image_p99_px,
+                                                     "image_floor_p99_px": self.image_floor_p99_px,
+                                                     "samples_visible": v.visible, "covered_px": v.covered,
+                                                     "pop_p99_px": v.pop_p99_px,
                                                      "triangles": v.triangles, "frame_ms": v.frame_ms,
                                                      "worst_p99_px": v.worst_p99, "worst_pop_p99_px": v.worst_pop,
                                                      "mean_triangles": float(np.mean(v.triangles)),
                                                      "costs": v.costs, "mean_cost": v.cost},
                 "history": self.history, "trace": self.trace, "grid": self.grid}
+
+
+    def _engine_dict(self) -> dict:
+        """The viewport, the pixel knobs as angles, what binds, the limits and the sparse frames (JSON)."""
+        return {"viewport": list(self.scene.pixel_viewport), "viewports": [list(v) for v in self.viewports],
+                "pixel_knobs": pixel_knobs(self.scene, self.budget_px) if self.scene.mesh == "lod" else {},
+                "binding": self.binding, "at_limits": self.at_limits, "sparse_frames": self.sparse}
 
 
 class Progress:
@@ -152,7 +178,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             max_pop_px: float | None = None, references: list[Frame] | None = None, rel_tol: float = 0.02,
             max_tries: int = 8, grid_points: int = 0, grid_evaluator=None, gradient: str = "relaxed",
             device: str = "cpu", progress: bool = False, steps: int | None = None,
-            max_validations: int | None = None) -> FitResult:
+            max_validations: int | None = None, viewports: Sequence[Sequence[float]] | None = None,
+            floor: bool = True) -> FitResult:
     """Fit ``policy``'s knobs so that every frame's p99 screen error over the camera path is within ``budget_px``
     at the lowest mean cost per frame.
 
@@ -179,6 +206,14 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         progress: a progress bar on stderr (reference frames, models built, optimiser steps, exact frames).
         steps, max_validations: accepted from earlier versions: ``max_validations`` sets ``max_tries``; ``steps``
             is unused (the optimiser's schedule is fixed).
+        viewports: ``[(width, height, fov_y_deg), ...]``: fit one setting that meets the budget on every camera at
+            every one of these viewports (the cameras repeated at each; the mean cost is over them all; the first
+            is the fitted scene's ``viewport``). None: the cameras' own.
+        floor: also measure the family's full-detail image error per camera (``image_floor_p99_px``).
+
+    The fitted scene (``result.scene``) holds the exact cameras measured (its ``[path]``), the viewport its pixel
+    knobs are measured at and its budget: it loads back to the same frames, and ``terrainwarp evaluate`` on it
+    reproduces ``result.validated``. ``result.binding`` names the constraint that holds it.
 
     Raises:
         ValueError, TypeError: a bad budget, policy, knob name, cost, count, or a streamed heightmap.
@@ -194,6 +229,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     cams = list(cameras) if cameras is not None else scene.camera_path()
     if not cams:
         raise ValueError("cameras: expected at least one camera")
+    vps = _viewports(viewports)
+    cams = [c.with_(width=v.width, height=v.height, fov_y_deg=v.fov_y_deg) for v in vps for c in cams] or cams
     bar = Progress(progress, len(cams) * (2 + max_tries + grid_points), f"fit {policy} {budget_px:g} px")
     try:
         refs = references_for(scene, cams, references, device, on_frame=bar)
@@ -216,12 +253,31 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         if max_pop_px is None and len(cams) > 1 and res.validated is not None:  # popping, for the record
             res.validated = evaluate(res.scene, cams, refs, terrain=exact.terrain_for(res.scene), device=device,
                                      values=res.values, pops=True, cost_of=cost_of)
+        annotate(res, prob.all_knobs, cams, refs, vps, cost, tried=list(exact.evals.values()), floor=floor,
+                 device=device)
         if grid_points:
             res.grid = grid_search(exact, prob, grid_points, evaluator=grid_evaluator)
         bar.expect(0)  # the total was an estimate: the bar ends full at the steps taken
     finally:
         bar.close()
     return res
+
+
+def _viewports(viewports: Sequence[Sequence[float]] | None) -> list[Viewport]:
+    """The checked viewports (empty for None)."""
+    if viewports is None:
+        return []
+    if isinstance(viewports, str) or not isinstance(viewports, Sequence) or not viewports:
+        raise TypeError(f"viewports: expected a list of (width, height, fov_y_deg), got {viewports!r}")
+    out = []
+    for i, v in enumerate(viewports):
+        if not isinstance(v, Sequence) or len(v) != 3:
+            raise TypeError(f"viewports[{i}]: expected (width, height, fov_y_deg), got {v!r}")
+        try:
+            out.append(Viewport.of(*v))
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"viewports[{i}].{e}") from None
+    return list(dict.fromkeys(out))
 
 
 def _one_knob(exact: Exact, prob: Problem, budget_px: float, rel_tol: float, max_tries: int,
