@@ -60,7 +60,9 @@ class FitResult:
         policy: the family fitted; budget_px, max_pop_px: the constraints; cost: what was minimised.
         met: True only if the exact pipeline's worst-frame p99 is within the budget (and the worst pair's pop p99
             within ``max_pop_px`` when given) on every camera.
-        values: the fitted knobs' values (name -> value); scene: the :class:`Scene` that draws them.
+        values: the fitted knobs' values (name -> value); scene: the :class:`Scene` that draws them, with the exact
+            cameras measured (its ``[path]``), the viewport its pixel knobs are measured at and its budget: it
+            loads back to the same frames, and ``terrainwarp evaluate`` on it reproduces ``validated``.
         validated: the exact evaluation of ``values`` on every camera (with the pop of each consecutive pair,
             measured for the record when ``max_pop_px`` is None: not counted in ``evaluations``).
         evaluations: exact frames the fit measured (error against the reference); mesh_only_frames: frames drawn
@@ -206,14 +208,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         progress: a progress bar on stderr (reference frames, models built, optimiser steps, exact frames).
         steps, max_validations: accepted from earlier versions: ``max_validations`` sets ``max_tries``; ``steps``
             is unused (the optimiser's schedule is fixed).
-        viewports: ``[(width, height, fov_y_deg), ...]``: fit one setting that meets the budget on every camera at
-            every one of these viewports (the cameras repeated at each; the mean cost is over them all; the first
-            is the fitted scene's ``viewport``). None: the cameras' own.
-        floor: also measure the family's full-detail image error per camera (``image_floor_p99_px``).
-
-    The fitted scene (``result.scene``) holds the exact cameras measured (its ``[path]``), the viewport its pixel
-    knobs are measured at and its budget: it loads back to the same frames, and ``terrainwarp evaluate`` on it
-    reproduces ``result.validated``. ``result.binding`` names the constraint that holds it.
+        viewports: ``[(width, height, fov_y_deg), ...]``: one setting meeting the budget on the cameras at each (the
+            first is the scene's ``viewport``; None: theirs). floor: measure ``image_floor_p99_px`` (the full detail's).
 
     Raises:
         ValueError, TypeError: a bad budget, policy, knob name, cost, count, or a streamed heightmap.
@@ -229,8 +225,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     cams = list(cameras) if cameras is not None else scene.camera_path()
     if not cams:
         raise ValueError("cameras: expected at least one camera")
-    vps = _viewports(viewports)
-    cams = [c.with_(width=v.width, height=v.height, fov_y_deg=v.fov_y_deg) for v in vps for c in cams] or cams
+    cams, vps = _at_viewports(cams, viewports)
     bar = Progress(progress, len(cams) * (2 + max_tries + grid_points), f"fit {policy} {budget_px:g} px")
     try:
         refs = references_for(scene, cams, references, device, on_frame=bar)
@@ -253,14 +248,20 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         if max_pop_px is None and len(cams) > 1 and res.validated is not None:  # popping, for the record
             res.validated = evaluate(res.scene, cams, refs, terrain=exact.terrain_for(res.scene), device=device,
                                      values=res.values, pops=True, cost_of=cost_of)
-        annotate(res, prob.all_knobs, cams, refs, vps, cost, tried=list(exact.evals.values()), floor=floor,
-                 device=device)
+        annotate(res, prob.all_knobs, cams, refs, vps, cost, tried=[*exact.evals.values()], floor=floor, device=device)
         if grid_points:
             res.grid = grid_search(exact, prob, grid_points, evaluator=grid_evaluator)
         bar.expect(0)  # the total was an estimate: the bar ends full at the steps taken
     finally:
         bar.close()
     return res
+
+
+def _at_viewports(cams: list[Camera], viewports: Sequence[Sequence[float]] | None
+                  ) -> tuple[list[Camera], list[Viewport]]:
+    """The cameras at each of the checked viewports in turn, and the viewports (None: the cameras, no viewports)."""
+    vps = _viewports(viewports)
+    return [c.with_(width=v.width, height=v.height, fov_y_deg=v.fov_y_deg) for v in vps for c in cams] or cams, vps
 
 
 def _viewports(viewports: Sequence[Sequence[float]] | None) -> list[Viewport]:
