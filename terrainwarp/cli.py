@@ -30,9 +30,21 @@ from .experiments.calibrate import calibrate
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
 from .experiments.plots import plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
-from .fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_convergence, plot_fit
+from .fit import (
+    Evaluation,
+    FitResult,
+    assess,
+    evaluations_from_rows,
+    export,
+    fit_lod,
+    pixel_knobs,
+    plot_convergence,
+    plot_fit,
+    rescale,
+)
 from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
+from .fit.export import FORMATS
 from .fit.knobs import main_knob
 from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
@@ -270,12 +282,93 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
         else:
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
                          f"{g['cost']:.4g} | {g['evaluations']} | {g['wall_s']:.1f} |")
-    lines += ["", res.message, ""]
+    lines += ["", res.message, "", f"Pixels are at the fitted viewport: {_knob_words(res.scene, res.budget_px)}"
+              + ("" if len(res.viewports) < 2 else f"; the setting is fitted on {len(res.viewports)} viewports: "
+                 + ", ".join(vp.text for vp in res.viewports)) + ". Another viewport: terrainwarp export "
+              "fitted.toml --as json --viewport WxH@FOV (terrainwarp.fit.rescale).", "",
+              *(_frame_table(v, res.image_floor_p99_px, res.sparse) if v is not None and v.complete else [])]
     if res.mesh_only_frames:
         lines += [f"Frames only selected and meshed for their triangle count (not in the evaluations): "
                   f"{res.mesh_only_frames}. A try measures its critical cameras worst first and stops at the first "
                   "over the budget; the fitted value is measured on every camera.", ""]
     return lines
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    sc = _scene(args)
+    cams = sc.camera_path(args.frames) if args.frames is not None else None
+    a = assess(sc, budget_px=args.budget_px, max_pop_px=args.max_pop_px, cost=args.cost, cameras=cams,
+               floor=not args.no_floor)
+    out = Path(args.out)
+    doc = {**a.to_dict(), "scene": args.scene, "path": sc.path_info(args.frames)["text"],
+           "pixel_knobs": pixel_knobs(sc, a.budget_px)}
+    write_json(out / "evaluate.json", doc)
+    write_text(out / "report.md", "\n".join(_evaluate_report_lines(sc, a, doc["path"])))
+    print(f"path: {doc['path']}")
+    print(a.message)
+    print("wrote: " + ", ".join(str(out / w) for w in ("evaluate.json", "report.md")))
+    return 0 if a.met else 1
+
+
+def _evaluate_report_lines(sc: Scene, a, path: str) -> list[str]:
+    """evaluate's report.md: the verdict, then one row per camera (the image error beside its floor)."""
+    v = a.evaluation
+    lines = ["# Evaluate", "", f"Setting: policy {sc.lod.policy} ({_knob_words(sc, a.budget_px)}).", "",
+             f"Camera path: {path}.", "", a.message, "", *_frame_table(v, a.image_floor_p99_px, a.sparse)]
+    return lines
+
+
+def _knob_words(sc: Scene, budget_px: float) -> str:
+    """Each pixel knob at the scene's viewport and as an angle."""
+    vp = sc.pixel_viewport
+    words = [f"{n} = {d['px']:.4g} px = {d['mrad']:.4g} mrad" for n, d in pixel_knobs(sc, budget_px).items()]
+    return "; ".join(words) + f" at {vp.text} ({vp.focal_px:.1f} px per radian)"
+
+
+def _frame_table(v: Evaluation, floor: list[float], sparse: list[dict]) -> list[str]:
+    """Per camera: the primary p99, the image p99 beside the family's full-detail floor, the samples, a flag."""
+    flagged = {s["camera"]: s["why"] for s in sparse}
+    rows = ["| camera | p99 px | image p99 px (floor) | visible samples | covered px | triangles | note |",
+            "|---|---|---|---|---|---|---|"]
+    for k, p in enumerate(v.p99_px):
+        img = v.image_p99_px[k] if k < len(v.image_p99_px) else float("nan")
+        fl = f" ({floor[k]:.3g})" if k < len(floor) else ""
+        vis = v.visible[k] if k < len(v.visible) else ""
+        cov = v.covered[k] if k < len(v.covered) else ""
+        note = f"too few samples for a p99: {flagged[k]}" if k in flagged else ""
+        rows.append(f"| {k} | {p:.3g} | {img:.3g}{fl} | {vis} | {cov} | {v.triangles[k]} | {note} |")
+    return rows + ["", "The image error is measured against the fixed-diagonal full-resolution grid; beside it, in "
+                       "brackets, the same family's full-detail frame's (its triangulation floor): only the "
+                       "difference is the setting's.", ""]
+
+
+def _viewport_arg(text: str) -> tuple[int, int, float | None]:
+    """``WxH`` or ``WxH@FOV`` (fov_y in degrees)."""
+    size, _, fov = text.partition("@")
+    w, _, h = size.lower().partition("x")
+    try:
+        return int(w), int(h), (float(fov) if fov else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT or WIDTHxHEIGHT@FOV_Y_DEG, got {text!r}") from None
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    sc = _scene(args)
+    out = Path(args.out)
+    written = []
+    stem = Path(args.scene).stem if args.scene else sc.name
+    if args.viewport is not None:
+        w, h, fov = args.viewport
+        r = rescale(sc, w, h, sc.pixel_viewport.fov_y_deg if fov is None else fov, budget_px=args.budget_px,
+                    confirm=not args.no_confirm)
+        print(f"rescale ({r.action}): {r.message}")
+        print(f"rule: {r.rule}")
+        sc = r.scene
+        stem = f"{stem}-{w}x{h}"
+        written.append(sc.save(out / f"{stem}.toml"))
+    written.append(export(sc, args.as_, out / f"{stem}.{args.as_}.json"))
+    print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
@@ -467,6 +560,33 @@ def _add_report_fit(sub) -> None:
     ft.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _add_evaluate_export(sub) -> None:
+    ev = _command(sub, "evaluate", "measure a saved setting over its camera path without fitting: error, cost and "
+                  "verdict (evaluate.json, report.md); exit 1 when it misses the budget", _cmd_evaluate)
+    _add_scene(ev, "out/evaluate", viewport=False)
+    ev.add_argument("--budget-px", type=_positive_float, default=None,
+                    help="p99 screen error budget, pixels (default: the scene's [budget])")
+    ev.add_argument("--max-pop-px", type=_nonnegative_float, default=None, metavar="PX",
+                    help="also bound the worst pair's pop p99 (default: the scene's [budget])")
+    ev.add_argument("--cost", default=None, metavar="COST", help="the cost to report (default: the scene's [budget] "
+                    "cost, else triangles)")
+    ev.add_argument("--frames", type=_positive_int, default=None,
+                    help="cameras of the path (default: all; a recorded path: that many, evenly spaced)")
+    ev.add_argument("--no-floor", action="store_true", help="skip the family's full-detail image floor (one frame "
+                    "per camera)")
+    ex = _command(sub, "export", "write a LOD setting as the engine takes it: CDLOD's level count, leaf size, grid "
+                  "and per-level ranges and morphs, Cesium's maximumScreenSpaceError, or the whole setting as JSON",
+                  _cmd_export)
+    _add_scene(ex, "out/export", viewport=False)
+    ex.add_argument("--as", dest="as_", choices=list(FORMATS), required=True, help="the engine's terms")
+    ex.add_argument("--viewport", type=_viewport_arg, default=None, metavar="WxH[@FOV]",
+                    help="rescale to this viewport first (terrainwarp.fit.rescale: confirmed on exact frames at it), "
+                         "and write the rescaled scene beside the export (default: the scene's viewport)")
+    ex.add_argument("--budget-px", type=_positive_float, default=None,
+                    help="with --viewport: the budget to confirm (default: the scene's [budget])")
+    ex.add_argument("--no-confirm", action="store_true", help="with --viewport: the rule alone, no exact frames")
+
+
 def _knob_list(text: str) -> list[str] | str:
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
@@ -548,6 +668,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser, metavar="COMMAND")
     _add_demo_render_lod(sub)
     _add_report_fit(sub)
+    _add_evaluate_export(sub)
     _add_calibrate(sub)
     _add_stability_tessellate_bench(sub)
     return p

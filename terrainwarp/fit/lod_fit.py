@@ -45,9 +45,9 @@ from ..schemes import SCHEMES
 from .baselines import grid_search
 from .exact import Evaluation, Exact, evaluate, references_for
 from .families import Problem, problem
-from .rescale import pixel_knobs
 from .search import bracket_search, calibrated_search, close_to_bound
 from .verdict import annotate
+from .viewport import pixel_knobs
 
 __all__ = ["FitResult", "fit_lod", "Progress"]
 

@@ -11,26 +11,29 @@ floor of the image error on every camera.
   close that a handful of samples cover the screen): its p99 says little.
 * :func:`image_floor`: per camera, the image error (against the fixed-diagonal grid) of the family's own
   full-detail setting (:func:`full_detail`): the triangulation floor an image-error value carries.
+* :func:`assess`: a saved setting measured over its path without fitting (``terrainwarp evaluate``).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..camera import Camera, Viewport
 from ..lod.quadtree import Terrain, layout
+from ..measure.cost import cost as resolve_cost
 from ..rendering.pipeline import Frame, render
 from ..scene import POLICY_TABLE, QUADTREE_TESS, Budget, CameraPath, Scene
 from ..schemes import SCHEMES, scheme_range
-from .exact import Evaluation
-from .knobs import Knob, apply
+from .exact import Evaluation, evaluate, references_for
+from .knobs import Knob, apply, knobs
 
 __all__ = ["binding_constraint", "knobs_at_limits", "sparse_frames", "image_floor", "full_detail", "describe",
-           "annotate", "MIN_SAMPLES", "PIXELS_PER_SAMPLE"]
+           "annotate", "assess", "Assessment", "MIN_SAMPLES", "PIXELS_PER_SAMPLE"]
 
 MIN_SAMPLES = 1000  # a frame's p99 over fewer visible samples is flagged
 PIXELS_PER_SAMPLE = 50  # ... or over fewer than one visible sample per this many covered pixels
@@ -234,3 +237,82 @@ def annotate(res: Any, knobs: Sequence[Knob], cameras: list[Camera], refs: list[
     res.scene = res.scene.with_(path=CameraPath.of(cameras), viewport=res.viewports[0],
                                 budget=Budget(res.budget_px, res.max_pop_px, cost if isinstance(cost, str)
                                               else res.cost))
+
+
+@dataclass
+class Assessment:
+    """A saved setting measured over its path without fitting (:func:`assess`, ``terrainwarp evaluate``).
+
+    Attributes:
+        scene: the setting; evaluation: its exact evaluation over the cameras (the pop of each consecutive pair
+            measured when there are two or more); met: the verdict against ``budget_px`` (and ``max_pop_px``);
+        binding: the constraint closest to its bound (:func:`binding_constraint`); sparse: the frames with too
+            few samples for a p99 (:func:`sparse_frames`); image_floor_p99_px: per camera, the family's
+            full-detail image error (empty when not asked); message: the verdict in one line.
+    """
+
+    scene: Scene
+    evaluation: Evaluation
+    budget_px: float
+    max_pop_px: float | None
+    cost: str
+    met: bool
+    binding: dict[str, Any]
+    sparse: list[dict[str, Any]]
+    image_floor_p99_px: list[float] = field(default_factory=list)
+    message: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        v = self.evaluation
+        return {"policy": self.scene.lod.policy, "lod": dict(self.scene.to_dict()["lod"]),
+                "viewport": list(self.scene.pixel_viewport), "budget_px": self.budget_px,
+                "max_pop_px": self.max_pop_px, "cost": self.cost, "met": self.met, "message": self.message,
+                "binding": self.binding, "sparse_frames": self.sparse,
+                "frames": {"p99_px": v.p99_px, "max_px": v.max_px, "image_p99_px": v.image_p99_px,
+                           "image_floor_p99_px": self.image_floor_p99_px, "samples_visible": v.visible,
+                           "covered_px": v.covered, "pop_p99_px": v.pop_p99_px, "triangles": v.triangles,
+                           "costs": v.costs, "frame_ms": v.frame_ms},
+                "worst_p99_px": v.worst_p99, "worst_pop_p99_px": v.worst_pop if v.pop_p99_px else None,
+                "mean_cost": v.cost}
+
+
+def assess(scene: Scene, *, budget_px: float | None = None, max_pop_px: float | None = None, cost: object = None,
+           cameras: list[Camera] | None = None, floor: bool = True, device: str = "cpu") -> Assessment:
+    """Measure the LOD setting ``scene`` over its camera path (``cameras``: others) on the exact pipeline, without
+    fitting: each frame's p99 and cost, the pop of consecutive pairs, the verdict against ``budget_px`` (default: the
+    scene's ``[budget]``), what is closest to its bound, the sparse frames and (``floor``) the image floor. On a
+    fitted scene this reproduces the fit's ``validated`` evaluation (the same cameras, the same frames).
+
+    Raises:
+        ValueError: a grid scene, or no budget (neither given nor in the scene).
+    """
+    if scene.mesh != "lod":
+        raise ValueError("scene: the scene draws the full grid (render.mesh = 'grid'); evaluate takes a LOD setting "
+                         "(a fitted scene: terrainwarp fit writes fitted.toml)")
+    bud = scene.budget
+    budget_px = budget_px if budget_px is not None else (bud.budget_px if bud is not None else None)
+    if budget_px is None:
+        raise ValueError("budget_px: the scene has no [budget] table; give the budget (--budget-px)")
+    max_pop_px = max_pop_px if max_pop_px is not None else (bud.max_pop_px if bud is not None else None)
+    spec = cost if cost is not None else (bud.cost if bud is not None else "triangles")
+    cost_of = resolve_cost(spec)
+    label = cost_of.label
+    cost_of = None if cost_of.name == "triangles" else cost_of
+    cams = list(cameras) if cameras is not None else scene.camera_path()
+    refs = references_for(scene, cams, device=device)
+    lod = scene.lod
+    terrain = None if lod.is_scheme else Terrain.prepare(scene.heightmap, roots=lod.roots, tess=lod.tess,
+                                                         device=device)
+    ev = evaluate(scene, cams, refs, terrain=terrain, device=device, pops=len(cams) > 1, cost_of=cost_of)
+    met = ev.meets(budget_px, max_pop_px)
+    main = knobs(lod.policy, scene.heightmap, None if lod.is_scheme else lod)[0]
+    binding = binding_constraint(ev, met, budget_px, max_pop_px, main, [])
+    sparse = sparse_frames(ev)
+    floor_px = image_floor(scene, lod.policy, cams, refs, device=device) if floor else []
+    verdict = "met" if met else "missed"
+    msg = (f"{verdict}: worst-frame p99 {ev.worst_p99:.3g} px {'<=' if met else '>'} {budget_px:g} px"
+           + ("" if max_pop_px is None else f", worst pair pop p99 {ev.worst_pop:.3g} px (bound {max_pop_px:g})")
+           + f" over {len(cams)} cameras, {ev.cost:.4g} {label} per frame")
+    said = describe(binding, [], sparse)
+    return Assessment(scene, ev, budget_px, max_pop_px, label, met, binding, sparse, floor_px,
+                      msg + (f"; {said}" if said else ""))
