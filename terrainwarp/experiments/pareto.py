@@ -5,7 +5,7 @@ A sweep is a list of settings (policy, parameter) crossed with the scene's camer
 measured by ``render``'s error stage, with the full-resolution grid rendered once per camera: the primary
 error ``p99_px``/``max_px``/``mean_px`` at the heightmap's samples (:mod:`terrainwarp.measure.sample_error`;
 0 for every family's full-detail mesh), the per-pixel grid-image error as the secondary
-``image_err_p99_px``/``image_err_max_px``/``image_err_mean_px`` (it carries a triangulation floor), cracks,
+``image_err_p99_px``/``image_err_max_px``/``image_err_mean_px`` (it carries a triangulation floor), see-through pixels,
 coverage and PSNR/SSIM; and popping for the pair (frame - 1, frame): ``pop_p99_px``, ``pop_max_px``,
 ``popped_samples`` (samples moving by more than 0.5 px; NaN for frame 0), the selection of camera frame - 1
 (held) against that of camera frame, both drawn for camera frame (:func:`terrainwarp.rendering.pipeline.pop_stats`;
@@ -413,7 +413,7 @@ def summarise(rows: list[dict], cost_of: Cost | None = None) -> list[dict]:
                     "cost_ms": _mean(rs, "cost_ms"), "triangles": _mean(rs, "triangles"),
                     **{c: _mean(rs, c) for c in SUMMARY_COUNTERS},
                     "frame_ms": _mean(rs, "frame_ms"), "select_ms": _mean(rs, "select_ms"),
-                    "mesh_ms": _mean(rs, "mesh_ms"), "cracks": int(sum(r["cracks"] for r in rs)),
+                    "mesh_ms": _mean(rs, "mesh_ms"), "see_through_px": int(sum(r["see_through_px"] for r in rs)),
                     "peer_mesh_ms": rs[0]["peer_mesh_ms"], "peer_error_m": rs[0]["peer_error_m"],
                     "psnr_db": float(np.nanmean([r["psnr_db"] for r in rs])) if any(
                         np.isfinite(r["psnr_db"]) for r in rs) else math.nan})
@@ -545,8 +545,8 @@ def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Pa
             f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", ""]
     md = [f"# Error against cost: {hm.name}", "", *head, *_cost_lines(c), "", *_yardstick_lines(summ),
           "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px",
-                                      "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS, "cracks",
-                                      "psnr_db", "peer_error_m"], summ),
+                                      "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS,
+                                      "see_through_px", "psnr_db", "peer_error_m"], summ),
           "", f"## Cheapest setting per budget ({c.label}; budgets on the primary p99)", "",
           "| budget_px | policy | setting | p99_px | cost | triangles | image_err_p99_px | pop_p99_px |",
           "|---|---|---|---|---|---|---|---|"]

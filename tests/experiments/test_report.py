@@ -45,11 +45,11 @@ def test_sweep_is_reproducible_apart_from_timings(small):
     assert _strip(rows_to_csv(a)) == _strip(rows_to_csv(b))
     assert len(a) == len(SETTINGS) * len(cams)
     grid = [r for r in a if r["policy"] == "grid"]
-    assert all(r["p99_px"] < 1e-2 and r["cracks"] == 0 for r in grid)
+    assert all(r["p99_px"] < 1e-2 and r["see_through_px"] == 0 for r in grid)
     coarse = [r for r in a if r["setting"] == "sse=8"]
     fine = [r for r in a if r["setting"] == "sse=0.1"]
     assert sum(r["triangles"] for r in coarse) < sum(r["triangles"] for r in fine)
-    assert all(r["cracks"] == 0 for r in a if r["policy"] in ("sse", "continuous", "polytree", "bintree"))
+    assert all(r["see_through_px"] == 0 for r in a if r["policy"] in ("sse", "continuous", "polytree", "bintree"))
     assert all(r["triangles"] > 0 and r["peer_mesh_ms"] > 0 for r in a if r["policy"] in ("polytree", "bintree"))
 
 
@@ -78,8 +78,8 @@ def test_frames_csv_has_the_primary_image_and_popping_columns(small, tmp_path):
                  images=False)
     write_report(sc, cams, rows, tmp_path, path=sc.path_info(2))
     got = _frames_csv(tmp_path)
-    for col in ("p99_px", "max_px", "image_err_p99_px", "image_err_max_px", "cracks", "pop_p99_px", "pop_max_px",
-                "popped_samples"):
+    for col in ("p99_px", "max_px", "image_err_p99_px", "image_err_max_px", "see_through_px", "pop_p99_px",
+                "pop_max_px", "popped_samples"):
         assert col in got[0], col
     for r in got:
         assert (r["pop_p99_px"] == "nan") == (r["frame"] == "0")  # no pair before the first frame
