@@ -13,8 +13,10 @@ pixels asks each family for (:data:`RULES`):
   grid are kept.
 * ``clipmaps``: ``n * s`` rounded to the next odd integer (each ring's extent, in samples, grows with the
   distance its error is seen from).
-* ``continuous``: ``target_px * sqrt(s)``: the chord error of an edge of ``L`` pixels on a smooth surface is
-  proportional to ``L^2 / f`` pixels.
+* ``continuous``: the same target pixels per edge. A smooth surface's chord error would ask for
+  ``target_px * sqrt(s)`` (the chord error of an edge of ``L`` pixels is ``L^2 / f``), but a heightmap's error is
+  what an edge skips of its samples, the same in pixels: measured, keeping the target lands at 0.96-1.33 of the
+  budget where ``sqrt(s)`` lands at 0.95-1.35 (``benchmarks/results/rescale.md``).
 
 None of them is exact on a real terrain: levels change in whole steps, and a terrain is not self-similar. So
 :func:`rescale` measures the rule's setting with exact frames at the new viewport (the scene's cameras at that
@@ -64,8 +66,8 @@ RULES: dict[str, Rule] = {
                                           "per radian"),
     "clipmaps": Rule("n", "focal_odd", "times s, odd: each ring's extent grows with the distance its error is "
                                        "seen from"),
-    "continuous": Rule("target_px", "sqrt_focal", "times sqrt(s): a smooth surface's chord error in pixels grows "
-                                                  "as edge_px^2 / focal"),
+    "continuous": Rule("target_px", "px", "kept: a heightmap's error is what an edge of target_px pixels skips of "
+                                          "its samples (measured closer than sqrt(s))"),
 }
 
 

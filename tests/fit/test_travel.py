@@ -62,11 +62,13 @@ def test_rescale_corrects_a_rule_that_misses_and_says_so(small):
     assert assess(r.scene, floor=False).met
     unconfirmed = rescale(res.scene, 320, 180, 60.0, confirm=False)
     assert unconfirmed.action == "rule" and unconfirmed.evaluation is None and unconfirmed.frames == 0
-    # the rules: a range grows with the pixels per radian, a threshold in pixels is kept, continuous by sqrt(s)
+    # the rules: a range grows with the pixels per radian, a threshold in pixels is kept
     cd = sc.with_(mesh="lod", lod=LodConfig(policy="cdlod", params={"first_range": 1000.0}), viewport=(160, 90, 60))
     assert rule_values(cd, Viewport(480, 270, 60.0)) == {"first_range": pytest.approx(3000.0)}
     ct = sc.with_(mesh="lod", lod=LodConfig(policy="continuous", target_px=8.0), viewport=(160, 90, 60))
-    assert rule_values(ct, Viewport(640, 360, 60.0)) == {"target_px": pytest.approx(16.0)}
+    assert rule_values(ct, Viewport(640, 360, 60.0)) == {"target_px": pytest.approx(8.0)}
+    dist = sc.with_(mesh="lod", lod=LodConfig(policy="distance", k=2.0), viewport=(160, 90, 60))
+    assert rule_values(dist, Viewport(160, 90, 90.0)) == {"k": pytest.approx(2.0 * np.tan(np.radians(30)))}
     with pytest.raises(ValueError, match="budget_px: the scene has no"):
         rescale(cd.with_(budget=None), 320, 180, 60.0)
     with pytest.raises(ValueError, match="height: expected 1..16384"):
