@@ -65,7 +65,7 @@ from ..schemes import PLUGIN_FLAG, SCHEMES, register_scheme, scheme_source, swee
 from .runner import Job, Runner, SweepResult, pending_jobs
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
-           "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table"]
+           "with_image_floor", "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
 _FAMILIES = (*_PEERS, "polytree", "bintree")  # mesh families built once per worker, apart from frames
@@ -465,6 +465,28 @@ def image_floor(summary: list[dict]) -> dict[str, float]:
     return out
 
 
+def with_image_floor(rows: list[dict]) -> list[dict]:
+    """``rows`` with ``image_err_floor_p99_px`` beside ``image_err_p99_px``: on each camera, the lowest image p99 of
+    the row's family over the sweep's settings (its finest setting's, as a rule: the triangulation floor the image
+    error carries on that camera; a family's full-detail frame is not among a sweep's settings, so this is the
+    floor as near as the sweep goes)."""
+    floor: dict[tuple, float] = {}
+    for r in rows:
+        v = float(r.get("image_err_p99_px", math.nan))
+        if not math.isnan(v):
+            key = (r["policy"], r["frame"])
+            floor[key] = min(floor.get(key, math.inf), v)
+    out = []
+    for r in rows:
+        d = {}
+        for k, v in r.items():
+            d[k] = v
+            if k == "image_err_p99_px":
+                d["image_err_floor_p99_px"] = floor.get((r["policy"], r["frame"]), math.nan)
+        out.append(d)
+    return out
+
+
 def rows_to_csv(rows: list[dict]) -> str:
     buf = io.StringIO()
     keys = list(rows[0].keys()) if rows else []
@@ -536,15 +558,21 @@ def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir:
 def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Path, path: dict | None,
                   c: Cost) -> list[Path]:
     summ = summarise(rows, c)
+    floors = with_image_floor(rows)
+    for r in summ:  # the floor on the camera of the worst image p99, beside it
+        rs = [f for f in floors if f["setting"] == r["setting"] and not math.isnan(float(f["image_err_p99_px"]))]
+        worst = max(rs, key=lambda f: float(f["image_err_p99_px"]), default=None)
+        r["image_err_floor_p99_px"] = math.nan if worst is None else worst["image_err_floor_p99_px"]
     hm = scene.heightmap
-    paths = [write_text(out / "frames.csv", rows_to_csv(rows)),
+    paths = [write_text(out / "frames.csv", rows_to_csv(floors)),
              plot_pareto(summ, out / "pareto.png", f"{hm.name}: error against cost, {len(cameras)} cameras at "
                                                    f"{cameras[0].width}x{cameras[0].height}", c.label)]
     head = [f"Heightmap {hm.shape[0]}x{hm.shape[1]}, dx={hm.dx:.4g} m, dz={hm.dz:.4g} m; {len(cameras)} cameras at "
             f"{cameras[0].width}x{cameras[0].height}; LOD: {scene.lod.roots} roots, tess {scene.lod.tess}.", "",
             f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", ""]
     md = [f"# Error against cost: {hm.name}", "", *head, *_cost_lines(c), "", *_yardstick_lines(summ),
-          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px",
+          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "image_err_floor_p99_px",
+                                      "pop_p99_px", "pop_max_px",
                                       "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS,
                                       "see_through_px", "psnr_db", "peer_error_m"], summ),
           "", f"## Cheapest setting per budget ({c.label}; budgets on the primary p99)", "",
@@ -584,7 +612,10 @@ def _yardstick_lines(summ: list[dict]) -> list[str]:
     lines = ["Error (`p99_px`, `max_px`): the primary error, per visible heightmap sample the pixel distance "
              "between the sample and the drawn surface at its (x, z), worst frame (every family's full-detail "
              "mesh scores 0). `image_err_p99_px`: the per-pixel reprojection error against the fixed-diagonal "
-             "grid (secondary; the old yardstick)."]
+             "grid (secondary; the old yardstick); beside it `image_err_floor_p99_px`, the same family's lowest on "
+             "that camera over the swept settings (its triangulation floor: only the difference is the setting's; "
+             "frames.csv per camera, here the worst camera's). `see_through_px`: background pixels seen through the "
+             "terrain (a pixel heuristic; cracks are check_watertight's open edges, not counted in a sweep)."]
     if floor:
         lines += ["", "Old yardstick's floor here (grid-image p99 of each family's finest setting, which the "
                   "primary error scores near 0): " + ", ".join(f"{k} {v:.3g} px" for k, v in floor.items()) + "."]

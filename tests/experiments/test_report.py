@@ -90,6 +90,11 @@ def test_frames_csv_has_the_primary_image_and_popping_columns(small, tmp_path):
     md = (tmp_path / "report.md").read_text()
     assert "Camera path: flyover of 2 cameras at" in md and "2.0% of the" in md and "'ground'" in md
     assert "Popping" in md and "Old yardstick's floor here" in md and "image_err_p99_px" in md
+    # beside each image p99, its family's floor on that camera (the lowest over the family's swept settings)
+    for r in got:
+        same = [float(x["image_err_p99_px"]) for x in got if x["policy"] == r["policy"] and x["frame"] == r["frame"]]
+        assert float(r["image_err_floor_p99_px"]) == min(same) <= float(r["image_err_p99_px"])
+    assert "image_err_floor_p99_px" in md and "cracks" not in md.replace("cracks are check_watertight", "")
 
 
 def test_popping_is_zero_for_a_static_camera_and_an_unchanged_selection(small):
