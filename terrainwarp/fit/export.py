@@ -15,23 +15,19 @@ Each export is one JSON file (strict: no NaN or Infinity; an unbounded range is 
 implementation ``fstrugar/CDLOD``: ``CDLODQuadTree::LODSelect`` builds the ranges, ``CDLODTerrain.vsh`` morphs;
 its ``.ini`` names the settings):
 
-=============================  ======  =====================================================================
-field                          unit    meaning
-=============================  ======  =====================================================================
-``LODLevelCount``              levels  LOD levels (0 the finest, the last covers the rest of the terrain)
-``LeafQuadTreeNodeSize``       samples side of the finest quadtree node, in heightmap samples (cells)
-``RenderGridResolutionMult``   --      render-grid quads per leaf-node cell (1: one vertex per sample)
-``RenderGridResolution``       quads   the grid mesh every node is drawn with (Leaf x Mult quads a side)
-``LODLevelDistanceRatio``      --      each level's band is this many times the previous one's
-``MorphStartRatio``            --      where in its band a level starts morphing to the next
-``ViewRange``                  m       the reference's visibility distance: the range of the last level
-                                       (``LODNear`` = 0); terrainwarp draws the last level to the horizon
-``levels[i].range``            m       LOD i is drawn where its node's box is within this of the eye
-``levels[i].morph_start/end``  m       the vertex morph toward LOD i+1 runs from start to end (eye distance
-                                       of the unmorphed vertex); end pulled 1% toward start (the reference's
-                                       float guard); the last level does not morph (null)
-``levels[i].node_size``        m       the side of LOD i's nodes (x, z)
-=============================  ======  =====================================================================
+* ``LODLevelCount`` (levels): LOD levels, 0 the finest; the last covers the rest of the terrain.
+* ``LeafQuadTreeNodeSize`` (heightmap samples): the side of the finest quadtree node.
+* ``RenderGridResolutionMult`` (1): render-grid quads per leaf-node cell (1: one vertex per sample at LOD 0).
+* ``RenderGridResolution`` (quads): the grid mesh every node is drawn with (leaf size x mult a side).
+* ``LODLevelDistanceRatio``: each level's band is this many times the previous one's.
+* ``MorphStartRatio``: where in its band a level starts morphing toward the next.
+* ``ViewRange`` (m): the reference's visibility distance, the last level's range (``LODNear`` = 0);
+  terrainwarp draws the last level to the horizon.
+* ``levels[i].range`` (m): LOD i is drawn where its node's box is within this of the eye.
+* ``levels[i].morph_start``, ``levels[i].morph_end`` (m): the vertex morph toward LOD i+1 runs between these
+  eye distances (of the unmorphed vertex); the end pulled 1% toward the start (the reference's float guard);
+  null for the last level, which does not morph.
+* ``levels[i].node_size`` (m): the side of LOD i's nodes along x and z.
 
 **Cesium** (CesiumJS: ``Globe.maximumScreenSpaceError``; ``QuadtreePrimitive`` tests ``geometricError *
 drawingBufferHeight / (distance * 2 tan(fovy / 2))`` against it, ``TerrainProvider.
