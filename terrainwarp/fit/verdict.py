@@ -234,6 +234,9 @@ def annotate(res: Any, knobs: Sequence[Knob], cameras: list[Camera], refs: list[
         res.image_floor_p99_px = image_floor(res.scene, res.policy, cameras, refs, device=device)
     said = describe(res.binding, res.at_limits, res.sparse)
     res.message = res.message + (f"; {said}" if said else "")
+    if res.policy == "cesium" and res.validated is not None:  # the answer in Cesium's own terms
+        res.message += (f"; Cesium: maximumScreenSpaceError = {res.values['max_sse_px']:.4g} at "
+                        f"{res.viewports[0].text} gives a true worst-frame p99 of {res.validated.worst_p99:.3g} px")
     res.scene = res.scene.with_(path=CameraPath.of(cameras), viewport=res.viewports[0],
                                 budget=Budget(res.budget_px, res.max_pop_px, cost if isinstance(cost, str)
                                               else res.cost))

@@ -35,7 +35,7 @@ def test_camera_keys_without_a_position_are_applied():
     ({"lod": {"roots": True}}, TypeError, r"lod.roots: expected an int or \(nx, nz\)"),
     ({"lod": {"spacing": 3}}, TypeError, r"lod.spacing: expected one of"),
     ({"lod": {"policy": "ssee"}}, ValueError,
-     r"lod.policy: expected one of \['sse', 'distance', 'continuous', 'cdlod', 'clipmaps', 'chunked'\]"),
+     r"lod.policy: expected one of \['sse', 'distance', 'continuous', 'cdlod', 'clipmaps', 'chunked', 'cesium'\]"),
     ({"heightmap": {"example": "jacksboro", "dx": math.nan}}, ValueError,
      r"heightmap.dx: applies to a 'path' heightmap only; an example takes its own spacing"),
     ({"heightmap": {"example": "jacksboro", "dx": -30}}, ValueError, r"heightmap.dx: applies to a 'path'"),

@@ -122,3 +122,5 @@ def test_a_cesium_setting_renders_saves_fits_and_lists_its_knob(tmp_path):
     res = fit_lod(sc.with_(mesh="grid"), 1.0, policy="cesium", cameras=sc.camera_path(2))
     assert res.met and res.validated.worst_p99 <= 1.0 and "max_sse_px" in res.values
     assert res.to_dict()["pixel_knobs"]["max_sse_px"]["px"] == pytest.approx(res.values["max_sse_px"])
+    assert f"maximumScreenSpaceError = {res.values['max_sse_px']:.4g} at 96x54, 60 degree fov gives a true " \
+           f"worst-frame p99 of {res.validated.worst_p99:.3g} px" in res.message
