@@ -226,7 +226,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
-                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
+                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs, floor=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []

@@ -77,7 +77,7 @@ class FitResult:
             budget on camera k, the pop budget, or the main knob at a range limit); at_limits: the fitted knobs on
             an end of their range; sparse: the validated frames whose p99 rests on too few samples
             (:func:`terrainwarp.fit.verdict.sparse_frames`); image_floor_p99_px: per camera, the family's
-            full-detail image error (the floor of ``validated.image_p99_px``).
+            full-detail image error (the floor of ``validated.image_p99_px``; with ``floor=True``, as the CLI fits).
     """
 
     policy: str
@@ -181,7 +181,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             max_tries: int = 8, grid_points: int = 0, grid_evaluator=None, gradient: str = "relaxed",
             device: str = "cpu", progress: bool = False, steps: int | None = None,
             max_validations: int | None = None, viewports: Sequence[Sequence[float]] | None = None,
-            floor: bool = True) -> FitResult:
+            floor: bool = False) -> FitResult:
     """Fit ``policy``'s knobs so that every frame's p99 screen error over the camera path is within ``budget_px``
     at the lowest mean cost per frame.
 
@@ -209,7 +209,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         steps, max_validations: accepted from earlier versions: ``max_validations`` sets ``max_tries``; ``steps``
             is unused (the optimiser's schedule is fixed).
         viewports: ``[(width, height, fov_y_deg), ...]``: one setting meeting the budget on the cameras at each (the
-            first is the scene's ``viewport``; None: theirs). floor: measure ``image_floor_p99_px`` (the full detail's).
+            first is the scene's ``viewport``; None: theirs). floor: also ``image_floor_p99_px`` (a frame a camera).
 
     Raises:
         ValueError, TypeError: a bad budget, policy, knob name, cost, count, or a streamed heightmap.

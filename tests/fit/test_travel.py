@@ -35,7 +35,7 @@ def small():
 
 def test_a_setting_fitted_at_960x540_meets_the_budget_at_1080p(rough):
     sc, cams = rough
-    res = fit_lod(sc, 4.0, policy="clipmaps", cameras=cams, floor=False)
+    res = fit_lod(sc, 4.0, policy="clipmaps", cameras=cams)
     assert res.met and res.scene.pixel_viewport == (960, 540, 60.0)
     assert res.to_dict()["viewport"] == [960, 540, 60.0]
     r = rescale(res.scene, 1920, 1080, 60.0)
@@ -96,7 +96,7 @@ def test_one_setting_fitted_on_several_viewports_meets_the_budget_on_each(small)
 
 def test_the_fitted_scene_gives_back_its_cameras_and_evaluate_reproduces_the_fit(small, tmp_path):
     sc, cams = small
-    res = fit_lod(sc, 2.0, policy="chunked", cameras=cams, cost="llvmpipe")
+    res = fit_lod(sc, 2.0, policy="chunked", cameras=cams, cost="llvmpipe", floor=True)
     path = res.scene.save(tmp_path / "fitted.toml")
     back = Scene.load(path)
     assert back.camera_path() == cams and back.viewport == cams[0].viewport
@@ -153,7 +153,7 @@ def test_a_camera_looking_off_the_terrain_is_flagged(small):
 
 def test_the_image_floor_is_the_familys_full_detail_frame(small):
     sc, cams = small
-    res = fit_lod(sc, 2.0, policy="chunked", cameras=cams)
+    res = fit_lod(sc, 2.0, policy="chunked", cameras=cams, floor=True)
     full = full_detail(sc, "chunked")
     assert full.lod.params == (("max_sse_px", 0.0),)
     for k, c in enumerate(cams):
