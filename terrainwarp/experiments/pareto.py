@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
+from ..fit.verdict import MIN_SAMPLES, PIXELS_PER_SAMPLE
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import output_set, save_figure, write_text
 from ..lod.bintree import Bintree
@@ -469,7 +470,9 @@ def with_image_floor(rows: list[dict]) -> list[dict]:
     """``rows`` with ``image_err_floor_p99_px`` beside ``image_err_p99_px``: on each camera, the lowest image p99 of
     the row's family over the sweep's settings (its finest setting's, as a rule: the triangulation floor the image
     error carries on that camera; a family's full-detail frame is not among a sweep's settings, so this is the
-    floor as near as the sweep goes)."""
+    floor as near as the sweep goes); and ``sparse``: 1 where the frame's p99 rests on too few visible samples
+    (:data:`terrainwarp.fit.verdict.MIN_SAMPLES`, or fewer than one per
+    :data:`terrainwarp.fit.verdict.PIXELS_PER_SAMPLE` covered pixels), else 0."""
     floor: dict[tuple, float] = {}
     for r in rows:
         v = float(r.get("image_err_p99_px", math.nan))
@@ -483,6 +486,8 @@ def with_image_floor(rows: list[dict]) -> list[dict]:
             d[k] = v
             if k == "image_err_p99_px":
                 d["image_err_floor_p99_px"] = floor.get((r["policy"], r["frame"]), math.nan)
+        n, cov = float(r.get("samples_visible", math.nan)), float(r.get("covered", math.nan))
+        d["sparse"] = int(n < MIN_SAMPLES or n * PIXELS_PER_SAMPLE < cov) if math.isfinite(n) else 0
         out.append(d)
     return out
 
@@ -584,6 +589,12 @@ def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Pa
            "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]
     md += [f"| {k} | {tuple(round(v, 1) for v in cam.position)} | {tuple(round(v, 1) for v in cam.target)} |"
            for k, cam in enumerate(cameras)]
+    sparse = sorted({(r["frame"], int(r["samples_visible"])) for r in floors if r["sparse"] and r["policy"] == "grid"}
+                    or {(r["frame"], int(r["samples_visible"])) for r in floors if r["sparse"]})
+    if sparse:
+        md += ["", f"Frames whose p99 rests on too few visible samples (< {MIN_SAMPLES}, or < one per "
+               f"{PIXELS_PER_SAMPLE} covered pixels; frames.csv's `sparse`): "
+               + ", ".join(f"frame {k} ({n} samples)" for k, n in sparse) + "."]
     md += ["", "This simulator's CPU time per frame: [timing.md](timing.md).", "", "![pareto](pareto.png)", ""]
     timing = [f"# This run's timings: {hm.name}", "", *head, _jobs_line(rows), "",
               "CPU milliseconds of this simulator (select + mesh + raster = frame_ms), not a GPU's: they differ "

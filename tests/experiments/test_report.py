@@ -95,6 +95,9 @@ def test_frames_csv_has_the_primary_image_and_popping_columns(small, tmp_path):
         same = [float(x["image_err_p99_px"]) for x in got if x["policy"] == r["policy"] and x["frame"] == r["frame"]]
         assert float(r["image_err_floor_p99_px"]) == min(same) <= float(r["image_err_p99_px"])
     assert "image_err_floor_p99_px" in md and "cracks" not in md.replace("cracks are check_watertight", "")
+    for r in got:  # too few samples for a p99: flagged per frame
+        n, cov = int(r["samples_visible"]), int(r["covered"])
+        assert r["sparse"] == str(int(n < 1000 or 50 * n < cov))
 
 
 def test_popping_is_zero_for_a_static_camera_and_an_unchanged_selection(small):
