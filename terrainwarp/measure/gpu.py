@@ -4,18 +4,13 @@
 **The model.** A frame's time is a fixed overhead plus the time of its slowest stage; each stage's time is the
 work its counters count divided by the stage's rate (:data:`STAGES`):
 
-========== ======================================================= ==========================================
-stage      counters (OpenGL pipeline statistics, terrainwarp's)    rate keys (per clock, or per second)
-========== ======================================================= ==========================================
-tessellator tess_control_shader_patches,                           patches_per_clock, domain_points_per_clock
-           tess_evaluation_shader_invocations
-vertex     vertex_shader_invocations,                              vertices_per_clock
-           tess_evaluation_shader_invocations
-setup      clipping_input_primitives                               triangles_per_clock (x engines)
-shade      fragment_shader_invocations (4 lanes per 2x2 quad)      pixels_per_clock
-rop        samples_passed                                          samples_per_clock
-memory     bytes_vertex, bytes_index, bytes_heightmap              bytes_per_second
-========== ======================================================= ==========================================
+* ``tessellator``: ``tess_control_shader_patches`` / ``patches_per_clock`` +
+  ``tess_evaluation_shader_invocations`` / ``domain_points_per_clock``;
+* ``vertex``: (``vertex_shader_invocations`` + ``tess_evaluation_shader_invocations``) / ``vertices_per_clock``;
+* ``setup``: ``clipping_input_primitives`` / ``triangles_per_clock`` (triangles per clock x engines);
+* ``shade``: ``fragment_shader_invocations`` (4 lanes per 2x2 quad) / ``pixels_per_clock``;
+* ``rop``: ``samples_passed`` / ``samples_per_clock``;
+* ``memory``: (``bytes_vertex`` + ``bytes_index`` + ``bytes_heightmap``) / ``bytes_per_second``.
 
 The ``shade`` stage carries the small-triangle penalty: ``fragment_shader_invocations`` counts 4 lanes for every
 2x2 quad a triangle touches, helper lanes included, so its time is the covered samples over the quad efficiency

@@ -84,7 +84,7 @@ def _costs(terms: list[np.ndarray], combine: str, overhead: float, mult: np.ndar
 def _name(model: CostModel | GpuProfile, k: str) -> str:
     if isinstance(model, GpuProfile):
         return f"{k} ({'/'.join(model.rates[k])})"
-    return f"weight of {k}"
+    return f"1/weight of {k}"
 
 
 def _describe(model, names: list[str], m: np.ndarray, labels: list[str], c: int) -> str:

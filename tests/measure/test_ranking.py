@@ -54,7 +54,7 @@ def test_a_linear_model_reads_its_weights_as_rates():
     assert t.tolist() == [[1.0, 2.0]]
     v = verdict({"x": [_frame(1e6, 0, 2e6)], "y": [_frame(1.9e6, 0, 1.0e6)]}, m)
     assert v.winner == "y" and v.cost == pytest.approx(0.5 + 1.9 + 1.0) and not v.robust and v.bound == ""
-    assert "weight of " in v.flip and v.flip.endswith("-> x")
+    assert "1/weight of " in v.flip and v.flip.endswith("-> x")
     assert verdict({"x": [_frame(1e6, 0, 2e6)]}, shipped_model()).robust  # one candidate: nothing to flip to
 
 
