@@ -174,3 +174,27 @@ def test_a_profile_is_a_frozen_value_and_scales_by_stage():
 
 def _toml_text(name: str) -> str:
     return resources.files("terrainwarp.measure").joinpath(f"gpu_profiles/{name}.toml").read_text()
+
+
+def test_the_docs_table_is_the_shipped_rates():
+    """docs/gpu_profiles.rst's table of rates says what the shipped files say."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "gpu_profiles.rst").read_text()
+    body = text[text.index(".. list-table::"):text.index("What is missing matters")]
+    rows = [r for r in body.split("   * - ")[2:]]
+    got = {}
+    for r in rows:
+        cells = [c.strip().removeprefix("- ").strip() for c in r.strip().split("\n     ")]
+        got[cells[0]] = cells
+    assert sorted(got) == NAMES
+    for name, cells in got.items():
+        p = shipped_profile(name)
+        assert cells[1].startswith(p.gpu) and float(cells[2]) == p.clock_mhz
+        for col, (stage, key) in zip(cells[3:8], [("setup", "triangles_per_clock"), ("shade", "pixels_per_clock"),
+                                                   ("rop", "samples_per_clock"), ("memory", "bytes_per_second"),
+                                                   ("vertex", "vertices_per_clock")]):
+            want = p.rates.get(stage, {}).get(key)
+            assert (col == "\\-") if want is None else float(col) * (1e9 if stage == "memory" else 1) == want, (name,
+                                                                                                           stage)
+        assert sorted(cells[8].split(", ")) == sorted(p.unmodelled), name
