@@ -133,9 +133,10 @@ def whitepaper(args) -> None:
                              f"{f['c']:.2f}", f"{f['rms']:.2f}", f"{100 * f['mean_rel']:.0f}%",
                              f"{100 * f['max_rel']:.0f}%", f"{f['slope']:.2f}"])
     s = setup
+    pos = tuple(round(v) for v in s["camera"].position)
     body = (f"Our frame: {s['width']}x{s['height']}, a {s['heightmap'].shape[0]}^2 fBm (seven octaves, 4 m "
-            f"spacing, 800 m relief) seen from the scene's ground-level flyover (camera {tuple(round(v) for v in s['camera'].position)}"
-            f" looking along the path, 60 deg field of view); patches from a distance-split quadtree (rings of "
+            f"spacing, 800 m relief) seen from the scene's ground-level flyover (camera {pos} looking along the "
+            f"path, 60 deg field of view); patches from a distance-split quadtree (rings of "
             f"patches that grow with distance, as the sample's tile rings; split while the distance is under "
             f"k = 2 f / 64 = {s['k']:.1f} patch sizes, f the focal length in pixels, so that no patch needs more "
             "than the cap of 64 at 1 px), each edge's factor the sample's rule (the projected diameter of the "
@@ -169,9 +170,9 @@ def clipmap(args) -> None:
     (x0, z0), (x1, z1) = hm.bounds_xz
     cx, cz = 0.5 * (x0 + x1), 0.5 * (z0 + z1)
     ground = float(hm.sample(cx, cz))
-    cams = [Camera(position=(cx, ground + 150.0, cz), target=(cx + 1000 * math.cos(a), ground + 50.0,
-                                                              cz + 1000 * math.sin(a)),
-                   fov_y_deg=2 * math.degrees(math.atan(math.tan(math.radians(45)) * 768 / 1024)),
+    fov_y = 2 * math.degrees(math.atan(math.tan(math.radians(45)) * GEMS["height"] / GEMS["width"]))  # 90 deg across
+    cams = [Camera(position=(cx, ground + 150.0, cz),
+                   target=(cx + 1000 * math.cos(a), ground + 50.0, cz + 1000 * math.sin(a)), fov_y_deg=fov_y,
                    width=GEMS["width"], height=GEMS["height"], near=1.0, far=1e7) for a in (0.3, 1.9, 3.5, 5.1)]
     per_levels = {}
     for levels in (full - 1, full):
@@ -200,7 +201,8 @@ def clipmap(args) -> None:
             "its own grid units) and their fragments are not counted (a thin band at the horizon). Mean over the "
             f"headings: {tris:,.0f} triangles, {np.mean([c['vertex_shader_invocations'] for c in ext]):,.0f} "
             f"vertex shader invocations, quad efficiency {c0['quad_efficiency']:.3f} (first heading).\n\n"
-            + md_table(["who", "triangles / frame", "draw calls", "ms / frame", "bound stage (stage ms, first heading)"], rows))
+            + md_table(["who", "triangles / frame", "draw calls", "ms / frame",
+                        "bound stage (stage ms, first heading)"], rows))
     write_result("gpu_clipmap", "GPU profiles against GPU Gems 2's geometry clipmaps (bench_gpu_profiles.py)",
                  body + _note("gpu_clipmap"))
 

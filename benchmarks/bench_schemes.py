@@ -33,12 +33,12 @@ from _common import RESULTS, md_table, write_result
 
 from terrainwarp import Heightmap, LodConfig, Scene, render
 from terrainwarp.camera import Camera, flyover
+from terrainwarp.experiments.winners import report_models
 from terrainwarp.kernels.lod import select_level
 from terrainwarp.lod import Terrain
 from terrainwarp.lod.cdlod import Cdlod
 from terrainwarp.lod.chunked import ChunkedLod
 from terrainwarp.lod.clipmaps import Clipmap
-from terrainwarp.experiments.winners import report_models
 from terrainwarp.measure.cost import shipped_model
 from terrainwarp.measure.ranking import verdict
 from terrainwarp.measure.sample_error import popping, sample_error

@@ -36,7 +36,8 @@ from ..kernels.checks import check_number
 from ..kernels.counters import PIPELINE_COUNTERS
 from .gpu import GpuProfile, shipped_profile
 
-__all__ = ["CostModel", "Cost", "WorstOf", "cost", "cost_model", "shipped_model", "MODEL_FEATURES", "COST_NAMES", "GPU_PREFIX"]
+__all__ = ["CostModel", "Cost", "WorstOf", "cost", "cost_model", "shipped_model", "MODEL_FEATURES", "COST_NAMES",
+           "GPU_PREFIX"]
 
 #: The counters a cost model may weigh (a calibration fits these and keeps the ones it needs).
 MODEL_FEATURES = ("draw_calls", "tess_control_shader_patches", "tess_evaluation_shader_invocations",
