@@ -30,6 +30,7 @@ from .experiments.calibrate import calibrate
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
 from .experiments.plots import plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
+from .experiments.winners import budget_verdicts
 from .fit import (
     Evaluation,
     FitResult,
@@ -50,7 +51,7 @@ from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
-from .measure.cost import Cost, cost
+from .measure.cost import Cost, CostModel, cost
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
 from .runtime import configure_from_env
@@ -178,12 +179,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
         if bad:
             raise ValueError(f"--policies: unknown {sorted(bad)}")
         settings = [s for s in settings if s.policy in want]
-    ranking = cost(args.cost)  # checked before the sweep runs
+    ranking = cost(_cost_spec(args.cost))  # checked before the sweep runs
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
     rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
                  scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv",
-                 cost_model=ranking.model)
+                 cost_model=_sweep_model(ranking))
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
@@ -194,8 +195,25 @@ def _cmd_report(args: argparse.Namespace) -> int:
         print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  image p99 {r['image_err_p99_px']:8.3f} px  "
               f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {int(r['triangles']):>9} tris  "
               f"{r['frame_ms']:9.2f} CPU ms")
+    print("winner per budget under each cost model (robust: the same winner with every rate x1/3..x3):")
+    for b, name, v in budget_verdicts(summarise(rows, ranking), rows):
+        print(f"  {b:4g} px  {name:>9}  " + ("no setting meets it" if v is None else
+              f"{v.winner:>18}  {v.cost:9.4g} ms  bound {v.bound or '-':>6}  robust "
+              + ("yes" if v.robust else f"no ({v.flip})")))
     print("wrote: " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def _cost_spec(text: str) -> str | list[str]:
+    """``--cost``: one cost, or several separated by commas (the worst of them per frame)."""
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    return parts if len(parts) > 1 else text
+
+
+def _sweep_model(c: Cost) -> CostModel | None:
+    """The linear model a sweep writes as each row's ``cost_ms`` (None: the shipped one); other costs (GPU
+    profiles, lists) price the rows afterwards."""
+    return c.model if isinstance(c.model, CostModel) else None
 
 
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
@@ -209,7 +227,7 @@ def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: i
     def run(values: list[float]) -> list[Evaluation]:
         rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
                      device=device, scheduler=scheduler, workers=workers,
-                     cost_model=None if cost_of is None else cost_of.model)
+                     cost_model=None if cost_of is None else _sweep_model(cost_of))
         return evaluations_from_rows(rows, policy, values, knob, None if cost_of is None or cost_of.name == "triangles"
                                      else cost_of)
 
@@ -220,7 +238,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     sc = _scene(args)
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
-    fit_cost = cost(args.cost)  # checked before the fit runs
+    fit_cost = cost(_cost_spec(args.cost))  # checked before the fit runs
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
     refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
@@ -529,8 +547,10 @@ def _add_report_fit(sub) -> None:
     rp.add_argument("--workers", type=_nonnegative_int, default=None,
                     help="local worker processes (default: one per core; 0: in this process)")
     rp.add_argument("--cost", default="llvmpipe", metavar="COST",
-                    help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), triangles, a "
-                         "counter name (e.g. fragment_shader_invocations) or a weights file of terrainwarp calibrate")
+                    help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), a GPU profile "
+                         "(gpu:gf100, gpu:gcn, gpu:rdna, gpu:mali, gpu:nv40 or gpu:FILE.toml), several of them "
+                         "separated by commas (the worst per frame), triangles, a counter name (e.g. "
+                         "fragment_shader_invocations) or a weights file of terrainwarp calibrate")
     ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
                   _cmd_fit)
     _add_scene(ft, "out/fit")
@@ -549,8 +569,9 @@ def _add_report_fit(sub) -> None:
     ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[], metavar="PX",
                     help="also fit these budgets for the cost-against-budget curve")
     ft.add_argument("--cost", default="triangles", metavar="COST",
-                    help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model) or a "
-                         "weights file of terrainwarp calibrate")
+                    help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model), a "
+                         "GPU profile (gpu:gf100, ..., gpu:FILE.toml), several models separated by commas (the worst "
+                         "per frame: one setting for every GPU listed) or a weights file of terrainwarp calibrate")
     ft.add_argument("--knobs", type=_knob_list, default=None, metavar="A,B,C|all",
                     help="the knobs to fit together (terrainwarp.fit.knobs; default: the policy's main knob alone)")
     ft.add_argument("--baselines", type=_baseline_list, default=[], metavar="M,N",

@@ -170,8 +170,8 @@ SCENE_FILE: dict[str, dict[str, SceneKey]] = {
         "budget_px": SceneKey("number", "-", "the p99 screen-error budget the setting was fitted to, pixels at "
                                              "the [viewport]"),
         "max_pop_px": SceneKey("number", "-", "the worst consecutive pair's pop p99 bound, pixels (none: left out)"),
-        "cost": SceneKey("string", '"triangles"', "what the fit minimised (triangles, a counter, llvmpipe or a "
-                                                  "weights file)"),
+        "cost": SceneKey("string or array of strings", '"triangles"', "what the fit minimised (triangles, a "
+                         "counter, llvmpipe, gpu:<profile>, a weights file, or a list of models: the worst per frame)"),
     },
 }
 
@@ -607,19 +607,23 @@ class Budget:
     Attributes:
         budget_px: the p99 screen-error budget, pixels at the scene's viewport (> 0).
         max_pop_px: the worst consecutive pair's pop p99 bound, pixels (None: no bound).
-        cost: what the fit minimised (``"triangles"``, a counter name, ``"llvmpipe"`` or a weights file).
+        cost: what the fit minimised (``"triangles"``, a counter name, ``"llvmpipe"``, a GPU profile
+            ``"gpu:<name>"``, a weights file, or a list of models: the worst of them per frame).
     """
 
     budget_px: float
     max_pop_px: float | None = None
-    cost: str = "triangles"
+    cost: str | tuple[str, ...] = "triangles"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "budget_px", check_number("budget.budget_px", self.budget_px, 0.0, lo_open=True))
         if self.max_pop_px is not None:
             object.__setattr__(self, "max_pop_px", check_number("budget.max_pop_px", self.max_pop_px, 0.0))
-        if not isinstance(self.cost, str):
-            raise TypeError(f"budget.cost: expected a cost name or a weights file path, got {self.cost!r}")
+        if isinstance(self.cost, list | tuple) and self.cost and all(isinstance(c, str) for c in self.cost):
+            object.__setattr__(self, "cost", tuple(self.cost))
+        elif not isinstance(self.cost, str):
+            raise TypeError(f"budget.cost: expected a cost name, a weights file path or a list of models, got "
+                            f"{self.cost!r}")
 
 
 @dataclass(frozen=True, eq=False)

@@ -64,6 +64,7 @@ from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import LOD_POLICIES, Scene
 from ..schemes import PLUGIN_FLAG, SCHEMES, register_scheme, scheme_source, sweep_values
 from .runner import Job, Runner, SweepResult, pending_jobs
+from .winners import budget_verdicts, verdict_lines
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
            "with_image_floor", "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table"]
@@ -584,6 +585,10 @@ def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Pa
           "| budget_px | policy | setting | p99_px | cost | triangles | image_err_p99_px | pop_p99_px |",
           "|---|---|---|---|---|---|---|---|"]
     md += ["| " + " | ".join(str(v) for v in r) + " |" for r in budget_table(summ)]
+    md += ["", "## Winner per budget under each cost model", "",
+           "Every setting meeting the budget, priced by the shipped llvmpipe model and each shipped GPU profile "
+           "(terrainwarp.measure.gpu: published rates, a bottleneck model); robust: the winner stays with every rate "
+           "multiplied by 1/3..3 (terrainwarp.measure.ranking).", "", *verdict_lines(budget_verdicts(summ, rows))]
     md += ["", f"## Pareto front ({c.label})", "", ", ".join(r["setting"] for r in pareto(summ)),
            "", "## Pareto front (triangles)", "", ", ".join(r["setting"] for r in pareto(summ, "triangles")),
            "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]

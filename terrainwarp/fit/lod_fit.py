@@ -194,7 +194,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         knobs: None (the policy's main knob, as before multi-knob fits), ``"all"`` or a list of knob names
             (:func:`terrainwarp.fit.knobs`); the main knob is always fitted.
         cost: ``"triangles"``, a counter name, ``"llvmpipe"`` (the shipped cost model), a
-            :class:`terrainwarp.measure.cost.CostModel` or a weights file.
+            :class:`terrainwarp.measure.cost.CostModel` or a weights file, a GPU profile (``"gpu:gf100"``,
+            ``"gpu:mine.toml"``), or a list of models: each frame's worst modelled ms over them is minimised, a
+            setting that holds on every GPU listed (:func:`terrainwarp.measure.cost.cost`).
         max_pop_px: also bound the worst consecutive pair's pop p99 (px); every try then measures the whole path.
         references: the full-detail grid frames of the cameras (with depth), when the caller has them.
         rel_tol: a try within ``rel_tol`` under the budget ends the search; cost gaps within it are not chased.

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -238,8 +239,17 @@ def annotate(res: Any, knobs: Sequence[Knob], cameras: list[Camera], refs: list[
         res.message += (f"; Cesium: maximumScreenSpaceError = {res.values['max_sse_px']:.4g} at "
                         f"{res.viewports[0].text} gives a true worst-frame p99 of {res.validated.worst_p99:.3g} px")
     res.scene = res.scene.with_(path=CameraPath.of(cameras), viewport=res.viewports[0],
-                                budget=Budget(res.budget_px, res.max_pop_px, cost if isinstance(cost, str)
-                                              else res.cost))
+                                budget=Budget(res.budget_px, res.max_pop_px, _cost_name(cost)))
+
+
+def _cost_name(cost: object) -> str | tuple[str, ...]:
+    """The fit's cost as a scene file names it: a name or a path, a list of them; a model given as an object is
+    saved as ``"triangles"`` (a file cannot name it: save it as a weights file or a profile and fit with that)."""
+    if isinstance(cost, str | Path):
+        return str(cost)
+    if isinstance(cost, list | tuple) and cost and all(isinstance(c, str | Path) for c in cost):
+        return tuple(str(c) for c in cost)
+    return "triangles"
 
 
 @dataclass
@@ -297,7 +307,8 @@ def assess(scene: Scene, *, budget_px: float | None = None, max_pop_px: float | 
     if budget_px is None:
         raise ValueError("budget_px: the scene has no [budget] table; give the budget (--budget-px)")
     max_pop_px = max_pop_px if max_pop_px is not None else (bud.max_pop_px if bud is not None else None)
-    spec = cost if cost is not None else (bud.cost if bud is not None else "triangles")
+    spec = cost if cost is not None else (list(bud.cost) if bud is not None and isinstance(bud.cost, tuple)
+                                          else bud.cost if bud is not None else "triangles")
     cost_of = resolve_cost(spec)
     label = cost_of.label
     cost_of = None if cost_of.name == "triangles" else cost_of
