@@ -210,8 +210,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         progress: a progress bar on stderr (reference frames, models built, optimiser steps, exact frames).
         steps, max_validations: accepted from earlier versions: ``max_validations`` sets ``max_tries``; ``steps``
             is unused (the optimiser's schedule is fixed).
-        viewports: ``[(width, height, fov_y_deg), ...]``: one setting meeting the budget on the cameras at each (the
-            first is the scene's ``viewport``; None: theirs). floor: also ``image_floor_p99_px`` (a frame a camera).
+        viewports: ``[(w, h, fov_y_deg), ...]``: the cameras at each, one setting for all; floor: image floors too.
 
     Raises:
         ValueError, TypeError: a bad budget, policy, knob name, cost, count, or a streamed heightmap.
@@ -224,10 +223,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     cost_of = resolve_cost(cost)
     cost_of = None if cost_of.name == "triangles" else cost_of
     t0 = time.perf_counter()
-    cams = list(cameras) if cameras is not None else scene.camera_path()
+    cams, vps = _at_viewports(list(cameras) if cameras is not None else scene.camera_path(), viewports)
     if not cams:
         raise ValueError("cameras: expected at least one camera")
-    cams, vps = _at_viewports(cams, viewports)
     bar = Progress(progress, len(cams) * (2 + max_tries + grid_points), f"fit {policy} {budget_px:g} px")
     try:
         refs = references_for(scene, cams, references, device, on_frame=bar)
@@ -261,7 +259,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
 
 def _at_viewports(cams: list[Camera], viewports: Sequence[Sequence[float]] | None
                   ) -> tuple[list[Camera], list[Viewport]]:
-    """The cameras at each of the checked viewports in turn, and the viewports (None: the cameras, no viewports)."""
+    """The cameras at each of the checked viewports in turn (the first is the fitted scene's ``viewport``; the mean
+    cost is over them all), and the viewports (None: the cameras as they are, no viewports)."""
     vps = _viewports(viewports)
     return [c.with_(width=v.width, height=v.height, fov_y_deg=v.fov_y_deg) for v in vps for c in cams] or cams, vps
 
