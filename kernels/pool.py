@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "take", "release_buffers",
-           "kept_bytes", "host_layout"]
+__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "filled_array", "take",
+           "release_buffers", "kept_bytes", "host_layout"]
 
 
 class _Kind:
@@ -169,6 +169,19 @@ def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Devic
     if not dev.is_cpu:
         return wp.empty(shape, dtype=dtype, device=dev)
     a = pooled(*host_layout(shape, dtype), keep, max_bytes)
+    return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+def filled_array(shape: int | Sequence[int], dtype: type, value: float, device: str | wp.Device | None = None, *,
+                 keep: int = 2, max_bytes: int = 64 << 20) -> wp.array:
+    """A Warp array holding ``value`` everywhere: on the CPU from :func:`pooled` (a kept buffer, filled), on CUDA
+    ``wp.zeros`` / ``wp.full``."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        return wp.zeros(shape, dtype=dtype, device=dev) if value == 0 else wp.full(shape, value=value, dtype=dtype,
+                                                                                   device=dev)
+    a = pooled(*host_layout(shape, dtype), keep, max_bytes)
+    a.fill(value)
     return wp.array(a, dtype=dtype, device=dev, copy=False)
 
 
