@@ -57,7 +57,7 @@ import warp as wp
 from .checks import check_bool, check_triangles, check_viewport
 from .counters import (TALLIES, T_BINNED, T_BLOCKS, T_CLIPPED, T_COVERED, T_INSIDE, T_PASSED, T_QUADS, T_RASTERIZED,
                        T_TESTED, T_TILE16, raster_counters, raster_stats)
-from .parallel import atomic_add_i32, launch, launch_one, max_parts, scan
+from .parallel import atomic_add_i32, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import filled_array, pooled_array, pooled_rows, pooled_rows_array
 
@@ -82,6 +82,24 @@ poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
 vec9f = wp.types.vector(length=9, dtype=wp.float32)
 vec8l = wp.types.vector(length=8, dtype=wp.int64)
+
+
+@wp.struct
+class Bins:
+    """The screen tiles' lists of a batch. Cell ``tile * nparts + part`` (a tile and a chunk of the binning launch,
+    whose triangles are consecutive) lists the chunk's triangles that the tile draws, in order, at
+    ``entries[start[cell]:start[cell] + count[cell]]``: ``t`` for a record, ``-1 - t`` for a triangle set up again
+    where drawn. ``emit`` 0: the binning only counts (``count``); 1: it also writes the entries, each cell holding
+    at most ``room[cell]`` (past that ``overflow[0]`` is set and the batch is binned again with exact room)."""
+
+    tiles_x: int
+    nparts: int
+    emit: int
+    start: wp.array(dtype=wp.int32)
+    room: wp.array(dtype=wp.int32)
+    count: wp.array(dtype=wp.int32)
+    entries: wp.array(dtype=wp.int32)
+    overflow: wp.array(dtype=wp.int32)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -902,18 +920,19 @@ def _tile16_count(n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, cull_back: int, w
 
 @wp.func
 def _bin(entry: int, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.bool, cull_back: int, width: int,
-         height: int, tiles_x: int, nparts: int, part: int, emit: int, start: wp.array(dtype=wp.int32),
-         out_count: wp.array(dtype=wp.int32), out_entries: wp.array(dtype=wp.int32)):
-    """The screen tiles of ``box`` (of a large triangle, those its edges do not exclude): counted into
-    ``out_count[tile * nparts + part]``, or, with ``emit``, ``entry`` written into the next slot of the tile's list
-    for this chunk (from ``start[tile * nparts + part]``; ``out_count`` counts the slots used)."""
+         height: int, part: int, bins: Bins):
+    """``entry`` into the lists (:class:`Bins`) of the screen tiles of ``box`` (of a large triangle, those its
+    edges do not exclude), for chunk ``part``."""
     for ty in range(box[2] / TILE, box[3] / TILE + 1):
         for tx in range(box[0] / TILE, box[1] / TILE + 1):
             if not large or _poly_rect(n, xs, ys, _cell_rect(tx, ty, TILE, width, height), cull_back):
-                cell = (ty * tiles_x + tx) * nparts + part
-                slot = wp.atomic_add(out_count, cell, 1)  # one chunk per part: a plain add on the CPU
-                if emit != 0:
-                    out_entries[start[cell] + slot] = entry
+                cell = (ty * bins.tiles_x + tx) * bins.nparts + part
+                slot = wp.atomic_add(bins.count, cell, 1)  # one chunk per part: a plain add on the CPU
+                if bins.emit != 0:
+                    if slot < bins.room[cell]:
+                        bins.entries[bins.start[cell] + slot] = entry
+                    else:
+                        bins.overflow[0] = 1
 
 
 # ------------------------------------------------------------------------------------------------
@@ -959,18 +978,16 @@ def _bin_count_kernel(
     height: int,
     cull_back: int,
     gb: wp.vec2,
-    tiles_x: int,
-    nparts: int,
     # outputs
     out_recs: wp.array2d(dtype=wp.int32),
     out_kind: wp.array(dtype=wp.int32),
-    out_count: wp.array(dtype=wp.int32),
+    out_bins: Bins,
     out_tally: wp.array2d(dtype=wp.int64),
 ):
     """Per triangle ``base + i`` of a batch: set up; ``out_kind[i]`` 0: nothing to draw, 1: a small unclipped
     triangle with its record (``out_recs[i]``, :func:`_put_record`), 2: set up again where drawn (:func:`_prepared`:
-    clipped, large, or vertices a record cannot hold). Counts the tiles each will be drawn in (:func:`_bin`) and
-    tallies the clipper's output, the triangles rasterized and, for large ones, the DEPTH_TILE cells they may cover
+    clipped, large, or vertices a record cannot hold). Bins each into the tiles it will be drawn in
+    (:func:`_bin`: counts, and with room from an earlier frame the entries too) and tallies the clipper's output, the triangles rasterized and, for large ones, the DEPTH_TILE cells they may cover
     (row ``part``)."""
     i = wp.tid() + offset
     t = base + i
@@ -984,8 +1001,7 @@ def _bin_count_kernel(
         if recorded != 0:  # most triangles
             wp.atomic_add(out_tally, part, T_RASTERIZED, wp.int64(1))
             out_kind[i] = 1
-            _bin(t, 0, xs, xs, box, False, cull_back, width, height, tiles_x, nparts, part, 0, out_count, out_count,
-                 out_count)
+            _bin(t, 0, xs, xs, box, False, cull_back, width, height, part, out_bins)
             return
         if not drawn:
             out_kind[i] = 0
@@ -1008,8 +1024,7 @@ def _bin_count_kernel(
             kind = 2
     out_kind[i] = kind
     if kind != 0:
-        _bin(-1 - t, n, xs, ys, box, mode == 2, cull_back, width, height, tiles_x, nparts, part, 0, out_count,
-             out_count, out_count)
+        _bin(-1 - t, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
 
 
 @wp.kernel(enable_backward=False)
@@ -1023,18 +1038,13 @@ def _bin_emit_kernel(
     height: int,
     cull_back: int,
     gb: wp.vec2,
-    tiles_x: int,
-    nparts: int,
     kind: wp.array(dtype=wp.int32),
     recs: wp.array2d(dtype=wp.int32),
-    start: wp.array(dtype=wp.int32),
     # outputs
-    out_cursor: wp.array(dtype=wp.int32),
-    out_entries: wp.array(dtype=wp.int32),
+    out_bins: Bins,
 ):
-    """Per triangle ``base + i`` of a batch (the chunks of :func:`_bin_count_kernel`'s launch): its entry into the
-    list of each tile it was counted in, at ``start[tile * nparts + part]`` plus the slots taken before it: ``t``
-    for a record, ``-1 - t`` for a triangle set up again where drawn."""
+    """Per triangle ``base + i`` of a batch (the chunks of :func:`_bin_count_kernel`'s launch, which counted the
+    entries): its entry into the list of each tile it was counted in (``out_bins``: exact room, counts from 0)."""
     i = wp.tid() + offset
     k = kind[i]
     if k == 0:
@@ -1046,13 +1056,11 @@ def _bin_emit_kernel(
         ay = wp.int64(recs[i, 1])
         box = _tri_box(ax, ay, ax + wp.int64(_lo16(recs[i, 2])), ay + wp.int64(_hi16(recs[i, 2])),
                        ax + wp.int64(_lo16(recs[i, 3])), ay + wp.int64(_hi16(recs[i, 3])), width, height)
-        _bin(t, 0, xs, xs, box, False, cull_back, width, height, tiles_x, nparts, part, 1, start, out_cursor,
-             out_entries)
+        _bin(t, 0, xs, xs, box, False, cull_back, width, height, part, out_bins)
         return
     n, xs, ys, fxs, fys, zs, box, mode, fast, inside3 = _prepared(clip[tris[t, 0]], clip[tris[t, 1]],
                                                                    clip[tris[t, 2]], width, height, cull_back, gb)
-    _bin(-1 - t, n, xs, ys, box, mode == 2, cull_back, width, height, tiles_x, nparts, part, 1, start, out_cursor,
-         out_entries)
+    _bin(-1 - t, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
 
 
 @wp.func
@@ -1124,10 +1132,7 @@ def _tile_kernel(
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
     recs: wp.array2d(dtype=wp.int32),
-    start: wp.array(dtype=wp.int32),
-    entries: wp.array(dtype=wp.int32),
-    tiles_x: int,
-    nparts: int,
+    bins: Bins,
     width: int,
     height: int,
     cull_back: int,
@@ -1141,7 +1146,7 @@ def _tile_kernel(
     out_tally: wp.array2d(dtype=wp.int64),
 ):
     """Screen tiles, one thread each: the background (``first`` batch) or the images' pixels so far, the tile's
-    list drawn in order (:func:`_draw_list`), a tile with a pixel covered flagged in ``out_dirty``, the tallies into
+    lists (:class:`Bins`) drawn in order (:func:`_draw_list`), a tile with a pixel covered flagged in ``out_dirty``, the tallies into
     row ``part``. With ``scratch`` (the CPU, one launch index per thread) each thread takes the next tile from the
     shared counter ``queue`` until none is left and draws it in its own TILE x PITCH tile of ``out_buf_*``, then
     copies it into the images; without (CUDA), tile ``offset + tid`` is drawn in the images themselves (``out_buf_*``
@@ -1151,8 +1156,8 @@ def _tile_kernel(
     if scratch != 0:
         tile = atomic_add_i32(queue, 0, 1)
     while tile < ntiles:
-        ty = tile / tiles_x
-        r = _cell_rect(tile - ty * tiles_x, ty, TILE, width, height)
+        ty = tile / bins.tiles_x
+        r = _cell_rect(tile - ty * bins.tiles_x, ty, TILE, width, height)
         w = r[1] - r[0] + 1
         h = r[3] - r[2] + 1
         ib = (height - 1 - r[2]) * width + r[0]  # the tile's first pixel in the images (rows run down)
@@ -1165,12 +1170,15 @@ def _tile_kernel(
                 _copy(ib, -width, bb, PITCH, w, h, out_id, out_depth, out_buf_id, out_buf_depth)
         if first != 0:
             _fill(bb, stride, w, h, out_buf_id, out_buf_depth)
-        s = start[tile * nparts]
-        e = start[(tile + 1) * nparts]
-        if scratch == 0:
-            _sort_list(entries, s, e)
-        acc = _draw_list(s, e, base, r, clip, tris, recs, entries, width, height, cull_back, gb, bb, stride,
-                         out_buf_id, out_buf_depth)
+        acc = vec8l()
+        for p in range(bins.nparts):  # the chunks' lists in order: submission order
+            cell = tile * bins.nparts + p
+            s = bins.start[cell]
+            e = s + bins.count[cell]
+            if scratch == 0:
+                _sort_list(bins.entries, s, e)
+            acc = acc + _draw_list(s, e, base, r, clip, tris, recs, bins.entries, width, height, cull_back, gb, bb,
+                                   stride, out_buf_id, out_buf_depth)
         if scratch != 0:
             _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
         if acc[3] > wp.int64(0):
@@ -1364,6 +1372,53 @@ _IMAGES_KEPT = 2  # output images kept per (shape, dtype): the frame being made 
 _IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
 
 
+# Room in the tiles' lists, per (device, viewport, chunks, batch): the counts of the last frame of that kind and a
+# quarter more, so that a frame like it writes its entries as it counts them (one binning pass); a frame that needs
+# more room is binned again with exact room (a second pass), and leaves its counts for the next.
+_ROOM: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+_ROOM_KINDS = 64  # kinds kept (a sweep over many viewports starts again beyond)
+
+
+def _bins(count: wp.array, tiles_x: int, nparts: int, device: str, room: tuple | None = None) -> Bins:
+    """Lists with ``room`` = (start, room) per cell (numpy), or none (counting only)."""
+    b = Bins()
+    b.tiles_x, b.nparts, b.emit, b.count = tiles_x, nparts, int(room is not None), count
+    if room is None:
+        b.start = b.room = b.entries = b.overflow = count
+        return b
+    start, slots = room
+    b.start = as_warp(start, wp.int32, device)
+    b.room = as_warp(slots, wp.int32, device)
+    b.entries = pooled_rows_array(max(int(start[-1] + slots[-1]), 1), wp.int32, device)
+    b.overflow = wp.zeros(1, dtype=wp.int32, device=device)
+    return b
+
+
+def _room(counts: np.ndarray, spare: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(start, room) of lists holding ``counts`` (exactly, or with a quarter more and 8 spare per cell)."""
+    slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
+    start = np.zeros(len(slots), np.int32)
+    np.cumsum(slots[:-1], out=start[1:])
+    return start, slots
+
+
+def _bin_batch(base: int, mb: int, args: list, kind: wp.array, recs: wp.array, tally: wp.array, tiles_x: int,
+               ntiles: int, nparts: int, key: tuple, device: str) -> Bins:
+    """Bin a batch: one pass when the room kept for its kind of frame holds it, else counting then emitting."""
+    count = wp.zeros(ntiles * nparts, dtype=wp.int32, device=device)
+    bins = _bins(count, tiles_x, nparts, device, _ROOM.get(key))
+    launch(_bin_count_kernel, mb, [base, *args], [recs, kind, bins, tally], device, parts=True,
+           min_items=_MIN_TRIANGLES)
+    counts = count.numpy()
+    if not bins.emit or int(bins.overflow.numpy()[0]):
+        bins = _bins(wp.zeros_like(count), tiles_x, nparts, device, _room(counts, False))
+        launch(_bin_emit_kernel, mb, [base, *args, kind, recs], [bins], device, parts=True, min_items=_MIN_TRIANGLES)
+    if len(_ROOM) >= _ROOM_KINDS and key not in _ROOM:
+        _ROOM.clear()
+    _ROOM[key] = _room(counts, True)
+    return bins
+
+
 def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool, device: str):
     """Bin and draw the triangles, BATCH at a time. -> (ids, depth (device arrays, every pixel written), the tile
     flags (int32, window order), the tallies summed (TALLIES,) int64)."""
@@ -1389,21 +1444,12 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
         kind = pooled_rows_array(max(mb, 1), wp.int32, device)
         recs = wp.array(pooled_rows((max(mb, 1), 8), np.int32), dtype=wp.int32, device=device, copy=False) if cpu \
             else wp.empty((1, 8), dtype=wp.int32, device=device)  # records: the CPU's only
-        count = wp.zeros(ntiles * nparts + 1, dtype=wp.int32, device=device)
-        geom = [width, height, cb, gb, tiles_x, nparts]
-        launch(_bin_count_kernel, mb, [base, clip, tri_wp, *geom], [recs, kind, count, tally], device, parts=True,
-               min_items=_MIN_TRIANGLES)
-        start = wp.empty_like(count)
-        scan(count, start, inclusive=False)
-        total = int(start.numpy()[-1])
-        entries = wp.empty(max(total, 1), dtype=wp.int32, device=device)
-        if total:
-            cursor = wp.zeros(ntiles * nparts, dtype=wp.int32, device=device)
-            launch(_bin_emit_kernel, mb, [base, clip, tri_wp, *geom, kind, recs, start], [cursor, entries], device,
-                   parts=True, min_items=_MIN_TRIANGLES)
+        args = [clip, tri_wp, width, height, cb, gb]
+        bins = _bin_batch(base, mb, args, kind, recs, tally, tiles_x, ntiles, nparts,
+                          (str(wp.get_device(device)), width, height, nparts, base), device)
         queue = wp.zeros(1, dtype=wp.int32, device=device)
-        launch(_tile_kernel, workers, [int(cpu), queue, ntiles, base, int(base == 0), clip, tri_wp, recs, start,
-                                       entries, tiles_x, nparts, width, height, cb, gb],
+        launch(_tile_kernel, workers, [int(cpu), queue, ntiles, base, int(base == 0), clip, tri_wp, recs, bins, width,
+                                       height, cb, gb],
                [buf_id, buf_depth, out_id, out_depth, dirty, tally], device, parts=True, min_items=1)
     return out_id, out_depth, dirty.numpy(), tally.numpy().sum(axis=0)
 
