@@ -27,21 +27,23 @@ tests/kernels/test_raster.py, with the same clip-space vertices):
    triangle's fan in order): a fragment at depth exactly 1.0 is never drawn, and of two at the same depth the
    lower triangle id stays.
 
-How it runs (count -> scan -> emit, then one thread per screen tile):
+How it runs (binning, then one thread per screen tile):
 
-* **bin** (:func:`_bin_count_kernel`, one thread per triangle): clipping and setup; a small unclipped triangle
-  (most terrain triangles) keeps its fixed-point vertices and depth plane in a record; every drawn triangle counts
-  itself into the ``TILE`` x ``TILE`` screen tiles its pixel box meets (a large clipped one only those its edges
-  do not exclude), per launch chunk.
-* **emit** (:func:`_bin_emit_kernel`): after a prefix sum of the counts, each triangle writes its index into
-  those tiles' lists. A chunk's triangles are consecutive and its thread writes them in order, so a tile's list
-  (chunk after chunk) is in submission order; on CUDA the tile sorts its list.
-* **draw** (:func:`_tile_kernel`): each tile is drawn by one thread (CPU threads take tiles from a shared counter),
-  which fills the tile's part of the id and depth images with the background and draws its list in order:
-  edge functions evaluated for 4x4 blocks of pixels at once (:func:`_cover`: a block is rejected or accepted whole
-  by its corners, else its 16 centres give a coverage mask), the depth test and the writes with no atomics, the
-  pipeline statistics counted on the way (samples passed as the test passes, quads and blocks from the masks).
-  Frames of more than ``BATCH`` triangles go through bin, emit and draw in batches, in order.
+* **bin** (:func:`_bin_kernel`, one thread per triangle): clipping and setup. A small unclipped triangle (most
+  terrain triangles) becomes a 32-byte record (its fixed-point vertices and depth plane, :func:`_pack`) unless its
+  box holds at most 4 pixel centres and it covers none; every other drawn triangle is set up again where drawn.
+  Each goes into the list of every ``TILE`` x ``TILE`` screen tile its pixel box meets (a large one only those its
+  edges do not exclude), one list per tile and launch chunk (:class:`Bins`). A chunk's triangles are consecutive
+  and its thread writes them in order, so a tile's lists, chunk after chunk, are in submission order (on CUDA the
+  tile sorts its list). The lists are written as they are counted when the room kept from the last frame of the
+  same kind holds them; otherwise the counts give exact room and the batch is binned again.
+* **draw** (:func:`_tile_kernel`): each tile is drawn by one thread (CPU threads take tiles from a shared counter)
+  in a scratch tile that fits the cache, which starts as the background and is copied into the images at the
+  end: records row by row, 8 pixel centres at a time in SIMD (edge functions, coverage mask, depth, test and
+  write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted whole by their corners, else given a
+  16-bit mask (:func:`_cover`). The depth test and the writes need no atomics, and the pipeline statistics are
+  counted on the way (samples passed as the test passes in submission order, quads and blocks from the masks).
+  Frames of more than ``BATCH`` triangles go through bin and draw in batches, in order.
 
 The barycentrics of :class:`Fragments` are computed on first access from the clip-space vertices: with
 ``a_i = x_i - px*w_i`` and ``c_i = y_i - py*w_i`` (px, py the centre in NDC) they are
@@ -59,7 +61,7 @@ from .counters import (TALLIES, T_BINNED, T_BLOCKS, T_CLIPPED, T_COVERED, T_INSI
                        T_TESTED, T_TILE16, raster_counters, raster_stats)
 from .parallel import atomic_add_i32, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import filled_array, pooled_array, pooled_rows, pooled_rows_array
+from .pool import filled_array, pooled_array, pooled_rows_array
 
 __all__ = ["Fragments", "rasterize", "rasterize_clip", "clip_coordinates", "clip_barycentrics", "pixel_ndc",
            "SUBPIXEL", "TILE"]
@@ -71,7 +73,7 @@ GUARD_BAND_PX = 0.0  # x and y are clipped at the viewport itself, as llvmpipe d
 TILE = 64  # screen tile edge in pixels: one thread draws a tile
 DEPTH_TILE = 16  # the screen cells in which a large triangle's depth plane is anchored again
 SMALL_PX = 16  # a triangle whose pixel box spans fewer pixels than this each way is small
-BATCH = 1 << 20  # triangles binned and drawn at a time (the records' memory)
+BATCH = 1 << 20  # triangles binned and drawn at a time (the lists' memory)
 PITCH = TILE + 16  # pixels per row of a CPU thread's scratch tile: a row's 16 lanes from any pixel of the tile
 # the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
 _MIN_TRIANGLES = 2048
@@ -82,6 +84,7 @@ poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
 vec9f = wp.types.vector(length=9, dtype=wp.float32)
 vec8l = wp.types.vector(length=8, dtype=wp.int64)
+vec8i = wp.types.vector(length=8, dtype=wp.int32)
 
 
 @wp.struct
@@ -98,7 +101,7 @@ class Bins:
     start: wp.array(dtype=wp.int32)
     room: wp.array(dtype=wp.int32)
     count: wp.array(dtype=wp.int32)
-    entries: wp.array(dtype=wp.int32)
+    entries: wp.array(dtype=vec8i)
     overflow: wp.array(dtype=wp.int32)
 
 
@@ -609,18 +612,16 @@ const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 #endif
 #endif
 wp::vec_t<8, wp::int64> acc;
-const int32_t* __restrict ent = (const int32_t*)entries.data;
-const int32_t* __restrict rec = (const int32_t*)recs.data;
+const int32_t* __restrict rec = (const int32_t*)entries.data;
 int32_t* __restrict ids = (int32_t*)buf_id.data;
 uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
 const int64_t S = 256, HALF = 128;
 int64_t tested = 0, inside = 0, passed = 0, covered = 0, quads = 0, blocks = 0;
 int j = j0;
 for (; j < j1; ++j) {
-    const int t = ent[j];
+    const int32_t* r = rec + 8 * (int64_t)j;
+    const int t = r[7];
     if (t < 0) break;  // set up again where drawn
-    if (j + 8 < j1 && ent[j + 8] >= 0) __builtin_prefetch(rec + 8 * (int64_t)(ent[j + 8] - base));
-    const int32_t* r = rec + 8 * (int64_t)(t - base);
     const int64_t ax = r[0], ay = r[1];
     const int64_t bx = ax + (int16_t)(uint16_t)(r[2] & 0xFFFF), by = ay + (int16_t)(uint16_t)((uint32_t)r[2] >> 16);
     const int64_t cx = ax + (int16_t)(uint16_t)(r[3] & 0xFFFF), cy = ay + (int16_t)(uint16_t)((uint32_t)r[3] >> 16);
@@ -763,10 +764,9 @@ acc[6] = j;
 acc[7] = 0;
 return acc;
 """)
-def _draw_records(entries: wp.array(dtype=wp.int32), j0: int, j1: int, base: int, recs: wp.array2d(dtype=wp.int32),
-                  tx0: int, tx1: int, ty0: int, ty1: int, width: int, height: int, bb: int, stride: int,
+def _draw_records(entries: wp.array(dtype=vec8i), j0: int, j1: int, tx0: int, tx1: int, ty0: int, ty1: int, width: int, height: int, bb: int, stride: int,
                   buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """A tile's list from entry ``j0`` while its entries are records (small unclipped triangles, entry >= 0), each
+    """A tile's list from entry ``j0`` while its entries are records (small unclipped triangles, :func:`_pack`), each
     drawn over the tile's pixels (tx0..tx1, ty0..ty1) into its buffer (origin (tx0, ty0)) row by row: the three
     edge functions of 16 centres of a row at once (int32 lanes), and on the CPU the row's depths, tests and writes
     as 16 lanes too (the scratch tile's rows have room for them). The same pixels, depths and counts as
@@ -776,19 +776,17 @@ def _draw_records(entries: wp.array(dtype=wp.int32), j0: int, j1: int, base: int
 
 
 @wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return 0;
-#else
+wp::vec_t<8, wp::int32> r;
 union { float f; int32_t i; } z, dx, dy;
 z.f = z00;
 dx.f = dzdx;
 dy.f = dzdy;
-const int64_t db = bx - ax, dc = by - ay, de = cx - ax, df = cy - ay;
-const int64_t lim = (int64_t)1 << 31;
-if (ax < -lim || ax >= lim || ay < -lim || ay >= lim) return 0;
+const int64_t db = bx - ax, dc = by - ay, de = cx - ax, df = cy - ay, lim = (int64_t)1 << 31;
+for (int k = 0; k < 7; ++k) r[k] = 0;
+r[7] = -1 - t;
+if (ax < -lim || ax >= lim || ay < -lim || ay >= lim) return r;
 if (db < -32768 || db > 32767 || dc < -32768 || dc > 32767 || de < -32768 || de > 32767 || df < -32768 || df > 32767)
-    return 0;
-int32_t* r = (int32_t*)recs.data + 8 * (int64_t)i;
+    return r;
 r[0] = (int32_t)ax;
 r[1] = (int32_t)ay;
 r[2] = (int32_t)((uint32_t)(uint16_t)(int16_t)db | ((uint32_t)(uint16_t)(int16_t)dc << 16));
@@ -796,15 +794,14 @@ r[3] = (int32_t)((uint32_t)(uint16_t)(int16_t)de | ((uint32_t)(uint16_t)(int16_t
 r[4] = z.i;
 r[5] = dx.i;
 r[6] = dy.i;
-r[7] = 0;
-return 1;
-#endif
+r[7] = t;
+return r;
 """)
-def _put_record(recs: wp.array2d(dtype=wp.int32), i: int, ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64,
-                cx: wp.int64, cy: wp.int64, z00: float, dzdx: float, dzdy: float) -> int:
-    """Row ``i`` of ``recs``: a small triangle's record (a, then b - a and c - a as int16 pairs, then the anchor
-    depth and the plane's slopes as float bits). Returns 0, writing nothing, when the vertices do not fit (and on
-    CUDA, where records are not used: every triangle is set up where drawn)."""
+def _pack(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, z00: float, dzdx: float,
+          dzdy: float, t: int) -> vec8i:
+    """A small unclipped triangle's record: a, then b - a and c - a as int16 pairs, the anchor depth and the plane's
+    slopes as float bits, ``t``; when the vertices do not fit, the entry of a triangle set up again (``-1 - t`` in
+    slot 7)."""
     ...
 
 
@@ -919,7 +916,7 @@ def _tile16_count(n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, cull_back: int, w
 
 
 @wp.func
-def _bin(entry: int, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.bool, cull_back: int, width: int,
+def _bin(entry: vec8i, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.bool, cull_back: int, width: int,
          height: int, part: int, bins: Bins):
     """``entry`` into the lists (:class:`Bins`) of the screen tiles of ``box`` (of a large triangle, those its
     edges do not exclude), for chunk ``part``."""
@@ -954,21 +951,49 @@ def _vertex_kernel(
 
 
 @wp.func
-def _record_small(i: int, c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int,
-                  out_recs: wp.array2d(dtype=wp.int32)):
-    """A triangle inside every clip plane: (drawn, small, its pixel box, recorded). A small one with a pixel
-    centre in its box gets a record (:func:`_put_record`) when its vertices fit one."""
+def _covers_none(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
+                 box: wp.vec4i) -> wp.bool:
+    """Whether a CCW triangle whose pixel box holds at most 4 centres covers none of them (tested one by one; a
+    larger box: False)."""
+    if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > 4:
+        return False
+    for y in range(box[2], box[3] + 1):
+        for x in range(box[0], box[1] + 1):
+            sx = wp.int64(x) * wp.int64(SUBPIXEL) + wp.int64(SUBPIXEL_HALF)
+            sy = wp.int64(y) * wp.int64(SUBPIXEL) + wp.int64(SUBPIXEL_HALF)
+            e0 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx) + _edge_bias(cx - bx, cy - by)
+            e1 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx) + _edge_bias(ax - cx, ay - cy)
+            e2 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax) + _edge_bias(bx - ax, by - ay)
+            if (e0 | e1 | e2) >= wp.int64(0):
+                return False
+    return True
+
+
+@wp.func
+def _small_entry(t: int, c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int):
+    """A triangle inside every clip plane (:func:`_fast_setup`): (drawn, small, its pixel box, what to bin: 0
+    nothing, 1 its record, 2 nothing but a centre was tested; the record). A small one with a centre in its box
+    is drawn from its record, unless its box holds at most 4 centres and it covers none of them."""
     drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box = _fast_setup(c0, c1, c2, width, height, cull_back)
-    recorded = int(0)
+    what = int(0)
+    rec = vec8i()
     if drawn and small and box[0] <= box[1] and box[2] <= box[3]:
-        dzdx, dzdy = _depth_plane(fa, fb, fc)
-        recorded = _put_record(out_recs, i, ax, ay, bx, by, cx, cy, _depth_at(fa, dzdx, dzdy, box[0], box[2]),
-                               dzdx, dzdy)
-    return drawn, small, box, recorded
+        what = 2
+        if not _covers_none(ax, ay, bx, by, cx, cy, box):
+            dzdx, dzdy = _depth_plane(fa, fb, fc)
+            rec = _pack(ax, ay, bx, by, cx, cy, _depth_at(fa, dzdx, dzdy, box[0], box[2]), dzdx, dzdy, t)
+            what = 1
+    return drawn, small, box, what, rec
+
+
+@wp.func
+def _tally(tally: wp.array2d(dtype=wp.int64), part: int, column: int, v: int, on: int):
+    if on != 0:
+        wp.atomic_add(tally, part, column, wp.int64(v))
 
 
 @wp.kernel(enable_backward=False)
-def _bin_count_kernel(
+def _bin_kernel(
     offset: int,
     part: int,
     base: int,
@@ -978,118 +1003,63 @@ def _bin_count_kernel(
     height: int,
     cull_back: int,
     gb: wp.vec2,
+    tallying: int,
     # outputs
-    out_recs: wp.array2d(dtype=wp.int32),
-    out_kind: wp.array(dtype=wp.int32),
     out_bins: Bins,
     out_tally: wp.array2d(dtype=wp.int64),
 ):
-    """Per triangle ``base + i`` of a batch: set up; ``out_kind[i]`` 0: nothing to draw, 1: a small unclipped
-    triangle with its record (``out_recs[i]``, :func:`_put_record`), 2: set up again where drawn (:func:`_prepared`:
-    clipped, large, or vertices a record cannot hold). Bins each into the tiles it will be drawn in
-    (:func:`_bin`: counts, and with room from an earlier frame the entries too) and tallies the clipper's output, the triangles rasterized and, for large ones, the DEPTH_TILE cells they may cover
-    (row ``part``)."""
-    i = wp.tid() + offset
-    t = base + i
+    """Per triangle ``t = base + i`` of a batch: set up, and binned (:func:`_bin`) into the tiles it will be drawn
+    in: a small unclipped one as its record (:func:`_small_entry`), the others (clipped, large) to be set up again
+    there (:func:`_prepared`). With ``tallying``, tallies (row ``part``) the clipper's output, the triangles
+    rasterized, the centres of tiny boxes tested here and, for large triangles, the DEPTH_TILE cells they may
+    cover."""
+    t = base + wp.tid() + offset
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
     c2 = clip[tris[t, 2]]
     xs = vec9l()
     if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb):  # the clipper passes it on as it is
-        wp.atomic_add(out_tally, part, T_CLIPPED, wp.int64(1))
-        drawn, small, box, recorded = _record_small(i, c0, c1, c2, width, height, cull_back, out_recs)
-        if recorded != 0:  # most triangles
-            wp.atomic_add(out_tally, part, T_RASTERIZED, wp.int64(1))
-            out_kind[i] = 1
-            _bin(t, 0, xs, xs, box, False, cull_back, width, height, part, out_bins)
+        _tally(out_tally, part, T_CLIPPED, 1, tallying)
+        drawn, small, box, what, rec = _small_entry(t, c0, c1, c2, width, height, cull_back)
+        if what != 0:  # most triangles
+            _tally(out_tally, part, T_RASTERIZED, 1, tallying)
+            if what == 1:
+                _bin(rec, 0, xs, xs, box, False, cull_back, width, height, part, out_bins)
+            else:
+                _tally(out_tally, part, T_TESTED, (box[1] - box[0] + 1) * (box[3] - box[2] + 1), tallying)
             return
         if not drawn:
-            out_kind[i] = 0
             return
     n, xs, ys, fxs, fys, zs, box, mode, fast, inside3 = _prepared(c0, c1, c2, width, height, cull_back, gb)
     if not inside3 and n >= 3 and (cull_back == 0 or _front_facing(c0, c1, c2)):
         # a clipped polygon goes on as a fan of n - 2 triangles; with culling, llvmpipe's draw pipeline culls a
         # triangle it must clip before the clipper (the others after it, in triangle setup)
-        wp.atomic_add(out_tally, part, T_CLIPPED, wp.int64(n - 2))
-    kind = int(0)
-    if mode == 1:
-        wp.atomic_add(out_tally, part, T_RASTERIZED, wp.int64(1))
-        kind = 2
-    elif mode == 2:
+        _tally(out_tally, part, T_CLIPPED, n - 2, tallying)
+    cells = int(1)
+    if mode == 2:
         cells = _tile16_count(n, xs, ys, box, cull_back, width, height)
         if cells > 0:
-            wp.atomic_add(out_tally, part, T_RASTERIZED, wp.int64(1))
-            wp.atomic_add(out_tally, part, T_BINNED, wp.int64(1))
-            wp.atomic_add(out_tally, part, T_TILE16, wp.int64(cells))
-            kind = 2
-    out_kind[i] = kind
-    if kind != 0:
-        _bin(-1 - t, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
-
-
-@wp.kernel(enable_backward=False)
-def _bin_emit_kernel(
-    offset: int,
-    part: int,
-    base: int,
-    clip: wp.array(dtype=wp.vec4),
-    tris: wp.array2d(dtype=wp.int32),
-    width: int,
-    height: int,
-    cull_back: int,
-    gb: wp.vec2,
-    kind: wp.array(dtype=wp.int32),
-    recs: wp.array2d(dtype=wp.int32),
-    # outputs
-    out_bins: Bins,
-):
-    """Per triangle ``base + i`` of a batch (the chunks of :func:`_bin_count_kernel`'s launch, which counted the
-    entries): its entry into the list of each tile it was counted in (``out_bins``: exact room, counts from 0)."""
-    i = wp.tid() + offset
-    k = kind[i]
-    if k == 0:
-        return
-    t = base + i
-    if k == 1:
-        xs = vec9l()
-        ax = wp.int64(recs[i, 0])
-        ay = wp.int64(recs[i, 1])
-        box = _tri_box(ax, ay, ax + wp.int64(_lo16(recs[i, 2])), ay + wp.int64(_hi16(recs[i, 2])),
-                       ax + wp.int64(_lo16(recs[i, 3])), ay + wp.int64(_hi16(recs[i, 3])), width, height)
-        _bin(t, 0, xs, xs, box, False, cull_back, width, height, part, out_bins)
-        return
-    n, xs, ys, fxs, fys, zs, box, mode, fast, inside3 = _prepared(clip[tris[t, 0]], clip[tris[t, 1]],
-                                                                   clip[tris[t, 2]], width, height, cull_back, gb)
-    _bin(-1 - t, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
+            _tally(out_tally, part, T_BINNED, 1, tallying)
+            _tally(out_tally, part, T_TILE16, cells, tallying)
+    if mode != 0 and cells > 0:
+        _tally(out_tally, part, T_RASTERIZED, 1, tallying)
+        again = vec8i()
+        again[7] = -1 - t
+        _bin(again, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
 
 
 @wp.func
-def _lo16(v: int) -> int:
-    """The signed 16-bit number in the low half of ``v``."""
-    return ((v & 0xFFFF) ^ 0x8000) - 0x8000
-
-
-@wp.func
-def _hi16(v: int) -> int:
-    """The signed 16-bit number in the high half of ``v``."""
-    return v >> 16
-
-
-@wp.func
-def _entry_triangle(e: int) -> int:
-    return wp.where(e >= 0, e, -1 - e)
-
-
-@wp.func
-def _sort_list(entries: wp.array(dtype=wp.int32), s: int, e: int):
+def _sort_list(entries: wp.array(dtype=vec8i), s: int, e: int):
     """Shell sort of entries[s:e] by triangle, in place (on CUDA, where the lists are emitted in no order)."""
     gap = (e - s) / 2
     while gap > 0:
         for i in range(s + gap, e):
             v = entries[i]
+            t = wp.where(v[7] >= 0, v[7], -1 - v[7])
             j = i
             while j >= s + gap:
-                if _entry_triangle(entries[j - gap]) <= _entry_triangle(v):
+                u = entries[j - gap][7]
+                if wp.where(u >= 0, u, -1 - u) <= t:
                     break
                 entries[j] = entries[j - gap]
                 j -= gap
@@ -1098,22 +1068,20 @@ def _sort_list(entries: wp.array(dtype=wp.int32), s: int, e: int):
 
 
 @wp.func
-def _draw_list(s: int, e: int, base: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
-               recs: wp.array2d(dtype=wp.int32), entries: wp.array(dtype=wp.int32), width: int, height: int,
-               cull_back: int, gb: wp.vec2, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
-               buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+def _draw_list(s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
+               entries: wp.array(dtype=vec8i), width: int, height: int, cull_back: int, gb: wp.vec2, bb: int,
+               stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
     """A tile's list entries[s:e], in order: runs of records (:func:`_draw_records`), the others set up again
     (:func:`_draw_prepared`)."""
     acc = vec8l()
     j = s
     while j < e:
-        c = _draw_records(entries, j, e, base, recs, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id,
-                          buf_depth)
+        c = _draw_records(entries, j, e, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id, buf_depth)
         j = int(c[6])
         c[6] = wp.int64(0)
         acc = acc + c
         if j < e:
-            t = -1 - entries[j]
+            t = -1 - entries[j][7]
             acc = acc + _draw_prepared(t, clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]], r, width, height,
                                        cull_back, gb, bb, stride, buf_id, buf_depth)
             j += 1
@@ -1127,11 +1095,9 @@ def _tile_kernel(
     scratch: int,
     queue: wp.array(dtype=wp.int32),
     ntiles: int,
-    base: int,
     first: int,
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
-    recs: wp.array2d(dtype=wp.int32),
     bins: Bins,
     width: int,
     height: int,
@@ -1177,8 +1143,8 @@ def _tile_kernel(
             e = s + bins.count[cell]
             if scratch == 0:
                 _sort_list(bins.entries, s, e)
-            acc = acc + _draw_list(s, e, base, r, clip, tris, recs, bins.entries, width, height, cull_back, gb, bb,
-                                   stride, out_buf_id, out_buf_depth)
+            acc = acc + _draw_list(s, e, r, clip, tris, bins.entries, width, height, cull_back, gb, bb, stride,
+                                   out_buf_id, out_buf_depth)
         if scratch != 0:
             _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
         if acc[3] > wp.int64(0):
@@ -1384,12 +1350,13 @@ def _bins(count: wp.array, tiles_x: int, nparts: int, device: str, room: tuple |
     b = Bins()
     b.tiles_x, b.nparts, b.emit, b.count = tiles_x, nparts, int(room is not None), count
     if room is None:
-        b.start = b.room = b.entries = b.overflow = count
+        b.start = b.room = b.overflow = count
+        b.entries = wp.empty(1, dtype=vec8i, device=device)
         return b
     start, slots = room
     b.start = as_warp(start, wp.int32, device)
     b.room = as_warp(slots, wp.int32, device)
-    b.entries = pooled_rows_array(max(int(start[-1] + slots[-1]), 1), wp.int32, device)
+    b.entries = pooled_rows_array(max(int(start[-1] + slots[-1]), 1), vec8i, device)
     b.overflow = wp.zeros(1, dtype=wp.int32, device=device)
     return b
 
@@ -1402,17 +1369,17 @@ def _room(counts: np.ndarray, spare: bool) -> tuple[np.ndarray, np.ndarray]:
     return start, slots
 
 
-def _bin_batch(base: int, mb: int, args: list, kind: wp.array, recs: wp.array, tally: wp.array, tiles_x: int,
-               ntiles: int, nparts: int, key: tuple, device: str) -> Bins:
-    """Bin a batch: one pass when the room kept for its kind of frame holds it, else counting then emitting."""
+def _bin_batch(base: int, mb: int, args: list, tally: wp.array, tiles_x: int, ntiles: int, nparts: int, key: tuple,
+               device: str) -> Bins:
+    """Bin a batch: one pass when the room kept for its kind of frame holds it, else counting then binning again
+    with exact room."""
     count = wp.zeros(ntiles * nparts, dtype=wp.int32, device=device)
     bins = _bins(count, tiles_x, nparts, device, _ROOM.get(key))
-    launch(_bin_count_kernel, mb, [base, *args], [recs, kind, bins, tally], device, parts=True,
-           min_items=_MIN_TRIANGLES)
+    launch(_bin_kernel, mb, [base, *args, 1], [bins, tally], device, parts=True, min_items=_MIN_TRIANGLES)
     counts = count.numpy()
     if not bins.emit or int(bins.overflow.numpy()[0]):
         bins = _bins(wp.zeros_like(count), tiles_x, nparts, device, _room(counts, False))
-        launch(_bin_emit_kernel, mb, [base, *args, kind, recs], [bins], device, parts=True, min_items=_MIN_TRIANGLES)
+        launch(_bin_kernel, mb, [base, *args, 0], [bins, tally], device, parts=True, min_items=_MIN_TRIANGLES)
     if len(_ROOM) >= _ROOM_KINDS and key not in _ROOM:
         _ROOM.clear()
     _ROOM[key] = _room(counts, True)
@@ -1441,15 +1408,11 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
         buf_id, buf_depth = out_id, out_depth
     for base in range(0, max(m, 1), BATCH):
         mb = max(min(BATCH, m - base), 0)
-        kind = pooled_rows_array(max(mb, 1), wp.int32, device)
-        recs = wp.array(pooled_rows((max(mb, 1), 8), np.int32), dtype=wp.int32, device=device, copy=False) if cpu \
-            else wp.empty((1, 8), dtype=wp.int32, device=device)  # records: the CPU's only
-        args = [clip, tri_wp, width, height, cb, gb]
-        bins = _bin_batch(base, mb, args, kind, recs, tally, tiles_x, ntiles, nparts,
+        bins = _bin_batch(base, mb, [clip, tri_wp, width, height, cb, gb], tally, tiles_x, ntiles, nparts,
                           (str(wp.get_device(device)), width, height, nparts, base), device)
         queue = wp.zeros(1, dtype=wp.int32, device=device)
-        launch(_tile_kernel, workers, [int(cpu), queue, ntiles, base, int(base == 0), clip, tri_wp, recs, bins, width,
-                                       height, cb, gb],
+        launch(_tile_kernel, workers, [int(cpu), queue, ntiles, int(base == 0), clip, tri_wp, bins, width, height, cb,
+                                       gb],
                [buf_id, buf_depth, out_id, out_depth, dirty, tally], device, parts=True, min_items=1)
     return out_id, out_depth, dirty.numpy(), tally.numpy().sum(axis=0)
 
