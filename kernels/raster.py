@@ -500,6 +500,13 @@ def _depth_at(fa: wp.vec3, dzdx: float, dzdy: float, px: int, py: int) -> float:
 
 
 @wp.func_native("""
+#if defined(__CUDA_ARCH__)
+#define RZ_POPC(x) __popc(x)
+#define RZ_CTZ(x) (__ffs(x) - 1)
+#else
+#define RZ_POPC(x) __builtin_popcount(x)
+#define RZ_CTZ(x) __builtin_ctz(x)
+#endif
 #if !defined(__CUDA_ARCH__)
 #pragma clang fp contract(off)
 #endif
@@ -532,7 +539,7 @@ for (int qy = y0 & ~3; qy <= y1; qy += 4) {
         const int64_t e1 = d1x * (sy - cy) - d1y * (sx - cx) + b1;
         const int64_t e2 = d2x * (sy - ay) - d2y * (sx - ax) + b2;
         if (e0 + hi0 < 0 || e1 + hi1 < 0 || e2 + hi2 < 0) continue;  // no centre of the block inside
-        tested += __builtin_popcount(rect);
+        tested += RZ_POPC(rect);
         uint32_t m = 0xFFFFu;
         if (e0 + lo0 < 0 || e1 + lo1 < 0 || e2 + lo2 < 0) {  // not every centre inside: the block's mask
             m = 0;
@@ -545,11 +552,11 @@ for (int qy = y0 & ~3; qy <= y1; qy += 4) {
         }
         m &= rect;
         if (m == 0) continue;
-        inside += __builtin_popcount(m);
-        quads += __builtin_popcount((m | (m >> 1) | (m >> 4) | (m >> 5)) & 0x0505u);
+        inside += RZ_POPC(m);
+        quads += RZ_POPC((m | (m >> 1) | (m >> 4) | (m >> 5)) & 0x0505u);
         blocks += 1;
         while (m != 0) {
-            const int i = __builtin_ctz(m);
+            const int i = RZ_CTZ(m);
             m &= m - 1u;
             const int x = qx + (i & 3), y = qy + (i >> 2);
             // the anchor's depth stepped to the centre: two roundings per axis, rows first
@@ -581,6 +588,8 @@ acc[3] = covered;
 acc[4] = quads;
 acc[5] = blocks;
 return acc;
+#undef RZ_POPC
+#undef RZ_CTZ
 """)
 def _cover(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, x0: int, x1: int,
            y0: int, y1: int, rx: int, ry: int, z00: float, dzdx: float, dzdy: float, tid: int, ox: int, oy: int,
@@ -597,6 +606,13 @@ def _cover(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64,
 
 
 @wp.func_native("""
+#if defined(__CUDA_ARCH__)
+#define RZ_POPC(x) __popc(x)
+#define RZ_CTZ(x) (__ffs(x) - 1)
+#else
+#define RZ_POPC(x) __builtin_popcount(x)
+#define RZ_CTZ(x) __builtin_ctz(x)
+#endif
 #if !defined(__CUDA_ARCH__)
 #pragma clang fp contract(off)
 typedef int32_t v8 __attribute__((vector_size(32)));
@@ -691,15 +707,15 @@ for (; j < j1; ++j) {
         qrow |= m << sh;
         brow |= m << sh;
         if ((y & 1) == 1 || y == y1) {
-            quads += __builtin_popcount((qrow | (qrow >> 1)) & 0x55555u);
+            quads += RZ_POPC((qrow | (qrow >> 1)) & 0x55555u);
             qrow = 0;
         }
         if ((y & 3) == 3 || y == y1) {
-            blocks += __builtin_popcount((brow | (brow >> 1) | (brow >> 2) | (brow >> 3)) & 0x11111u);
+            blocks += RZ_POPC((brow | (brow >> 1) | (brow >> 2) | (brow >> 3)) & 0x11111u);
             brow = 0;
         }
         if (m == 0) continue;
-        inside += __builtin_popcount(m);
+        inside += RZ_POPC(m);
         // the anchor's depth stepped to the row, then to each centre: two roundings per axis, as set up
         const float ty = dzdy.f * (float)(y - ry);
         const float zr = z00.f + ty;
@@ -722,8 +738,8 @@ for (; j < j1; ++j) {
             if (wm != 0) {
                 *(v8_ld*)pi = win ? (v8)(lane - lane + t) : oid;
                 *(v8u_ld*)pd = win ? bits : od;
-                passed += __builtin_popcount(wm);
-                covered += __builtin_popcount(wm & SIGNS(first));
+                passed += RZ_POPC(wm);
+                covered += RZ_POPC(wm & SIGNS(first));
             }
         }
 #else
@@ -763,6 +779,8 @@ acc[5] = blocks;
 acc[6] = j;
 acc[7] = 0;
 return acc;
+#undef RZ_POPC
+#undef RZ_CTZ
 """)
 def _draw_records(entries: wp.array(dtype=vec8i), j0: int, j1: int, tx0: int, tx1: int, ty0: int, ty1: int, width: int, height: int, bb: int, stride: int,
                   buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
