@@ -61,7 +61,7 @@ from .counters import (TALLIES, T_BINNED, T_BLOCKS, T_CLIPPED, T_COVERED, T_INSI
                        T_TESTED, T_TILE16, raster_counters, raster_stats)
 from .parallel import atomic_add_i32, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import filled_array, pooled_array, pooled_rows_array
+from .pool import filled_array, pooled_array, pooled_rows
 
 __all__ = ["Fragments", "rasterize", "rasterize_clip", "clip_coordinates", "clip_barycentrics", "pixel_ndc",
            "SUBPIXEL", "TILE"]
@@ -84,7 +84,17 @@ poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
 vec9f = wp.types.vector(length=9, dtype=wp.float32)
 vec8l = wp.types.vector(length=8, dtype=wp.int64)
-vec8i = wp.types.vector(length=8, dtype=wp.int32)
+
+
+@wp.struct
+class Record:
+    """A small unclipped triangle in a tile's list (32 bytes): its CCW fixed-point vertices (``xy``: a, then b - a
+    and c - a as int16 pairs), its depth plane (``plane``: the depth at the first centre of its pixel box, dz/dx,
+    dz/dy) and its index ``t``. ``t`` < 0: triangle ``-1 - t``, set up again where drawn (nothing else is set)."""
+
+    xy: wp.vec4i
+    plane: wp.vec3
+    t: int
 
 
 @wp.struct
@@ -101,7 +111,7 @@ class Bins:
     start: wp.array(dtype=wp.int32)
     room: wp.array(dtype=wp.int32)
     count: wp.array(dtype=wp.int32)
-    entries: wp.array(dtype=vec8i)
+    entries: wp.array(dtype=Record)
     overflow: wp.array(dtype=wp.int32)
 
 
@@ -606,124 +616,84 @@ def _cover(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64,
 
 
 @wp.func_native("""
-#if defined(__CUDA_ARCH__)
-#define RZ_POPC(x) __popc(x)
-#define RZ_CTZ(x) (__ffs(x) - 1)
-#else
-#define RZ_POPC(x) __builtin_popcount(x)
-#define RZ_CTZ(x) __builtin_ctz(x)
-#endif
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = 0;
+acc[6] = j0;
 #if !defined(__CUDA_ARCH__)
+if (simd != 0) {
 #pragma clang fp contract(off)
 typedef int32_t v8 __attribute__((vector_size(32)));
 typedef uint32_t v8u __attribute__((vector_size(32)));
 typedef float v8f __attribute__((vector_size(32)));
 typedef int32_t v8_ld __attribute__((vector_size(32), aligned(4)));
 typedef uint32_t v8u_ld __attribute__((vector_size(32), aligned(4)));
-const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 #if defined(__AVX__)
-#define SIGNS(v) ((uint32_t)__builtin_ia32_movmskps256((v8f)(v)))
+#define RZ_SIGNS(v) ((uint32_t)__builtin_ia32_movmskps256((v8f)(v)))
 #else
-#define SIGNS(v) ((uint32_t)__builtin_reduce_or(((v) >> 31) & (v8){1, 2, 4, 8, 16, 32, 64, 128}))
+#define RZ_SIGNS(v) ((uint32_t)__builtin_reduce_or(((v) >> 31) & (v8){1, 2, 4, 8, 16, 32, 64, 128}))
 #endif
-#endif
-wp::vec_t<8, wp::int64> acc;
-const int32_t* __restrict rec = (const int32_t*)entries.data;
+const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 int32_t* __restrict ids = (int32_t*)buf_id.data;
 uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
-const int64_t S = 256, HALF = 128;
-int64_t tested = 0, inside = 0, passed = 0, covered = 0, quads = 0, blocks = 0;
+int64_t passed = 0, covered = 0;
 int j = j0;
-for (; j < j1; ++j) {
-    const int32_t* r = rec + 8 * (int64_t)j;
-    const int t = r[7];
-    if (t < 0) break;  // set up again where drawn
-    const int64_t ax = r[0], ay = r[1];
-    const int64_t bx = ax + (int16_t)(uint16_t)(r[2] & 0xFFFF), by = ay + (int16_t)(uint16_t)((uint32_t)r[2] >> 16);
-    const int64_t cx = ax + (int16_t)(uint16_t)(r[3] & 0xFFFF), cy = ay + (int16_t)(uint16_t)((uint32_t)r[3] >> 16);
-    const int64_t xmin = ax < bx ? (ax < cx ? ax : cx) : (bx < cx ? bx : cx);
-    const int64_t xmax = ax > bx ? (ax > cx ? ax : cx) : (bx > cx ? bx : cx);
-    const int64_t ymin = ay < by ? (ay < cy ? ay : cy) : (by < cy ? by : cy);
-    const int64_t ymax = ay > by ? (ay > cy ? ay : cy) : (by > cy ? by : cy);
-    int rx = (int)((xmin - HALF + S - 1) >> 8), ry = (int)((ymin - HALF + S - 1) >> 8);
-    int ex = (int)((xmax - HALF) >> 8), ey = (int)((ymax - HALF) >> 8);
+for (; j < j1 && entries.data[j].t >= 0; ++j) {
+    const auto& r = entries.data[j];
+    const int64_t ax = r.xy[0], ay = r.xy[1];
+    const int64_t bx = ax + (int16_t)(r.xy[2] & 0xFFFF), by = ay + (r.xy[2] >> 16);
+    const int64_t cx = ax + (int16_t)(r.xy[3] & 0xFFFF), cy = ay + (r.xy[3] >> 16);
+    int rx = (int)(((ax < bx ? (ax < cx ? ax : cx) : (bx < cx ? bx : cx)) + 127) >> 8);
+    int ry = (int)(((ay < by ? (ay < cy ? ay : cy) : (by < cy ? by : cy)) + 127) >> 8);
+    const int ex = (int)(((ax > bx ? (ax > cx ? ax : cx) : (bx > cx ? bx : cx)) - 128) >> 8);
+    const int ey = (int)(((ay > by ? (ay > cy ? ay : cy) : (by > cy ? by : cy)) - 128) >> 8);
     rx = rx > 0 ? rx : 0;
     ry = ry > 0 ? ry : 0;
-    ex = ex < width - 1 ? ex : width - 1;
-    ey = ey < height - 1 ? ey : height - 1;
-    const int x0 = rx > tx0 ? rx : tx0, x1 = ex < tx1 ? ex : tx1;
-    const int y0 = ry > ty0 ? ry : ty0, y1 = ey < ty1 ? ey : ty1;
+    const int x0 = rx > tx0 ? rx : tx0, x1 = ex < tx1 ? (ex < width - 1 ? ex : width - 1) : tx1;
+    const int y0 = ry > ty0 ? ry : ty0, y1 = ey < ty1 ? (ey < height - 1 ? ey : height - 1) : ty1;
     if (x0 > x1 || y0 > y1) continue;
-    union { int32_t i; float f; } z00, dzdx, dzdy;
-    z00.i = r[4];
-    dzdx.i = r[5];
-    dzdy.i = r[6];
-    const int64_t d0x = cx - bx, d0y = cy - by, d1x = ax - cx, d1y = ay - cy, d2x = bx - ax, d2y = by - ay;
-    const int64_t sx = (int64_t)x0 * S + HALF, sy = (int64_t)y0 * S + HALF;
     // a record's triangle spans under SMALL_PX pixels: its edge functions over 16 centres of a row fit in int32
-    const int32_t e0 = (int32_t)(d0x * (sy - by) - d0y * (sx - bx) + ((d0y < 0 || (d0y == 0 && d0x > 0)) ? 0 : -1));
-    const int32_t e1 = (int32_t)(d1x * (sy - cy) - d1y * (sx - cx) + ((d1y < 0 || (d1y == 0 && d1x > 0)) ? 0 : -1));
-    const int32_t e2 = (int32_t)(d2x * (sy - ay) - d2y * (sx - ax) + ((d2y < 0 || (d2y == 0 && d2x > 0)) ? 0 : -1));
-    const int32_t s0x = (int32_t)(-d0y * S), s0y = (int32_t)(d0x * S), s1x = (int32_t)(-d1y * S);
-    const int32_t s1y = (int32_t)(d1x * S), s2x = (int32_t)(-d2y * S), s2y = (int32_t)(d2x * S);
-    const int w = x1 - x0;
-    const uint32_t cols = (uint32_t)((1u << (w + 1)) - 1u);
-    const int sh = x0 & 3;
-    const int64_t row0 = (int64_t)bb + (int64_t)(y0 - ty0) * stride + (x0 - tx0);
-    tested += (int64_t)(w + 1) * (y1 - y0 + 1);
-    uint32_t qrow = 0, brow = 0;
-#if !defined(__CUDA_ARCH__)
-    // the row in chunks of 8 centres (two when it is wider): edge functions, then depth
-    const int nch = w >= 8 ? 2 : 1;
+    const int64_t sx = (int64_t)x0 * 256 + 128, sy = (int64_t)y0 * 256 + 128;
     v8 ra[2][3];
     v8f tx[2];
-    for (int c = 0; c < nch; ++c) {
+    const int32_t s0y = (int32_t)((cx - bx) * 256), s1y = (int32_t)((ax - cx) * 256), s2y = (int32_t)((bx - ax) * 256);
+    const int nch = x1 - x0 >= 8 ? 2 : 1;
+    for (int c = 0; c < nch; ++c) {  // a row in chunks of 8 centres: two when it is wider
         const v8 l = lane + 8 * c;
-        ra[c][0] = e0 + l * s0x;
-        ra[c][1] = e1 + l * s1x;
-        ra[c][2] = e2 + l * s2x;
-        tx[c] = dzdx.f * __builtin_convertvector(l + (x0 - rx), v8f);
+        ra[c][0] = (int32_t)((cx - bx) * (sy - by) - (cy - by) * (sx - bx) + ((cy < by || (cy == by && cx > bx)) ? 0 : -1)) + l * (int32_t)((by - cy) * 256);
+        ra[c][1] = (int32_t)((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx) + ((ay < cy || (ay == cy && ax > cx)) ? 0 : -1)) + l * (int32_t)((cy - ay) * 256);
+        ra[c][2] = (int32_t)((bx - ax) * (sy - ay) - (by - ay) * (sx - ax) + ((by < ay || (by == ay && bx > ax)) ? 0 : -1)) + l * (int32_t)((ay - by) * 256);
+        tx[c] = r.plane[1] * __builtin_convertvector(l + (x0 - rx), v8f);
     }
-#else
-    int32_t q0 = e0, q1 = e1, q2 = e2;
-#endif
+    const uint32_t cols = (uint32_t)((1u << (x1 - x0 + 1)) - 1u);
+    const int sh = x0 & 3;
+    uint32_t qrow = 0, brow = 0;
+    acc[0] += (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1);
     for (int y = y0; y <= y1; ++y) {
-#if !defined(__CUDA_ARCH__)
         uint32_t mc[2] = {0, 0};
         for (int c = 0; c < nch; ++c) {
-            mc[c] = ~SIGNS(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
+            mc[c] = ~RZ_SIGNS(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
             ra[c][0] += s0y;
             ra[c][1] += s1y;
             ra[c][2] += s2y;
         }
         const uint32_t m = mc[0] | (mc[1] << 8);
-#else
-        uint32_t m = 0;
-        for (int k = 0; k <= w; ++k) m |= (uint32_t)(((q0 + k * s0x) | (q1 + k * s1x) | (q2 + k * s2x)) >= 0) << k;
-        q0 += s0y;
-        q1 += s1y;
-        q2 += s2y;
-#endif
         qrow |= m << sh;
         brow |= m << sh;
-        if ((y & 1) == 1 || y == y1) {
-            quads += RZ_POPC((qrow | (qrow >> 1)) & 0x55555u);
+        if ((y & 1) == 1 || y == y1) {  // a row of 2x2 quads done
+            acc[4] += __builtin_popcount((qrow | (qrow >> 1)) & 0x55555u);
             qrow = 0;
         }
-        if ((y & 3) == 3 || y == y1) {
-            blocks += RZ_POPC((brow | (brow >> 1) | (brow >> 2) | (brow >> 3)) & 0x11111u);
+        if ((y & 3) == 3 || y == y1) {  // a row of 4x4 blocks done
+            acc[5] += __builtin_popcount((brow | (brow >> 1) | (brow >> 2) | (brow >> 3)) & 0x11111u);
             brow = 0;
         }
-        if (m == 0) continue;
-        inside += RZ_POPC(m);
+        acc[1] += __builtin_popcount(m);
         // the anchor's depth stepped to the row, then to each centre: two roundings per axis, as set up
-        const float ty = dzdy.f * (float)(y - ry);
-        const float zr = z00.f + ty;
-        const int64_t p0 = row0 + (int64_t)(y - y0) * stride;
-#if !defined(__CUDA_ARCH__)
+        const float zr = r.plane[0] + r.plane[2] * (float)(y - ry);
+        const int64_t p0 = (int64_t)bb + (int64_t)(y - ty0) * stride + (x0 - tx0);
         for (int c = 0; c < nch; ++c) {
             if (mc[c] == 0) continue;
-            const v8 in = ((v8)(lane - lane + (int32_t)mc[c]) >> lane) & 1;
+            const v8 in = ((lane - lane + (int32_t)mc[c]) >> lane) & 1;
             const v8f d0 = zr + tx[c];
             const v8f d1 = d0 > 0.0f ? d0 : 0.0f;  // wp::clamp(d, 0, 1) on the host: NaN and -0.0 become 0.0
             const v8f d = d1 <= 1.0f ? d1 : 1.0f;
@@ -733,94 +703,63 @@ for (; j < j1; ++j) {
             const v8 oid = *(const v8_ld*)pi;
             const v8u od = *(const v8u_ld*)pd;
             const v8 first = oid < 0;
-            const v8 win = (in != 0) & (d < 1.0f) & (first | (bits < od));
-            const uint32_t wm = SIGNS(win);
+            const v8 win = (in != 0) & (d < 1.0f) & (first | (bits < od));  // GL_LESS; depth bits order as depths
+            const uint32_t wm = RZ_SIGNS(win);
             if (wm != 0) {
-                *(v8_ld*)pi = win ? (v8)(lane - lane + t) : oid;
+                *(v8_ld*)pi = win ? (v8)(lane - lane + r.t) : oid;
                 *(v8u_ld*)pd = win ? bits : od;
-                passed += RZ_POPC(wm);
-                covered += RZ_POPC(wm & SIGNS(first));
+                passed += __builtin_popcount(wm);
+                covered += __builtin_popcount(wm & RZ_SIGNS(first));
             }
         }
-#else
-        uint32_t mm = m;
-        while (mm != 0) {
-            const int k = __ffs(mm) - 1;
-            mm &= mm - 1u;
-            const float txk = dzdx.f * (float)(x0 + k - rx);
-            const float d = wp::clamp(zr + txk, 0.0f, 1.0f);
-            if (!(d < 1.0f)) continue;
-            union { float f; uint32_t u; } b;
-            b.f = d;
-            const int64_t p = p0 + k;
-            if (ids[p] < 0) {
-                ids[p] = t;
-                dep[p] = b.u;
-                passed += 1;
-                covered += 1;
-            } else if (b.u < dep[p]) {
-                ids[p] = t;
-                dep[p] = b.u;
-                passed += 1;
-            }
-        }
-#endif
     }
 }
-#if !defined(__CUDA_ARCH__)
-#undef SIGNS
-#endif
-acc[0] = tested;
-acc[1] = inside;
+#undef RZ_SIGNS
 acc[2] = passed;
 acc[3] = covered;
-acc[4] = quads;
-acc[5] = blocks;
 acc[6] = j;
-acc[7] = 0;
+}
+#endif
 return acc;
-#undef RZ_POPC
-#undef RZ_CTZ
 """)
-def _draw_records(entries: wp.array(dtype=vec8i), j0: int, j1: int, tx0: int, tx1: int, ty0: int, ty1: int, width: int, height: int, bb: int, stride: int,
-                  buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """A tile's list from entry ``j0`` while its entries are records (small unclipped triangles, :func:`_pack`), each
-    drawn over the tile's pixels (tx0..tx1, ty0..ty1) into its buffer (origin (tx0, ty0)) row by row: the three
-    edge functions of 16 centres of a row at once (int32 lanes), and on the CPU the row's depths, tests and writes
-    as 16 lanes too (the scratch tile's rows have room for them). The same pixels, depths and counts as
-    :func:`_cover` (its 4x4 blocks and 2x2 quads counted from the rows' masks). Returns :func:`_cover`'s counts, the
-    entry it stopped at (a triangle to set up again, or ``j1``) in slot 6."""
+def _draw_records(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
+                  ty1: int, width: int, height: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                  buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """On the CPU with ``simd`` (a scratch tile), a tile's list from entry ``j0`` while its entries are records (:class:`Record`), each drawn over
+    the tile's pixels (tx0..tx1, ty0..ty1) into its buffer (origin (tx0, ty0)) row by row, in chunks of 8 centres
+    at a time (SIMD, int32 lanes: a record's triangle spans under SMALL_PX pixels): the edge functions and the
+    chunk's coverage mask, then its depths, tests and writes (the scratch tile's rows have room for a chunk from
+    any pixel). The same pixels, depths and counts as :func:`_cover` (its 4x4 blocks and 2x2 quads counted from the
+    rows' masks). Returns :func:`_cover`'s counts and, in slot 6, the entry it stopped at (a triangle set up again
+    where drawn, or ``j1``); otherwise (and on CUDA) nothing (slot 6: ``j0``)."""
     ...
 
 
-@wp.func_native("""
-wp::vec_t<8, wp::int32> r;
-union { float f; int32_t i; } z, dx, dy;
-z.f = z00;
-dx.f = dzdx;
-dy.f = dzdy;
-const int64_t db = bx - ax, dc = by - ay, de = cx - ax, df = cy - ay, lim = (int64_t)1 << 31;
-for (int k = 0; k < 7; ++k) r[k] = 0;
-r[7] = -1 - t;
-if (ax < -lim || ax >= lim || ay < -lim || ay >= lim) return r;
-if (db < -32768 || db > 32767 || dc < -32768 || dc > 32767 || de < -32768 || de > 32767 || df < -32768 || df > 32767)
-    return r;
-r[0] = (int32_t)ax;
-r[1] = (int32_t)ay;
-r[2] = (int32_t)((uint32_t)(uint16_t)(int16_t)db | ((uint32_t)(uint16_t)(int16_t)dc << 16));
-r[3] = (int32_t)((uint32_t)(uint16_t)(int16_t)de | ((uint32_t)(uint16_t)(int16_t)df << 16));
-r[4] = z.i;
-r[5] = dx.i;
-r[6] = dy.i;
-r[7] = t;
-return r;
-""")
-def _pack(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, z00: float, dzdx: float,
-          dzdy: float, t: int) -> vec8i:
-    """A small unclipped triangle's record: a, then b - a and c - a as int16 pairs, the anchor depth and the plane's
-    slopes as float bits, ``t``; when the vertices do not fit, the entry of a triangle set up again (``-1 - t`` in
-    slot 7)."""
-    ...
+@wp.func
+def _record(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, z00: float,
+            dzdx: float, dzdy: float, t: int) -> Record:
+    """Triangle ``t``'s :class:`Record`, or, when its vertices do not fit one, its entry as a triangle set up again
+    where drawn."""
+    r = Record()
+    r.t = -1 - t
+    lim = wp.int64(1) << wp.int64(31)
+    fits = ax >= -lim and ax < lim and ay >= -lim and ay < lim
+    d = wp.vec4l(bx - ax, by - ay, cx - ax, cy - ay)
+    for k in range(4):
+        if d[k] < wp.int64(-32768) or d[k] > wp.int64(32767):
+            fits = False
+    if fits:
+        r.xy = wp.vec4i(int(ax), int(ay), (int(bx - ax) & 0xFFFF) | (int(by - ay) << 16),
+                        (int(cx - ax) & 0xFFFF) | (int(cy - ay) << 16))
+        r.plane = wp.vec3(z00, dzdx, dzdy)
+        r.t = t
+    return r
+
+
+@wp.func
+def _lo16(v: int) -> int:
+    """The signed 16-bit number in the low half of ``v``."""
+    return ((v & 0xFFFF) ^ 0x8000) - 0x8000
 
 
 @wp.func_native("""
@@ -934,7 +873,7 @@ def _tile16_count(n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, cull_back: int, w
 
 
 @wp.func
-def _bin(entry: vec8i, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.bool, cull_back: int, width: int,
+def _bin(entry: Record, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.bool, cull_back: int, width: int,
          height: int, part: int, bins: Bins):
     """``entry`` into the lists (:class:`Bins`) of the screen tiles of ``box`` (of a large triangle, those its
     edges do not exclude), for chunk ``part``."""
@@ -994,12 +933,12 @@ def _small_entry(t: int, c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, heig
     is drawn from its record, unless its box holds at most 4 centres and it covers none of them."""
     drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box = _fast_setup(c0, c1, c2, width, height, cull_back)
     what = int(0)
-    rec = vec8i()
+    rec = Record()
     if drawn and small and box[0] <= box[1] and box[2] <= box[3]:
         what = 2
         if not _covers_none(ax, ay, bx, by, cx, cy, box):
             dzdx, dzdy = _depth_plane(fa, fb, fc)
-            rec = _pack(ax, ay, bx, by, cx, cy, _depth_at(fa, dzdx, dzdy, box[0], box[2]), dzdx, dzdy, t)
+            rec = _record(ax, ay, bx, by, cx, cy, _depth_at(fa, dzdx, dzdy, box[0], box[2]), dzdx, dzdy, t)
             what = 1
     return drawn, small, box, what, rec
 
@@ -1061,22 +1000,22 @@ def _bin_kernel(
             _tally(out_tally, part, T_TILE16, cells, tallying)
     if mode != 0 and cells > 0:
         _tally(out_tally, part, T_RASTERIZED, 1, tallying)
-        again = vec8i()
-        again[7] = -1 - t
+        again = Record()
+        again.t = -1 - t
         _bin(again, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
 
 
 @wp.func
-def _sort_list(entries: wp.array(dtype=vec8i), s: int, e: int):
-    """Shell sort of entries[s:e] by triangle, in place (on CUDA, where the lists are emitted in no order)."""
+def _sort_list(entries: wp.array(dtype=Record), s: int, e: int):
+    """Shell sort of entries[s:e] by triangle, in place (on CUDA, where the lists are written in no order)."""
     gap = (e - s) / 2
     while gap > 0:
         for i in range(s + gap, e):
             v = entries[i]
-            t = wp.where(v[7] >= 0, v[7], -1 - v[7])
+            t = wp.where(v.t >= 0, v.t, -1 - v.t)
             j = i
             while j >= s + gap:
-                u = entries[j - gap][7]
+                u = entries[j - gap].t
                 if wp.where(u >= 0, u, -1 - u) <= t:
                     break
                 entries[j] = entries[j - gap]
@@ -1086,22 +1025,43 @@ def _sort_list(entries: wp.array(dtype=vec8i), s: int, e: int):
 
 
 @wp.func
-def _draw_list(s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
-               entries: wp.array(dtype=vec8i), width: int, height: int, cull_back: int, gb: wp.vec2, bb: int,
-               stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """A tile's list entries[s:e], in order: runs of records (:func:`_draw_records`), the others set up again
+def _draw_entry(r: Record, tile: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32), width: int,
+                height: int, cull_back: int, gb: wp.vec2, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """One list entry over one tile: a record in 4x4 blocks (:func:`_cover`), another triangle set up again
     (:func:`_draw_prepared`)."""
+    if r.t < 0:
+        t = -1 - r.t
+        return _draw_prepared(t, clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]], tile, width, height, cull_back,
+                              gb, bb, stride, buf_id, buf_depth)
+    ax = wp.int64(r.xy[0])
+    ay = wp.int64(r.xy[1])
+    bx = ax + wp.int64(_lo16(r.xy[2]))
+    by = ay + wp.int64(r.xy[2] >> 16)
+    cx = ax + wp.int64(_lo16(r.xy[3]))
+    cy = ay + wp.int64(r.xy[3] >> 16)
+    box = _tri_box(ax, ay, bx, by, cx, cy, width, height)
+    return _cover(ax, ay, bx, by, cx, cy, wp.max(box[0], tile[0]), wp.min(box[1], tile[1]), wp.max(box[2], tile[2]),
+                  wp.min(box[3], tile[3]), box[0], box[2], r.plane[0], r.plane[1], r.plane[2], r.t, tile[0], tile[2],
+                  bb, stride, buf_id, buf_depth)
+
+
+@wp.func
+def _draw_list(simd: int, s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
+               entries: wp.array(dtype=Record), width: int, height: int, cull_back: int, gb: wp.vec2, bb: int,
+               stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """A tile's list entries[s:e], in order: with ``simd`` runs of records row by row (:func:`_draw_records`), every
+    other entry (without, every entry) by :func:`_draw_entry`."""
     acc = vec8l()
     j = s
     while j < e:
-        c = _draw_records(entries, j, e, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id, buf_depth)
+        c = _draw_records(simd, entries, j, e, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id, buf_depth)
         j = int(c[6])
         c[6] = wp.int64(0)
         acc = acc + c
         if j < e:
-            t = -1 - entries[j][7]
-            acc = acc + _draw_prepared(t, clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]], r, width, height,
-                                       cull_back, gb, bb, stride, buf_id, buf_depth)
+            acc = acc + _draw_entry(entries[j], r, clip, tris, width, height, cull_back, gb, bb, stride, buf_id,
+                                    buf_depth)
             j += 1
     return acc
 
@@ -1161,7 +1121,7 @@ def _tile_kernel(
             e = s + bins.count[cell]
             if scratch == 0:
                 _sort_list(bins.entries, s, e)
-            acc = acc + _draw_list(s, e, r, clip, tris, bins.entries, width, height, cull_back, gb, bb, stride,
+            acc = acc + _draw_list(scratch, s, e, r, clip, tris, bins.entries, width, height, cull_back, gb, bb, stride,
                                    out_buf_id, out_buf_depth)
         if scratch != 0:
             _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
@@ -1271,10 +1231,12 @@ class Fragments:
         stats: per-frame counts, the same on every run and for any thread count: triangles_in;
             triangles_rasterized (that reached the coverage test after trivial rejection, clipping, zero-area and
             back-face culling); triangles_binned (large triangles: a pixel box of SMALL_PX or more) and
-            tile_entries (the DEPTH_TILE x DEPTH_TILE cells their edges do not exclude); fragments_tested (pixel
-            centres of the 4x4 blocks whose corners did not reject them), fragments_inside (centres covered),
+            tile_entries (the DEPTH_TILE x DEPTH_TILE cells their edges do not exclude); fragments_tested (the pixel
+            centres whose edge functions were evaluated: on the CPU every centre of a small unclipped triangle's
+            pixel box, row by row, and for the others those of the 4x4 blocks their corners did not reject; on
+            CUDA 4x4 blocks for every triangle), fragments_inside (centres covered),
             pixels_written (depth tests passed, in submission order) and pixels_covered (non-background pixels in
-            the end).
+            the end). All but fragments_tested are the same on every device.
         counters: the pipeline statistics of the draw, as OpenGL's ARB_pipeline_statistics_query names them,
             when asked for (``counters=True``; None otherwise) (:func:`terrainwarp.kernels.counters.raster_counters`):
             ``clipping_input_primitives`` (the triangles), ``clipping_output_primitives`` (1 per triangle
@@ -1352,6 +1314,7 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
     return np.flatnonzero(dirty.reshape(-1, _tiles_x(width)).any(axis=1)).astype(np.int32)
 
 
+_SCRATCH = True  # on the CPU: scratch tiles, records drawn in SIMD (False: the way CUDA draws, for the tests)
 _IMAGES_KEPT = 2  # output images kept per (shape, dtype): the frame being made and the one before it
 _IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
 
@@ -1369,14 +1332,22 @@ def _bins(count: wp.array, tiles_x: int, nparts: int, device: str, room: tuple |
     b.tiles_x, b.nparts, b.emit, b.count = tiles_x, nparts, int(room is not None), count
     if room is None:
         b.start = b.room = b.overflow = count
-        b.entries = wp.empty(1, dtype=vec8i, device=device)
+        b.entries = wp.empty(1, dtype=Record, device=device)
         return b
     start, slots = room
     b.start = as_warp(start, wp.int32, device)
     b.room = as_warp(slots, wp.int32, device)
-    b.entries = pooled_rows_array(max(int(start[-1] + slots[-1]), 1), vec8i, device)
+    b.entries = _records(max(int(start[-1] + slots[-1]), 1), device)
     b.overflow = wp.zeros(1, dtype=wp.int32, device=device)
     return b
+
+
+def _records(n: int, device: str) -> wp.array:
+    """An uninitialised array of ``n`` :class:`Record` (on the CPU a kept buffer, :func:`.pool.pooled_rows`)."""
+    if not wp.get_device(device).is_cpu:
+        return wp.empty(n, dtype=Record, device=device)
+    return wp.array(pooled_rows((n, 8), np.int32).view(Record.numpy_dtype()).reshape(n), dtype=Record, device=device,
+                    copy=False)
 
 
 def _room(counts: np.ndarray, spare: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -1417,7 +1388,7 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
     tally = wp.zeros((nparts, TALLIES), dtype=wp.int64, device=device)
     gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
     cb = int(bool(cull_back))
-    cpu = wp.get_device(device).is_cpu
+    cpu = wp.get_device(device).is_cpu and _SCRATCH
     workers = min(nparts, ntiles) if cpu else ntiles
     if cpu:  # a scratch tile per thread
         buf_id = pooled_array(workers * TILE * PITCH, wp.int32, device)

@@ -537,3 +537,24 @@ def test_identical_for_any_thread_count_with_pooled_buffers(threads):
         parallel.set_min_items(None)
     for name, a, b in zip(order, *runs, strict=True):
         assert _same(a, b), name
+
+
+def test_the_way_cuda_draws_gives_the_cpus_frames(monkeypatch):
+    """Without the CPU's scratch tiles (as on CUDA: every tile drawn in the images themselves, by one launch index
+    each, its list sorted first, every entry in 4x4 blocks), the same ids, depth, stats and counters: the SIMD rows
+    and the blocks cover, test and count alike (fragments_tested counts the centres each way evaluates)."""
+    from terrainwarp.kernels import parallel, raster
+
+    scenes, (w, h) = _scenes(203, 97)
+    want = {name: rasterize_clip(*scenes[name], w, h, counters=True) for name in scenes}
+    monkeypatch.setattr(raster, "_SCRATCH", False)
+    try:
+        parallel.set_min_items(1)  # tiles drawn by every thread at once
+        for name, (clip, tri) in scenes.items():
+            got = rasterize_clip(clip, tri, w, h, counters=True)
+            a, b = _result(got), _result(want[name])
+            assert got.stats["fragments_tested"] >= got.stats["fragments_inside"]
+            a[3].pop("fragments_tested"), b[3].pop("fragments_tested")
+            assert _same(a, b) and got.counters == want[name].counters, name
+    finally:
+        parallel.set_min_items(None)
