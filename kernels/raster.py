@@ -61,7 +61,7 @@ from .counters import (TALLIES, T_BINNED, T_BLOCKS, T_CLIPPED, T_COVERED, T_INSI
                        T_TESTED, T_TILE16, raster_counters, raster_stats)
 from .parallel import atomic_add_i32, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import filled_array, pooled_array, pooled_rows
+from .pool import filled_array, pooled_array, pooled_rows_array, take
 
 __all__ = ["Fragments", "rasterize", "rasterize_clip", "clip_coordinates", "clip_barycentrics", "pixel_ndc",
            "SUBPIXEL", "TILE"]
@@ -1319,60 +1319,80 @@ _IMAGES_KEPT = 2  # output images kept per (shape, dtype): the frame being made 
 _IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
 
 
-# Room in the tiles' lists, per (device, viewport, chunks, batch): the counts of the last frame of that kind and a
-# quarter more, so that a frame like it writes its entries as it counts them (one binning pass); a frame that needs
-# more room is binned again with exact room (a second pass), and leaves its counts for the next.
-_ROOM: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
-_ROOM_KINDS = 64  # kinds kept (a sweep over many viewports starts again beyond)
+class _Work:
+    """What a rasterize call of one kind (device, viewport, chunks per launch) works in besides its outputs, leased
+    from the pool (:func:`.pool.take`) and given back when the call is done (a call that fails keeps its lease and
+    the work is dropped): the tile flags, the tallies, the lists' counts, the tile queue, the CPU's scratch tiles,
+    the lists' storage (grown as frames need), and per batch the lists' room. The room is the counts of the last
+    frame binned here and a quarter more, so that a frame like it writes its entries as it counts them (one binning
+    pass); a frame that needs more is binned again with exact room, and leaves its counts for the next."""
 
+    def __init__(self, device: str, width: int, height: int, nparts: int, scratch: bool) -> None:
+        self.device, self.cpu = device, wp.get_device(device).is_cpu
+        self.tiles_x = _tiles_x(width)
+        self.ntiles = self.tiles_x * _tiles_x(height)
+        self.nparts, ncells = nparts, self.tiles_x * _tiles_x(height) * nparts
+        zeros = lambda *shape, dt=wp.int32: wp.zeros(shape, dtype=dt, device=device)  # noqa: E731
+        self.dirty, self.queue, self.overflow = zeros(self.ntiles), zeros(1), zeros(1)
+        self.count, self.cursor, self.tally = zeros(ncells), zeros(ncells), zeros(nparts, TALLIES, dt=wp.int64)
+        self.cleared = [self.dirty, self.tally, self.queue, self.count, self.cursor, self.overflow]
+        self.views = [a.numpy() for a in self.cleared] if self.cpu else None  # the CPU clears them in numpy
+        self.workers = min(nparts, self.ntiles) if scratch else self.ntiles
+        n = self.workers * TILE * PITCH if scratch else 1
+        self.buf_id, self.buf_depth = zeros(n), zeros(n, dt=wp.float32)
+        self.room: dict[int, tuple[np.ndarray, np.ndarray, wp.array, wp.array]] = {}
+        self.entries = wp.empty(1, dtype=Record, device=device)
 
-def _bins(count: wp.array, tiles_x: int, nparts: int, device: str, room: tuple | None = None) -> Bins:
-    """Lists with ``room`` = (start, room) per cell (numpy), or none (counting only)."""
-    b = Bins()
-    b.tiles_x, b.nparts, b.emit, b.count = tiles_x, nparts, int(room is not None), count
-    if room is None:
-        b.start = b.room = b.overflow = count
-        b.entries = wp.empty(1, dtype=Record, device=device)
+    def clear(self, first: int = 0) -> None:
+        """Zero the arrays from ``cleared[first]`` on: all of them for a frame, the lists' for a batch."""
+        for k in range(first, len(self.cleared)):
+            if self.views is not None:
+                self.views[k].fill(0)
+            else:
+                self.cleared[k].zero_()
+
+    def bins(self, counting: wp.array, room: tuple | None) -> Bins:
+        """Lists counted into ``counting`` with ``room`` = (start, room, their device arrays) per cell, or counted
+        only (None)."""
+        b = Bins()
+        b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, int(room is not None), \
+            counting, self.overflow
+        b.start = b.room = counting
+        b.entries = self.entries
+        if room is not None:
+            start, slots, b.start, b.room = room
+            need = int(start[-1] + slots[-1])
+            if self.entries.shape[0] < need:  # grown by half again: a slowly denser flyover does not grow it each frame
+                self.entries = wp.empty(need + need // 2, dtype=Record, device=self.device)
+            b.entries = self.entries
         return b
-    start, slots = room
-    b.start = as_warp(start, wp.int32, device)
-    b.room = as_warp(slots, wp.int32, device)
-    b.entries = _records(max(int(start[-1] + slots[-1]), 1), device)
-    b.overflow = wp.zeros(1, dtype=wp.int32, device=device)
-    return b
+
+    def bin_batch(self, base: int, mb: int, args: list) -> Bins:
+        """Bin a batch (:func:`_bin_kernel`): one pass when this batch's room holds it, else counting then binning
+        again with exact room."""
+        if base:
+            self.clear(2)  # the queue and the lists' counts, for this batch
+        bins = self.bins(self.count, self.room.get(base))
+        launch(_bin_kernel, mb, [base, *args, 1], [bins, self.tally], self.device, parts=True,
+               min_items=_MIN_TRIANGLES)
+        counts = self.count.numpy() if self.cpu else self.count.numpy().copy()
+        if not bins.emit or int(self.overflow.numpy()[0]):
+            bins = self.bins(self.cursor, self._room(counts, False))
+            launch(_bin_kernel, mb, [base, *args, 0], [bins, self.tally], self.device, parts=True,
+                   min_items=_MIN_TRIANGLES)
+        self.room[base] = self._room(counts, True)
+        return bins
+
+    def _room(self, counts: np.ndarray, spare: bool) -> tuple:
+        """(start, room) of lists holding ``counts`` (exactly, or with a quarter more and 8 spare per cell), with
+        their device arrays."""
+        slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
+        start = np.zeros(len(slots), np.int32)
+        np.cumsum(slots[:-1], out=start[1:])
+        return start, slots, as_warp(start, wp.int32, self.device), as_warp(slots, wp.int32, self.device)
 
 
-def _records(n: int, device: str) -> wp.array:
-    """An uninitialised array of ``n`` :class:`Record` (on the CPU a kept buffer, :func:`.pool.pooled_rows`)."""
-    if not wp.get_device(device).is_cpu:
-        return wp.empty(n, dtype=Record, device=device)
-    return wp.array(pooled_rows((n, 8), np.int32).view(Record.numpy_dtype()).reshape(n), dtype=Record, device=device,
-                    copy=False)
-
-
-def _room(counts: np.ndarray, spare: bool) -> tuple[np.ndarray, np.ndarray]:
-    """(start, room) of lists holding ``counts`` (exactly, or with a quarter more and 8 spare per cell)."""
-    slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
-    start = np.zeros(len(slots), np.int32)
-    np.cumsum(slots[:-1], out=start[1:])
-    return start, slots
-
-
-def _bin_batch(base: int, mb: int, args: list, tally: wp.array, tiles_x: int, ntiles: int, nparts: int, key: tuple,
-               device: str) -> Bins:
-    """Bin a batch: one pass when the room kept for its kind of frame holds it, else counting then binning again
-    with exact room."""
-    count = wp.zeros(ntiles * nparts, dtype=wp.int32, device=device)
-    bins = _bins(count, tiles_x, nparts, device, _ROOM.get(key))
-    launch(_bin_kernel, mb, [base, *args, 1], [bins, tally], device, parts=True, min_items=_MIN_TRIANGLES)
-    counts = count.numpy()
-    if not bins.emit or int(bins.overflow.numpy()[0]):
-        bins = _bins(wp.zeros_like(count), tiles_x, nparts, device, _room(counts, False))
-        launch(_bin_kernel, mb, [base, *args, 0], [bins, tally], device, parts=True, min_items=_MIN_TRIANGLES)
-    if len(_ROOM) >= _ROOM_KINDS and key not in _ROOM:
-        _ROOM.clear()
-    _ROOM[key] = _room(counts, True)
-    return bins
+_WORK_KEPT = 2  # per kind: a call, and another on another thread
 
 
 def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool, device: str):
@@ -1381,29 +1401,23 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
     npx = width * height
     out_id = pooled_array(npx, wp.int32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
     out_depth = pooled_array(npx, wp.float32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
-    tiles_x, tiles_y = _tiles_x(width), _tiles_x(height)
-    ntiles = tiles_x * tiles_y
     nparts = max_parts()
-    dirty = wp.zeros(ntiles, dtype=wp.int32, device=device)
-    tally = wp.zeros((nparts, TALLIES), dtype=wp.int64, device=device)
+    scratch = wp.get_device(device).is_cpu and _SCRATCH
+    lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
+                 lambda: _Work(device, width, height, nparts, scratch), keep=_WORK_KEPT)
+    work = lease.buffer
+    work.clear()
     gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
     cb = int(bool(cull_back))
-    cpu = wp.get_device(device).is_cpu and _SCRATCH
-    workers = min(nparts, ntiles) if cpu else ntiles
-    if cpu:  # a scratch tile per thread
-        buf_id = pooled_array(workers * TILE * PITCH, wp.int32, device)
-        buf_depth = pooled_array(workers * TILE * PITCH, wp.float32, device)
-    else:
-        buf_id, buf_depth = out_id, out_depth
+    buf_id, buf_depth = (work.buf_id, work.buf_depth) if scratch else (out_id, out_depth)
     for base in range(0, max(m, 1), BATCH):
-        mb = max(min(BATCH, m - base), 0)
-        bins = _bin_batch(base, mb, [clip, tri_wp, width, height, cb, gb], tally, tiles_x, ntiles, nparts,
-                          (str(wp.get_device(device)), width, height, nparts, base), device)
-        queue = wp.zeros(1, dtype=wp.int32, device=device)
-        launch(_tile_kernel, workers, [int(cpu), queue, ntiles, int(base == 0), clip, tri_wp, bins, width, height, cb,
-                                       gb],
-               [buf_id, buf_depth, out_id, out_depth, dirty, tally], device, parts=True, min_items=1)
-    return out_id, out_depth, dirty.numpy(), tally.numpy().sum(axis=0)
+        bins = work.bin_batch(base, max(min(BATCH, m - base), 0), [clip, tri_wp, width, height, cb, gb])
+        launch(_tile_kernel, work.workers, [int(scratch), work.queue, work.ntiles, int(base == 0), clip, tri_wp, bins,
+                                            width, height, cb, gb],
+               [buf_id, buf_depth, out_id, out_depth, work.dirty, work.tally], device, parts=True, min_items=1)
+    tiles, tally = work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0)
+    lease.give_back()
+    return out_id, out_depth, tiles, tally
 
 
 def _rasterize_clip(clip: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool, device: str,
@@ -1462,7 +1476,7 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.a
     if not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
-    clip = wp.empty(max(len(pos32), 1), dtype=wp.vec4, device=device)
+    clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
     if len(pos32):
         launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device),
                                             wp.mat44(*mvp.reshape(-1).tolist())], [clip], device)
