@@ -57,8 +57,21 @@ import numpy as np
 import warp as wp
 
 from .checks import check_bool, check_triangles, check_viewport
-from .counters import (TALLIES, T_BINNED, T_BLOCKS, T_CLIPPED, T_COVERED, T_INSIDE, T_PASSED, T_QUADS, T_RASTERIZED,
-                       T_TESTED, T_TILE16, raster_counters, raster_stats)
+from .counters import (
+    T_BINNED,
+    T_BLOCKS,
+    T_CLIPPED,
+    T_COVERED,
+    T_INSIDE,
+    T_PASSED,
+    T_QUADS,
+    T_RASTERIZED,
+    T_TESTED,
+    T_TILE16,
+    TALLIES,
+    raster_counters,
+    raster_stats,
+)
 from .parallel import atomic_add_i32, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import filled_array, pooled_array, pooled_rows_array, take
@@ -526,16 +539,16 @@ if (x0 > x1 || y0 > y1) return acc;
 int32_t* ids = (int32_t*)buf_id.data;
 uint32_t* dep = (uint32_t*)buf_depth.data;
 const int64_t S = 256, HALF = 128;
-// edge functions E0 (b->c), E1 (c->a), E2 (a->b) at centre (sx, sy): (qx - px) (sy - py) - (qy - py) (sx - px) + bias
-const int64_t d0x = cx - bx, d0y = cy - by, d1x = ax - cx, d1y = ay - cy, d2x = bx - ax, d2y = by - ay;
-const int64_t b0 = (d0y < 0 || (d0y == 0 && d0x > 0)) ? 0 : -1;
-const int64_t b1 = (d1y < 0 || (d1y == 0 && d1x > 0)) ? 0 : -1;
-const int64_t b2 = (d2y < 0 || (d2y == 0 && d2x > 0)) ? 0 : -1;
-const int64_t s0x = -d0y * S, s0y = d0x * S, s1x = -d1y * S, s1y = d1x * S, s2x = -d2y * S, s2y = d2x * S;
-// the largest and the smallest of an edge function over a 4x4 block, from its value at the block's first centre
-const int64_t hi0 = 3 * ((s0x > 0 ? s0x : 0) + (s0y > 0 ? s0y : 0)), lo0 = 3 * ((s0x < 0 ? s0x : 0) + (s0y < 0 ? s0y : 0));
-const int64_t hi1 = 3 * ((s1x > 0 ? s1x : 0) + (s1y > 0 ? s1y : 0)), lo1 = 3 * ((s1x < 0 ? s1x : 0) + (s1y < 0 ? s1y : 0));
-const int64_t hi2 = 3 * ((s2x > 0 ? s2x : 0) + (s2y > 0 ? s2y : 0)), lo2 = 3 * ((s2x < 0 ? s2x : 0) + (s2y < 0 ? s2y : 0));
+// edge k from vertex k + 1 to k + 2 (a, b, c): at centre (sx, sy) (qx - px) (sy - py) - (qy - py) (sx - px) + bias,
+// its steps per pixel, and the most and the least it adds over a 4x4 block to its value at the first centre
+const int64_t vx[3] = {ax, bx, cx}, vy[3] = {ay, by, cy};
+int64_t px[3], py[3], dx[3], dy[3], bias[3], hi[3], lo[3];
+for (int k = 0; k < 3; ++k) {
+    px[k] = vx[(k + 1) % 3], py[k] = vy[(k + 1) % 3], dx[k] = vx[(k + 2) % 3] - px[k], dy[k] = vy[(k + 2) % 3] - py[k];
+    bias[k] = (dy[k] < 0 || (dy[k] == 0 && dx[k] > 0)) ? 0 : -1;
+    hi[k] = 3 * S * ((dy[k] < 0 ? -dy[k] : 0) + (dx[k] > 0 ? dx[k] : 0));
+    lo[k] = 3 * S * ((dy[k] > 0 ? -dy[k] : 0) + (dx[k] < 0 ? dx[k] : 0));
+}
 int64_t tested = 0, inside = 0, passed = 0, covered = 0, quads = 0, blocks = 0;
 for (int qy = y0 & ~3; qy <= y1; qy += 4) {
     const int r0 = y0 > qy ? y0 - qy : 0, r1 = y1 < qy + 3 ? y1 - qy : 3;
@@ -545,19 +558,21 @@ for (int qy = y0 & ~3; qy <= y1; qy += 4) {
         const int k0 = x0 > qx ? x0 - qx : 0, k1 = x1 < qx + 3 ? x1 - qx : 3;
         const uint32_t rect = rows & ((((1u << (k1 + 1)) - 1u) & ~((1u << k0) - 1u)) * 0x1111u);
         const int64_t sx = (int64_t)qx * S + HALF;
-        const int64_t e0 = d0x * (sy - by) - d0y * (sx - bx) + b0;
-        const int64_t e1 = d1x * (sy - cy) - d1y * (sx - cx) + b1;
-        const int64_t e2 = d2x * (sy - ay) - d2y * (sx - ax) + b2;
-        if (e0 + hi0 < 0 || e1 + hi1 < 0 || e2 + hi2 < 0) continue;  // no centre of the block inside
+        int64_t e[3];
+        bool out = false, all = true;
+        for (int k = 0; k < 3; ++k) {
+            e[k] = dx[k] * (sy - py[k]) - dy[k] * (sx - px[k]) + bias[k];
+            out = out || e[k] + hi[k] < 0;
+            all = all && e[k] + lo[k] >= 0;
+        }
+        if (out) continue;  // no centre of the block inside
         tested += RZ_POPC(rect);
         uint32_t m = 0xFFFFu;
-        if (e0 + lo0 < 0 || e1 + lo1 < 0 || e2 + lo2 < 0) {  // not every centre inside: the block's mask
-            m = 0;
-            for (int j = 0; j < 4; ++j) {
-                for (int i = 0; i < 4; ++i) {
-                    const int64_t v = (e0 + i * s0x + j * s0y) | (e1 + i * s1x + j * s1y) | (e2 + i * s2x + j * s2y);
-                    m |= (uint32_t)(v >= 0) << (4 * j + i);
-                }
+        for (int j = 0; j < 4 && !all; ++j) {  // not every centre inside: the block's mask
+            for (int i = 0; i < 4; ++i) {
+                const int64_t v = (e[0] + S * (j * dx[0] - i * dy[0])) | (e[1] + S * (j * dx[1] - i * dy[1]))
+                                  | (e[2] + S * (j * dx[2] - i * dy[2]));
+                m = (m & ~(1u << (4 * j + i))) | ((uint32_t)(v >= 0) << (4 * j + i));
             }
         }
         m &= rect;
@@ -578,25 +593,17 @@ for (int qy = y0 & ~3; qy <= y1; qy += 4) {
             union { float f; uint32_t u; } b;
             b.f = d;
             const int64_t p = (int64_t)bb + (int64_t)(y - oy) * stride + (x - ox);
-            if (ids[p] < 0) {
+            const bool first = ids[p] < 0;
+            if (first || b.u < dep[p]) {  // non-negative floats order as their bits
                 ids[p] = tid;
                 dep[p] = b.u;
                 passed += 1;
-                covered += 1;
-            } else if (b.u < dep[p]) {  // non-negative floats order as their bits
-                ids[p] = tid;
-                dep[p] = b.u;
-                passed += 1;
+                covered += first ? 1 : 0;
             }
         }
     }
 }
-acc[0] = tested;
-acc[1] = inside;
-acc[2] = passed;
-acc[3] = covered;
-acc[4] = quads;
-acc[5] = blocks;
+acc[0] = tested, acc[1] = inside, acc[2] = passed, acc[3] = covered, acc[4] = quads, acc[5] = blocks;
 return acc;
 #undef RZ_POPC
 #undef RZ_CTZ
@@ -604,28 +611,24 @@ return acc;
 def _cover(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, x0: int, x1: int,
            y0: int, y1: int, rx: int, ry: int, z00: float, dzdx: float, dzdy: float, tid: int, ox: int, oy: int,
            bb: int, stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """Draw the CCW fixed-point triangle (ax, ay), (bx, by), (cx, cy) over pixels (x0..x1, y0..y1) of one tile, into
-    the tile's buffer (``bb``, ``stride``, origin (ox, oy)), in 4x4 blocks aligned to the window: a block whose
-    corners put it outside an edge is skipped, one with every centre inside every edge is covered whole, the others
-    get a 16-bit mask from their centres' edge functions (int64). Each covered centre's depth is the anchor's
-    ``z00`` (at pixel (rx, ry)) stepped by ``dzdy`` rows then ``dzdx`` columns, clamped to [0, 1]; it passes
-    ``GL_LESS`` (depth bits below the pixel's, or the pixel is background) and writes ``tid`` and its depth. Returns
-    (centres tested, covered, passed, pixels covered for the first time, 2x2 quads and 4x4 blocks with a covered
-    centre, 0, 0)."""
+    """The CCW fixed-point triangle a, b, c over pixels (x0..x1, y0..y1) of a tile's buffer (``bb``, ``stride``,
+    origin (ox, oy)) in window-aligned 4x4 blocks: skipped or covered whole by their corners, else a 16-bit mask
+    from their centres' int64 edge functions. A covered centre's depth is ``z00`` (at pixel (rx, ry)) stepped by
+    ``dzdy`` rows then ``dzdx`` columns, clamped to [0, 1]; passing ``GL_LESS`` it writes ``tid`` and its depth.
+    Returns (centres tested, covered, passed, pixels covered anew, 2x2 quads and 4x4 blocks covered, 0, 0)."""
     ...
 
 
 @wp.func_native("""
 wp::vec_t<8, wp::int64> acc;
-for (int k = 0; k < 8; ++k) acc[k] = 0;
-acc[6] = j0;
+for (int k = 0; k < 8; ++k) acc[k] = k == 6 ? j0 : 0;
 #if !defined(__CUDA_ARCH__)
 if (simd != 0) {
 #pragma clang fp contract(off)
 typedef int32_t v8 __attribute__((vector_size(32)));
 typedef uint32_t v8u __attribute__((vector_size(32)));
 typedef float v8f __attribute__((vector_size(32)));
-typedef int32_t v8_ld __attribute__((vector_size(32), aligned(4)));
+typedef int32_t v8_ld __attribute__((vector_size(32), aligned(4)));  // loads and stores at any pixel
 typedef uint32_t v8u_ld __attribute__((vector_size(32), aligned(4)));
 #if defined(__AVX__)
 #define RZ_SIGNS(v) ((uint32_t)__builtin_ia32_movmskps256((v8f)(v)))
@@ -635,65 +638,53 @@ typedef uint32_t v8u_ld __attribute__((vector_size(32), aligned(4)));
 const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 int32_t* __restrict ids = (int32_t*)buf_id.data;
 uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
-int64_t passed = 0, covered = 0;
-int j = j0;
+int64_t j = j0;
 for (; j < j1 && entries.data[j].t >= 0; ++j) {
     const auto& r = entries.data[j];
-    const int64_t ax = r.xy[0], ay = r.xy[1];
-    const int64_t bx = ax + (int16_t)(r.xy[2] & 0xFFFF), by = ay + (r.xy[2] >> 16);
-    const int64_t cx = ax + (int16_t)(r.xy[3] & 0xFFFF), cy = ay + (r.xy[3] >> 16);
-    int rx = (int)(((ax < bx ? (ax < cx ? ax : cx) : (bx < cx ? bx : cx)) + 127) >> 8);
-    int ry = (int)(((ay < by ? (ay < cy ? ay : cy) : (by < cy ? by : cy)) + 127) >> 8);
-    const int ex = (int)(((ax > bx ? (ax > cx ? ax : cx) : (bx > cx ? bx : cx)) - 128) >> 8);
-    const int ey = (int)(((ay > by ? (ay > cy ? ay : cy) : (by > cy ? by : cy)) - 128) >> 8);
-    rx = rx > 0 ? rx : 0;
-    ry = ry > 0 ? ry : 0;
-    const int x0 = rx > tx0 ? rx : tx0, x1 = ex < tx1 ? (ex < width - 1 ? ex : width - 1) : tx1;
-    const int y0 = ry > ty0 ? ry : ty0, y1 = ey < ty1 ? (ey < height - 1 ? ey : height - 1) : ty1;
+    // the vertices a (x[0]), b, c, and the pixel box: first centre at or after the least coordinate, last at or
+    // before the largest
+    const int64_t x[3] = {r.xy[0], r.xy[0] + (int16_t)(r.xy[2] & 0xFFFF), r.xy[0] + (int16_t)(r.xy[3] & 0xFFFF)};
+    const int64_t y[3] = {r.xy[1], r.xy[1] + (r.xy[2] >> 16), r.xy[1] + (r.xy[3] >> 16)};
+    const int rx = wp::max(0, (int)((wp::min(x[0], wp::min(x[1], x[2])) + 127) >> 8));
+    const int ry = wp::max(0, (int)((wp::min(y[0], wp::min(y[1], y[2])) + 127) >> 8));
+    const int x0 = wp::max(rx, tx0), x1 = wp::min((int)((wp::max(x[0], wp::max(x[1], x[2])) - 128) >> 8), tx1);
+    const int y0 = wp::max(ry, ty0), y1 = wp::min((int)((wp::max(y[0], wp::max(y[1], y[2])) - 128) >> 8), ty1);
     if (x0 > x1 || y0 > y1) continue;
-    // a record's triangle spans under SMALL_PX pixels: its edge functions over 16 centres of a row fit in int32
-    const int64_t sx = (int64_t)x0 * 256 + 128, sy = (int64_t)y0 * 256 + 128;
-    v8 ra[2][3];
-    v8f tx[2];
-    const int32_t s0y = (int32_t)((cx - bx) * 256), s1y = (int32_t)((ax - cx) * 256), s2y = (int32_t)((bx - ax) * 256);
-    const int nch = x1 - x0 >= 8 ? 2 : 1;
-    for (int c = 0; c < nch; ++c) {  // a row in chunks of 8 centres: two when it is wider
-        const v8 l = lane + 8 * c;
-        ra[c][0] = (int32_t)((cx - bx) * (sy - by) - (cy - by) * (sx - bx) + ((cy < by || (cy == by && cx > bx)) ? 0 : -1)) + l * (int32_t)((by - cy) * 256);
-        ra[c][1] = (int32_t)((ax - cx) * (sy - cy) - (ay - cy) * (sx - cx) + ((ay < cy || (ay == cy && ax > cx)) ? 0 : -1)) + l * (int32_t)((cy - ay) * 256);
-        ra[c][2] = (int32_t)((bx - ax) * (sy - ay) - (by - ay) * (sx - ax) + ((by < ay || (by == ay && bx > ax)) ? 0 : -1)) + l * (int32_t)((ay - by) * 256);
-        tx[c] = r.plane[1] * __builtin_convertvector(l + (x0 - rx), v8f);
+    // edge k from vertex k + 1 to k + 2 at the first centre of the rows, and per pixel down a row: a record's
+    // triangle spans under SMALL_PX pixels, so over 16 centres of a row its edge functions fit in int32
+    v8 ra[2][3], dy[3];
+    for (int k = 0; k < 3; ++k) {
+        const int64_t px = x[(k + 1) % 3], py = y[(k + 1) % 3], dx = x[(k + 2) % 3] - px, ey = y[(k + 2) % 3] - py;
+        const int64_t e = dx * ((int64_t)y0 * 256 + 128 - py) - ey * ((int64_t)x0 * 256 + 128 - px)
+                          + ((ey < 0 || (ey == 0 && dx > 0)) ? 0 : -1);
+        ra[0][k] = (int32_t)e + lane * (int32_t)(-ey * 256);
+        ra[1][k] = ra[0][k] + 8 * (int32_t)(-ey * 256);
+        dy[k] = lane - lane + (int32_t)(dx * 256);
     }
+    const v8f tx[2] = {r.plane[1] * __builtin_convertvector(lane + (x0 - rx), v8f),
+                       r.plane[1] * __builtin_convertvector(lane + (x0 + 8 - rx), v8f)};
     const uint32_t cols = (uint32_t)((1u << (x1 - x0 + 1)) - 1u);
-    const int sh = x0 & 3;
+    const int nch = x1 - x0 >= 8 ? 2 : 1;  // a row in chunks of 8 centres: two when it is wider
     uint32_t qrow = 0, brow = 0;
     acc[0] += (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1);
-    for (int y = y0; y <= y1; ++y) {
+    for (int yy = y0; yy <= y1; ++yy) {
         uint32_t mc[2] = {0, 0};
         for (int c = 0; c < nch; ++c) {
             mc[c] = ~RZ_SIGNS(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
-            ra[c][0] += s0y;
-            ra[c][1] += s1y;
-            ra[c][2] += s2y;
+            for (int k = 0; k < 3; ++k) ra[c][k] += dy[k];
         }
         const uint32_t m = mc[0] | (mc[1] << 8);
-        qrow |= m << sh;
-        brow |= m << sh;
-        if ((y & 1) == 1 || y == y1) {  // a row of 2x2 quads done
-            acc[4] += __builtin_popcount((qrow | (qrow >> 1)) & 0x55555u);
-            qrow = 0;
-        }
-        if ((y & 3) == 3 || y == y1) {  // a row of 4x4 blocks done
-            acc[5] += __builtin_popcount((brow | (brow >> 1) | (brow >> 2) | (brow >> 3)) & 0x11111u);
-            brow = 0;
-        }
+        qrow |= m << (x0 & 3);  // the row's centres from the first 4-aligned column: quads, then blocks, done
+        brow |= m << (x0 & 3);
+        if ((yy & 1) == 1 || yy == y1) acc[4] += __builtin_popcount((qrow | qrow >> 1) & 0x55555u), qrow = 0;
+        const uint32_t bm = brow | brow >> 1 | brow >> 2 | brow >> 3;
+        if ((yy & 3) == 3 || yy == y1) acc[5] += __builtin_popcount(bm & 0x11111u), brow = 0;
         acc[1] += __builtin_popcount(m);
         // the anchor's depth stepped to the row, then to each centre: two roundings per axis, as set up
-        const float zr = r.plane[0] + r.plane[2] * (float)(y - ry);
-        const int64_t p0 = (int64_t)bb + (int64_t)(y - ty0) * stride + (x0 - tx0);
+        const float zr = r.plane[0] + r.plane[2] * (float)(yy - ry);
+        const int64_t p0 = (int64_t)bb + (int64_t)(yy - ty0) * stride + (x0 - tx0);
         for (int c = 0; c < nch; ++c) {
             if (mc[c] == 0) continue;
-            const v8 in = ((lane - lane + (int32_t)mc[c]) >> lane) & 1;
             const v8f d0 = zr + tx[c];
             const v8f d1 = d0 > 0.0f ? d0 : 0.0f;  // wp::clamp(d, 0, 1) on the host: NaN and -0.0 become 0.0
             const v8f d = d1 <= 1.0f ? d1 : 1.0f;
@@ -703,20 +694,18 @@ for (; j < j1 && entries.data[j].t >= 0; ++j) {
             const v8 oid = *(const v8_ld*)pi;
             const v8u od = *(const v8u_ld*)pd;
             const v8 first = oid < 0;
-            const v8 win = (in != 0) & (d < 1.0f) & (first | (bits < od));  // GL_LESS; depth bits order as depths
+            // GL_LESS (depth bits order as depths) at a covered centre
+            const v8 win = ((((lane - lane + (int32_t)mc[c]) >> lane) & 1) != 0) & (d < 1.0f) & (first | (bits < od));
             const uint32_t wm = RZ_SIGNS(win);
             if (wm != 0) {
                 *(v8_ld*)pi = win ? (v8)(lane - lane + r.t) : oid;
                 *(v8u_ld*)pd = win ? bits : od;
-                passed += __builtin_popcount(wm);
-                covered += __builtin_popcount(wm & RZ_SIGNS(first));
+                acc[2] += __builtin_popcount(wm), acc[3] += __builtin_popcount(wm & RZ_SIGNS(first));
             }
         }
     }
 }
 #undef RZ_SIGNS
-acc[2] = passed;
-acc[3] = covered;
 acc[6] = j;
 }
 #endif
@@ -725,13 +714,10 @@ return acc;
 def _draw_records(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
                   ty1: int, width: int, height: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
                   buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """On the CPU with ``simd`` (a scratch tile), a tile's list from entry ``j0`` while its entries are records (:class:`Record`), each drawn over
-    the tile's pixels (tx0..tx1, ty0..ty1) into its buffer (origin (tx0, ty0)) row by row, in chunks of 8 centres
-    at a time (SIMD, int32 lanes: a record's triangle spans under SMALL_PX pixels): the edge functions and the
-    chunk's coverage mask, then its depths, tests and writes (the scratch tile's rows have room for a chunk from
-    any pixel). The same pixels, depths and counts as :func:`_cover` (its 4x4 blocks and 2x2 quads counted from the
-    rows' masks). Returns :func:`_cover`'s counts and, in slot 6, the entry it stopped at (a triangle set up again
-    where drawn, or ``j1``); otherwise (and on CUDA) nothing (slot 6: ``j0``)."""
+    """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records, over the tile's pixels
+    (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32 lanes): mask,
+    depths, tests, writes. The same pixels, depths and counts as :func:`_cover`; returns them, the entry it stopped
+    at in slot 6 (``j0`` without ``simd`` and on CUDA, where :func:`_cover` draws records)."""
     ...
 
 
@@ -1090,11 +1076,11 @@ def _tile_kernel(
     out_tally: wp.array2d(dtype=wp.int64),
 ):
     """Screen tiles, one thread each: the background (``first`` batch) or the images' pixels so far, the tile's
-    lists (:class:`Bins`) drawn in order (:func:`_draw_list`), a tile with a pixel covered flagged in ``out_dirty``, the tallies into
-    row ``part``. With ``scratch`` (the CPU, one launch index per thread) each thread takes the next tile from the
-    shared counter ``queue`` until none is left and draws it in its own TILE x PITCH tile of ``out_buf_*``, then
-    copies it into the images; without (CUDA), tile ``offset + tid`` is drawn in the images themselves (``out_buf_*``
-    are the images, a tile's sorted list first)."""
+    lists (:class:`Bins`) drawn in order (:func:`_draw_list`), a tile with a pixel covered flagged in ``out_dirty``,
+    the tallies into row ``part``. With ``scratch`` (the CPU, one launch index per thread) each thread takes the
+    next tile from the shared counter ``queue`` until none is left and draws it in its own TILE x PITCH tile of
+    ``out_buf_*``, then copies it into the images; without (CUDA), tile ``offset + tid`` is drawn in the images
+    themselves (``out_buf_*`` are the images, a tile's sorted list first)."""
     tile = wp.tid() + offset
     slot = tile
     if scratch != 0:

@@ -8,9 +8,8 @@ import gl_raster_oracle as gl  # noqa: E402
 import numpy as np
 import pytest
 
-import terrainwarp.kernels.raster as raster
-from terrainwarp.kernels import pool
 from terrainwarp.experiments.gl import GLMesh
+from terrainwarp.kernels import pool
 from terrainwarp.kernels.counters import frame_counters, indexed_draw_counters, patch_draw_counters
 from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.kernels.raster import rasterize_clip

@@ -465,7 +465,6 @@ def _same(a, b):
 
 
 def test_pooled_buffers_reused_by_other_draws_give_the_fresh_result():
-    from terrainwarp.kernels import raster
 
     scenes, (w, h) = _scenes()
     fresh = {}
