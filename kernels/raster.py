@@ -90,6 +90,7 @@ BATCH = 1 << 20  # triangles binned and drawn at a time (the lists' memory)
 PITCH = TILE + 16  # pixels per row of a CPU thread's scratch tile: a row's 16 lanes from any pixel of the tile
 # the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
 _MIN_TRIANGLES = 2048
+_MIN_VERTICES = 1 << 16  # a vertex costs ~2 ns: fewer per thread are not worth the hand-off
 _MIN_PIXELS = 32768
 _BACKGROUND_BITS = 0x3F800000  # 1.0f
 
@@ -1464,8 +1465,8 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.a
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
     if len(pos32):
-        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device),
-                                            wp.mat44(*mvp.reshape(-1).tolist())], [clip], device)
+        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device), wp.mat44(*mvp.reshape(-1).tolist())],
+               [clip], device, min_items=_MIN_VERTICES)
     return clip
 
 
