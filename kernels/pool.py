@@ -14,8 +14,8 @@ through a :class:`Lease`, and a buffer is lent again only after its lease has en
   pointer (``ctypes``, ``__array_interface__['data']``, ``wp.array(ptr=...)``) does not hold the lease:
   keep an array alive as long as its pointer is used.
 * **Scratch leases** (:func:`take`, :meth:`Lease.give_back`): a buffer one function takes and gives back
-  itself when it is done (the rasterizer's depth|id keys, given back all empty). A scratch lease that is
-  never given back (its function failed part-way) is dropped with its buffer: its state is unknown.
+  itself when it is done (the rasterizer's work arrays for a call, which the next call clears). A scratch lease
+  that is never given back (its function failed part-way) is dropped with its buffer: its state is unknown.
 
 At most ``keep`` buffers of a kind are kept (leased or free); more are plain allocations that nobody keeps.
 :func:`release_buffers` lets every free buffer go (leased ones are dropped when their lease ends).

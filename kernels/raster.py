@@ -30,7 +30,7 @@ tests/kernels/test_raster.py, with the same clip-space vertices):
 How it runs (binning, then one thread per screen tile):
 
 * **bin** (:func:`_bin_kernel`, one thread per triangle): clipping and setup. A small unclipped triangle (most
-  terrain triangles) becomes a 32-byte record (its fixed-point vertices and depth plane, :func:`_pack`) unless its
+  terrain triangles) becomes a 32-byte :class:`Record` (its fixed-point vertices and depth plane) unless its
   box holds at most 4 pixel centres and it covers none; every other drawn triangle is set up again where drawn.
   Each goes into the list of every ``TILE`` x ``TILE`` screen tile its pixel box meets (a large one only those its
   edges do not exclude), one list per tile and launch chunk (:class:`Bins`). A chunk's triangles are consecutive
@@ -41,8 +41,9 @@ How it runs (binning, then one thread per screen tile):
   in a scratch tile that fits the cache, which starts as the background and is copied into the images at the
   end: records row by row, 8 pixel centres at a time in SIMD (edge functions, coverage mask, depth, test and
   write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted whole by their corners, else given a
-  16-bit mask (:func:`_cover`). The depth test and the writes need no atomics, and the pipeline statistics are
-  counted on the way (samples passed as the test passes in submission order, quads and blocks from the masks).
+  16-bit mask (:func:`_cover`); CUDA draws every entry in 4x4 blocks, in the images themselves. The depth test and
+  the writes need no atomics, and the pipeline statistics are counted on the way (samples passed as the test
+  passes in submission order, quads and blocks from the masks).
   Frames of more than ``BATCH`` triangles go through bin and draw in batches, in order.
 
 The barycentrics of :class:`Fragments` are computed on first access from the clip-space vertices: with
