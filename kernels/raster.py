@@ -87,7 +87,7 @@ GUARD_BAND_PX = 0.0  # x and y are clipped at the viewport itself, as llvmpipe d
 TILE = 64  # screen tile edge in pixels: one thread draws a tile
 DEPTH_TILE = 16  # the screen cells in which a large triangle's depth plane is anchored again
 SMALL_PX = 16  # a triangle whose pixel box spans fewer pixels than this each way is small
-BATCH = 1 << 20  # triangles binned and drawn at a time (the lists' memory)
+BATCH = 1 << 22  # triangles binned and drawn at a time (bounds the lists' memory)
 PITCH = TILE + 16  # pixels per row of a CPU thread's scratch tile: a row's 16 lanes from any pixel of the tile
 # the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
 _MIN_TRIANGLES = 2048
@@ -1054,6 +1054,15 @@ def _draw_list(simd: int, s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.v
     return acc
 
 
+@wp.func
+def _listed(bins: Bins, tile: int) -> int:
+    """The entries in a tile's lists."""
+    n = int(0)
+    for p in range(bins.nparts):
+        n += bins.count[tile * bins.nparts + p]
+    return n
+
+
 @wp.kernel(enable_backward=False)
 def _tile_kernel(
     offset: int,
@@ -1088,6 +1097,11 @@ def _tile_kernel(
     if scratch != 0:
         tile = atomic_add_i32(queue, 0, 1)
     while tile < ntiles:
+        if first == 0 and _listed(bins, tile) == 0:  # a later batch that draws nothing here: the images stand
+            if scratch == 0:
+                break
+            tile = atomic_add_i32(queue, 0, 1)
+            continue
         ty = tile / bins.tiles_x
         r = _cell_rect(tile - ty * bins.tiles_x, ty, TILE, width, height)
         w = r[1] - r[0] + 1

@@ -556,3 +556,18 @@ def test_the_way_cuda_draws_gives_the_cpus_frames(monkeypatch):
             assert _same(a, b) and got.counters == want[name].counters, name
     finally:
         parallel.set_min_items(None)
+
+
+@pytest.mark.parametrize("scratch", [True, False])
+def test_a_frame_drawn_in_batches_is_the_frame_drawn_at_once(monkeypatch, scratch):
+    """Triangles binned and drawn BATCH at a time (tiles a batch leaves alone untouched, the others going on from
+    the images so far) give the frame and the counters of one batch."""
+    from terrainwarp.kernels import raster
+
+    scenes, (w, h) = _scenes(203, 97)
+    monkeypatch.setattr(raster, "_SCRATCH", scratch)
+    want = {name: rasterize_clip(*scenes[name], w, h, counters=True) for name in ("terrain", "big")}
+    monkeypatch.setattr(raster, "BATCH", 5)
+    for name, f in want.items():
+        got = rasterize_clip(*scenes[name], w, h, counters=True)
+        assert _same(_result(got), _result(f)) and got.counters == f.counters, name
