@@ -16,6 +16,7 @@ only some cameras (the others drawn for their cost); a later call completes it.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -28,6 +29,7 @@ from ..measure.cost import Cost
 from ..rendering.pipeline import Frame, pop_stats, render
 from ..rendering.rows import frame_row
 from ..scene import Scene
+from .timings import part
 
 __all__ = ["Evaluation", "Exact", "evaluate", "evaluations_from_rows", "references_for", "MISSING_TOL"]
 
@@ -259,6 +261,8 @@ class Exact:
     history: list[dict] = field(default_factory=list)
     terrains: dict[tuple, Terrain] = field(default_factory=dict)
     trace: list[tuple[int, float]] = field(default_factory=list)  # (frames so far, best confirmed cost) per change
+    trace_s: list[float] = field(default_factory=list)  # seconds from ``started`` to each change of ``trace``
+    started: float = field(default_factory=time.perf_counter)
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
@@ -287,11 +291,12 @@ class Exact:
             return old
         setting = self.make(dict(key))
         whole = self.max_pop_px is not None or _state_of(setting) is not None
-        e = evaluate(setting, self.cams, self.refs, terrain=self.terrain_for(setting), device=self.device,
-                     values=dict(key), pops=self.max_pop_px is not None,
-                     cost_of=self.cost_of, order=None if whole else order,
-                     stop_above=self.budget_px if stop else None,
-                     measure=None if whole else measure, known=None if whole else old, on_frame=self.on_frame)
+        with part("exact"):
+            e = evaluate(setting, self.cams, self.refs, terrain=self.terrain_for(setting), device=self.device,
+                         values=dict(key), pops=self.max_pop_px is not None,
+                         cost_of=self.cost_of, order=None if whole else order,
+                         stop_above=self.budget_px if stop else None,
+                         measure=None if whole else measure, known=None if whole else old, on_frame=self.on_frame)
         n = len(self.cams)
         measured = n if e.frames is None else len(e.frames)
         before = 0 if old is None else (n if old.frames is None else len(old.frames))
@@ -315,4 +320,5 @@ class Exact:
         c = math.inf if b is None else b.cost
         if not self.trace or c < self.trace[-1][1]:
             self.trace.append((self.frames, c))
+            self.trace_s.append(time.perf_counter() - self.started)
 

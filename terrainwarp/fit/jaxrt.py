@@ -1,0 +1,152 @@
+"""JAX for the fit, set up where a fit starts (never at import): the persistent compilation cache in the user's
+cache folder, and the relaxed models' programs compiled once per shape.
+
+**The cache** (:func:`use_cache`): ``$XDG_CACHE_HOME/terrainwarp/jax`` (by default ``~/.cache/terrainwarp/jax``,
+beside Warp's kernel cache ``~/.cache/warp``), or the folder the environment variable ``TERRAINWARP_JAX_CACHE``
+names; ``TERRAINWARP_JAX_CACHE=off`` (or ``0``, ``false``, ``no``, ``none``) leaves JAX without one, and a cache
+folder the application gave JAX itself (``jax_compilation_cache_dir``) is left as it is. Every program is kept,
+however fast it compiled, so a second fit in a fresh process compiles nothing. JAX writes an entry in place, not
+through a temporary name; so before a process first uses the folder, each entry not yet seen whole is checked
+(it must decompress whole: zlib carries a checksum) and one that does not, older than a minute (a writer killed
+half way, not one still writing), is removed, to be compiled and written again (JAX itself would warn and compile
+it on every use, never writing it again). Entries seen whole are listed in ``verified.txt`` (written through a
+temporary name) and not read again.
+
+**Programs** (:func:`compiled`): a jitted function lowered and compiled for its arguments' shapes once per process
+(read from the persistent cache when it holds the program), charged to the running fit's ``compile`` part, with
+the progress bar saying so (:mod:`terrainwarp.fit.timings`).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .timings import part, say
+
+__all__ = ["CACHE_ENV", "cache_dir", "use_cache", "compiled", "check_entries"]
+
+CACHE_ENV = "TERRAINWARP_JAX_CACHE"
+_OFF = ("0", "off", "false", "no", "none")
+_SETTLE_S = 60.0  # an entry younger than this may still be being written by another process
+_MANIFEST = "verified.txt"
+
+_lock = threading.Lock()
+_state: dict[str, Any] = {"done": False, "dir": None}
+_programs: dict = {}
+
+
+def cache_dir() -> Path | None:
+    """The folder the fit's compiled programs are kept in (None: turned off by ``TERRAINWARP_JAX_CACHE``)."""
+    env = os.environ.get(CACHE_ENV, "").strip()
+    if env.lower() in _OFF:
+        return None
+    if env:
+        return Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME", "").strip() or str(Path.home() / ".cache")
+    return Path(base) / "terrainwarp" / "jax"
+
+
+def use_cache() -> Path | None:
+    """Point JAX's persistent compilation cache at :func:`cache_dir` (once per process; a folder the application
+    set already is kept). Returns the folder in use (None: none)."""
+    import jax  # lazy: heavy optional dependency
+
+    with _lock:
+        if _state["done"]:
+            return _state["dir"]
+        own = jax.config.jax_compilation_cache_dir
+        folder = Path(own) if own else cache_dir()
+        if folder is not None and not own:
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                check_entries(folder)
+            except OSError:
+                folder = None  # a read-only home: no cache, the fit compiles as before
+            if folder is not None:
+                jax.config.update("jax_compilation_cache_dir", str(folder))
+                jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        _state.update(done=True, dir=folder)
+        return folder
+
+
+def check_entries(folder: Path, now: float | None = None) -> tuple[int, int]:
+    """Check the cache entries of ``folder`` not yet seen whole (see the module docstring): returns (entries
+    checked, entries removed)."""
+    now = time.time() if now is None else now
+    seen = _read_manifest(folder / _MANIFEST)
+    keep, checked, removed = {}, 0, 0
+    for p in sorted(folder.glob("*-cache")):
+        try:
+            st = p.stat()
+        except FileNotFoundError:
+            continue
+        tag = f"{st.st_size} {st.st_mtime_ns}"
+        if seen.get(p.name) == tag:
+            keep[p.name] = tag
+            continue
+        checked += 1
+        if _whole(p):
+            keep[p.name] = tag
+        elif now - st.st_mtime > _SETTLE_S:
+            p.unlink(missing_ok=True)
+            removed += 1
+    if keep != seen:
+        tmp = folder / f".{_MANIFEST}.{os.getpid()}.tmp"
+        tmp.write_text("".join(f"{k} {v}\n" for k, v in sorted(keep.items())))
+        os.replace(tmp, folder / _MANIFEST)
+    return checked, removed
+
+
+def _read_manifest(path: Path) -> dict[str, str]:
+    try:
+        lines = path.read_text().splitlines()
+    except (FileNotFoundError, UnicodeDecodeError):
+        return {}
+    out = {}
+    for ln in lines:
+        parts = ln.split(" ")
+        if len(parts) == 3:
+            out[parts[0]] = f"{parts[1]} {parts[2]}"
+    return out
+
+
+def _whole(path: Path) -> bool:
+    """The entry decompresses whole (zlib: to its end, checksum included); a zstd entry is left to JAX."""
+    data = path.read_bytes()
+    if data[:4] == b"\x28\xb5\x2f\xfd":  # zstd (JAX with a zstd module): JAX checks it as it reads it
+        return True
+    d = zlib.decompressobj()
+    try:
+        d.decompress(data)
+        d.flush()
+    except zlib.error:
+        return False
+    return d.eof
+
+
+def _signature(args: tuple) -> tuple:
+    import jax  # lazy: heavy optional dependency
+
+    leaves, tree = jax.tree_util.tree_flatten(args)
+    return tree, tuple((np.shape(x), np.result_type(x).str) for x in leaves)
+
+
+def compiled(jitted, name: str, static: tuple, *args: Any):
+    """``jitted`` (a ``jax.jit`` whose first ``len(static)`` arguments are static) lowered and compiled for
+    ``static`` and the shapes and dtypes of ``args``, once per process; call the result with ``args``."""
+    key = (id(jitted), static, _signature(args))
+    prog = _programs.get(key)
+    if prog is None:
+        with part("compile"):
+            say(f"compiling {name} (once per machine, then read from the cache)")
+            prog = jitted.lower(*static, *args).compile()
+            say("")
+        _programs[key] = prog
+    return prog
