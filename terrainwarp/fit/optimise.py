@@ -6,7 +6,9 @@ The whole solve (every round, every Adam step and Newton restore) is one jitted 
 sizes (:mod:`terrainwarp.fit.relaxed`), compiled once per machine (:func:`terrainwarp.fit.jaxrt.compiled`): one
 ``lax.while_loop`` whose body evaluates the model and its Jacobian once and then takes the step its phase asks
 for (a Newton restore before a step, an Adam step, the restore that ends a round, the round's record), the same
-sequence of evaluations the reduced-gradient method makes. The host sees the result once, at the end. A model
+sequence of evaluations the reduced-gradient method makes, less those at a point just evaluated (a restore that
+finds the main knob on the boundary moves nothing: the step or the round's record is taken from the same
+evaluation). The host sees the result once, at the end. A model
 that turns non-finite stops the solve where it was (no step is taken from it) and is reported
 (:class:`NonFiniteModel`)."""
 
@@ -119,19 +121,19 @@ def _solve(spec, data, u0, lo, hi, target, off, temps, rounds, steps, lr):
         moved = upd * others
         stepped = jnp.clip(s.u + moved, lo, hi)
         settled = (jnp.max(jnp.abs(moved)) < 1e-3) | (s.k + 1 >= steps)
-        post_done = close | (s.it + 1 >= 3)
         record = s.rec.at[s.r].set(jnp.concatenate([jnp.stack([temp, val[0], val[1]]), s.u]))
-        last = s.r + 1 >= rounds
-        phase = jnp.select([s.phase == PRE, s.phase == STEP, s.phase == POST],
-                           [STEP, jnp.where(settled, POST, PRE), jnp.where(post_done, RECORD, POST)],
-                           jnp.where(last, DONE, PRE))
-        new = _State(phase, jnp.where(s.phase == RECORD, s.r + 1, s.r), jnp.where(s.phase == STEP, s.k + 1,
-                                                                             jnp.where(s.phase == RECORD, 0, s.k)),
-                     jnp.where(s.phase == POST, s.it + 1, 0),
-                     jnp.where(s.phase == STEP, stepped, jnp.where((s.phase == PRE) | (s.phase == POST), restored,
-                                                                   s.u)),
-                     jax.tree_util.tree_map(lambda a, b: jnp.where(s.phase == STEP, a, b), adam, s.adam),
-                     bad, jnp.where(s.phase == RECORD, record, s.rec))
+        pre, post = s.phase == PRE, s.phase == POST
+        # a restore that finds u on the boundary leaves it there: the step (after PRE) or the record (after POST)
+        # would evaluate the model at the same point, so they are taken now, from this evaluation
+        step = (s.phase == STEP) | (pre & close)
+        rec = (s.phase == RECORD) | (post & close)
+        phase = jnp.select([step, rec, pre], [jnp.where(settled, POST, PRE), jnp.where(s.r + 1 >= rounds, DONE, PRE),
+                                              STEP], jnp.where(s.it + 1 >= 3, RECORD, POST))
+        new = _State(phase, jnp.where(rec, s.r + 1, s.r), jnp.where(step, s.k + 1, jnp.where(rec, 0, s.k)),
+                     jnp.where(post & ~close, s.it + 1, 0),
+                     jnp.where(step, stepped, jnp.where(pre | post, restored, s.u)),
+                     jax.tree_util.tree_map(lambda a, b: jnp.where(step, a, b), adam, s.adam), bad,
+                     jnp.where(rec, record, s.rec))
         return jax.tree_util.tree_map(lambda a, b: jnp.where(bad, a, b), s._replace(bad=bad), new)
 
     u = jnp.clip(u0, lo, hi)

@@ -229,10 +229,13 @@ class CdlodModel(PaddedModel):
                 list(tree["parent"]))
 
     @cached_property
-    def _hard_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per camera, padded to the most kept samples: each sample's node per tree level (C, D+1, V) int64, its eye
-        distance (C, V) float32, its error per LOD (C, R, V) float32, and which are real (C, V) bool."""
-        depth, C = self.scheme.terrain.depth, len(self.probes)
+    def _hard_samples(self) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per camera, padded to the most kept samples, flat over (camera, sample): each sample's node at the finest
+        tree level as an index into every camera's finest nodes laid end to end (C, V) (None where a sample's nodes
+        are not one ancestor line: then ``nodes`` (C, D+1, V), its node per level, is read instead), its eye
+        distance (C, V) float32, the flat index of its error at LOD 0 in ``err`` (C, V), ``err`` (C, R, V) float32,
+        and which samples are real (C, V) bool."""
+        depth, C, parents = self.scheme.terrain.depth, len(self.probes), self._tree["parent"]
         v = max(max(len(p.rows) for p in self.probes), 1)
         nodes = np.zeros((C, depth + 1, v), np.int64)
         dist, ok = np.zeros((C, v), np.float32), np.zeros((C, v), bool)
@@ -241,7 +244,17 @@ class CdlodModel(PaddedModel):
             n = len(p.rows)
             nodes[c, :, :n] = np.stack([self._node_of(p.rows, p.cols, lvl) for lvl in range(depth + 1)])
             dist[c, :n], err[c, :, :n], ok[c, :n] = p.dist, p.err, True
-        return nodes, dist, err, ok
+        line = nodes[:, depth]
+        for lvl in range(depth, 0, -1):  # every sample's node at each level is the ancestor of its finest one
+            line = parents[lvl][line]
+            if not np.array_equal(line, nodes[:, lvl - 1]):
+                break
+        else:
+            n_fine = len(parents[depth])
+            finest = nodes[:, depth] + (np.arange(C) * n_fine)[:, None]
+            base = (np.arange(C)[:, None] * self.levels * v) + np.arange(v)[None, :]
+            return finest, nodes, dist, base, err, ok
+        return None, nodes, dist, (np.arange(C)[:, None] * self.levels * v) + np.arange(v)[None, :], err, ok
 
     def _select(self, rng: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
         """Every camera's selection for the ranges ``rng`` (per LOD), as :meth:`Cdlod.select` makes it, from the node
@@ -263,13 +276,31 @@ class CdlodModel(PaddedModel):
             quad.append(vis & ~in_range if lvl else np.zeros_like(vis))
         return whole, quad
 
+    def _lods(self, whole: list[np.ndarray], quad: list[np.ndarray]) -> np.ndarray:
+        """Each kept sample's LOD (C, V) (-1 where no drawn node covers it): that of the deepest level whose node over
+        it is drawn, whole (LOD depth - level) or as its parent's quadrant (one coarser)."""
+        finest, nodes, _, _, _, _ = self._hard_samples
+        depth, parents = self.scheme.terrain.depth, self._tree["parent"]
+        if finest is not None:  # each finest node takes the LOD of the deepest drawn node above it, read once
+            acc = None
+            for lvl in range(depth + 1):
+                code = np.where(whole[lvl], depth - lvl, np.where(quad[lvl], depth - lvl + 1, -1))
+                acc = code if acc is None else np.where(code >= 0, code, acc[:, parents[lvl]])
+            return acc.reshape(-1)[finest]
+        lod = np.full(nodes[:, 0].shape, -1, np.int64)
+        for lvl in range(depth + 1):
+            code = np.where(whole[lvl], depth - lvl, np.where(quad[lvl], depth - lvl + 1, -1))
+            at = np.take_along_axis(code, nodes[:, lvl, :], axis=1)
+            lod = np.where(at >= 0, at, lod)
+        return lod
+
     def hard(self, values: Mapping[str, float]) -> Prediction:
         """The selection at temperature 0 (:meth:`_select`, what :meth:`Cdlod.select` draws), its draws counted as
         the mesh counts them; each sample's error at its LOD, blended toward the next by its morph factor."""
         v = {**self.fixed, **values}
         rng, start, end = cdlod_ranges(float(v["first_range"]), float(v["ratio"]), float(v["morph_start_ratio"]),
                                        self.levels)
-        g, depth = int(self.scheme.grid), self.scheme.terrain.depth
+        g = int(self.scheme.grid)
         whole, quad = self._select(rng)
         nw, nq = sum(w.sum(axis=1) for w in whole), sum(q.sum(axis=1) for q in quad)
         costs = []
@@ -278,17 +309,13 @@ class CdlodModel(PaddedModel):
                                                                                       + b * (g // 2 + 1) ** 2),
                      "draw_calls": float(a + b), "patches": 0.0, "domain_points": 0.0}
             costs.append(sum(self.weights.get(f, 0.0) * x for f, x in feats.items()))
-        nodes, dist, err, ok = self._hard_samples
-        lod = np.full(dist.shape, -1, np.int64)
-        for lvl in range(depth + 1):
-            code = np.where(whole[lvl], depth - lvl, np.where(quad[lvl], depth - lvl + 1, -1))
-            at = np.take_along_axis(code, nodes[:, lvl, :], axis=1)
-            lod = np.where(at >= 0, at, lod)
+        lod = self._lods(whole, quad)
+        _, _, dist, base, err, ok = self._hard_samples
         j = np.maximum(lod, 0)
         with np.errstate(invalid="ignore", divide="ignore"):
             k = np.where(np.isfinite(start[j]), np.clip((dist - start[j]) / (end[j] - start[j]), 0, 1), 0.0)
         nxt = np.minimum(j + 1, self.levels - 1)
-        e = (1.0 - k) * np.take_along_axis(err, j[:, None, :], axis=1)[:, 0] + k * np.take_along_axis(
-            err, nxt[:, None, :], axis=1)[:, 0]
+        flat, v = err.reshape(-1), err.shape[2]
+        e = (1.0 - k) * flat[base + j * v] + k * flat[base + nxt * v]
         return Prediction(np.asarray(costs), hard_percentiles(e, ok & (lod >= 0)))
 
