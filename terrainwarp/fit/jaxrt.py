@@ -30,7 +30,7 @@ import numpy as np
 
 from .timings import part, say
 
-__all__ = ["CACHE_ENV", "cache_dir", "use_cache", "compiled", "check_entries"]
+__all__ = ["CACHE_ENV", "cache_dir", "use_cache", "compiled", "compiled_count", "check_entries"]
 
 CACHE_ENV = "TERRAINWARP_JAX_CACHE"
 _OFF = ("0", "off", "false", "no", "none")
@@ -150,3 +150,8 @@ def compiled(jitted, name: str, static: tuple, *args: Any):
             say("")
         _programs[key] = prog
     return prog
+
+
+def compiled_count() -> int:
+    """The programs :func:`compiled` has made in this process."""
+    return len(_programs)

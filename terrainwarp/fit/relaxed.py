@@ -74,6 +74,7 @@ Q = 0.99  # the percentile the budget bounds
 LOG_FLOOR = math.log(FLOOR_PX)  # the log error of a camera that sees no sample
 PAD_LOGV = 30.0  # the padding's log error: it sorts after every real pair (errors are clipped to 1e6 px)
 MIN_PAIRS = 256  # the fewest samples a camera's relaxed pairs are padded to
+HARD_MEMO = 4096  # the hard predictions a model keeps
 
 
 # ------------------------------------------------------------------------------------------------
@@ -182,8 +183,9 @@ def relaxed_call(spec, data, u, temp) -> tuple[jnp.ndarray, jnp.ndarray]:
 
 
 class PaddedModel:
-    """What every model with a padded relaxed function shares (``spec``, ``data``, ``cams``): the relaxed model at
-    its own cameras, and the padded layout of the bounded values (each camera's p99, then each pair's pop)."""
+    """What every model with a padded relaxed function shares (``spec``, ``data``, ``cams``, ``predict``): the
+    relaxed model at its own cameras, the padded layout of the bounded values (each camera's p99, then each pair's
+    pop), and the hard model with a memo of the settings seen."""
 
     cams: list[Camera]
 
@@ -200,6 +202,17 @@ class PaddedModel:
         if self.spec.pops:
             out[cb:cb + c - 1] = values[c:]
         return out
+
+    def hard(self, values: Mapping[str, float]) -> Prediction:
+        """The hard model at ``values`` (:meth:`predict`), each setting computed once (the polish's lines meet the
+        same settings again; the prediction is a function of the values alone)."""
+        memo = self.__dict__.setdefault("_hard_memo", {})
+        key = tuple(sorted((k, float(v)) for k, v in values.items()))
+        if key not in memo:
+            if len(memo) >= HARD_MEMO:
+                memo.clear()
+            memo[key] = self.predict(values)
+        return memo[key]
 
     def relaxed(self, u: jnp.ndarray, temp: float) -> tuple[jnp.ndarray, jnp.ndarray]:
         """(cost per camera (C,), log p99 px per camera (C,), then with a pop bound each consecutive pair's log pop
@@ -477,7 +490,7 @@ class QuadtreeModel(PaddedModel):
         _ = self.data, self._hard_data, self._leaf_map
 
     # -- the hard model -----------------------------------------------------------------------------
-    def hard(self, values: Mapping[str, float]) -> Prediction:
+    def predict(self, values: Mapping[str, float]) -> Prediction:
         """The model at temperature 0: the real selection (balance and edge factors included) per camera, in path
         order with one hysteresis state; its draws counted exactly (:class:`CountTable`); each sample's error read
         off the probe of its leaf's level."""

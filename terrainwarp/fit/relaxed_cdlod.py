@@ -294,7 +294,7 @@ class CdlodModel(PaddedModel):
             lod = np.where(at >= 0, at, lod)
         return lod
 
-    def hard(self, values: Mapping[str, float]) -> Prediction:
+    def predict(self, values: Mapping[str, float]) -> Prediction:
         """The selection at temperature 0 (:meth:`_select`, what :meth:`Cdlod.select` draws), its draws counted as
         the mesh counts them; each sample's error at its LOD, blended toward the next by its morph factor."""
         v = {**self.fixed, **values}

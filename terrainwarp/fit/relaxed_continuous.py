@@ -201,7 +201,7 @@ class ContinuousModel(PaddedModel):
         camera = np.repeat(np.arange(C), np.diff(start))
         return edges, camera, own, err, ok
 
-    def hard(self, values: Mapping[str, float]) -> Prediction:
+    def predict(self, values: Mapping[str, float]) -> Prediction:
         """The real factors of each patch (the policy's rule, float32 as the selection makes them), counted exactly
         (one count launch for every camera); each sample's error interpolated between the rungs around its patch's
         mean inner factor."""
