@@ -93,6 +93,7 @@ class FitResult:
     model_s: float = 0.0
     trace: list[tuple[int, float]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    trace_s: list[float] = field(default_factory=list)  # seconds from the call to each entry of ``trace``
 
     def timing_line(self) -> str:
         """One line: the wall time and its parts (:attr:`timings`)."""
@@ -185,7 +186,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     if not cams:
         raise ValueError("cameras: expected at least one camera")
     bar = Progress(progress, len(cams) * (2 + max_tries + grid_points), f"fit {policy} {budget_px:g} px")
-    job = _Job(scene, budget_px, policy, cams, knobs, cost_of, max_pop_px, rel_tol, max_tries, device, bar)
+    job = _Job(scene, budget_px, policy, cams, knobs, cost_of, max_pop_px, rel_tol, max_tries, device, bar, t0)
     try:
         with running(clock, bar):
             res = _run(job, references, gradient, grid_points, grid_evaluator)
@@ -210,6 +211,7 @@ class _Job:
     max_tries: int
     device: str
     bar: Progress
+    t0: float
 
 
 def _run(job: _Job, references: list[Frame] | None, gradient: str, grid_points: int, grid_evaluator) -> FitResult:
@@ -221,7 +223,7 @@ def _run(job: _Job, references: list[Frame] | None, gradient: str, grid_points: 
         prob = problem(job.scene, job.policy, job.knobs, cams, refs, job.cost_of, device=device, on_step=bar,
                        budget_px=budget_px, max_pop_px=job.max_pop_px)
     exact = Exact(prob.make, prob.key, cams, refs, budget_px, job.max_pop_px, job.cost_of, device, on_frame=bar,
-                  terrains=dict(prob.terrains))
+                  terrains=dict(prob.terrains), started=job.t0)
     t_model = time.perf_counter()
     if gradient == "pixels":
         good = _one_knob(exact, prob, budget_px, job.rel_tol, job.max_tries, newton=_pixel_newton(exact, prob))
@@ -320,7 +322,7 @@ def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: flo
     pop_txt = "" if pop is None else f" and worst pair pop p99 <= {pop:g} px"
     label = "triangles" if cost_of is None else cost_of.label
     common = {"history": exact.history, "max_pop_px": pop, "mesh_only_frames": exact.mesh_only, "cost": label,
-              "knobs": list(prob.names), "trace": list(exact.trace)}
+              "knobs": list(prob.names), "trace": list(exact.trace), "trace_s": list(exact.trace_s)}
     if good is None:
         main = prob.knob(prob.names[0])
         finest = {**prob.start, main.name: main.lo if main.coarser_up is not False else main.hi}
