@@ -11,19 +11,26 @@ when asked, the pop between consecutive frames. A setting with hysteresis draws 
 frames measured counted in ``frames``, frames drawn only for their cost in ``mesh_only``. A try may measure the
 cameras in a given order and stop at the first frame over the budget (the worst frame decides), and may measure
 only some cameras (the others drawn for their cost); a later call completes it.
+
+Frames a try draws whatever the others show (the cameras drawn only for their cost, every frame of a try that
+does not stop early, the references) are drawn on other threads beside the measured sequence: which frames are
+counted does not change, nor any frame (the kernels' outputs do not depend on the threads).
 """
 
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable, Collection, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..camera import Camera
+from ..kernels.parallel import threads
 from ..lod.quadtree import LodState, Terrain
 from ..measure.cost import Cost
 from ..rendering.pipeline import Frame, pop_stats, render
@@ -95,9 +102,13 @@ def references_for(scene: Scene, cams: list[Camera], references: object = None, 
                    on_frame=None) -> list[Frame]:
     """The full-detail grid frame (with depth) of each camera: the caller's, checked, or rendered here."""
     if references is None:
+        ahead = _ahead(lambda k, _: render(scene.with_(camera=cams[k], mesh="grid", outputs=("depth",)),
+                                           device=device), [(k, True) for k in range(1, len(cams))])
         out = []
-        for c in cams:
-            out.append(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
+        for k, c in enumerate(cams):
+            job = ahead.get((k, True))
+            out.append(job.result() if job is not None else render(scene.with_(camera=c, mesh="grid",
+                                                                              outputs=("depth",)), device=device))
             if on_frame is not None:
                 on_frame()
         return out
@@ -156,6 +167,20 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
     costs = list(known.costs) if known is not None and known.costs else [0.0] * n
     counted = cost_of is not None and cost_of.needs_counters
     outputs = ("error", "counters") if counted else ("error",)
+
+    def draw(k: int, measured: bool) -> Frame:
+        if measured:
+            return render(setting.with_(camera=cameras[k], outputs=outputs), terrain, state, refs[k], device=device)
+        return render(setting.with_(camera=cameras[k], outputs=("counters",) if counted else ("mesh",)), terrain,
+                      state, device=device)
+
+    # the frames drawn whatever the others show (the cameras only drawn for their cost; every measured one when
+    # nothing stops early) are drawn beside the measured sequence, on other threads; not with a state (hysteresis)
+    sure = [] if state is not None or pops else [
+        (k, False) for k in order if known is None and k not in done and measure is not None and k not in measure]
+    if stop_above is None and state is None and not pops:
+        sure += [(k, True) for k in order if k not in done and (measure is None or k in measure)]
+    ahead = _ahead(draw, sure)
     prev: Frame | None = None
     stopped = False
     for k in order:
@@ -169,12 +194,11 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
         stopped = stopped or (stop_above is not None and bool(ev.p99_px) and ev.worst_p99 > stop_above)
         if stopped or (measure is not None and k not in measure):  # cost only
             if known is None:
-                f = render(setting.with_(camera=cameras[k], outputs=("counters",) if counted else ("mesh",)),
-                           terrain, state, device=device)
+                f = ahead.pop((k, False)).result() if (k, False) in ahead else draw(k, False)
                 ev.triangles[k] = int(f.mesh.n_triangles)
                 costs[k] = cost_of.of(frame_row(f)) if cost_of is not None else 0.0
             continue
-        f = render(setting.with_(camera=cameras[k], outputs=outputs), terrain, state, refs[k], device=device)
+        f = ahead.pop((k, True)).result() if (k, True) in ahead else draw(k, True)
         costs[k] = _record(ev, k, frame_row(f), cost_of)
         if pops and prev is not None:
             ev.pop_p99_px.append(pop_stats(setting.with_(camera=cameras[k]), cameras[k - 1], f, refs[k],
@@ -189,6 +213,22 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
             setattr(ev, name, [getattr(ev, name)[i] for i in back])
         ev.frames = None
     return ev
+
+
+_FRAMES: dict = {}
+
+
+def _ahead(draw: Callable[[int, bool], Frame], jobs: list[tuple[int, bool]]) -> dict:
+    """``draw(k, measured)`` of each job started on the frame threads (as many as the kernel launches' threads,
+    :func:`terrainwarp.kernels.parallel.threads`; one thread: none started): {job: future}. Every frame is the same
+    whichever thread draws it (the kernels' outputs do not depend on the threads)."""
+    if threads() < 2 or len(jobs) < 1:
+        return {}
+    pool = _FRAMES.get("pool")
+    if pool is None or _FRAMES.get("pid") != os.getpid():
+        pool = _FRAMES["pool"] = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="terrainwarp-frame")
+        _FRAMES["pid"] = os.getpid()
+    return {job: pool.submit(draw, *job) for job in jobs}
 
 
 def _record(ev: Evaluation, k: int, row: Mapping[str, Any], cost_of: Cost | None) -> float:
