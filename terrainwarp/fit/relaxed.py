@@ -507,8 +507,9 @@ class QuadtreeModel(PaddedModel):
             costs.append(sum(self.weights.get(f, 0.0) * x for f, x in feats.items()))
         nodes, err, ok = self._hard_data
         now = np.stack([self._levels_of(pl, nodes[c]) for c, pl in enumerate(pls)])
-        at = np.take_along_axis(err, np.maximum(now, 0)[:, None, :], axis=1)[:, 0, :]
-        p99 = hard_percentiles(at, ok & (now >= 0))
+        C, R, V = err.shape
+        flat = (np.arange(C)[:, None] * R + np.maximum(now, 0)) * V + np.arange(V)[None, :]
+        p99 = hard_percentiles(err.reshape(-1)[flat], ok & (now >= 0))
         pops = None
         if self.pops is not None:
             pops = np.asarray([hard_percentile(self._pop_of(self._levels_of(pls[c - 1], nodes[c])[ok[c]],
@@ -541,6 +542,11 @@ class QuadtreeModel(PaddedModel):
         return nodes, err, ok
 
     @cached_property
+    def _offsets(self) -> np.ndarray:
+        """Where each level's full grid starts with the levels laid end to end."""
+        return np.concatenate([[0], np.cumsum(self._sizes[0])[:-1]]).astype(np.int64)
+
+    @cached_property
     def _leaf_map(self) -> np.ndarray:
         """Scratch: each node of the full grids laid end to end, its level where it is a drawn leaf, else -1."""
         return np.full(int(sum(self._sizes[0])), -1, np.int8)
@@ -552,15 +558,13 @@ class QuadtreeModel(PaddedModel):
         s = t.root_cells / 2.0 ** lvl
         lx = np.rint(pl.origin_cells[:, 0] / s).astype(np.int64)
         ly = np.rint(pl.origin_cells[:, 1] / s).astype(np.int64)
-        offset = np.concatenate([[0], np.cumsum(self._sizes[0])[:-1]]).astype(np.int64)
-        at = offset[lvl] + ly * (t.roots[0] << lvl) + lx
+        at = self._offsets[lvl] + ly * (t.roots[0] << lvl) + lx
         lm = self._leaf_map
         lm[at] = lvl
-        out = np.full(nodes.shape[1], -1, np.int64)
-        for L in np.unique(lvl):
-            out[lm[nodes[int(L)]] == L] = int(L)
+        g = lm[nodes]
         lm[at] = -1
-        return out
+        levels = np.arange(len(nodes), dtype=np.int8)[:, None]
+        return np.where(g == levels, levels, np.int8(-1)).max(axis=0).astype(np.int64)  # the deepest drawn leaf
 
     def _pop_of(self, before: np.ndarray, now: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Each kept sample's pop between its level before and now (0 where the same; NaN where either is not
