@@ -174,13 +174,7 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
         return render(setting.with_(camera=cameras[k], outputs=("counters",) if counted else ("mesh",)), terrain,
                       state, device=device)
 
-    # the frames drawn whatever the others show (the cameras only drawn for their cost; every measured one when
-    # nothing stops early) are drawn beside the measured sequence, on other threads; not with a state (hysteresis)
-    sure = [] if state is not None or pops else [
-        (k, False) for k in order if known is None and k not in done and measure is not None and k not in measure]
-    if stop_above is None and state is None and not pops:
-        sure += [(k, True) for k in order if k not in done and (measure is None or k in measure)]
-    ahead = _ahead(draw, sure)
+    ahead = {} if state is not None or pops else _ahead(draw, _sure(order, done, measure, known, stop_above))
     prev: Frame | None = None
     stopped = False
     for k in order:
@@ -216,6 +210,16 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
 
 
 _FRAMES: dict = {}
+
+
+def _sure(order: list[int], done: Collection[int], measure: Collection[int] | None, known: Evaluation | None,
+          stop_above: float | None) -> list[tuple[int, bool]]:
+    """The frames :func:`evaluate` draws whatever the others show, as (camera, measured): the cameras drawn only
+    for their cost, and every measured one when nothing stops early."""
+    sure = [(k, False) for k in order if known is None and k not in done and measure is not None and k not in measure]
+    if stop_above is None:
+        sure += [(k, True) for k in order if k not in done and (measure is None or k in measure)]
+    return sure
 
 
 def _ahead(draw: Callable[[int, bool], Frame], jobs: list[tuple[int, bool]]) -> dict:
