@@ -12,17 +12,24 @@ half way, not one still writing), is removed, to be compiled and written again (
 it on every use, never writing it again). Entries seen whole are listed in ``verified.txt`` (written through a
 temporary name) and not read again.
 
-**Programs** (:func:`compiled`): a jitted function lowered and compiled for its arguments' shapes once per process
-(read from the persistent cache when it holds the program), charged to the running fit's ``compile`` part, with
-the progress bar saying so (:mod:`terrainwarp.fit.timings`).
+**Programs** (:func:`compiled`): a traceable function jitted, lowered and compiled for its arguments' shapes once
+per process, charged to the running fit's ``compile`` part, with the progress bar saying so
+(:mod:`terrainwarp.fit.timings`). With the cache folder on, the traced program is kept there as well
+(``exports/``: ``jax.export``, serialised, a checksum first, written through a temporary name; its key holds the
+source of the modules that trace it), so a new process neither traces nor compiles: it reads the program and JAX's
+cache gives its compiled code.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import importlib.util
 import os
 import threading
 import time
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +44,9 @@ _OFF = ("0", "off", "false", "no", "none")
 _SETTLE_S = 60.0  # an entry younger than this may still be being written by another process
 _MANIFEST = "verified.txt"
 
+_EXPORT_VERSION = 1  # the layout of an exported program's file
+_TRACED = ("terrainwarp.fit.optimise", "terrainwarp.fit.relaxed", "terrainwarp.fit.relaxed_cdlod",
+           "terrainwarp.fit.relaxed_continuous", "terrainwarp.fit.relaxed_tree", "terrainwarp.lod.policies")
 _lock = threading.Lock()
 _state: dict[str, Any] = {"done": False, "dir": None}
 _programs: dict = {}
@@ -138,18 +148,79 @@ def _signature(args: tuple) -> tuple:
     return tree, tuple((np.shape(x), np.result_type(x).str) for x in leaves)
 
 
-def compiled(jitted, name: str, static: tuple, *args: Any):
-    """``jitted`` (a ``jax.jit`` whose first ``len(static)`` arguments are static) lowered and compiled for
-    ``static`` and the shapes and dtypes of ``args``, once per process; call the result with ``args``."""
-    key = (id(jitted), static, _signature(args))
+def compiled(fn: Callable, name: str, static: tuple, *args: Any):
+    """``fn(*static, *args)`` (``fn`` traceable, ``static`` hashable) jitted, lowered and compiled for the shapes and
+    dtypes of ``args``, once per process; call the result with ``args``. With the cache folder on, the traced
+    program itself is kept there too (``jax.export``, serialised, checksummed, written through a temporary name,
+    keyed by ``static``, the shapes, JAX's version and the source of the modules that trace it), so a new process
+    reads it instead of tracing ``fn`` again, and JAX's cache gives its compiled code."""
+    import jax  # lazy: heavy optional dependency
+
+    key = (fn, static, _signature(args))
     prog = _programs.get(key)
     if prog is None:
         with part("compile"):
             say(f"compiling {name} (once per machine, then read from the cache)")
-            prog = jitted.lower(*static, *args).compile()
+            folder = _state["dir"] if _state["done"] else None
+            path = None if folder is None else folder / "exports" / f"{_export_key(fn, static, args)}.jaxexport"
+            exported = _load_export(path) if path is not None else None
+            if exported is None and path is not None:
+                exported = _export(jax.jit(functools.partial(fn, *static)), args, path)
+            target = jax.jit(exported.call) if exported is not None else jax.jit(functools.partial(fn, *static))
+            prog = target.lower(*args).compile()
             say("")
         _programs[key] = prog
     return prog
+
+
+def _export_key(fn: Callable, static: tuple, args: tuple) -> str:
+    """What the traced program depends on: ``static``, the arguments' shapes, JAX's version, and the source of the
+    modules of ``fn``, of ``static``'s types and of the relaxed models."""
+    import jax  # lazy: heavy optional dependency
+
+    h = hashlib.sha256(f"{static!r}|{_signature(args)!r}|{jax.__version__}|{_EXPORT_VERSION}".encode())
+    mods = sorted({fn.__module__, *(type(x).__module__ for x in static), *_TRACED})
+    for m in mods:
+        spec = importlib.util.find_spec(m)
+        if spec is not None and spec.origin and Path(spec.origin).is_file():
+            h.update(Path(spec.origin).read_bytes())
+    return h.hexdigest()[:32]
+
+
+def _load_export(path: Path):
+    """The exported program at ``path`` if it is whole (its checksum holds), else None (a bad file is removed)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    body = data[32:]
+    if len(data) < 32 or hashlib.sha256(body).digest() != data[:32]:
+        path.unlink(missing_ok=True)
+        return None
+    try:
+        from jax import export  # lazy: heavy optional dependency
+
+        return export.deserialize(bytearray(body))
+    except Exception:  # noqa: BLE001 - an entry this JAX cannot read is made again
+        path.unlink(missing_ok=True)
+        return None
+
+
+def _export(jitted, args: tuple, path: Path):
+    """``jitted`` exported for ``args`` and written to ``path`` (checksum first, through a temporary name); None
+    where JAX cannot serialise it here (the program is then traced in every process)."""
+    try:
+        from jax import export  # lazy: heavy optional dependency
+
+        exported = export.export(jitted)(*args)
+        body = bytes(exported.serialize())
+    except ImportError:
+        return None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(hashlib.sha256(body).digest() + body)
+    os.replace(tmp, path)
+    return exported
 
 
 def compiled_count() -> int:

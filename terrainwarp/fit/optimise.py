@@ -143,17 +143,6 @@ def _solve(spec, data, u0, lo, hi, target, off, temps, rounds, steps, lr):
     return s.u, s.bad, s.rec, s.r
 
 
-_JIT: dict = {}
-
-
-def _solve_jit():
-    if "solve" not in _JIT:
-        import jax  # lazy: heavy optional dependency
-
-        _JIT["solve"] = jax.jit(_solve, static_argnums=0)
-    return _JIT["solve"]
-
-
 def reduced_gradient(model: Model, u0: np.ndarray, log_target: float, offsets: np.ndarray, *,
                      rounds: int = 5, steps: int = 12, lr: float = 0.05, t0: float = 0.3, t1: float = 0.02,
                      box: tuple[np.ndarray, np.ndarray] | None = None, history: list | None = None,
@@ -183,7 +172,7 @@ def reduced_gradient(model: Model, u0: np.ndarray, log_target: float, offsets: n
             np.asarray(temps + [temps[-1]] * (MAX_ROUNDS - rounds), np.float32), np.int32(rounds), np.int32(steps),
             np.float32(lr))
     with part("relaxed"):
-        prog = compiled(_solve_jit(), "the relaxed model", (model.spec,), *args)
+        prog = compiled(_solve, "the relaxed model", (model.spec,), *args)
         u, bad, rec, done = (np.asarray(x) for x in prog(*args))
     if history is not None:
         for r in range(int(done)):
