@@ -265,6 +265,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     write_text(out / "report.md", "\n".join(_fit_report_lines(args, res, path, len(cams), runs)))
     print(f"path: {path['text']}")
     print(res.message)
+    print(res.timing_line())
     written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md"]
     print("wrote: " + ", ".join(str(out / w) for w in written))
     return 0 if res.met else 1
