@@ -58,4 +58,4 @@ def test_the_wheel_installs_offline_into_a_fresh_venv_and_runs(tmp_path):
                 if ln.startswith("installed: "))
     where, kernels, *rest = line.removeprefix("installed: ").split()
     assert where.startswith(str(site)) and kernels.startswith(str(site / "terrainwarp" / "kernels"))
-    assert rest == ["(24,", "32,", "3)", "True", "cdlod,clipmaps,chunked"]
+    assert rest == ["(24,", "32,", "3)", "True", "cdlod,clipmaps,chunked,cesium"]
