@@ -54,6 +54,7 @@ from .scene import (
     check_tess,
 )
 from .schemes import SCHEMES, load_plugin
+from .warmup import warmup
 
 __all__ = ["main", "sweep_evaluator"]
 
@@ -308,6 +309,19 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
 
 
 # ------------------------------------------------------------------------------------------------
+# warmup
+# ------------------------------------------------------------------------------------------------
+def _cmd_warmup(args: argparse.Namespace) -> int:
+    res = warmup(args.device, workers=args.workers)
+    if res.compiled:
+        print(f"compiled {len(res.compiled)} kernel modules in {res.seconds:.1f} s "
+              f"({res.workers or 'no'} worker processes); {len(res.cached)} were cached; cache: {res.cache_dir}")
+    else:
+        print(f"all {len(res.cached)} kernel modules are compiled; cache: {res.cache_dir}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
 # bench
 # ------------------------------------------------------------------------------------------------
 BENCHMARKS_DIR = Path(__file__).resolve().parents[1] / "benchmarks"  # a source checkout's benchmarks/
@@ -527,6 +541,11 @@ def _add_stability_tessellate_bench(sub) -> None:
     te.add_argument("--inner", type=float, nargs=2, required=True, metavar="L", help="2 inner levels: along u, v")
     te.add_argument("--spacing", choices=list(SPACINGS), default=SPACINGS[0], help="tessellation spacing")
     _add_out(te, "out/tessellate")
+    w = _command(sub, "warmup", "compile every kernel module missing from Warp's kernel cache now (what a first "
+                 "run does by itself), one line per module", _cmd_warmup)
+    w.add_argument("--device", default="cpu", help="the Warp device to compile for (cpu, cuda:0, ...)")
+    w.add_argument("--workers", type=_nonnegative_int, default=None,
+                   help="worker processes (default: one per usable core; 0: in this process)")
     b = _command(sub, "bench", "run the benchmarks of benchmarks/ (all, then BENCHMARKS.md, or those named); "
                  "a source checkout only", _cmd_bench)
     b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run, e.g. lod frame (default: all)")

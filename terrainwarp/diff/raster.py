@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 from jax.typing import ArrayLike
 
-from ..kernels.checks import check_int
+from ..kernels.checks import check_viewport
 from ..kernels.raster import rasterize_clip
 from .contracts import callable_of, clip_array, triangle_array
 
@@ -41,8 +41,7 @@ def rasterize(clip: ArrayLike, triangles: ArrayLike, width: int, height: int, *,
     """
     c = jax.lax.stop_gradient(clip_array(clip))
     tri = triangle_array(triangles, c.shape[0])
-    for name, v in (("width", width), ("height", height)):
-        check_int(name, v, 1, 16384)
+    width, height = check_viewport(width, height)
     if c.shape[0] == 0 or tri.shape[0] == 0:
         return jnp.full((height, width), -1, jnp.int32), jnp.ones((height, width), jnp.float32)
     ids, depth = callable_of(_forward, 2)(c, tri, int(width), int(height), int(bool(cull_back)),

@@ -72,6 +72,7 @@ from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.display import depth_picture, html_table, id_picture, png_bytes
 from ..io.files import atomic_path, output_set, write_image, write_json
+from ..kernels.checks import check_device
 from ..kernels.counters import frame_counters, indexed_draw_counters
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
@@ -610,6 +611,15 @@ _STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {
 # ------------------------------------------------------------------------------------------------
 # render
 # ------------------------------------------------------------------------------------------------
+def _check_render_args(scene: object, terrain: object, state: object, reference: object, device: object) -> None:
+    for name, v, cls in (("scene", scene, Scene), ("terrain", terrain, Terrain), ("state", state, LodState),
+                         ("reference", reference, Frame)):
+        if not isinstance(v, cls) and not (v is None and name != "scene"):
+            what = f"a terrainwarp {cls.__name__}" + ("" if name == "scene" else " or None")
+            raise TypeError(f"{name}: expected {what}, got {type(v).__name__} {v!r:.60}")
+    check_device("device", device)
+
+
 def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None = None,
            reference: Frame | None = None, device: str = "cpu", *, source: MeshSource | None = None,
            patches: PatchList | None = None) -> Frame:
@@ -630,7 +640,12 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
+
+    Raises:
+        TypeError: an argument of the wrong type (named). ValueError: a device Warp does not see (a CUDA device
+            on a machine without a GPU says so).
     """
+    _check_render_args(scene, terrain, state, reference, device)
     start = time.perf_counter()
     with kernel_clock() as in_kernels:
         run = _start(scene, terrain, state, reference, source, patches, device)

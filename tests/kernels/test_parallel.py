@@ -157,7 +157,8 @@ def test_threads_that_start_together_load_a_module_once_and_one_at_a_time():
     guard = threading.Lock()
 
     class Module:
-        def load(self, device):
+        def load(self, device, block_dim=None):
+            assert block_dim == 1  # the CPU variant launches use (wp.launch's block_dim=1 there)
             with guard:
                 inside[0] += 1
                 most[0] = max(most[0], inside[0])
@@ -184,6 +185,16 @@ def test_threads_that_start_together_load_a_module_once_and_one_at_a_time():
     for th in ths:
         th.join()
     assert most[0] == 1 and sorted(id(m) for m, _ in loads) == sorted(id(m) for m in mods)
+
+
+def test_a_module_is_built_once_for_the_block_size_its_launches_use():
+    """parallel.load loaded Warp's default variant (block_dim 256) and wp.launch on the CPU then built a second
+    (block_dim 1): every module compiled twice on a first run. Now only the launched variant is loaded."""
+    from terrainwarp.kernels import noise
+
+    tw.Heightmap.fbm(9, seed=3)
+    dims = {dim for (_, dim) in noise._fbm_kernel.module.execs}
+    assert dims == {1}
 
 
 def test_set_threads_validates():
