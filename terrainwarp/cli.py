@@ -19,6 +19,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,8 @@ __all__ = ["main", "sweep_evaluator"]
 
 
 _LOD = LodConfig()  # the defaults of the LOD options
+#: What ``fit`` writes (and convergence.png with --baselines): its help, its "wrote:" line and the README say these
+FIT_FILES = ("fit.json", "fit.png", "fitted.toml", "report.md")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -228,7 +231,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                          max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
     write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
                                   "baselines": runs})
-    plot_fit(res, out / "fit.png", curve or None)
+    plot_fit(res, out / "fit.png", sorted([*curve, (args.budget_px, res.validated.cost)]) if curve and res.met
+             else None)
     res.scene.save(out / "fitted.toml")
     if runs:
         plot_convergence({"fit_lod": res.trace, **{m: r["trace"] for m, r in runs.items()}}, out / "convergence.png",
@@ -236,7 +240,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     write_text(out / "report.md", "\n".join(_fit_report_lines(args, res, path, len(cams), runs)))
     print(f"path: {path['text']}")
     print(res.message)
-    written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md"]
+    written = [*FIT_FILES, *(["convergence.png"] if runs else [])]
     print("wrote: " + ", ".join(str(out / w) for w in written))
     return 0 if res.met else 1
 
@@ -452,8 +456,8 @@ def _add_report_fit(sub) -> None:
     rp.add_argument("--cost", default="llvmpipe", metavar="COST",
                     help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), triangles, a "
                          "counter name (e.g. fragment_shader_invocations) or a weights file of terrainwarp calibrate")
-    ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
-                  _cmd_fit)
+    ft = _command(sub, "fit", f"fit LOD thresholds to a screen-space error budget: {', '.join(FIT_FILES)} "
+                  "(and convergence.png with --baselines)", _cmd_fit)
     _add_scene(ft, "out/fit")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
     ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=_LOD.policy,
@@ -601,7 +605,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if out is not None:
             out.check()
-        with output_set(args.out) if out is not None else contextlib.nullcontext():
+        with output_set(args.out) if out is not None else contextlib.nullcontext(), warnings.catch_warnings():
+            warnings.showwarning = _warning_line
             rc = int(args.func(args) or 0)
     except (ValueError, TypeError, OSError) as e:
         if out is not None:
@@ -617,6 +622,12 @@ def main(argv: list[str] | None = None) -> int:
     if out is not None:
         out.note_stale()
     return rc
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line on stderr, as the command's errors are (``terrainwarp: warning: ...``)."""
+    print(f"terrainwarp: warning: {str(message).splitlines()[0] if str(message) else category.__name__}",
+          file=sys.stderr)
 
 
 def _one_line(e: BaseException) -> str:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import tokenize
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -30,7 +31,14 @@ from .kernels import sampling
 from .kernels.checks import check_int, is_number
 
 # metres_per_degree lives in io.geodesy; re-exported as before
-__all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree"]
+__all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree", "DEFAULT_SPACING", "DefaultSpacingWarning"]
+
+#: The sample spacing (metres) taken for a file that carries none (an image, a .npy), with a warning.
+DEFAULT_SPACING = 1.0
+
+
+class DefaultSpacingWarning(UserWarning):
+    """A heightmap loaded from a file that carries no sample spacing got :data:`DEFAULT_SPACING`."""
 
 EXAMPLES = ("jacksboro", "topobathy")
 HOST_SAMPLES = 64  # Heightmap.sample of at most this many bilinear points runs on the host (the same bits)
@@ -168,7 +176,8 @@ class Heightmap:
 
         8- and 16-bit PNG and TIFF keep their integer values as metres unless ``max_height`` is given
         (then they are normalised by the dtype's maximum and scaled by it); float TIFF and EXR are
-        metres. Multi-channel images use ``channel``. Spacing ``dx`` defaults to 1 m, ``dz`` to ``dx``.
+        metres. Multi-channel images use ``channel``. Such files carry no spacing: ``dx`` defaults to
+        :data:`DEFAULT_SPACING` (1 m), with a :class:`DefaultSpacingWarning` saying so, and ``dz`` to ``dx``.
 
         A georeferenced TIFF (GeoTIFF) and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...; see
         :data:`terrainwarp.io.geotiff.GDAL_EXTS`) go through :func:`terrainwarp.io.geotiff.read_geotiff`: metre
@@ -198,10 +207,15 @@ class Heightmap:
                             f"{', '.join(sorted(raster_options))}; {p.name} is read by OpenImageIO or numpy")
         arr = _read_npy(p) if ext == ".npy" else _read_image(p, channel)
         h, source_dtype = _heights(f"path: {p}", arr, max_height, allow_nan)
-        dx = 1.0 if dx is None else dx
+        meta = {"source_dtype": str(source_dtype), "source": str(p),
+                **({} if max_height is None else {"max_height": float(max_height)})}
+        if dx is None:  # an image or .npy file carries no spacing: the default is said, once per load
+            meta["spacing"] = f"{DEFAULT_SPACING:g} m assumed: {p.name} carries no spacing"
+            warnings.warn(f"dx: {p.name} carries no sample spacing; {DEFAULT_SPACING:g} m assumed (pass dx=, in "
+                          "metres, to Heightmap.load)", DefaultSpacingWarning, stacklevel=2)
+            dx = DEFAULT_SPACING
         return cls(heights=h, dx=_positive("dx", dx), dz=_positive("dz", dz if dz is not None else dx), name=p.stem,
-                   meta={"source_dtype": str(source_dtype), "source": str(p),
-                         **({} if max_height is None else {"max_height": float(max_height)})})
+                   meta=meta)
 
     @classmethod
     def open(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *, band: int = 1,

@@ -2,11 +2,14 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from terrainwarp.cli import main
+from terrainwarp.cli import FIT_FILES, main
 from terrainwarp.scene import Scene
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_demo_writes_three_files(tmp_path, capsys):
@@ -199,6 +202,20 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     md = (fit / "report.md").read_text()
     assert "Camera path: flyover of 2 cameras" in md and "2.0% of the" in md and "grid-image error" in md
     assert "pop p99" in md
+    assert sorted(p.name for p in fit.iterdir()) == sorted(FIT_FILES)  # what the help and the README say
+
+
+def test_fit_help_and_readme_name_the_files_fit_writes():
+    """fit --help named fit.json, fit.png and report.md, the README fit.json, fit.png and fitted.toml; it writes
+    all four (issue 44, defect 9)."""
+    _, subs = _subcommands()
+    assert subs["fit"].description.startswith("Fit LOD thresholds to a screen-space error budget: "
+                                              + ", ".join(FIT_FILES))
+    readme = (ROOT / "README.md").read_text().splitlines()
+    line = next(ln for ln in readme if ln.startswith("terrainwarp fit ") and "#" in ln)
+    named = [w.strip(",") for w in line.split("#", 1)[1].split() if w.strip(",").endswith((".json", ".png", ".toml",
+                                                                                           ".md"))]
+    assert sorted(named) == sorted(FIT_FILES)
 
 
 def test_cli_stability_writes_report_and_rejects_bad_args(tmp_path):

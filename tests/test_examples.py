@@ -129,12 +129,18 @@ def test_fit_budget_meets_its_budget_beside_the_grid_search(tmp_path):
     assert json.loads((tmp_path / "fit.json").read_text())["met"] is True and (tmp_path / "fit.png").exists()
 
 
-def test_scheme_comparison_names_each_schemes_cheapest_setting_per_budget(tmp_path):
+def test_scheme_comparison_names_each_schemes_cheapest_setting_per_budget(tmp_path, capsys):
     table = _load("scheme_comparison").main(["--out", str(tmp_path), "--frames", "2", "--width", "96", "--height",
                                              "64", "--workers", "0"])
     assert {row[1] for row in table} == {"sse", "cdlod", "clipmaps", "chunked"}
     for budget, _, setting, p99, *_ in table:
         assert setting == "-" or p99 <= budget
+    # each printed column under its header: the triangles column held the cost ("cdlod ... 6.844", issue 44)
+    header, *lines = capsys.readouterr().out.splitlines()
+    assert header.split()[-2:] == ["cost", "triangles"] and len(lines) == len(table)
+    for line, row in zip(lines, table):
+        assert line.split()[-2:] == [str(row[4]), str(row[5])]
+        assert row[2] == "-" or (isinstance(row[5], int) and row[5] > 0)
     assert (tmp_path / "pareto.png").exists() and "cdlod" in (tmp_path / "report.md").read_text()
 
 

@@ -51,7 +51,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap, StreamedHeightmap
-from ..io.files import output_set, save_figure, write_text
+from ..io.files import new_figure, output_set, save_figure, write_text
 from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
@@ -479,12 +479,7 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "", cost_lab
     """pareto.png: the worst-frame p99 error against the report's cost (``cost``) and against triangles, each
     setting a marker, each policy a line, the Pareto fronts marked. Nothing in it depends on timings: the same
     rows draw the same bytes."""
-    import matplotlib  # lazy: heavy optional dependency
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    fig, axes = new_figure(1, 2, figsize=(12, 4.8))
     marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
              "polytree": "P:", "bintree": "X:", "cdlod": "h-.", "clipmaps": "p-.", "chunked": "d-."}
     others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]

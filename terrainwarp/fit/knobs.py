@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..heightmap import Heightmap
-from ..kernels.checks import is_number
+from ..kernels.checks import check_choice, is_number
 from ..lod.quadtree import layout
 from ..scene import MAX_TESS, POLICY_TABLE, QUADTREE_TESS, LodConfig, Scene
 from ..schemes import SCHEMES, get_scheme, scheme_range
@@ -113,6 +113,7 @@ def knobs(policy: str, heightmap: Heightmap, lod: LodConfig | None = None, *, ca
         cache: a dict kept for one heightmap, where a scheme keeps what it prepares to find its range.
     """
     lod = LodConfig() if lod is None else lod
+    check_choice("policy", policy, [*POLICY_TABLE, *SCHEMES])  # every policy with knobs, the schemes' too
     if policy in POLICY_TABLE:
         return _quadtree_knobs(policy, heightmap, lod)
     spec = get_scheme(policy)

@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -89,7 +90,8 @@ from ..scene import Scene
 from ..surface.differential import compute_curvature
 from .sources import MeshSource, StreamedSource, missing_members, scene_source
 
-__all__ = ["render", "Frame", "Report", "StageRecord", "Plan", "plan_for", "stages_for", "MeshSource", "pop_stats"]
+__all__ = ["render", "Frame", "Report", "StageRecord", "Plan", "plan_for", "stages_for", "MeshSource", "pop_stats",
+           "EmptyFrameWarning"]
 
 STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
 # The one table of what each output needs: the stages that make it, and what those stages must make for it
@@ -515,6 +517,11 @@ def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
         mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
     frame.mesh = mesh
     rec.counters.update(patches=n_patches, vertices=mesh.n_vertices, triangles=mesh.n_triangles)
+    if min(run.hm.shape) < 2:  # said, not left to a puzzled look at an empty frame
+        why = (f"heightmap: {run.hm.shape[0]}x{run.hm.shape[1]} samples make no triangle (a cell needs 2x2 "
+               "samples); the frame is empty")
+        frame.report.info["empty"] = why
+        warnings.warn(why, EmptyFrameWarning, stacklevel=3)
     if run.counting:  # the draws' statistics, counted as part of the stage
         t0 = time.perf_counter()
         run.draw_counters = _draw_counters(mesh, run.device)
@@ -611,6 +618,10 @@ _STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {
 # ------------------------------------------------------------------------------------------------
 # render
 # ------------------------------------------------------------------------------------------------
+class EmptyFrameWarning(UserWarning):
+    """A frame that can hold nothing whatever the camera (a heightmap with a side of one sample)."""
+
+
 def _check_render_args(scene: object, terrain: object, state: object, reference: object, device: object) -> None:
     for name, v, cls in (("scene", scene, Scene), ("terrain", terrain, Terrain), ("state", state, LodState),
                          ("reference", reference, Frame)):
