@@ -19,6 +19,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -28,8 +29,10 @@ from . import __version__
 from .camera import Camera
 from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
 from .experiments.calibrate import calibrate
-from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
+from .experiments.extreme import CASES as EXTREME_CASES
+from .experiments.pareto import Setting, default_settings, run_sweep, summarise, sweep, write_report
 from .experiments.plots import plot_patches
+from .experiments.runner import Runner
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
 from .fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_convergence, plot_fit
 from .fit.baselines import BASELINES, run_baselines
@@ -37,6 +40,7 @@ from .fit.exact import references_for
 from .fit.knobs import main_knob
 from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
+from .kernels.parallel import default_threads
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .measure.cost import Cost, cost
@@ -84,10 +88,37 @@ def _scene(args: argparse.Namespace) -> Scene:
     return sc
 
 
+def _say(message: str) -> None:
+    """What the command is doing, on stderr (stdout carries its results): one line before each step that takes
+    more than a moment, so no wait is silent."""
+    print(f"terrainwarp: {message}", file=sys.stderr, flush=True)
+
+
+# Peak memory a frame adds per pixel, by the most demanding output it asks for (bytes; measured as the peak RSS
+# growth of 2048^2 and 4096^2 renders of the demo DEM): the rasterizer's depth|id keys, ids and depth; the image's
+# colour; the normals' attribute images; the error's reference frame and maps.
+_BYTES_PER_PIXEL = {"depth": 16, "image": 27, "normals": 48, "curvature": 48, "error": 62}
+_4K = 3840 * 2160
+
+
+def frame_memory_note(scene: Scene) -> str | None:
+    """The line ``render`` says before a frame of more pixels than 4K (3840 x 2160): its size and about how much
+    memory its buffers take; None for smaller frames."""
+    w, h = scene.camera.width, scene.camera.height
+    if w * h <= _4K:
+        return None
+    per_px = max((_BYTES_PER_PIXEL.get(o, 16) for o in scene.outputs), default=16) + 5 * ("counters" in scene.outputs)
+    return (f"rendering {w}x{h} ({w * h / 1e6:.0f} Mpixel, {', '.join(scene.outputs)}): about "
+            f"{w * h * per_px / 2**30:.1f} GiB of frame buffers")
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     sc = _scene(args)
     if "report" not in sc.outputs:
         sc = sc.with_(outputs=(*sc.outputs, "report"))
+    note = frame_memory_note(sc)
+    if note:
+        _say(note)
     frame = render(sc)
     written = frame.save(args.out)
     print(frame.report.table())
@@ -173,9 +204,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
     ranking = cost(args.cost)  # checked before the sweep runs
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
-    rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
-                 scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv",
-                 cost_model=ranking.model)
+    with _runner(args.scheduler, args.workers) as runner:
+        rows = run_sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
+                         out=Path(args.out) / "frames.csv", cost_model=ranking.model, runner=runner, say=_say).rows
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
@@ -188,6 +219,22 @@ def _cmd_report(args: argparse.Namespace) -> int:
               f"{r['frame_ms']:9.2f} CPU ms")
     print("wrote: " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def _runner(scheduler: str | None, workers: int | None) -> Runner:
+    """The sweep's runner, each slow step said first: the kernels compiled here (so no worker compiles them),
+    then the worker processes started or the scheduler reached."""
+    warmup()  # says nothing when every kernel module is cached
+    if scheduler is not None:
+        _say(f"connecting to the Dask scheduler at {scheduler}")
+    elif workers != 0:
+        n = workers or default_threads()
+        _say(f"starting {n} worker process{'es' if n > 1 else ''} (dask LocalCluster; a few seconds)")
+    t0 = time.perf_counter()
+    runner = Runner(scheduler, workers)
+    if runner.where != "in-process":
+        _say(f"workers ready in {time.perf_counter() - t0:.1f} s")
+    return runner
 
 
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
@@ -215,18 +262,23 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     fit_cost = cost(args.cost)  # checked before the fit runs
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
-    refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
+    warmup()  # says nothing when every kernel module is cached
+    refs = _references(sc, cams)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
                   max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
+    if args.curve_budgets:
+        _say(f"fitting {len(args.curve_budgets)} more budget(s) for the cost-against-budget curve")
     for b in args.curve_budgets:
         r = fit_lod(sc, b, policy=args.policy, cameras=cams, knobs=args.knobs, progress=not args.no_progress,
                     max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
         if r.met:
             curve.append((b, r.validated.cost))
+    if args.baselines:
+        _say(f"running the baselines {', '.join(args.baselines)} on the same frames")
     runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
                          max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
     write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
@@ -243,6 +295,19 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     written = [*FIT_FILES, *(["convergence.png"] if runs else [])]
     print("wrote: " + ", ".join(str(out / w) for w in written))
     return 0 if res.met else 1
+
+
+def _references(sc: Scene, cams: list[Camera]) -> list:
+    """The full-resolution reference frame of each camera, with a line as each is done."""
+    done = [0]
+    _say(f"rendering the full-resolution reference frame of each of {len(cams)} cameras")
+
+    def tick() -> None:
+        done[0] += 1
+        if done[0] < len(cams) and done[0] % max(1, len(cams) // 4) == 0:
+            _say(f"  references: {done[0]}/{len(cams)}")
+
+    return references_for(sc, cams, on_frame=tick)
 
 
 def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_cams: int,
@@ -286,6 +351,11 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
 def _cmd_stability(args: argparse.Namespace) -> int:
     n = 129 if args.full else 33
     cases = [c for c in args.cases.split(",") if c] if args.cases else None
+    bad = [c for c in cases or [] if c not in EXTREME_CASES]
+    if bad:
+        raise ValueError(f"--cases: unknown {bad}; expected some of {list(EXTREME_CASES)}")
+    warmup()  # says nothing when every kernel module is cached
+    _say(f"running {len(cases or EXTREME_CASES)} extreme cases through every stage on {n} x {n} grids")
     rows = run_suite(n, cases=cases, progress=not args.no_progress)
     cmd = "terrainwarp stability --out DIR" + (" --full" if args.full else "")
     path = write_stability_md(rows, args.out, command=cmd, n=n)

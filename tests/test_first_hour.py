@@ -100,3 +100,36 @@ def test_the_readmes_first_snippet_prints_only_what_it_asks_for(tmp_path):
     assert lines[0].split()[:3] == ["stage", "time_ms", "counters"] and lines[-1].startswith("host ")
     assert not [ln for ln in lines if "Warp" in ln or "Module" in ln]
     assert (tmp_path / "out" / "my_frame" / "frame.png").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# the command says what it does before each slow step (item 2)
+# ------------------------------------------------------------------------------------------------
+def test_report_fit_and_stability_say_what_they_do(tmp_path, capsys):
+    from terrainwarp.cli import main
+
+    scene = tmp_path / "s.toml"
+    scene.write_text('[heightmap]\nfbm = { rows = 33, seed = 3, dx = 20.0, max_height = 300.0 }\n'
+                     '[camera]\nwidth = 48\nheight = 32\n[lod]\nroots = 4\ntess = 8\n')
+    assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "sse,martini", "--workers", "0",
+                 "--no-images", "--no-progress", "--out", str(tmp_path / "r")]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in err
+    assert "terrainwarp: meshing 2 Martini/Delatin settings (view-independent, once per sweep)" in err
+    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "4", "--no-progress",
+                 "--out", str(tmp_path / "f")]) in (0, 1)
+    assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in \
+        capsys.readouterr().err.splitlines()
+    assert main(["stability", "--out", str(tmp_path / "s"), "--cases", "tess_64", "--no-progress"]) == 0
+    assert capsys.readouterr().err.splitlines() == ["terrainwarp: running 1 extreme cases through every stage on "
+                                                    "33 x 33 grids"]
+
+
+def test_a_render_beyond_4k_says_its_memory_first():
+    from terrainwarp.cli import frame_memory_note
+
+    hm = tw.Heightmap.fbm(17, seed=1)
+    big = tw.Scene(hm, camera=tw.Camera.default_for(hm, 16384, 16384), outputs=("depth",))
+    assert frame_memory_note(big) == "rendering 16384x16384 (268 Mpixel, depth): about 4.0 GiB of frame buffers"
+    assert frame_memory_note(big.with_(outputs=("image", "depth", "report"))).endswith("about 6.8 GiB of frame buffers")
+    assert frame_memory_note(big.with_(camera=big.camera.with_(width=3840, height=2160))) is None
