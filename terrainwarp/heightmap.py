@@ -31,7 +31,7 @@ from .kernels import sampling
 from .kernels.checks import check_int, is_number
 
 # metres_per_degree lives in io.geodesy; re-exported as before
-__all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree", "DEFAULT_SPACING", "DefaultSpacingWarning"]
+__all__ = ["Heightmap", "StreamedHeightmap", "Held", "metres_per_degree", "DEFAULT_SPACING", "DefaultSpacingWarning"]
 
 #: The sample spacing (metres) taken for a file that carries none (an image, a .npy), with a warning.
 DEFAULT_SPACING = 1.0
@@ -104,6 +104,25 @@ def grid_bounds(origin: tuple[float, float], shape: tuple[int, int], dx: float,
     """((xmin, zmin), (xmax, zmax)) in world metres of a (rows, cols) grid whose sample (0, 0) is at ``origin``."""
     x0, z0 = origin
     return ((x0, z0), (x0 + (shape[1] - 1) * dx, z0 + (shape[0] - 1) * dz))
+
+
+@dataclass
+class Held:
+    """What frames keep with a heightmap between calls, one named slot per kind, each keyed by what it depends on
+    (``render`` fills them; a caller who holds its own ``Terrain`` or source needs none of them).
+
+    Attributes:
+        schemes: by device, the cache the LOD schemes drawn by name (``LodConfig(policy="cdlod")``) keep their
+            prepared pyramids in, shared by every setting of the heightmap.
+        streamed_sources: by (the ``LodConfig``'s fields, device), the ``StreamedSource`` that draws a streamed
+            heightmap's frames (its pyramids and tile cache persist from frame to frame).
+        loaded: a streamed heightmap's whole grid, loaded once for the stages that read every sample (curvature,
+            the reference frame and the error).
+    """
+
+    schemes: dict[str, dict] = field(default_factory=dict)
+    streamed_sources: dict[tuple, Any] = field(default_factory=dict)
+    loaded: Heightmap | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -312,10 +331,9 @@ class Heightmap:
         return bool(np.isnan(self.heights).any())
 
     @cached_property
-    def held(self) -> dict:
-        """What frames keep between calls, keyed by their settings: the pyramids of the LOD schemes a scene
-        draws by name (``LodConfig(policy="cdlod")``), shared by every setting of this heightmap. Not pickled."""
-        return {}
+    def held(self) -> Held:
+        """What frames keep with this heightmap between calls (:class:`Held`). Not pickled."""
+        return Held()
 
     def __getstate__(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "held"}
@@ -486,7 +504,7 @@ class StreamedHeightmap:
         self.origin: tuple[float, float] = (float(source.origin[0]), float(source.origin[1]))
         self.name = source.name
         self.meta = source.meta
-        self.held: dict = {}  # what frames keep between calls (pyramid providers), keyed by their settings
+        self.held = Held()  # what frames keep with it between calls
 
     @classmethod
     def fbm(cls, rows: int, cols: int | None = None, *, cache_mb: float | None = None, **fbm: Any) -> StreamedHeightmap:

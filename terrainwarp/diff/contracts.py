@@ -11,7 +11,7 @@ import warp as wp
 from jax.typing import ArrayLike
 
 from ..kernels.checks import check_triangle_shape, check_triangles
-from ..kernels.device import start
+from ..kernels.device import launch_block_dim, quietly, start
 
 __all__ = ["callable_of", "clip_array", "id_image", "triangle_array"]
 
@@ -25,6 +25,9 @@ def callable_of(func: Callable, num_outputs: int) -> Callable:
     allocate their scratch arrays per call and the rasterizer reads its inputs back to the host, neither of
     which a captured graph may do (on the CPU the mode changes nothing)."""
     start()  # Warp started quietly (terrainwarp.kernels.device), as every entry point does
+    with quietly():  # the callable loads its function's (kernel-less) module on first call: here, without a line
+        for dev in wp.get_devices():
+            wp.get_module(func.__module__).load(dev, block_dim=launch_block_dim(dev))
     return wp.jax_callable(func, num_outputs=num_outputs, graph_mode=wp.JaxCallableGraphMode.NONE)
 
 

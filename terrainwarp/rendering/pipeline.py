@@ -382,9 +382,9 @@ class _Run:
         the stages that read every sample (curvature, the reference and the error)."""
         hm = self.scene.heightmap
         if isinstance(hm, StreamedHeightmap):
-            if "loaded" not in hm.held:
-                hm.held["loaded"] = hm.load()
-            return hm.held["loaded"]
+            if hm.held.loaded is None:
+                hm.held.loaded = hm.load()
+            return hm.held.loaded
         return hm
 
     @property
@@ -455,10 +455,11 @@ def _streamed_source(scene: Scene, terrain: Terrain | None, source: MeshSource |
                          "shaded 'hillshade', 'level' or 'wireframe'")
     if patches is not None:
         raise ValueError("patches: a streamed heightmap selects its own patches (hold its StreamedSource)")
-    key = ("streamed_source", tuple(sorted(scene.lod.__dict__.items())), device)
-    if key not in hm.held:
-        hm.held[key] = StreamedSource(hm, scene.lod, device=device, terrain=terrain)
-    return hm.held[key]
+    key = (tuple(sorted(scene.lod.__dict__.items())), device)
+    held = hm.held.streamed_sources
+    if key not in held:
+        held[key] = StreamedSource(hm, scene.lod, device=device, terrain=terrain)
+    return held[key]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -517,8 +518,9 @@ def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
         mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
     frame.mesh = mesh
     rec.counters.update(patches=n_patches, vertices=mesh.n_vertices, triangles=mesh.n_triangles)
-    if min(run.hm.shape) < 2:  # said, not left to a puzzled look at an empty frame
-        why = (f"heightmap: {run.hm.shape[0]}x{run.hm.shape[1]} samples make no triangle (a cell needs 2x2 "
+    shape = run.scene.heightmap.shape  # (run.hm would load a streamed heightmap whole)
+    if min(shape) < 2:  # said, not left to a puzzled look at an empty frame
+        why = (f"heightmap: {shape[0]}x{shape[1]} samples make no triangle (a cell needs 2x2 "
                "samples); the frame is empty")
         frame.report.info["empty"] = why
         warnings.warn(why, EmptyFrameWarning, stacklevel=3)
