@@ -547,24 +547,6 @@ def _surface_row(h: wp.array2d(dtype=wp.float32), out: wp.array3d(dtype=wp.float
 
 
 @wp.kernel(enable_backward=False)
-def _directional_kernel(
-    offset: int,
-    h: wp.array2d(dtype=wp.float32),
-    nrm: wp.array2d(dtype=wp.vec3),
-    dx: float,
-    dz: float,
-    method: int,
-    scale: float,
-    distance: int,
-    # outputs
-    out_k: wp.array2d(dtype=wp.vec4),
-):
-    i, j = wp.tid()
-    i += offset
-    out_k[i, j] = _directional_at(h, nrm, i, j, dx, dz, method, scale, distance)
-
-
-@wp.kernel(enable_backward=False)
 def _chord_kernel(
     offset: int,
     h: wp.array2d(dtype=wp.float32),

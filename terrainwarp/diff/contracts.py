@@ -20,7 +20,7 @@ __all__ = ["callable_of", "clip_array", "id_image", "triangle_array"]
 def callable_of(func: Callable, num_outputs: int) -> Callable:
     """The JAX callable of a Python function of Warp arrays (``warp.jax_callable``), built once per function.
     The function launches Warp kernels through the parallel-launch helper, so an op's kernels run on
-    ``terrainwarp.set_threads`` CPU threads (``warp.jax_kernel`` launches one kernel on one thread); on a GPU,
+    ``terrainwarp.configure(threads=N)`` CPU threads (``warp.jax_kernel`` launches one kernel on one thread); on a GPU,
     on the device and stream of JAX's arrays. No CUDA graph capture (``JaxCallableGraphMode.NONE``): the ops
     allocate their scratch arrays per call and the rasterizer reads its inputs back to the host, neither of
     which a captured graph may do (on the CPU the mode changes nothing)."""

@@ -1,6 +1,6 @@
 """The visibility pass for JAX (nvdiffrast's ``rasterize``): not differentiable.
 
-The same rules and pixels as :func:`terrainwarp.rasterize` (``terrainwarp.kernels.raster.rasterize_clip``),
+The same rules and pixels as :func:`terrainwarp.rendering.rasterize` (``terrainwarp.kernels.raster.rasterize_clip``),
 called from JAX through ``warp.jax_callable``, so it runs under ``jax.jit`` beside the differentiable ops.
 """
 
@@ -37,7 +37,7 @@ def rasterize(clip: ArrayLike, triangles: ArrayLike, width: int, height: int, *,
 
     Returns:
         ``(triangle_id (H, W) int32, -1 for background; depth (H, W) float32 window depth in [0, 1], 1.0 for
-        background)``, row 0 at the top: the images :func:`terrainwarp.rasterize` gives, bit for bit.
+        background)``, row 0 at the top: the images :func:`terrainwarp.rendering.rasterize` gives, bit for bit.
     """
     c = jax.lax.stop_gradient(clip_array(clip))
     tri = triangle_array(triangles, c.shape[0])

@@ -29,7 +29,7 @@ Cost: what a GPU would pay, from the frame's pipeline statistics (every frame co
 sweep's cost model (:class:`terrainwarp.measure.cost.CostModel`, the shipped llvmpipe model unless given) of
 the counters, and reports rank by a :class:`terrainwarp.measure.cost.Cost` (``cost_ms`` by default,
 ``triangles`` or any counter), with triangles beside it. This simulator's CPU milliseconds
-(:attr:`terrainwarp.Report.frame_ms`, ``select + mesh + raster``) are measured too, but kept out of
+(:attr:`terrainwarp.rendering.Report.frame_ms`, ``select + mesh + raster``) are measured too, but kept out of
 ``report.md`` and ``pareto.png``, which are then byte-identical across runs, thread counts and machines (as is
 ``frames.csv`` without its timing columns): they go to ``timing.md`` with the jobs' record. The error and
 reference stages are measurement, not cost.

@@ -149,7 +149,7 @@ def check_watertight(mesh, triangles=None, border="auto", allowed: EdgeRule | No
 
     Args:
         mesh: a :class:`terrainwarp.Frame` (its mesh, classified by its patches and heightmap), a
-            :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or positions
+            :class:`terrainwarp.mesh.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or positions
             (n, 3) float32 with ``triangles`` given separately (a patch's domain:
             :func:`check_watertight_domain`).
         triangles: (m, 3) int indices when ``mesh`` is a positions array.
