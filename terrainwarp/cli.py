@@ -263,6 +263,8 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
     warmup()  # says nothing when every kernel module is cached
+    if grid_evaluator is not None and args.grid_points:
+        _runner(None, args.workers).close()  # the grid search's workers, started (and said) now; its sweeps reuse them
     refs = _references(sc, cams)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,

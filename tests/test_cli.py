@@ -183,9 +183,12 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     scene.write_text('[heightmap]\nfbm = { rows = 65, seed = 3, dx = 20.0, max_height = 400.0 }\n'
                      '[camera]\nwidth = 64\nheight = 48\n[lod]\nroots = 4\ntess = 8\n')
     rep = tmp_path / "rep"
-    assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse", "--workers", "0",
+    assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse,martini", "--workers", "0",
                  "--no-images", "--no-progress", "--path", "high", "--out", str(rep)]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    # each slow step said on stderr before it runs (issue 44: no silent wait)
+    assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in err.splitlines()
+    assert "terrainwarp: meshing 2 Martini/Delatin settings (view-independent, once per sweep)" in err.splitlines()
     assert "path: flyover of 2 cameras" in out and "10.0% of the" in out and "image p99" in out and "pop p99" in out
     md = (rep / "report.md").read_text()
     assert "'high'" in md and "Popping" in md
@@ -195,6 +198,8 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     fit = tmp_path / "fit"
     assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress", "--max-pop-px", "50",
                  "--out", str(fit)]) == 0
+    assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in \
+        capsys.readouterr().err.splitlines()
     doc = json.loads((fit / "fit.json").read_text())
     assert doc["path"]["preset"] == "ground" and doc["path"]["clearance_fraction"] == pytest.approx(0.02)
     assert doc["max_pop_px"] == 50 and len(doc["validated"]["pop_p99_px"]) == 1
