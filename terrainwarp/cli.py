@@ -37,7 +37,7 @@ from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stabilit
 from .fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_convergence, plot_fit
 from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
-from .fit.knobs import main_knob
+from .fit.knobs import check_knob_names, main_knob
 from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
 from .kernels.parallel import default_threads
@@ -92,6 +92,15 @@ def _say(message: str) -> None:
     """What the command is doing, on stderr (stdout carries its results): one line before each step that takes
     more than a moment, so no wait is silent."""
     print(f"terrainwarp: {message}", file=sys.stderr, flush=True)
+
+
+def _quiet(message: str) -> None:
+    """``--no-progress``: nothing said (a program reading stderr gets one line on an error, nothing else)."""
+
+
+def _sayer(args: argparse.Namespace):
+    """:func:`_say`, or nothing with ``--no-progress`` (the progress bars' switch: these lines are progress too)."""
+    return _quiet if getattr(args, "no_progress", False) else _say
 
 
 # Peak memory a frame adds per pixel, by the most demanding output it asks for (bytes; measured as the peak RSS
@@ -204,9 +213,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
     ranking = cost(args.cost)  # checked before the sweep runs
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
-    with _runner(args.scheduler, args.workers) as runner:
+    say = _sayer(args)
+    with _runner(args.scheduler, args.workers, say) as runner:
         rows = run_sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
-                         out=Path(args.out) / "frames.csv", cost_model=ranking.model, runner=runner, say=_say).rows
+                         out=Path(args.out) / "frames.csv", cost_model=ranking.model, runner=runner, say=say).rows
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
@@ -221,20 +231,26 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def _runner(scheduler: str | None, workers: int | None) -> Runner:
+def _runner(scheduler: str | None, workers: int | None, say) -> Runner:
     """The sweep's runner, each slow step said first: the kernels compiled here (so no worker compiles them),
     then the worker processes started or the scheduler reached."""
-    warmup()  # says nothing when every kernel module is cached
+    _warmup(say)
     if scheduler is not None:
-        _say(f"connecting to the Dask scheduler at {scheduler}")
+        say(f"connecting to the Dask scheduler at {scheduler}")
     elif workers != 0:
         n = workers or default_threads()
-        _say(f"starting {n} worker process{'es' if n > 1 else ''} (dask LocalCluster; a few seconds)")
+        say(f"starting {n} worker process{'es' if n > 1 else ''} (dask LocalCluster; a few seconds)")
     t0 = time.perf_counter()
     runner = Runner(scheduler, workers)
     if runner.where != "in-process":
-        _say(f"workers ready in {time.perf_counter() - t0:.1f} s")
+        say(f"workers ready in {time.perf_counter() - t0:.1f} s")
     return runner
+
+
+def _warmup(say) -> None:
+    """The kernel modules missing from the cache compiled now, a line each (none when all are cached, or with
+    ``--no-progress``)."""
+    warmup(progress=say is not _quiet)
 
 
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
@@ -260,12 +276,14 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
     fit_cost = cost(args.cost)  # checked before the fit runs
+    check_knob_names(args.policy, sc.heightmap, args.knobs, None if sc.lod.is_scheme else sc.lod)
+    say = _sayer(args)
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
-    warmup()  # says nothing when every kernel module is cached
+    _warmup(say)
     if grid_evaluator is not None and args.grid_points:
-        _runner(None, args.workers).close()  # the grid search's workers, started (and said) now; its sweeps reuse them
-    refs = _references(sc, cams)  # shared by the fit, its curve and the baselines
+        _runner(None, args.workers, say).close()  # the grid search's workers, started now; its sweeps reuse them
+    refs = _references(sc, cams, say)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
                   max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
@@ -273,14 +291,14 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     curve = []
     if args.curve_budgets:
-        _say(f"fitting {len(args.curve_budgets)} more budget(s) for the cost-against-budget curve")
+        say(f"fitting {len(args.curve_budgets)} more budget(s) for the cost-against-budget curve")
     for b in args.curve_budgets:
         r = fit_lod(sc, b, policy=args.policy, cameras=cams, knobs=args.knobs, progress=not args.no_progress,
                     max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
         if r.met:
             curve.append((b, r.validated.cost))
     if args.baselines:
-        _say(f"running the baselines {', '.join(args.baselines)} on the same frames")
+        say(f"running the baselines {', '.join(args.baselines)} on the same frames")
     runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
                          max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
     write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
@@ -299,15 +317,15 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0 if res.met else 1
 
 
-def _references(sc: Scene, cams: list[Camera]) -> list:
-    """The full-resolution reference frame of each camera, with a line as each is done."""
+def _references(sc: Scene, cams: list[Camera], say) -> list:
+    """The full-resolution reference frame of each camera, said first, and a line every quarter of them."""
     done = [0]
-    _say(f"rendering the full-resolution reference frame of each of {len(cams)} cameras")
+    say(f"rendering the full-resolution reference frame of each of {len(cams)} cameras")
 
     def tick() -> None:
         done[0] += 1
         if done[0] < len(cams) and done[0] % max(1, len(cams) // 4) == 0:
-            _say(f"  references: {done[0]}/{len(cams)}")
+            say(f"  references: {done[0]}/{len(cams)}")
 
     return references_for(sc, cams, on_frame=tick)
 
@@ -356,8 +374,9 @@ def _cmd_stability(args: argparse.Namespace) -> int:
     bad = [c for c in cases or [] if c not in EXTREME_CASES]
     if bad:
         raise ValueError(f"--cases: unknown {bad}; expected some of {list(EXTREME_CASES)}")
-    warmup()  # says nothing when every kernel module is cached
-    _say(f"running {len(cases or EXTREME_CASES)} extreme cases through every stage on {n} x {n} grids")
+    say = _sayer(args)
+    _warmup(say)
+    say(f"running {len(cases or EXTREME_CASES)} extreme cases through every stage on {n} x {n} grids")
     rows = run_suite(n, cases=cases, progress=not args.no_progress)
     cmd = "terrainwarp stability --out DIR" + (" --full" if args.full else "")
     path = write_stability_md(rows, args.out, command=cmd, n=n)

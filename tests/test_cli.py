@@ -184,9 +184,9 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
                      '[camera]\nwidth = 64\nheight = 48\n[lod]\nroots = 4\ntess = 8\n')
     rep = tmp_path / "rep"
     assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse,martini", "--workers", "0",
-                 "--no-images", "--no-progress", "--path", "high", "--out", str(rep)]) == 0
+                 "--no-images", "--path", "high", "--out", str(rep)]) == 0
     out, err = capsys.readouterr()
-    # each slow step said on stderr before it runs (issue 44: no silent wait)
+    # each slow step said on stderr before it runs (issue 44: no silent wait; --no-progress: not said)
     assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in err.splitlines()
     assert "terrainwarp: meshing 2 Martini/Delatin settings (view-independent, once per sweep)" in err.splitlines()
     assert "path: flyover of 2 cameras" in out and "10.0% of the" in out and "image p99" in out and "pop p99" in out
@@ -196,7 +196,7 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     want = {"p99_px", "image_err_p99_px", "image_err_max_px", "pop_p99_px", "pop_max_px", "popped_samples"}
     assert want <= set(header)
     fit = tmp_path / "fit"
-    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress", "--max-pop-px", "50",
+    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--max-pop-px", "50",
                  "--out", str(fit)]) == 0
     assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in \
         capsys.readouterr().err.splitlines()

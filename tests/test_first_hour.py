@@ -109,9 +109,11 @@ def test_stability_says_what_it_runs(tmp_path, capsys):
     """(report and fit: tests/test_cli.py::test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors)"""
     from terrainwarp.cli import main
 
-    assert main(["stability", "--out", str(tmp_path / "s"), "--cases", "tess_64", "--no-progress"]) == 0
+    assert main(["stability", "--out", str(tmp_path / "s"), "--cases", "tess_64"]) == 0
     assert capsys.readouterr().err.splitlines() == ["terrainwarp: running 1 extreme cases through every stage on "
                                                     "33 x 33 grids"]
+    assert main(["stability", "--out", str(tmp_path / "t"), "--cases", "tess_64", "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""  # --no-progress: a program reading stderr gets nothing else
 
 
 def test_a_render_beyond_4k_says_its_memory_first():
