@@ -19,6 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "docs" / "_ext"))
 import twdocs  # noqa: E402
 
+pytestmark = pytest.mark.slow  # (the few that must stay slow: make test runs them)
+
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):

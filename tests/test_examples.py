@@ -38,6 +38,7 @@ def test_error_vs_time(tmp_path):
     assert (tmp_path / "pareto.png").exists()
 
 
+@pytest.mark.slow
 def test_inverse_rendering(tmp_path):
     res = _load("inverse_rendering").main(["--out", str(tmp_path), "--size", "33", "--views", "8", "--width", "96",
                                            "--height", "72", "--iters", "80"])  # an RMSE drop of 31x at 80 iterations

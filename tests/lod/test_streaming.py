@@ -53,6 +53,7 @@ def test_on_demand_bounds_contain_every_nodes_own_stats(ridged):
                 assert pad == 0 and np.array_equal(e, er.ravel())
 
 
+@pytest.mark.slow
 def test_on_demand_selection_matches_the_in_memory_one():
     """Decisions are taken where the measured and the widened stats agree, so they are the exact pyramid's
     but where a node's own error is below a descendant's (the in-memory pyramid's monotone rule) or a
