@@ -41,6 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from .checks import check_choice
 from .counters import patch_draw_counters
 from .parallel import empty, launch, scan, view
 from .pool import pooled_rows_array
@@ -688,8 +689,7 @@ def _levels(outer, inner) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _spacing_code(spacing: str) -> int:
-    if spacing not in SPACING_CODES:
-        raise ValueError(f"spacing: expected one of {list(SPACING_CODES)}, got {spacing!r}")
+    check_choice("spacing", spacing, SPACING_CODES)
     return SPACING_CODES[spacing]
 
 
@@ -985,8 +985,7 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
     dx, dz = float(dx), float(dz)
     if not (np.isfinite(dx) and np.isfinite(dz) and dx > 0 and dz > 0):
         raise ValueError(f"dx, dz: expected positive finite spacings, got {dx}, {dz}")
-    if filter not in FILTER_CODES:
-        raise ValueError(f"filter: expected one of {list(FILTER_CODES)}, got {filter!r}")
+    check_choice("filter", filter, FILTER_CODES)
     e = np.asarray(eye, dtype=np.float64).reshape(-1)
     if e.size != 3 or not np.all(np.isfinite(e)):
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")

@@ -28,7 +28,7 @@ from .io.memory import check_heightmap_fits
 from .io.native import native_stderr_silenced
 from .io.tiles import TILE, ArraySource, FbmSource, GeoTiffSource, TileCache, TileSource
 from .kernels import sampling
-from .kernels.checks import check_int, is_number
+from .kernels.checks import check_choice, check_int, is_number
 
 # metres_per_degree lives in io.geodesy; re-exported as before
 __all__ = ["Heightmap", "StreamedHeightmap", "Held", "metres_per_degree", "DEFAULT_SPACING", "DefaultSpacingWarning"]
@@ -260,8 +260,7 @@ class Heightmap:
         """
         from matplotlib import cbook  # lazy: heavy optional dependency
 
-        if name not in EXAMPLES:
-            raise ValueError(f"name: expected one of {list(EXAMPLES)}, got {name!r}")
+        check_choice("name", name, EXAMPLES)
         if name == "jacksboro":
             d = cbook.get_sample_data("jacksboro_fault_dem.npz")
             z = np.asarray(d["elevation"])
