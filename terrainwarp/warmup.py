@@ -205,22 +205,30 @@ def _compile_in_workers(todo: list[str], dev: wp.Device, n: int, say: Callable[[
 
     def run() -> None:
         code = "from terrainwarp.warmup import _worker; _worker()"
-        with subprocess.Popen([sys.executable, "-c", code, str(dev)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                              stderr=subprocess.DEVNULL, text=True, env=env) as p:
+        try:
+            p = subprocess.Popen([sys.executable, "-c", code, str(dev)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                 stderr=subprocess.DEVNULL, text=True, env=env)
+        except OSError:  # no interpreter to start (an embedding): the caller compiles what is left
+            return
+        with p:
             while True:
                 with lock:
                     name = queue.pop(0) if queue else None
                 if name is None:
                     break
-                p.stdin.write(name + "\n")
-                p.stdin.flush()
-                reply = p.stdout.readline().split()
+                try:
+                    p.stdin.write(name + "\n")
+                    p.stdin.flush()
+                    reply = p.stdout.readline().split()
+                except (OSError, ValueError):  # the worker died: what it held is left to the caller
+                    break
                 if reply[:2] != ["ok", name]:
                     break
                 with lock:
                     done.append(name)
                     say(LINE.format(done=len(done), total=len(todo), name=name))
-            p.stdin.close()
+            with contextlib.suppress(OSError):
+                p.stdin.close()
 
     threads = [threading.Thread(target=run, daemon=True) for _ in range(n)]
     for t in threads:
