@@ -204,7 +204,6 @@ def keep_frame_memory(enable: bool = True) -> bool:
 _clock = threading.local()
 _load_lock = threading.RLock()
 _loaded: set = set()
-_hooked: set = set()  # devices the first-load hook has run for
 _hook: list = [None]
 
 
@@ -214,10 +213,10 @@ def _device(device: str | wp.Device | None) -> wp.Device:
     return wp.get_device(device)
 
 
-def on_first_load(hook: Callable[[wp.Device], None] | None) -> None:
-    """Call ``hook(device)`` once per device, before the first kernel module is loaded on it in this process
-    (None: no hook). :mod:`terrainwarp.warmup` sets it: the kernels a first run compiles are then all compiled
-    at once, each with a progress line, instead of one by one in silence."""
+def on_first_load(hook: Callable[[wp.Module, wp.Device], None] | None) -> None:
+    """Call ``hook(module, device)`` before a kernel module is first loaded on a device in this process (None: no
+    hook). :mod:`terrainwarp.warmup` sets it: a module that must be compiled first says so, with a progress line,
+    instead of compiling in silence."""
     _hook[0] = hook
 
 
@@ -234,9 +233,8 @@ def load(kernel: wp.Kernel, device: str | wp.Device | None = None) -> None:
         return
     with _load_lock:
         if key not in _loaded:
-            if _hook[0] is not None and dev.alias not in _hooked:
-                _hooked.add(dev.alias)
-                _hook[0](dev)
+            if _hook[0] is not None:
+                _hook[0](kernel.module, dev)
             with quietly():
                 kernel.module.load(dev, block_dim=launch_block_dim(dev))
             _loaded.add(key)

@@ -7,11 +7,13 @@ line per module as each finishes::
 
     compiling kernels, first run only: 7/20 raster
 
-It runs in ``make setup`` and ``make demo`` (``terrainwarp warmup``), and by itself in any process, before the
-first kernel module is loaded, when some module is missing from the cache: a library user who never ran the
-Makefile sees the same lines on the first ``tw.render``, not a silent wait.
+It runs in ``make setup`` (so ``make demo`` and ``make test`` on a fresh clone), in ``terrainwarp warmup`` and before
+the work of ``report``, ``fit`` and ``stability``. A library user who never ran any of them sees the same lines
+anyway: before a kernel module missing from the cache is first loaded, its line is printed and Warp compiles it in
+this process (only the modules the program uses, as it first needs them; the first line says how many are missing
+and that ``terrainwarp warmup`` compiles them all at once). Nothing is printed when the module is cached.
 
-The modules compile in worker processes, one per usable core (Warp's code generation parses Python with
+:func:`warmup`'s modules compile in worker processes, one per usable core (Warp's code generation parses Python with
 ``ast``, which CPython 3.11 does not allow on two threads at once). The workers use this process's kernel cache
 and Warp's compile settings (``warp.config.cpu_compiler_flags``: Warp's default builds for this machine's CPU,
 ``-march=native``), so the objects they leave are the ones this process then loads. Several processes starting
@@ -142,9 +144,7 @@ def warmup(device: str | wp.Device = "cpu", *, workers: int | None = None,
 def _sayer(progress: Callable[[str], None] | bool) -> Callable[[str], None]:
     if callable(progress):
         return progress
-    if progress:
-        return lambda line: print(line, file=sys.stderr, flush=True)
-    return lambda line: None
+    return _say if progress else (lambda line: None)
 
 
 def _worker_count(workers: int | None, n: int) -> int:
@@ -254,19 +254,30 @@ def _worker() -> None:
         print(f"ok {name}", flush=True)
 
 
-def _first_use(dev: wp.Device) -> None:
-    """Before the first kernel module is loaded in this process: compile, with progress lines, whatever the
-    kernel cache is missing (nothing, and nothing printed, when it holds them all)."""
-    if _binaries_present(dev):
-        return
-    warmup(dev)
+_lazy: dict = {}  # per device: the modules missing when the first one was met, and how many were compiled since
 
 
-def _binaries_present(dev: wp.Device) -> bool:
+def _first_use(module: wp.Module, dev: wp.Device) -> None:
+    """Before a kernel module's first load in this process: when the kernel cache lacks it, the progress line
+    (Warp then compiles it, in this process). The first such line says how many modules are missing and that
+    ``terrainwarp warmup`` compiles them all at once; nothing is printed when the module is cached."""
     try:
-        return all(_binary(m, dev).exists() for m in kernel_modules().values())
+        if _binary(module, dev).exists():
+            return
+        state = _lazy.get(dev.alias)
+        if state is None:
+            state = _lazy[dev.alias] = {"total": max(len(pending(dev)), 1), "done": 0}
+            _say(LINE.format(done=0, total=state["total"], name="(each as it is first needed; 'terrainwarp warmup' "
+                                                                 "compiles them all at once, in parallel)"))
     except Exception:  # the check must never stop a launch: the module compiles on load as Warp does
-        return True
+        return
+    state["done"] += 1
+    _say(LINE.format(done=min(state["done"], state["total"]), total=state["total"],
+                     name=module.name.rpartition(".")[2]))
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 parallel.on_first_load(_first_use)
