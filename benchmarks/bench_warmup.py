@@ -8,9 +8,10 @@ module by module, and in worker processes), the objects' size, and the run time 
 each way.
 
 Warp's compiler flags are process-wide and part of every module's hash, so each setting runs in its own process
-with its own empty kernel cache (``WARP_CACHE_PATH``); the two settings take turns for ``--rounds`` rounds and the
-table gives each one's median and the ratio portable / native of the medians (the turns cancel most of the drift
-of a shared machine, not all of it: the load average is printed with the table). Workloads, best of ``--repeat``
+with its own empty kernel cache (``WARP_CACHE_PATH``); the settings (Warp's default; the same without
+``-march=native``; ``""``, a generic target with LLVM's defaults) take turns for ``--rounds`` rounds and the table
+gives each one's median and its ratio to the default's (the turns cancel most of the drift of a shared machine,
+not all of it: the load average is printed with the table). Workloads, best of ``--repeat``
 after a warm-up:
 
 * frame: ``render`` of the demo DEM at 1280x720 (image and depth, the grid mesh);
@@ -19,7 +20,7 @@ after a warm-up:
 * surface: ``compute_normals`` and ``compute_curvature`` of a 1025^2 fBm;
 * raster: ``rasterize`` of the frame's grid mesh at 1920x1080.
 
-    .venv/bin/python benchmarks/bench_warmup.py            # ~10 min on 2 shared cores
+    .venv/bin/python benchmarks/bench_warmup.py            # ~15 min on 2 shared cores
     .venv/bin/python benchmarks/bench_warmup.py --rounds 1 --repeat 3
 """
 
@@ -35,7 +36,9 @@ import tempfile
 import time
 from pathlib import Path
 
-SETTINGS = {"native": None, "portable": ""}  # None: Warp's default (-march=native and its LLVM options)
+# None: Warp's default (-march=native and its LLVM inlining options); "generic": the same without -march=native (a
+# generic x86-64 target, Warp's options kept); "": a generic target with LLVM's defaults
+SETTINGS = {"native": None, "generic": "generic", "generic, LLVM defaults": ""}
 WORKLOADS = ("frame", "lod+error", "surface", "raster")
 
 
@@ -43,6 +46,8 @@ def child(flags: str | None, repeat: int) -> dict:
     """One setting in this process: compile everything from an empty cache, then time the workloads."""
     import warp as wp
 
+    if flags == "generic":
+        flags = " ".join(t for t in wp.config.cpu_compiler_flags.split() if t != "-march=native")
     wp.config.cpu_compiler_flags = flags if flags is not None else wp.config.cpu_compiler_flags
     import terrainwarp as tw
     from terrainwarp.warmup import warmup
@@ -97,7 +102,7 @@ def main() -> None:
     if args.child:
         print(json.dumps(child(SETTINGS[args.child], args.repeat)))
         return
-    from _common import md_table, write_result
+    from _common import md_table, write_result  # (the parent only: a child measures Warp as it starts)
 
     load = os.getloadavg()[0]
     runs: dict[str, list[dict]] = {s: [] for s in SETTINGS}
@@ -114,21 +119,24 @@ def main() -> None:
         vals = [x["times"][key] if key else x["compile_s"] for x in runs[s]]
         return statistics.median(vals)
 
-    rows = [["compile, one process (s)", med("native"), med("portable"), med("portable") / med("native")],
-            [f"compile, {os.cpu_count()} worker processes (s)", statistics.median(parallel["native"]),
-             statistics.median(parallel["portable"]),
-             statistics.median(parallel["portable"]) / statistics.median(parallel["native"])],
-            ["objects (MiB)", runs["native"][0]["obj_bytes"] / 2**20, runs["portable"][0]["obj_bytes"] / 2**20,
-             runs["portable"][0]["obj_bytes"] / runs["native"][0]["obj_bytes"]]]
-    rows += [[f"{w} (ms)", med("native", w) * 1e3, med("portable", w) * 1e3, med("portable", w) / med("native", w)]
-             for w in WORKLOADS]
-    body = md_table(["", "native (-march=native)", "portable (generic x86-64)", "portable / native"], rows)
+    others = [s for s in SETTINGS if s != "native"]
+
+    def row(label: str, value) -> list:
+        v = {s: value(s) for s in SETTINGS}
+        return [label, *(v[s] for s in SETTINGS), *(v[s] / v["native"] for s in others)]
+
+    rows = [row("compile, one process (s)", med),
+            row(f"compile, {os.cpu_count()} worker processes (s)", lambda s: statistics.median(parallel[s])),
+            row("objects (MiB)", lambda s: runs[s][0]["obj_bytes"] / 2**20)]
+    rows += [row(f"{w} (ms)", lambda s, w=w: med(s, w) * 1e3) for w in WORKLOADS]
+    body = md_table(["", *SETTINGS, *(f"{s} / native" for s in others)], rows)
     body += (f"\n\n{runs['native'][0]['modules']} kernel modules; medians of {args.rounds} round(s), each setting in "
              f"its own process with an empty kernel cache, workloads best of {args.repeat}; load average "
              f"{load:.1f} at the start on a machine shared with other work. Portable objects would be keyed to "
              "this exact Warp version and its LLVM (the cache name holds both), so a wheel carrying them works "
-             "only with the Warp it was built against, and a process must run with cpu_compiler_flags='' to "
-             "find them.\n")
+             "only with the Warp it was built against, and a process must run with those flags to find them. "
+             "native: Warp's default (-march=native and its inlining options); generic: the same options without "
+             "-march=native; generic, LLVM defaults: cpu_compiler_flags=''.\n")
     write_result("warmup", "Kernel compilation: first run, and portable objects against -march=native", body)
 
 
