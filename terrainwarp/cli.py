@@ -407,7 +407,10 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
 # warmup
 # ------------------------------------------------------------------------------------------------
 def _cmd_warmup(args: argparse.Namespace) -> int:
-    res = warmup(args.device, workers=args.workers)
+    try:
+        res = warmup(args.device, workers=args.workers)
+    except (TypeError, ValueError) as e:  # name the option: "device: ..." -> "--device: ..."
+        raise type(e)(f"--{e}" if str(e).startswith(("device:", "workers:")) else str(e)) from None
     if res.compiled:
         print(f"compiled {len(res.compiled)} kernel modules in {res.seconds:.1f} s "
               f"({res.workers or 'no'} worker processes); {len(res.cached)} were cached; cache: {res.cache_dir}")

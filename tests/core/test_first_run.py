@@ -81,6 +81,8 @@ def test_the_warmup_command_says_all_is_compiled(compiled, capsys):
     assert main(["warmup"]) == 0
     out, err = capsys.readouterr()
     assert err == "" and out.startswith(f"all {len(compiled)} kernel modules are compiled; cache: ")
+    assert main(["warmup", "--device", "tpu"]) == 2
+    assert capsys.readouterr().err.startswith("terrainwarp: error: --device: expected one of the devices Warp sees")
 
 
 def test_warmup_validates_its_arguments():
