@@ -27,7 +27,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     hm = tw.Heightmap.example()
     scene = tw.Scene(hm, camera=tw.Camera.default_for(hm, a.width, a.height), lod=tw.LodConfig(roots=16, tess=16))
     cams = scene.camera_path(a.frames)
-    settings = [s for s in default_settings(hm, quick=a.quick) if a.policies is None or s.policy in a.policies.split(",")]
+    keep = None if a.policies is None else a.policies.split(",")
+    settings = [s for s in default_settings(hm, quick=a.quick) if keep is None or s.policy in keep]
     rows = sweep(scene, cams, settings, workers=a.workers)
     write_report(scene, cams, rows, a.out)
     summ = summarise(rows)
