@@ -106,7 +106,7 @@ def case(name: str) -> dict:
     out.update(open_s=open_s, width=width, height=height, samples=hm.shape[0] * hm.shape[1])
     if isinstance(hm, tw.heightmap.StreamedHeightmap):
         out["cache"] = hm.counters()
-        src = next(v for k, v in hm.held.items() if k[0] == "streamed_source")
+        src = next(iter(hm.held.streamed_sources.values()))
         out["pyramid"] = dict(src.terrain.provider.counters, build_s=src.build_ms / 1e3)
         out["last"] = src.last
     out["baseline_s"] = baseline(width, height)

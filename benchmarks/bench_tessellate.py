@@ -31,12 +31,9 @@ from terrainwarp.kernels.parallel import set_threads, threads
 from terrainwarp.kernels.pool import release_buffers
 from terrainwarp.kernels.tessellator import (
     SPACING_CODES,
-    W_POSITION,
-    W_SWAP,
-    frame_device,
-    prepare_frame,
     tessellate_device,
     tessellate_patches,
+    tessellate_patches_device,
 )
 
 LEVEL = 32
@@ -92,15 +89,12 @@ def numpy_frame(pt: dict, h: np.ndarray, eye):
 
 def device_frame(pt: dict, h: np.ndarray, eye, depth_only: bool = False):
     """The device stages: every per-point output, or (depth_only) positions and triangles alone."""
-    args, _ = prepare_frame(pt, h, DX, DX, eye, "equal", "bilinear", (0.0, 0.0))
-    if depth_only:
-        return frame_device(*args, "cpu", flags=W_POSITION | W_SWAP)
-    return frame_device(*args, "cpu")
+    return tessellate_patches_device(pt, h, DX, DX, eye, need=() if depth_only else None)
 
 
 def output_bytes(res) -> int:
-    out = res[4]
-    return sum(a.capacity for a in (out.pos, out.tri, out.uv, out.dom, out.pid, out.lev) if a is not None)
+    return sum(a.capacity for a in (res.positions, res.triangles, res.uv, res.domain, res.patch_id, res.level)
+               if a is not None)
 
 
 def main() -> None:

@@ -24,7 +24,7 @@ import optax
 
 import terrainwarp as tw
 from terrainwarp import diff
-from terrainwarp.io.files import save_figure, write_json
+from terrainwarp.io.files import new_figure, save_figure, write_json
 from terrainwarp.kernels.displacement import grid_mesh
 
 SUN = np.array([-0.5, 0.75, -0.45]) / np.linalg.norm([-0.5, 0.75, -0.45])
@@ -139,12 +139,7 @@ def fit(size: int = 129, views: int = 8, width: int = 320, height: int = 240, it
 
 
 def plot(res: dict, path: Path) -> Path:
-    import matplotlib  # lazy: heavy optional dependency
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
-
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8))
+    fig, ax = new_figure(1, 3, figsize=(13, 3.8))
     ax[0].semilogy(res["rmse_m"])
     ax[0].set(xlabel="Adam iteration", ylabel="RMSE against the true heights (m)",
               title=f"{res['size']}² heights, {res['views']} views, drop {res['drop']:.0f}x")

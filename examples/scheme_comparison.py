@@ -28,10 +28,10 @@ def main(argv: list[str] | None = None) -> list[list]:
     settings = [s for s in default_settings(hm, quick=True) if s.policy in ("sse", "cdlod", "clipmaps", "chunked")]
     rows = sweep(scene, cams, settings, progress=False, images=False, workers=a.workers)
     write_report(scene, cams, rows, a.out)
-    table = budget_table(summarise(rows), budgets=(0.5, 1.0, 2.0))
-    print(f"{'budget px':>9}  {'scheme':>9}  {'cheapest setting':>18}  {'p99 px':>7}  {'triangles':>9}")
-    for budget, scheme, setting, p99, tris, *_ in table:
-        print(f"{budget:>9g}  {scheme:>9}  {setting:>18}  {p99!s:>7}  {tris!s:>9}")
+    table = budget_table(summarise(rows), budgets=(0.5, 1.0, 2.0))  # rows: budget, scheme, setting, p99, cost, tris
+    print(f"{'budget px':>9}  {'scheme':>9}  {'cheapest setting':>18}  {'p99 px':>7}  {'cost':>9}  {'triangles':>9}")
+    for budget, scheme, setting, p99, cost, tris, *_ in table:
+        print(f"{budget:>9g}  {scheme:>9}  {setting:>18}  {p99!s:>7}  {cost!s:>9}  {tris!s:>9}")
     return table
 
 

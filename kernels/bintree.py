@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .checks import check_choice
 from .parallel import launch_one, record, replay
 from .sampling import sample_bilinear
 
@@ -546,8 +547,7 @@ def build_tree(heights: np.ndarray, origin: tuple[float, float], spacing: tuple[
         ``lo``, ``hi``: (same,) float32 subtree height bounds; ``vertex_height``: ((G+1)**2,) float32;
         ``grid``: G = 2**floor(M/2) cells per side of the vertex grid.
     """
-    if method not in HEIGHT_METHODS:
-        raise ValueError(f"method: expected one of {list(HEIGHT_METHODS)}, got {method!r}")
+    check_choice("method", method, HEIGHT_METHODS)
     m = int(depth)
     grid = 1 << (m // 2)
     g1 = grid + 1

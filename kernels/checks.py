@@ -19,9 +19,13 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
+import warp as wp
+
+from .device import start
 
 __all__ = ["MAX_VIEWPORT", "is_int", "is_number", "check_int", "check_number", "check_bool", "check_choice",
-           "check_optional", "check_pixels", "check_viewport", "check_triangle_shape", "check_triangles"]
+           "check_optional", "check_pixels", "check_viewport", "check_triangle_shape", "check_triangles",
+           "check_device"]
 
 #: The largest viewport side, in pixels (a GPU's GL_MAX_VIEWPORT_DIMS; the renderer's own limit).
 MAX_VIEWPORT = 16384
@@ -110,7 +114,7 @@ def check_pixels(name: str, v: object) -> int:
         TypeError: ``v`` is not an integer. ValueError: it lies outside ``1..MAX_VIEWPORT``.
     """
     if not is_int(v):
-        raise TypeError(f"{name}: expected an integer number of pixels, got {v!r}")
+        raise TypeError(f"{name}: expected a positive integer number of pixels, got {v!r}")
     if not 1 <= int(v) <= MAX_VIEWPORT:
         raise ValueError(f"{name}: expected 1..{MAX_VIEWPORT} pixels, got {v}")
     return int(v)
@@ -150,3 +154,26 @@ def check_triangles(name: str, triangles: object, n_vertices: int | None = None)
         if lo < 0 or hi >= top:
             raise ValueError(f"{name}: expected indices in [0, {top}), got [{lo}, {hi}]")
     return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)
+
+
+def check_device(name: str, device: object) -> wp.Device:
+    """``device`` (a Warp device name such as ``"cpu"``, ``"cuda"``, ``"cuda:0"``, a ``warp.Device``, or None for
+    Warp's default) as the ``warp.Device`` it names; Warp is started first (quietly: :func:`.device.start`).
+
+    Raises:
+        TypeError: not a string, a device or None. ValueError: a CUDA device on a machine where Warp finds no
+            GPU (the message says so), or a name Warp does not know (the message lists the devices it has).
+    """
+    start()
+    if device is None or isinstance(device, wp.Device):
+        return wp.get_device(device)
+    if not isinstance(device, str):
+        raise TypeError(f"{name}: expected a device name ('cpu', 'cuda:0', ...) or a warp.Device, got {device!r}")
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        raise ValueError(f"{name}: {device!r} asks for an NVIDIA GPU, but Warp finds no CUDA device on this machine "
+                         "(no GPU or no CUDA driver); use 'cpu'")
+    try:
+        return wp.get_device(device)
+    except (ValueError, RuntimeError, KeyError):
+        have = ", ".join(repr(d.alias) for d in wp.get_devices())
+        raise ValueError(f"{name}: expected one of the devices Warp sees ({have}), got {device!r}") from None

@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .checks import check_int
+from .checks import check_choice, check_int
 from .normals import (
     CPU_ONLY,
     END_CPU_ONLY,
@@ -547,24 +547,6 @@ def _surface_row(h: wp.array2d(dtype=wp.float32), out: wp.array3d(dtype=wp.float
 
 
 @wp.kernel(enable_backward=False)
-def _directional_kernel(
-    offset: int,
-    h: wp.array2d(dtype=wp.float32),
-    nrm: wp.array2d(dtype=wp.vec3),
-    dx: float,
-    dz: float,
-    method: int,
-    scale: float,
-    distance: int,
-    # outputs
-    out_k: wp.array2d(dtype=wp.vec4),
-):
-    i, j = wp.tid()
-    i += offset
-    out_k[i, j] = _directional_at(h, nrm, i, j, dx, dz, method, scale, distance)
-
-
-@wp.kernel(enable_backward=False)
 def _chord_kernel(
     offset: int,
     h: wp.array2d(dtype=wp.float32),
@@ -707,10 +689,8 @@ def directional_curvature(heights: np.ndarray, dx: float, dz: float, method: str
         (H, W, 4) float32, >= 0; 1/m for the Equation-1 methods (times ``scale``; 1/m^2 with
         reinforcement), dimensionless for ``edge_angle``. NaN exactly at NaN heights.
     """
-    if method not in CURVATURE_METHODS:
-        raise ValueError(f"method: expected one of {list(CURVATURE_METHODS)}, got {method!r}")
-    if normals not in NORMAL_METHODS:
-        raise ValueError(f"normals: expected one of {list(NORMAL_METHODS)}, got {normals!r}")
+    check_choice("method", method, CURVATURE_METHODS)
+    check_choice("normals", normals, NORMAL_METHODS)
     check_int("distance", distance, 1)
     sc = float(scale)
     if not (np.isfinite(sc) and sc > 0.0):
@@ -730,8 +710,7 @@ def directional_curvature(heights: np.ndarray, dx: float, dz: float, method: str
 def surface_curvature_planes(heights: np.ndarray, dx: float, dz: float, scheme: str = "zevenbergen_thorne",
                              device: str = "cpu") -> np.ndarray:
     """(4, H, W) float32 planes of :func:`surface_curvature`: mean, Gaussian, profile, plan."""
-    if scheme not in SURFACE_SCHEMES:
-        raise ValueError(f"scheme: expected one of {list(SURFACE_SCHEMES)}, got {scheme!r}")
+    check_choice("scheme", scheme, SURFACE_SCHEMES)
     dx, dz = check_spacing(dx, dz)
     h = device_heights(heights, device)
     out = empty((4, *h.shape), wp.float32, device)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .checks import check_device
 from .parallel import launch
 
 
@@ -131,6 +132,7 @@ def fbm(rows: int, cols: int, *, seed: int = 0, base_frequency: float = 1.0 / 25
     sample (sample (row0 + i * step, col0 + j * step) of the whole: a point-sampled overview)."""
     if int(step) < 1:
         raise ValueError(f"step: expected a positive integer, got {step!r}")
+    check_device("device", device)
     out = wp.empty((rows, cols), dtype=wp.float32, device=device)
     launch(_fbm_kernel, dim=(rows, cols),
            inputs=[int(row0), int(col0), int(step), float(base_frequency), int(octaves), float(lacunarity),

@@ -34,6 +34,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .checks import check_choice
 from .parallel import MIN_ITEMS, empty, launch, view
 
 BORDERS = {"constant": 0, "clamp": 1, "skip": 2}
@@ -484,8 +485,7 @@ def sobel_normals(heights: np.ndarray, dx: float, dz: float, border: str = "clam
         border: ``"constant"`` (outside samples = ``constant``), ``"clamp"`` or ``"skip"``.
         constant: the outside height for ``border="constant"``.
     """
-    if border not in BORDERS:
-        raise ValueError(f"border: expected one of {sorted(BORDERS)}, got {border!r}")
+    check_choice("border", border, BORDERS)
     dx, dz = check_spacing(dx, dz)
     h = device_heights(heights, device)
     out = empty(h.shape, wp.vec3, device)
@@ -518,10 +518,8 @@ def vertex_normals(heights: np.ndarray, dx: float, dz: float, method: str = "qua
         method: one of ``METHODS``.
         border, constant: outside samples for ``sobel`` (the other methods always skip them).
     """
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {list(METHODS)}, got {method!r}")
-    if border not in BORDERS:
-        raise ValueError(f"border: expected one of {sorted(BORDERS)}, got {border!r}")
+    check_choice("method", method, METHODS)
+    check_choice("border", border, BORDERS)
     dx, dz = check_spacing(dx, dz)
     h = device_heights(heights, device)
     out = vertex_normals_device(h, dx, dz, method, border, constant)

@@ -34,6 +34,7 @@ import numpy as np
 import warp as wp
 
 from .checks import check_int
+from .device import launch_block_dim, quietly, start
 from .pool import host_layout
 
 THREADS_ENV = "TERRAINWARP_THREADS"
@@ -203,22 +204,39 @@ def keep_frame_memory(enable: bool = True) -> bool:
 _clock = threading.local()
 _load_lock = threading.RLock()
 _loaded: set = set()
+_hook: list = [None]
+
+
+def _device(device: str | wp.Device | None) -> wp.Device:
+    """``wp.get_device``, Warp started quietly first (:func:`.device.start`)."""
+    start()
+    return wp.get_device(device)
+
+
+def on_first_load(hook: Callable[[wp.Module, wp.Device], None] | None) -> None:
+    """Call ``hook(module, device)`` before a kernel module is first loaded on a device in this process (None: no
+    hook). :mod:`terrainwarp.warmup` sets it: a module that must be compiled first says so, with a progress line,
+    instead of compiling in silence."""
+    _hook[0] = hook
 
 
 def load(kernel: wp.Kernel, device: str | wp.Device | None = None) -> None:
-    """Build (or read from the kernel cache) and load ``kernel``'s module on ``device`` once per process, under a
-    lock: Warp's code generation parses Python sources with ``ast``, which CPython 3.11 does not allow from two
-    threads at once (``SystemError: AST constructor recursion depth mismatch``), so the first frames of threads
-    that start together must not build a module side by side. Every launch helper here calls it. On the CPU the
-    module is loaded for ``block_dim`` 1, the build ``wp.launch`` runs there (Warp's default build for the module,
-    256, would be compiled as well and never run)."""
-    dev = wp.get_device(device)
+    """Build (or read from the kernel cache) and load ``kernel``'s module on ``device`` once per process, for the
+    block size its launches use (:func:`.device.launch_block_dim`), under a lock: Warp's code generation parses
+    Python sources with ``ast``, which CPython 3.11 does not allow from two threads at once (``SystemError: AST
+    constructor recursion depth mismatch``), so the first frames of threads that start together must not build a
+    module side by side. Warp's per-module INFO lines are held back (:func:`.device.quietly`). Every launch helper
+    here calls it."""
+    dev = _device(device)
     key = (kernel.module, dev.alias)
     if key in _loaded:
         return
     with _load_lock:
         if key not in _loaded:
-            kernel.module.load(dev, 1 if dev.is_cpu else None)
+            if _hook[0] is not None:
+                _hook[0](kernel.module, dev)
+            with quietly():
+                kernel.module.load(dev, block_dim=launch_block_dim(dev))
             _loaded.add(key)
 
 
@@ -284,7 +302,7 @@ def scan(values: wp.array, out: wp.array, inclusive: bool = False) -> None:
 def view(a: np.ndarray, dtype: type, device: str | wp.Device | None = None) -> wp.array:
     """A Warp array of ``a`` (contiguous, the dtype's scalar type): on the CPU the same memory, not a copy. A
     heightmap-sized input (heights, a normal map) read by every frame is then never copied per frame."""
-    dev = wp.get_device(device)
+    dev = _device(device)
     scalar = wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype))
     return wp.array(np.ascontiguousarray(a, scalar), dtype=dtype, device=dev, copy=not dev.is_cpu)
 
@@ -292,7 +310,7 @@ def view(a: np.ndarray, dtype: type, device: str | wp.Device | None = None) -> w
 def empty(shape: int | Sequence[int], dtype: type, device: str | wp.Device | None = None) -> wp.array:
     """``wp.empty``, but on the CPU through numpy, whose large allocations ask for huge pages: the first
     touch of a frame-sized output (by a launch's threads) then costs 2-3x less page faulting."""
-    dev = wp.get_device(device)
+    dev = _device(device)
     if not dev.is_cpu:
         return wp.empty(shape, dtype=dtype, device=dev)
     a = np.empty(*host_layout(shape, dtype))
@@ -331,7 +349,7 @@ def launch(kernel: wp.Kernel, dim: int | Sequence[int], inputs: Sequence = (), o
             item: patches of different sizes, triangles near and far).
     """
     shape = (int(dim),) if isinstance(dim, int | np.integer) else tuple(int(d) for d in dim)
-    dev = wp.get_device(device)
+    dev = _device(device)
     if shape[0] <= 0 or math.prod(shape) == 0:
         return
     load(kernel, dev)

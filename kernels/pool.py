@@ -3,8 +3,11 @@
 Freshly allocated frame-sized memory costs page faults on its first write (0.6-16 ms/MB on this kind of VM,
 against ~0.25 ms/MB to write memory seen before), and blocks above glibc's largest mmap threshold (32 MiB) go
 back to the kernel when freed: a frame's images, its tessellation or a heightmap-sized error pass would pay
-that on every frame. So such buffers are kept and lent again. Ownership is explicit: every buffer is held
-through a :class:`Lease`, and a buffer is lent again only after its lease has ended. There are two kinds:
+that on every frame. So such buffers are kept and lent again. Every buffer is held through a :class:`Lease`, and a
+buffer is lent again only after its lease has ended. Who ends a lease differs by kind: a scratch lease is given
+back explicitly by the function that took it; an output lease is owned by the arrays made from it and ends when the
+last of them is garbage (a reference count decides, through ``weakref.finalize``), because a caller who keeps a
+frame's images cannot be asked to hand them back. The two kinds:
 
 * **Output leases** (:func:`pooled`, :func:`pooled_rows`, :func:`pooled_array`, :func:`pooled_rows_array`):
   the array handed out is made from its lease (numpy's ``__array_interface__``), so the array, every numpy

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .checks import check_choice
 from .parallel import launch, view
 
 # ------------------------------------------------------------------------------------------------
@@ -150,8 +151,7 @@ def sample_grid(heights: np.ndarray, u: np.ndarray, v: np.ndarray, method: str =
     Returns:
         float32 array of the shape of ``u``.
     """
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
+    check_choice("method", method, METHODS)
     u = np.asarray(u, dtype=np.float32)
     v = np.asarray(v, dtype=np.float32)
     if u.shape != v.shape:

@@ -21,6 +21,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from .checks import check_choice
 from .noise import hash_u32
 from .parallel import empty, launch, view
 
@@ -537,8 +538,7 @@ def shade(triangle_id: np.ndarray, barycentrics: np.ndarray, triangles: np.ndarr
         rgb (H, W, 3) float32 linear in [0, 1] (uint8 sRGB with ``encode``), per-pixel normals (H, W, 3)
         float32 (or None), and counters (``crack_pixels`` in "cracks" mode, ``edge_pixels`` in "wireframe").
     """
-    if mode not in SHADING_MODES:
-        raise ValueError(f"mode: expected one of {list(SHADING_MODES)}, got {mode!r}")
+    check_choice("mode", mode, SHADING_MODES)
     ids = np.ascontiguousarray(triangle_id, dtype=np.int32)
     hh, ww = ids.shape
     need = {"level": ("level", level), "patch": ("patch_id", patch_id), "wireframe": ("clip", clip),

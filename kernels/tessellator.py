@@ -41,13 +41,14 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
+from .checks import check_choice
 from .counters import patch_draw_counters
 from .parallel import empty, launch, scan, view
 from .pool import pooled_rows_array
 from .sampling import sample_height
 
-__all__ = ["Tessellation", "tessellate_domains", "tessellate_patches", "SPACING_CODES", "FILTER_CODES",
-           "tessellate_device", "prepare_frame", "frame_device", "count_patches"]
+__all__ = ["Tessellation", "DeviceTessellation", "tessellate_domains", "tessellate_patches",
+           "tessellate_patches_device", "SPACING_CODES", "FILTER_CODES", "tessellate_device", "count_patches"]
 
 # the spacing names (OpenGL: equal_spacing, fractional_even_spacing, fractional_odd_spacing) and the codes the
 # kernels take: the one list of spacing names (terrainwarp.scene.SPACINGS and the reference tessellator derive theirs)
@@ -688,8 +689,7 @@ def _levels(outer, inner) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _spacing_code(spacing: str) -> int:
-    if spacing not in SPACING_CODES:
-        raise ValueError(f"spacing: expected one of {list(SPACING_CODES)}, got {spacing!r}")
+    check_choice("spacing", spacing, SPACING_CODES)
     return SPACING_CODES[spacing]
 
 
@@ -765,7 +765,7 @@ def tessellate_domains(outer, inner, spacing: str, device: str = "cpu"):
         (n,) int32, ``triangles`` (m, 3) int32 global indices (counter-clockwise in (u, v)),
         ``vertex_offsets`` and ``triangle_offsets`` (P+1,) int32 (patch p owns
         ``vertex_offsets[p]:vertex_offsets[p+1]``). Each patch's slice equals
-        :func:`terrainwarp.tessellate_patch` with indices shifted by its vertex offset.
+        :func:`terrainwarp.rendering.reference_tessellate_patch` with indices shifted by its vertex offset.
     """
     o, i = _levels(outer, inner)
     n, m, dom, pid, tri, v_off, t_off = tessellate_device(o, i, _spacing_code(spacing), device)
@@ -850,25 +850,63 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     lattice offset from the eye (relative error 2^-24 of the distance to the eye); the sampling
     coordinate is float32 (2^-12 cells at column 4,096).
     """
-    flags = _flags(need) | (W_CELLS if uv_cells else 0)
-    args, e = prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
-    n, m, v_off, t_off, out = frame_device(*args, device, flags=flags | W_SWAP)
+    d = tessellate_patches_device(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells)
+    n = d.n_points
 
-    def field(flag: int, arr: wp.array, cols: int) -> np.ndarray | None:
-        if not flags & flag:
+    def field(arr: wp.array | None, cols: int) -> np.ndarray | None:
+        if arr is None:
             return None
         a = arr.numpy()[:n]
         return a.reshape(-1, cols) if cols > 1 else a
 
-    dom = field(W_DOMAIN, out.dom, 2)
+    dom = field(d.domain, 2)
     return Tessellation(
-        positions=out.pos.numpy()[:n].reshape(-1, 3), uv=field(W_UV, out.uv, 2),
+        positions=d.positions.numpy()[:n].reshape(-1, 3), uv=field(d.uv, 2),
         domain=None if dom is None else dom.astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
-        patch_id=field(W_PATCH_ID, out.pid, 1), level=field(W_LEVEL, out.lev, 1),
-        triangles=out.tri.numpy()[:m].reshape(-1, 3),
-        vertex_offsets=v_off.numpy().copy(), triangle_offsets=t_off.numpy().copy(),
-        eye=(float(e[0]), float(e[1]), float(e[2])),
-        counters=patch_draw_counters(len(args[0]), n, m, FILTER_TEXELS[filter]))
+        patch_id=field(d.patch_id, 1), level=field(d.level, 1),
+        triangles=d.triangles.numpy()[:d.n_triangles].reshape(-1, 3),
+        vertex_offsets=d.vertex_offsets.numpy().copy(), triangle_offsets=d.triangle_offsets.numpy().copy(),
+        eye=d.eye, counters=patch_draw_counters(d.vertex_offsets.shape[0] - 1, n, d.n_triangles,
+                                                FILTER_TEXELS[filter]))
+
+
+class DeviceTessellation(NamedTuple):
+    """A frame's tessellation left where it was made (Warp arrays on the device, none copied to the host): what
+    :func:`tessellate_patches` reads back. The arrays are frame-sized pool buffers (their first ``n_points`` /
+    ``n_triangles`` rows are the frame's); the optional ones are None unless asked for (``need``).
+
+    Attributes:
+        n_points, n_triangles: the frame's domain points and triangles.
+        positions: vec3 camera-relative positions; triangles: vec3i, counter-clockwise seen from above.
+        uv: vec2; domain: vec2i (16.16 fixed point); patch_id, level: int32 per point.
+        vertex_offsets, triangle_offsets: (P+1,) int32 per-patch ranges.
+        eye: the float64 world point positions are relative to.
+    """
+
+    n_points: int
+    n_triangles: int
+    positions: wp.array
+    triangles: wp.array
+    uv: wp.array | None
+    domain: wp.array | None
+    patch_id: wp.array | None
+    level: wp.array | None
+    vertex_offsets: wp.array
+    triangle_offsets: wp.array
+    eye: tuple[float, float, float]
+
+
+def tessellate_patches_device(patches, heights, dx: float, dz: float, eye, spacing: str = "equal",
+                              filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu",
+                              need: Iterable[str] | None = None, uv_cells: bool = False) -> DeviceTessellation:
+    """:func:`tessellate_patches` (same arguments, validated the same way) without the copies to the host: the
+    device stages alone (count, scan, then emit and displace in one launch)."""
+    flags = _flags(need) | (W_CELLS if uv_cells else 0) | W_SWAP
+    args, e = _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
+    n, m, v_off, t_off, out = _frame_device(args, device, flags)
+    get = lambda flag, name: getattr(out, name) if flags & flag else None  # noqa: E731
+    return DeviceTessellation(n, m, out.pos, out.tri, get(W_UV, "uv"), get(W_DOMAIN, "dom"), get(W_PATCH_ID, "pid"),
+                              get(W_LEVEL, "lev"), v_off, t_off, (float(e[0]), float(e[1]), float(e[2])))
 
 
 def _flags(need: Iterable[str] | None) -> int:
@@ -880,11 +918,29 @@ def _flags(need: Iterable[str] | None) -> int:
     return int(W_POSITION) | sum({OPTIONAL_FIELDS[x] for x in names})
 
 
-def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device,
-                 flags: int = W_DOMAIN | W_PATCH_ID | W_POSITION | W_UV | W_LEVEL):
+class _FrameArgs(NamedTuple):
+    """:func:`tessellate_patches`' arguments, validated and put on the 2^-16-cell lattice by :func:`_prepare_frame`:
+    levels (P, 4), (P, 2) float32, the spacing code, patch boxes (P, 4) int64, levels (P,) int32, the heights,
+    the eye's lattice cell (2,) int64 and its float remainder (x, y, z), the cell size (2,) float32, the filter
+    code."""
+
+    outer: np.ndarray
+    inner: np.ndarray
+    code: int
+    box: np.ndarray
+    level: np.ndarray
+    heights: np.ndarray | wp.array
+    eye_cell: np.ndarray
+    eye_rem: tuple[float, float, float]
+    cell: np.ndarray
+    method: int
+
+
+def _frame_device(a: _FrameArgs, device, flags: int):
     """Device stages of :func:`tessellate_patches` (count, scan, then emit and displace in one launch), writing
     what ``flags`` (W_*) asks for -> (n, m, vertex and triangle offsets, the launch's :class:`_Out`, whose
     arrays not asked for are None)."""
+    o, i, code, box, lvl, h, el_int, eye_rem, cell, method = a
     n, m, wo, wi, v_off, t_off = _count_scan(o, i, code, device)
     out = _Out()
     out.flags = flags
@@ -904,8 +960,8 @@ def frame_device(o, i, code, box, lvl, h, el_int, eye_rem, cell, method, device,
     return n, m, v_off, t_off, out
 
 
-def prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin):
-    """Validate :func:`tessellate_patches`' arguments; -> (arguments of frame_device but the device, eye)."""
+def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, np.ndarray]:
+    """Validate :func:`tessellate_patches`' arguments; -> (the device stages' :class:`_FrameArgs`, the eye)."""
     o, i = _levels(_get(patches, "outer"), _get(patches, "inner"))
     p = o.shape[0]
     org = np.asarray(_get(patches, "origin_xz"), dtype=np.float64)
@@ -929,8 +985,7 @@ def prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin):
     dx, dz = float(dx), float(dz)
     if not (np.isfinite(dx) and np.isfinite(dz) and dx > 0 and dz > 0):
         raise ValueError(f"dx, dz: expected positive finite spacings, got {dx}, {dz}")
-    if filter not in FILTER_CODES:
-        raise ValueError(f"filter: expected one of {list(FILTER_CODES)}, got {filter!r}")
+    check_choice("filter", filter, FILTER_CODES)
     e = np.asarray(eye, dtype=np.float64).reshape(-1)
     if e.size != 3 or not np.all(np.isfinite(e)):
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
@@ -949,5 +1004,5 @@ def prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin):
     rem = (el - el_int) / scale
     cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
 
-    return (o, i, code, box, lvl, h, el_int, (float(rem[0]), float(e[1]), float(rem[1])), cell,
-            FILTER_CODES[filter]), e
+    return _FrameArgs(o, i, code, box, lvl, h, el_int, (float(rem[0]), float(e[1]), float(rem[1])), cell,
+                      FILTER_CODES[filter]), e

@@ -22,7 +22,18 @@ Names that were here before and moved to their modules still work for one releas
 import importlib as _importlib
 import warnings as _warnings
 
-from . import experiments, fit, io, kernels, lod, measure, rendering, schemes, surface
+from . import (
+    experiments,
+    fit,
+    io,
+    kernels,
+    lod,
+    measure,
+    rendering,
+    schemes,
+    surface,
+    warmup,  # noqa: F401  (its first-use hook: missing kernels compiled with a progress line)
+)
 from .camera import Camera
 from .fit.lod_fit import fit_lod
 from .heightmap import Heightmap

@@ -32,8 +32,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .heightmap import Heightmap
-from .kernels.checks import check_number, is_int
+from .heightmap import Heightmap, StreamedHeightmap
+from .kernels.checks import check_number, check_pixels, check_viewport
 
 __all__ = ["Camera", "Viewport", "orbit", "flyover", "relative_origin", "camera_from_angles", "read_camera_csv",
            "CSV_COLUMNS"]
@@ -67,14 +67,6 @@ def _vec3(name: str, v: object) -> tuple[float, float, float]:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def _pixels(name: str, v: object) -> int:
-    if not is_int(v):
-        raise TypeError(f"{name}: expected a positive integer number of pixels, got {v!r}")
-    if not 1 <= int(v) <= 16384:
-        raise ValueError(f"{name}: expected 1..16384 pixels, got {v}")
-    return int(v)
-
-
 def _finite(name: str, v: object) -> float:
     return check_number(name, v)
 
@@ -98,7 +90,7 @@ class Viewport(NamedTuple):
     @classmethod
     def of(cls, width: object, height: object, fov_y_deg: object) -> Viewport:
         """A checked viewport (width and height 1..16384 pixels, the field of view in (0, 180) degrees)."""
-        return cls(_pixels("width", width), _pixels("height", height), _fov(fov_y_deg))
+        return cls(check_pixels("width", width), check_pixels("height", height), _fov(fov_y_deg))
 
     @property
     def focal_px(self) -> float:
@@ -146,7 +138,7 @@ class Camera:
         for name in ("position", "target", "up"):
             object.__setattr__(self, name, _vec3(name, getattr(self, name)))
         for name in ("width", "height"):
-            object.__setattr__(self, name, _pixels(name, getattr(self, name)))
+            object.__setattr__(self, name, check_pixels(name, getattr(self, name)))
         object.__setattr__(self, "fov_y_deg", _fov(self.fov_y_deg))
         for name in ("near", "far"):
             object.__setattr__(self, name, _finite(name, getattr(self, name)))
@@ -232,8 +224,11 @@ class Camera:
     def default_for(cls, heightmap: Heightmap, width: int = 640, height: int = 480,
                     fov_y_deg: float = 45.0) -> Camera:
         """A three-quarter view from the south (+z) side that frames the whole terrain."""
+        if not isinstance(heightmap, Heightmap | StreamedHeightmap):
+            raise TypeError(f"heightmap: expected a terrainwarp Heightmap or StreamedHeightmap, got "
+                            f"{type(heightmap).__name__} {heightmap!r:.60}")
         fov_y_deg = _fov(fov_y_deg)  # before it divides the distance
-        width, height = _pixels("width", width), _pixels("height", height)
+        width, height = check_viewport(width, height)
         (x0, z0), (x1, z1) = heightmap.bounds_xz
         hmin, hmax = heightmap.height_range  # of the finite heights (a streamed heightmap: its overview's)
         if not (math.isfinite(hmin) and math.isfinite(hmax)):

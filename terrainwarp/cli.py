@@ -19,6 +19,8 @@ import json
 import os
 import subprocess
 import sys
+import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,8 +29,10 @@ from . import __version__
 from .camera import Camera
 from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
 from .experiments.calibrate import calibrate
-from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
+from .experiments.extreme import CASES as EXTREME_CASES
+from .experiments.pareto import Setting, default_settings, run_sweep, summarise, sweep, write_report
 from .experiments.plots import plot_patches
+from .experiments.runner import Runner
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
 from .experiments.winners import budget_verdicts
 from .fit import (
@@ -46,9 +50,10 @@ from .fit import (
 from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
 from .fit.export import FORMATS
-from .fit.knobs import main_knob
+from .fit.knobs import check_knob_names, main_knob
 from .heightmap import Heightmap
 from .io.files import output_set, write_json, write_text
+from .kernels.parallel import default_threads
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .measure.cost import Cost, CostModel, cost
@@ -67,11 +72,14 @@ from .scene import (
     check_tess,
 )
 from .schemes import SCHEMES, load_plugin
+from .warmup import warmup
 
 __all__ = ["main", "sweep_evaluator"]
 
 
 _LOD = LodConfig()  # the defaults of the LOD options
+#: What ``fit`` writes (and convergence.png with --baselines): its help, its "wrote:" line and the README say these
+FIT_FILES = ("fit.json", "fit.png", "fitted.toml", "report.md")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -93,10 +101,46 @@ def _scene(args: argparse.Namespace) -> Scene:
     return sc
 
 
+def _say(message: str) -> None:
+    """What the command is doing, on stderr (stdout carries its results): one line before each step that takes
+    more than a moment, so no wait is silent."""
+    print(f"terrainwarp: {message}", file=sys.stderr, flush=True)
+
+
+def _quiet(message: str) -> None:
+    """``--no-progress``: nothing said (a program reading stderr gets one line on an error, nothing else)."""
+
+
+def _sayer(args: argparse.Namespace):
+    """:func:`_say`, or nothing with ``--no-progress`` (the progress bars' switch: these lines are progress too)."""
+    return _quiet if getattr(args, "no_progress", False) else _say
+
+
+# Peak memory a frame adds per pixel, by the most demanding output it asks for (bytes; measured as the peak RSS
+# growth of 2048^2 and 4096^2 renders of the demo DEM): the rasterizer's depth|id keys, ids and depth; the image's
+# colour; the normals' attribute images; the error's reference frame and maps.
+_BYTES_PER_PIXEL = {"depth": 16, "image": 27, "normals": 48, "curvature": 48, "error": 62}
+_4K = 3840 * 2160
+
+
+def frame_memory_note(scene: Scene) -> str | None:
+    """The line ``render`` says before a frame of more pixels than 4K (3840 x 2160): its size and about how much
+    memory its buffers take; None for smaller frames."""
+    w, h = scene.camera.width, scene.camera.height
+    if w * h <= _4K:
+        return None
+    per_px = max((_BYTES_PER_PIXEL.get(o, 16) for o in scene.outputs), default=16) + 5 * ("counters" in scene.outputs)
+    return (f"rendering {w}x{h} ({w * h / 1e6:.0f} Mpixel, {', '.join(scene.outputs)}): about "
+            f"{w * h * per_px / 2**30:.1f} GiB of frame buffers")
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     sc = _scene(args)
     if "report" not in sc.outputs:
         sc = sc.with_(outputs=(*sc.outputs, "report"))
+    note = frame_memory_note(sc)
+    if note:
+        _say(note)
     frame = render(sc)
     written = frame.save(args.out)
     print(frame.report.table())
@@ -182,9 +226,11 @@ def _cmd_report(args: argparse.Namespace) -> int:
     ranking = cost(_cost_spec(args.cost))  # checked before the sweep runs
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
-    rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
-                 scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv",
-                 cost_model=_sweep_model(ranking))
+    say = _sayer(args)
+    with _runner(args.scheduler, args.workers, say) as runner:
+        rows = run_sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
+                         out=Path(args.out) / "frames.csv", cost_model=_sweep_model(ranking), runner=runner,
+                         say=say).rows
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
@@ -216,6 +262,28 @@ def _sweep_model(c: Cost) -> CostModel | None:
     return c.model if isinstance(c.model, CostModel) else None
 
 
+def _runner(scheduler: str | None, workers: int | None, say) -> Runner:
+    """The sweep's runner, each slow step said first: the kernels compiled here (so no worker compiles them),
+    then the worker processes started or the scheduler reached."""
+    _warmup(say)
+    if scheduler is not None:
+        say(f"connecting to the Dask scheduler at {scheduler}")
+    elif workers != 0:
+        n = workers or default_threads()
+        say(f"starting {n} worker process{'es' if n > 1 else ''} (dask LocalCluster; a few seconds)")
+    t0 = time.perf_counter()
+    runner = Runner(scheduler, workers)
+    if runner.where != "in-process":
+        say(f"workers ready in {time.perf_counter() - t0:.1f} s")
+    return runner
+
+
+def _warmup(say) -> None:
+    """The kernel modules missing from the cache compiled now, a line each (none when all are cached, or with
+    ``--no-progress``)."""
+    warmup(progress=say is not _quiet)
+
+
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
                     scheduler: str | None = None, device: str = "cpu", cost_of: Cost | None = None):
     """A grid-search evaluator (:func:`terrainwarp.fit.grid_search`) that runs the evaluations as jobs of the
@@ -239,25 +307,35 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
     fit_cost = cost(_cost_spec(args.cost))  # checked before the fit runs
+    check_knob_names(args.policy, sc.heightmap, args.knobs, None if sc.lod.is_scheme else sc.lod)
+    say = _sayer(args)
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
-    refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
+    _warmup(say)
+    if grid_evaluator is not None and args.grid_points:
+        _runner(None, args.workers, say).close()  # the grid search's workers, started now; its sweeps reuse them
+    refs = _references(sc, cams, say)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
                   max_pop_px=args.max_pop_px, cost=fit_cost, references=refs, floor=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
+    if args.curve_budgets:
+        say(f"fitting {len(args.curve_budgets)} more budget(s) for the cost-against-budget curve")
     for b in args.curve_budgets:
         r = fit_lod(sc, b, policy=args.policy, cameras=cams, knobs=args.knobs, progress=not args.no_progress,
                     max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
         if r.met:
             curve.append((b, r.validated.cost))
+    if args.baselines:
+        say(f"running the baselines {', '.join(args.baselines)} on the same frames")
     runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
                          max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
     write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
                                   "baselines": runs})
-    plot_fit(res, out / "fit.png", curve or None)
+    plot_fit(res, out / "fit.png", sorted([*curve, (args.budget_px, res.validated.cost)]) if curve and res.met
+             else None)
     res.scene.save(out / "fitted.toml")
     if runs:
         plot_convergence({"fit_lod": res.trace, **{m: r["trace"] for m, r in runs.items()}}, out / "convergence.png",
@@ -266,9 +344,22 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     print(f"path: {path['text']}")
     print(res.message)
     print(res.timing_line())
-    written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md"]
+    written = [*FIT_FILES, *(["convergence.png"] if runs else [])]
     print("wrote: " + ", ".join(str(out / w) for w in written))
     return 0 if res.met else 1
+
+
+def _references(sc: Scene, cams: list[Camera], say) -> list:
+    """The full-resolution reference frame of each camera, said first, and a line every quarter of them."""
+    done = [0]
+    say(f"rendering the full-resolution reference frame of each of {len(cams)} cameras")
+
+    def tick() -> None:
+        done[0] += 1
+        if done[0] < len(cams) and done[0] % max(1, len(cams) // 4) == 0:
+            say(f"  references: {done[0]}/{len(cams)}")
+
+    return references_for(sc, cams, on_frame=tick)
 
 
 def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_cams: int,
@@ -393,6 +484,12 @@ def _cmd_export(args: argparse.Namespace) -> int:
 def _cmd_stability(args: argparse.Namespace) -> int:
     n = 129 if args.full else 33
     cases = [c for c in args.cases.split(",") if c] if args.cases else None
+    bad = [c for c in cases or [] if c not in EXTREME_CASES]
+    if bad:
+        raise ValueError(f"--cases: unknown {bad}; expected some of {list(EXTREME_CASES)}")
+    say = _sayer(args)
+    _warmup(say)
+    say(f"running {len(cases or EXTREME_CASES)} extreme cases through every stage on {n} x {n} grids")
     rows = run_suite(n, cases=cases, progress=not args.no_progress)
     cmd = "terrainwarp stability --out DIR" + (" --full" if args.full else "")
     path = write_stability_md(rows, args.out, command=cmd, n=n)
@@ -416,6 +513,22 @@ def _cmd_tessellate(args: argparse.Namespace) -> int:
     print(f"{doc['spacing']}: outer {levels(doc['outer'])}, inner {levels(doc['inner'])}: {doc['n_points']} "
           f"points, {doc['n_triangles']} triangles" + ("" if doc["n_triangles"] else " (patch discarded)"))
     print("wrote: " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------
+# warmup
+# ------------------------------------------------------------------------------------------------
+def _cmd_warmup(args: argparse.Namespace) -> int:
+    try:
+        res = warmup(args.device, workers=args.workers)
+    except (TypeError, ValueError) as e:  # name the option: "device: ..." -> "--device: ..."
+        raise type(e)(f"--{e}" if str(e).startswith(("device:", "workers:")) else str(e)) from None
+    if res.compiled:
+        print(f"compiled {len(res.compiled)} kernel modules in {res.seconds:.1f} s "
+              f"({res.workers or 'no'} worker processes); {len(res.cached)} were cached; cache: {res.cache_dir}")
+    else:
+        print(f"all {len(res.cached)} kernel modules are compiled; cache: {res.cache_dir}")
     return 0
 
 
@@ -552,8 +665,8 @@ def _add_report_fit(sub) -> None:
                          "(gpu:gf100, gpu:gcn, gpu:rdna, gpu:mali, gpu:nv40 or gpu:FILE.toml), several of them "
                          "separated by commas (the worst per frame), triangles, a counter name (e.g. "
                          "fragment_shader_invocations) or a weights file of terrainwarp calibrate")
-    ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
-                  _cmd_fit)
+    ft = _command(sub, "fit", f"fit LOD thresholds to a screen-space error budget: {', '.join(FIT_FILES)} "
+                  "(and convergence.png with --baselines)", _cmd_fit)
     _add_scene(ft, "out/fit")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
     ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=_LOD.policy,
@@ -669,6 +782,11 @@ def _add_stability_tessellate_bench(sub) -> None:
     te.add_argument("--inner", type=float, nargs=2, required=True, metavar="L", help="2 inner levels: along u, v")
     te.add_argument("--spacing", choices=list(SPACINGS), default=SPACINGS[0], help="tessellation spacing")
     _add_out(te, "out/tessellate")
+    w = _command(sub, "warmup", "compile every kernel module missing from Warp's kernel cache now (what a first "
+                 "run does by itself), one line per module", _cmd_warmup)
+    w.add_argument("--device", default="cpu", help="the Warp device to compile for (cpu, cuda:0, ...)")
+    w.add_argument("--workers", type=_nonnegative_int, default=None,
+                   help="worker processes (default: one per usable core; 0: in this process)")
     b = _command(sub, "bench", "run the benchmarks of benchmarks/ (all, then BENCHMARKS.md, or those named); "
                  "a source checkout only", _cmd_bench)
     b.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run, e.g. lod frame (default: all)")
@@ -725,7 +843,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if out is not None:
             out.check()
-        with output_set(args.out) if out is not None else contextlib.nullcontext():
+        with output_set(args.out) if out is not None else contextlib.nullcontext(), warnings.catch_warnings():
+            warnings.showwarning = _warning_line
             rc = int(args.func(args) or 0)
     except (ValueError, TypeError, OSError) as e:
         if out is not None:
@@ -741,6 +860,12 @@ def main(argv: list[str] | None = None) -> int:
     if out is not None:
         out.note_stale()
     return rc
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line on stderr, as the command's errors are (``terrainwarp: warning: ...``)."""
+    print(f"terrainwarp: warning: {str(message).splitlines()[0] if str(message) else category.__name__}",
+          file=sys.stderr)
 
 
 def _one_line(e: BaseException) -> str:

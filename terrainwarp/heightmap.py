@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import tokenize
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -27,10 +28,17 @@ from .io.memory import check_heightmap_fits
 from .io.native import native_stderr_silenced
 from .io.tiles import TILE, ArraySource, FbmSource, GeoTiffSource, TileCache, TileSource
 from .kernels import sampling
-from .kernels.checks import check_int, is_number
+from .kernels.checks import check_choice, check_int, is_number
 
 # metres_per_degree lives in io.geodesy; re-exported as before
-__all__ = ["Heightmap", "StreamedHeightmap", "metres_per_degree"]
+__all__ = ["Heightmap", "StreamedHeightmap", "Held", "metres_per_degree", "DEFAULT_SPACING", "DefaultSpacingWarning"]
+
+#: The sample spacing (metres) taken for a file that carries none (an image, a .npy), with a warning.
+DEFAULT_SPACING = 1.0
+
+
+class DefaultSpacingWarning(UserWarning):
+    """A heightmap loaded from a file that carries no sample spacing got :data:`DEFAULT_SPACING`."""
 
 EXAMPLES = ("jacksboro", "topobathy")
 HOST_SAMPLES = 64  # Heightmap.sample of at most this many bilinear points runs on the host (the same bits)
@@ -96,6 +104,35 @@ def grid_bounds(origin: tuple[float, float], shape: tuple[int, int], dx: float,
     """((xmin, zmin), (xmax, zmax)) in world metres of a (rows, cols) grid whose sample (0, 0) is at ``origin``."""
     x0, z0 = origin
     return ((x0, z0), (x0 + (shape[1] - 1) * dx, z0 + (shape[0] - 1) * dz))
+
+
+@dataclass
+class Held:
+    """What frames keep with a heightmap between calls, one named slot per kind, each keyed by what it depends on
+    (``render`` fills them; a caller who holds its own ``Terrain`` or source needs none of them).
+
+    Attributes:
+        schemes: by device, the cache the LOD schemes drawn by name (``LodConfig(policy="cdlod")``) keep their
+            prepared pyramids in, shared by every setting of the heightmap.
+        streamed_sources: by (the ``LodConfig``'s fields, device), the ``StreamedSource`` that draws a streamed
+            heightmap's frames (its pyramids and tile cache persist from frame to frame).
+        loaded: a streamed heightmap's whole grid, loaded once for the stages that read every sample (curvature,
+            the reference frame and the error).
+        terrains: by device, the prepared ``Terrain`` of each LOD layout (roots, tess) drawn lately, least
+            recently drawn first (``render`` keeps a few), so a plain render loop prepares once.
+    """
+
+    schemes: dict[str, dict] = field(default_factory=dict)
+    terrains: dict[str, Any] = field(default_factory=dict)
+    streamed_sources: dict[tuple, Any] = field(default_factory=dict)
+    loaded: Heightmap | None = None
+
+    def clear(self) -> None:
+        """Let go of everything held."""
+        self.schemes.clear()
+        self.terrains.clear()
+        self.streamed_sources.clear()
+        self.loaded = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,7 +205,8 @@ class Heightmap:
 
         8- and 16-bit PNG and TIFF keep their integer values as metres unless ``max_height`` is given
         (then they are normalised by the dtype's maximum and scaled by it); float TIFF and EXR are
-        metres. Multi-channel images use ``channel``. Spacing ``dx`` defaults to 1 m, ``dz`` to ``dx``.
+        metres. Multi-channel images use ``channel``. Such files carry no spacing: ``dx`` defaults to
+        :data:`DEFAULT_SPACING` (1 m), with a :class:`DefaultSpacingWarning` saying so, and ``dz`` to ``dx``.
 
         A georeferenced TIFF (GeoTIFF) and the other rasters GDAL reads (.vrt, .img, .asc, .hgt, ...; see
         :data:`terrainwarp.io.geotiff.GDAL_EXTS`) go through :func:`terrainwarp.io.geotiff.read_geotiff`: metre
@@ -198,10 +236,15 @@ class Heightmap:
                             f"{', '.join(sorted(raster_options))}; {p.name} is read by OpenImageIO or numpy")
         arr = _read_npy(p) if ext == ".npy" else _read_image(p, channel)
         h, source_dtype = _heights(f"path: {p}", arr, max_height, allow_nan)
-        dx = 1.0 if dx is None else dx
+        meta = {"source_dtype": str(source_dtype), "source": str(p),
+                **({} if max_height is None else {"max_height": float(max_height)})}
+        if dx is None:  # an image or .npy file carries no spacing: the default is said, once per load
+            meta["spacing"] = f"{DEFAULT_SPACING:g} m assumed: {p.name} carries no spacing"
+            warnings.warn(f"dx: {p.name} carries no sample spacing; {DEFAULT_SPACING:g} m assumed (pass dx=, in "
+                          "metres, to Heightmap.load)", DefaultSpacingWarning, stacklevel=2)
+            dx = DEFAULT_SPACING
         return cls(heights=h, dx=_positive("dx", dx), dz=_positive("dz", dz if dz is not None else dx), name=p.stem,
-                   meta={"source_dtype": str(source_dtype), "source": str(p),
-                         **({} if max_height is None else {"max_height": float(max_height)})})
+                   meta=meta)
 
     @classmethod
     def open(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *, band: int = 1,
@@ -227,8 +270,7 @@ class Heightmap:
         """
         from matplotlib import cbook  # lazy: heavy optional dependency
 
-        if name not in EXAMPLES:
-            raise ValueError(f"name: expected one of {list(EXAMPLES)}, got {name!r}")
+        check_choice("name", name, EXAMPLES)
         if name == "jacksboro":
             d = cbook.get_sample_data("jacksboro_fault_dem.npz")
             z = np.asarray(d["elevation"])
@@ -298,10 +340,9 @@ class Heightmap:
         return bool(np.isnan(self.heights).any())
 
     @cached_property
-    def held(self) -> dict:
-        """What frames keep between calls, keyed by their settings: the pyramids of the LOD schemes a scene
-        draws by name (``LodConfig(policy="cdlod")``), shared by every setting of this heightmap. Not pickled."""
-        return {}
+    def held(self) -> Held:
+        """What frames keep with this heightmap between calls (:class:`Held`). Not pickled."""
+        return Held()
 
     def __getstate__(self) -> dict:
         return {k: v for k, v in self.__dict__.items() if k != "held"}
@@ -472,7 +513,7 @@ class StreamedHeightmap:
         self.origin: tuple[float, float] = (float(source.origin[0]), float(source.origin[1]))
         self.name = source.name
         self.meta = source.meta
-        self.held: dict = {}  # what frames keep between calls (pyramid providers), keyed by their settings
+        self.held = Held()  # what frames keep with it between calls
 
     @classmethod
     def fbm(cls, rows: int, cols: int | None = None, *, cache_mb: float | None = None, **fbm: Any) -> StreamedHeightmap:

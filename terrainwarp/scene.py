@@ -50,6 +50,7 @@ from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
 from .io.files import write_text
 from .io.tiles import FbmSource, GeoTiffSource
 from .kernels.checks import check_bool, check_choice, check_int, check_number, is_int
+from .kernels.shading import SHADING_MODES
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 from .schemes import SCHEMES
 
@@ -61,7 +62,7 @@ __all__ = ["Scene", "LodConfig", "CameraPath", "Budget", "Viewport", "SceneKey",
 
 OUTPUTS = ("image", "depth", "normals", "curvature", "report", "mesh", "patches", "error", "counters")
 MESH_POLICIES = ("grid", "lod")
-SHADINGS = ("hillshade", "level", "patch", "wireframe", "splat", "cracks")
+SHADINGS = SHADING_MODES  # the shader's modes (terrainwarp.kernels.shading), by their one list
 SPACINGS = tuple(SPACING_CODES)  # the tessellator's spacing names, in its code order
 FILTERS = tuple(FILTER_CODES)
 MAX_TESS = 64  # the hardware's maximum tessellation level
@@ -367,7 +368,7 @@ class LodConfig:
             kept = dict(self.params) if policy == self.policy else {}
             return replace(self, policy=policy, params={**kept, SCHEMES[policy].parameter: value})
         if policy not in POLICY_TABLE:
-            raise ValueError(f"policy: expected one of {[*LOD_POLICIES, *SCHEMES]}, got {policy!r}")
+            check_choice("policy", policy, [*LOD_POLICIES, *SCHEMES])
         spec = POLICY_TABLE[policy]
         spacing = spec.spacing or ("equal" if self.spacing == "fractional_odd" else self.spacing)
         return replace(self, policy=policy, spacing=spacing, **{spec.field: float(value)})
@@ -678,10 +679,8 @@ class Scene:
         if bad:
             raise ValueError(f"outputs: unknown {bad}; expected a subset of {list(OUTPUTS)}")
         object.__setattr__(self, "outputs", tuple(dict.fromkeys(outs)))
-        if self.shading not in SHADINGS:
-            raise ValueError(f"shading: expected one of {list(SHADINGS)}, got {self.shading!r}")
-        if self.mesh not in MESH_POLICIES:
-            raise ValueError(f"mesh: expected one of {list(MESH_POLICIES)}, got {self.mesh!r}")
+        check_choice("shading", self.shading, SHADINGS)
+        check_choice("mesh", self.mesh, MESH_POLICIES)
         if isinstance(self.lod, dict):
             object.__setattr__(self, "lod", LodConfig(**self.lod))
         if not isinstance(self.lod, LodConfig):

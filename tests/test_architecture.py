@@ -39,7 +39,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("terrainwarp.kernels",),
     ("terrainwarp.io",),
     ("terrainwarp.heightmap", "terrainwarp.camera", "terrainwarp.mesh", "terrainwarp.scene", "terrainwarp.runtime",
-     "terrainwarp.schemes"),
+     "terrainwarp.schemes", "terrainwarp.warmup"),
     ("terrainwarp.lod", "terrainwarp.surface"),
     ("terrainwarp.measure",),
     ("terrainwarp.rendering",),

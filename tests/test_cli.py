@@ -2,11 +2,14 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from terrainwarp.cli import main
+from terrainwarp.cli import FIT_FILES, main
 from terrainwarp.scene import Scene
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_demo_writes_three_files(tmp_path, capsys):
@@ -93,7 +96,7 @@ def _subcommands():
 def test_every_option_has_help_and_shows_its_default():
     _, subs = _subcommands()
     assert set(subs) == {"demo", "render", "lod", "report", "fit", "evaluate", "export", "calibrate", "stability",
-                         "tessellate", "bench"}
+                         "tessellate", "warmup", "bench"}
     for name, sp in subs.items():
         fmt = sp.formatter_class(prog=name)
         for a in sp._actions:
@@ -180,9 +183,12 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     scene.write_text('[heightmap]\nfbm = { rows = 65, seed = 3, dx = 20.0, max_height = 400.0 }\n'
                      '[camera]\nwidth = 64\nheight = 48\n[lod]\nroots = 4\ntess = 8\n')
     rep = tmp_path / "rep"
-    assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse", "--workers", "0",
-                 "--no-images", "--no-progress", "--path", "high", "--out", str(rep)]) == 0
-    out = capsys.readouterr().out
+    assert main(["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse,martini", "--workers", "0",
+                 "--no-images", "--path", "high", "--out", str(rep)]) == 0
+    out, err = capsys.readouterr()
+    # each slow step said on stderr before it runs (issue 44: no silent wait; --no-progress: not said)
+    assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in err.splitlines()
+    assert "terrainwarp: meshing 2 Martini/Delatin settings (view-independent, once per sweep)" in err.splitlines()
     assert "path: flyover of 2 cameras" in out and "10.0% of the" in out and "image p99" in out and "pop p99" in out
     md = (rep / "report.md").read_text()
     assert "'high'" in md and "Popping" in md
@@ -190,8 +196,10 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     want = {"p99_px", "image_err_p99_px", "image_err_max_px", "pop_p99_px", "pop_max_px", "popped_samples"}
     assert want <= set(header)
     fit = tmp_path / "fit"
-    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress", "--max-pop-px", "50",
+    assert main(["fit", str(scene), "--frames", "2", "--budget-px", "2", "--max-pop-px", "50",
                  "--out", str(fit)]) == 0
+    assert "terrainwarp: rendering the full-resolution reference frame of each of 2 cameras" in \
+        capsys.readouterr().err.splitlines()
     doc = json.loads((fit / "fit.json").read_text())
     assert doc["path"]["preset"] == "ground" and doc["path"]["clearance_fraction"] == pytest.approx(0.02)
     assert doc["max_pop_px"] == 50 and len(doc["validated"]["pop_p99_px"]) == 1
@@ -199,6 +207,20 @@ def test_report_and_fit_state_the_path_and_show_primary_image_and_pop_errors(tmp
     md = (fit / "report.md").read_text()
     assert "Camera path: flyover of 2 cameras" in md and "2.0% of the" in md and "grid-image error" in md
     assert "pop p99" in md
+    assert sorted(p.name for p in fit.iterdir()) == sorted(FIT_FILES)  # what the help and the README say
+
+
+def test_fit_help_and_readme_name_the_files_fit_writes():
+    """fit --help named fit.json, fit.png and report.md, the README fit.json, fit.png and fitted.toml; it writes
+    all four (issue 44, defect 9)."""
+    _, subs = _subcommands()
+    assert subs["fit"].description.startswith("Fit LOD thresholds to a screen-space error budget: "
+                                              + ", ".join(FIT_FILES))
+    readme = (ROOT / "README.md").read_text().splitlines()
+    line = next(ln for ln in readme if ln.startswith("terrainwarp fit ") and "#" in ln)
+    named = [w.strip(",") for w in line.split("#", 1)[1].split() if w.strip(",").endswith((".json", ".png", ".toml",
+                                                                                           ".md"))]
+    assert sorted(named) == sorted(FIT_FILES)
 
 
 def test_cli_stability_writes_report_and_rejects_bad_args(tmp_path):

@@ -10,7 +10,7 @@ The ops, one op's output named as the next op's input (nvdiffrast's contracts, w
     image = antialias(color, triangle_id, clip, tri, nbr)    # (H, W, C); d/dcolor, d/dclip via coverage
 
 ``nbr = topology(tri)`` once per mesh. Every backward pass is deterministic: no float atomics, the same
-bits on every run and for any number of threads (``terrainwarp.set_threads``). What nvdiffrast has that
+bits on every run and for any number of threads (``terrainwarp.configure(threads=N)``). What nvdiffrast has that
 this lacks: ``texture`` (mipmapped filtering and its gradients), batched (minibatch) rendering, the
 ``rast_db`` screen-space derivatives for texture filtering, depth peeling, and CUDA speed.
 

@@ -13,6 +13,7 @@ import warp as wp
 from jax.typing import ArrayLike
 
 from ..kernels.antialias import antialias_backward, antialias_forward
+from ..kernels.checks import check_triangles
 from .contracts import callable_of, clip_array, id_image, triangle_array
 
 __all__ = ["antialias", "topology"]
@@ -29,10 +30,7 @@ def topology(triangles: ArrayLike) -> np.ndarray:
         (m, 3) int32: entry (t, k) is the triangle sharing edge k of t (k = 0: v0-v1, 1: v1-v2, 2: v2-v0),
         -1 on the mesh border and for edges shared by more than two triangles.
     """
-    tri = np.asarray(triangles)
-    if tri.ndim != 2 or tri.shape[1] != 3:
-        raise ValueError(f"triangles: expected shape (m, 3), got {tri.shape}")
-    tri = tri.astype(np.int64)
+    tri = check_triangles("triangles", triangles).astype(np.int64)
     m = len(tri)
     a = tri.reshape(-1)
     b = np.roll(tri, -1, axis=1).reshape(-1)

@@ -10,6 +10,9 @@ import numpy as np
 import warp as wp
 from jax.typing import ArrayLike
 
+from ..kernels.checks import check_triangle_shape, check_triangles
+from ..kernels.device import launch_block_dim, quietly, start
+
 __all__ = ["callable_of", "clip_array", "id_image", "triangle_array"]
 
 
@@ -17,11 +20,14 @@ __all__ = ["callable_of", "clip_array", "id_image", "triangle_array"]
 def callable_of(func: Callable, num_outputs: int) -> Callable:
     """The JAX callable of a Python function of Warp arrays (``warp.jax_callable``), built once per function.
     The function launches Warp kernels through the parallel-launch helper, so an op's kernels run on
-    ``terrainwarp.set_threads`` CPU threads (``warp.jax_kernel`` launches one kernel on one thread); on a GPU,
+    ``terrainwarp.configure(threads=N)`` CPU threads (``warp.jax_kernel`` launches one kernel on one thread); on a GPU,
     on the device and stream of JAX's arrays. No CUDA graph capture (``JaxCallableGraphMode.NONE``): the ops
     allocate their scratch arrays per call and the rasterizer reads its inputs back to the host, neither of
     which a captured graph may do (on the CPU the mode changes nothing)."""
-    wp.init()
+    start()  # Warp started quietly (terrainwarp.kernels.device), as every entry point does
+    with quietly():  # the callable loads its function's (kernel-less) module on first call: here, without a line
+        for dev in wp.get_devices():
+            wp.get_module(func.__module__).load(dev, block_dim=launch_block_dim(dev))
     return wp.jax_callable(func, num_outputs=num_outputs, graph_mode=wp.JaxCallableGraphMode.NONE)
 
 
@@ -45,9 +51,7 @@ def id_image(triangle_id: ArrayLike, m: int) -> jax.Array:
 
 def triangle_array(triangles: ArrayLike, n: int) -> jax.Array:
     """(m, 3) int32 vertex indices as a JAX array; concrete indices must lie in [0, n)."""
-    tri = triangles if isinstance(triangles, jax.Array) else np.asarray(triangles)
-    if tri.ndim != 2 or tri.shape[1] != 3:
-        raise ValueError(f"triangles: expected shape (m, 3), got {tuple(tri.shape)}")
-    if isinstance(tri, np.ndarray) and tri.size and (int(tri.min()) < 0 or int(tri.max()) >= n):
-        raise ValueError(f"triangles: expected indices in [0, {n}), got [{int(tri.min())}, {int(tri.max())}]")
-    return jnp.asarray(tri, jnp.int32)
+    if isinstance(triangles, jax.Array):  # maybe traced: its values cannot be read here
+        check_triangle_shape("triangles", triangles.shape, triangles.dtype)
+        return jnp.asarray(triangles, jnp.int32)
+    return jnp.asarray(check_triangles("triangles", triangles, n))

@@ -1,6 +1,6 @@
 """The visibility pass for JAX (nvdiffrast's ``rasterize``): not differentiable.
 
-The same rules and pixels as :func:`terrainwarp.rasterize` (``terrainwarp.kernels.raster.rasterize_clip``),
+The same rules and pixels as :func:`terrainwarp.rendering.rasterize` (``terrainwarp.kernels.raster.rasterize_clip``),
 called from JAX through ``warp.jax_callable``, so it runs under ``jax.jit`` beside the differentiable ops.
 """
 
@@ -10,7 +10,7 @@ import numpy as np
 import warp as wp
 from jax.typing import ArrayLike
 
-from ..kernels.checks import check_int
+from ..kernels.checks import check_viewport
 from ..kernels.raster import rasterize_clip
 from .contracts import callable_of, clip_array, triangle_array
 
@@ -37,12 +37,11 @@ def rasterize(clip: ArrayLike, triangles: ArrayLike, width: int, height: int, *,
 
     Returns:
         ``(triangle_id (H, W) int32, -1 for background; depth (H, W) float32 window depth in [0, 1], 1.0 for
-        background)``, row 0 at the top: the images :func:`terrainwarp.rasterize` gives, bit for bit.
+        background)``, row 0 at the top: the images :func:`terrainwarp.rendering.rasterize` gives, bit for bit.
     """
     c = jax.lax.stop_gradient(clip_array(clip))
     tri = triangle_array(triangles, c.shape[0])
-    for name, v in (("width", width), ("height", height)):
-        check_int(name, v, 1, 16384)
+    width, height = check_viewport(width, height)
     if c.shape[0] == 0 or tri.shape[0] == 0:
         return jnp.full((height, width), -1, jnp.int32), jnp.ones((height, width), jnp.float32)
     ids, depth = callable_of(_forward, 2)(c, tri, int(width), int(height), int(bool(cull_back)),

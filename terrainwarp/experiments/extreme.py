@@ -30,7 +30,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap
-from ..kernels.checks import check_int
+from ..kernels.checks import check_choice, check_int
 from ..scene import Scene
 
 __all__ = ["ExtremeCase", "CASES", "case_names", "get_case", "TESS_FACTORS"]
@@ -256,6 +256,5 @@ def case_names(group: str | None = None) -> list[str]:
 
 
 def get_case(name: str) -> ExtremeCase:
-    if name not in CASES:
-        raise ValueError(f"name: expected one of {list(CASES)}, got {name!r}")
+    check_choice("name", name, CASES)
     return CASES[name]

@@ -29,7 +29,7 @@ Cost: what a GPU would pay, from the frame's pipeline statistics (every frame co
 sweep's cost model (:class:`terrainwarp.measure.cost.CostModel`, the shipped llvmpipe model unless given) of
 the counters, and reports rank by a :class:`terrainwarp.measure.cost.Cost` (``cost_ms`` by default,
 ``triangles`` or any counter), with triangles beside it. This simulator's CPU milliseconds
-(:attr:`terrainwarp.Report.frame_ms`, ``select + mesh + raster``) are measured too, but kept out of
+(:attr:`terrainwarp.rendering.Report.frame_ms`, ``select + mesh + raster``) are measured too, but kept out of
 ``report.md`` and ``pareto.png``, which are then byte-identical across runs, thread counts and machines (as is
 ``frames.csv`` without its timing columns): they go to ``timing.md`` with the jobs' record. The error and
 reference stages are measurement, not cost.
@@ -44,6 +44,7 @@ import math
 import pickle
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,7 +53,7 @@ import numpy as np
 from ..camera import Camera
 from ..fit.verdict import MIN_SAMPLES, PIXELS_PER_SAMPLE
 from ..heightmap import Heightmap, StreamedHeightmap
-from ..io.files import output_set, save_figure, write_text
+from ..io.files import new_figure, output_set, save_figure, write_text
 from ..lod.bintree import Bintree
 from ..lod.peers import delatin_mesh, martini_mesh, mesh_vertical_error
 from ..lod.polytree import build_polytree, default_tolerances
@@ -323,21 +324,24 @@ def sweep_jobs(settings: list[Setting], n_cameras: int) -> list:
 def run_sweep(scene: Scene, cameras: list[Camera], settings: list[Setting], *, progress: bool = True,
               images: bool = True, device: str = "cpu", scheduler: str | None = None, workers: int | None = None,
               out: str | Path | None = None, runner: Runner | None = None,
-              cost_model: CostModel | None = None) -> SweepResult:
+              cost_model: CostModel | None = None, say: Callable[[str], None] | None = None) -> SweepResult:
     """:func:`sweep`, returning the :class:`terrainwarp.experiments.runner.SweepResult` (rows plus what the run cost).
 
-    ``runner`` (a :class:`terrainwarp.experiments.runner.Runner`) overrides ``scheduler`` and ``workers``.
+    ``runner`` (a :class:`terrainwarp.experiments.runner.Runner`) overrides ``scheduler`` and ``workers``. ``say``
+    is given a line before each step that precedes the frames (the reference frames, the peer meshes).
     """
     if cost_model is not None and not isinstance(cost_model, CostModel):
         raise TypeError(f"cost_model: expected a CostModel or None, got {type(cost_model).__name__}")
     if runner is not None:
-        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out, cost_model)
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out, cost_model, say)
     with Runner(scheduler, workers) as runner:
-        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out, cost_model)
+        return _run_sweep(runner, scene, cameras, settings, progress, images, device, out, cost_model, say)
 
 
 def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: list[Setting], progress: bool,
-               images: bool, device: str, out: str | Path | None, cost_model: CostModel | None) -> SweepResult:
+               images: bool, device: str, out: str | Path | None, cost_model: CostModel | None,
+               say: Callable[[str], None] | None = None) -> SweepResult:
+    say = say or (lambda line: None)
     cameras = list(cameras)
     jobs = sweep_jobs(list(settings), len(cameras))
     fp = _fingerprint(scene, cameras, images, device, cost_model)
@@ -346,8 +350,12 @@ def _run_sweep(runner: Runner, scene: Scene, cameras: list[Camera], settings: li
     ctx_h = runner.share(ctx)
     todo = pending_jobs(jobs, out, fp)
     need = sorted({j.args[1] for j in todo})  # references only for frames still to do
+    if need:
+        say(f"rendering the full-resolution reference frame of each of {len(need)} cameras")
     refs = dict(zip(need, runner.map(_reference_job, need, ctx_h)))
     peers = list(dict.fromkeys(j.args[0] for j in todo if j.args[0].policy in _PEERS))
+    if peers:
+        say(f"meshing {len(peers)} Martini/Delatin settings (view-independent, once per sweep)")
     refs.update(zip((("peer", s) for s in peers), runner.map(_peer_job, peers, ctx_h)))
     refs_h = runner.share(refs)  # reference frames by camera, peer meshes by ("peer", setting)
     return runner.run(jobs, _frame_job, ctx_h, refs_h, out=out, fingerprint=fp, columns=COLUMNS,
@@ -507,12 +515,7 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "", cost_lab
     """pareto.png: the worst-frame p99 error against the report's cost (``cost``) and against triangles, each
     setting a marker, each policy a line, the Pareto fronts marked. Nothing in it depends on timings: the same
     rows draw the same bytes."""
-    import matplotlib  # lazy: heavy optional dependency
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    fig, axes = new_figure(1, 2, figsize=(12, 4.8))
     marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
              "polytree": "P:", "bintree": "X:", "cdlod": "h-.", "clipmaps": "p-.", "chunked": "d-."}
     others = [r["p99_px"] for r in summary if r["policy"] != "grid" and r["p99_px"] > 0]

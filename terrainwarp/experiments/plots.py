@@ -8,7 +8,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap, StreamedHeightmap
-from ..io.files import save_figure
+from ..io.files import new_figure, save_figure
 from ..kernels.normals import sobel_normals
 from ..kernels.shading import light_direction
 from ..lod.quadtree import PatchList
@@ -57,18 +57,17 @@ def patches_figure(heightmap: Heightmap | StreamedHeightmap, patches: PatchList,
     Patches that overhang the heightmap are drawn whole; the part beyond its border is hatched and the
     legend says what happens there (:data:`OVERHANG_NOTE`). Returns the matplotlib figure."""
     import matplotlib  # lazy: heavy optional dependency
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
+    from matplotlib.cm import ScalarMappable  # lazy: heavy optional dependency
     from matplotlib.collections import PatchCollection  # lazy: heavy optional dependency
+    from matplotlib.colors import Normalize  # lazy: heavy optional dependency
     from matplotlib.patches import Rectangle  # lazy: heavy optional dependency
 
     (x0, z0), (x1, z1) = heightmap.bounds_xz
-    fig, ax = plt.subplots(figsize=(8, 8 * max(0.3, (z1 - z0) / max(x1 - x0, 1e-9))) if x1 > x0 else (8, 8))
+    fig, ax = new_figure(figsize=(8, 8 * max(0.3, (z1 - z0) / max(x1 - x0, 1e-9))) if x1 > x0 else (8, 8))
     hs, extent = _hillshade(heightmap)
     ax.imshow(hs, cmap="gray", extent=extent, origin="upper", vmin=0, vmax=1, interpolation="nearest")
     lv = np.asarray(patches.level)
-    cmap = plt.get_cmap("viridis", max(int(lv.max()) + 1 if len(lv) else 1, 1))
+    cmap = matplotlib.colormaps["viridis"].resampled(max(int(lv.max()) + 1 if len(lv) else 1, 1))
     rects = [Rectangle((o[0], o[1]), s[0], s[1]) for o, s in zip(patches.origin, patches.size)]
     pc = PatchCollection(rects, facecolor=[cmap(int(v)) for v in lv], edgecolor="k", linewidth=0.3, alpha=0.45)
     ax.add_collection(pc)
@@ -82,7 +81,7 @@ def patches_figure(heightmap: Heightmap | StreamedHeightmap, patches: PatchList,
     ax.set_ylim(lim[3], lim[2])
     ax.set_xlabel("x (m, east)")
     ax.set_ylabel("z (m, south)")
-    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(-0.5, cmap.N - 0.5))
+    sm = ScalarMappable(cmap=cmap, norm=Normalize(-0.5, cmap.N - 0.5))
     fig.colorbar(sm, ax=ax, label="level", ticks=range(cmap.N), fraction=0.04)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), fontsize=8, frameon=False, ncol=1)
     ax.set_title(title or f"{len(lv)} patches")

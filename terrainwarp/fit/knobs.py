@@ -24,12 +24,12 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..heightmap import Heightmap
-from ..kernels.checks import is_number
+from ..kernels.checks import check_choice, is_number
 from ..lod.quadtree import layout
 from ..scene import MAX_TESS, POLICY_TABLE, QUADTREE_TESS, LodConfig, Scene
 from ..schemes import SCHEMES, get_scheme, scheme_range
 
-__all__ = ["Knob", "knobs", "apply", "values_of", "main_knob", "LEVEL_SCALE", "MAX_LEVEL_SCALE"]
+__all__ = ["Knob", "knobs", "check_knob_names", "apply", "values_of", "main_knob", "LEVEL_SCALE", "MAX_LEVEL_SCALE"]
 
 LEVEL_SCALE = "level_log_scale_"  # + level: the knob of that level's threshold multiplier (log)
 MAX_LEVEL_SCALE = 3.0  # a level's threshold searched within a factor e^3 (20) of the base either way
@@ -113,6 +113,7 @@ def knobs(policy: str, heightmap: Heightmap, lod: LodConfig | None = None, *, ca
         cache: a dict kept for one heightmap, where a scheme keeps what it prepares to find its range.
     """
     lod = LodConfig() if lod is None else lod
+    check_choice("policy", policy, [*POLICY_TABLE, *SCHEMES])  # every policy with knobs, the schemes' too
     if policy in POLICY_TABLE:
         return _quadtree_knobs(policy, heightmap, lod)
     spec = get_scheme(policy)
@@ -165,6 +166,23 @@ def _clipmap_cover(heightmap: Heightmap, n: int) -> int:
 # ------------------------------------------------------------------------------------------------
 # knob values <-> scenes
 # ------------------------------------------------------------------------------------------------
+def check_knob_names(policy: str, heightmap: Heightmap, names: Sequence[str] | str | None,
+                     lod: LodConfig | None = None) -> None:
+    """Check a fit's ``knobs`` argument before any frame is made: None, ``"all"`` or names of :func:`knobs`.
+
+    Raises:
+        TypeError: not None, "all" or a list of strings. ValueError: a name ``policy`` has no knob of (named).
+    """
+    if names is None or names == "all":
+        return
+    if isinstance(names, str) or not all(isinstance(n, str) for n in names):
+        raise TypeError(f"knobs: expected None, 'all' or a list of knob names, got {names!r}")
+    known = [k.name for k in knobs(policy, heightmap, lod)]
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise ValueError(f"knobs: {policy!r} has no knob {unknown}; its knobs are {known}")
+
+
 def apply(scene: Scene, policy: str, values: Mapping[str, Any]) -> Scene:
     """The scene that draws ``policy`` with the knob ``values`` (name -> value; knobs left out keep the scene's
     value, or the policy's default): ``mesh = "lod"`` and its ``LodConfig`` set. Integer knobs must be integers

@@ -38,7 +38,7 @@ import numpy as np
 from ..camera import Camera, Viewport
 from ..heightmap import StreamedHeightmap
 from ..io.display import html_table
-from ..kernels.checks import check_int, check_number
+from ..kernels.checks import check_choice, check_int, check_number
 from ..measure.cost import Cost
 from ..measure.cost import cost as resolve_cost
 from ..rendering.pipeline import Frame
@@ -368,8 +368,7 @@ def _check(scene: Scene, budget_px: float, policy: str, max_tries: int, grid_poi
     check_int("grid_points", grid_points, 0)
     if steps is not None:
         check_int("steps", steps, 1)
-    if policy not in LOD_POLICIES and policy not in SCHEMES:
-        raise ValueError(f"policy: expected one of {[*LOD_POLICIES, *SCHEMES]}, got {policy!r}")
+    check_choice("policy", policy, [*LOD_POLICIES, *SCHEMES])
     check_number("budget_px", budget_px, 0.0, lo_open=True)
     if max_pop_px is not None:
         check_number("max_pop_px", max_pop_px, 0.0)

@@ -252,11 +252,22 @@ def digest(*arrays: object) -> str:
     return h.hexdigest()
 
 
+def new_figure(nrows: int = 1, ncols: int = 1, *, squeeze: bool = True, **figure_kw: object) -> tuple[Figure, object]:
+    """A matplotlib figure and its axes, as ``plt.subplots(nrows, ncols)`` gives them, made without pyplot: no
+    backend is chosen or switched and nothing is registered with pyplot, so the caller's backend and figures are
+    as they were (a notebook's inline plots keep working). ``squeeze`` as for ``plt.subplots``; ``figure_kw`` go to
+    ``Figure`` (``figsize``, ...); :func:`save_figure` writes it."""
+    from matplotlib.figure import Figure  # lazy: heavy optional dependency
+
+    fig = Figure(**figure_kw)
+    return fig, fig.subplots(nrows, ncols, squeeze=squeeze)
+
+
 def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: float = 100, **savefig_kw: object) -> Path:
     """Save a matplotlib figure atomically (format from the suffix, PNG by default) and release it from
     pyplot if pyplot made it. No timestamp is written: the same figure gives the same bytes. Returns the
     path."""
-    import matplotlib.pyplot as plt  # lazy: heavy optional dependency
+    import matplotlib  # lazy: heavy optional dependency
 
     p = Path(path)
     fmt = p.suffix.lstrip(".").lower() or "png"
@@ -265,7 +276,10 @@ def save_figure(fig: Figure, path: str | os.PathLike, *, dpi: float = 100, **sav
                "eps": {"CreationDate": None}}
     if fmt in undated:
         savefig_kw.setdefault("metadata", undated[fmt])
-    with atomic_path(p) as tmp, plt.rc_context({"svg.hashsalt": "terrainwarp"}):
+    with atomic_path(p) as tmp, matplotlib.rc_context({"svg.hashsalt": "terrainwarp"}):
         fig.savefig(tmp, format=fmt, dpi=dpi, **savefig_kw)  # (ENOSPC from savefig: named by atomic_path)
-    plt.close(fig)
+    if getattr(fig.canvas, "manager", None) is not None:  # made by pyplot: let pyplot forget it
+        import matplotlib.pyplot as plt  # lazy: heavy optional dependency
+
+        plt.close(fig)
     return p

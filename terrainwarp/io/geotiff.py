@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import numpy as np
 
-from ..kernels.checks import check_int, check_number
+from ..kernels.checks import check_choice, check_int, check_number
 from .files import atomic_path
 from .geodesy import WGS84_A, WGS84_INV_F, metres_per_degree
 from .memory import check_heightmap_fits
@@ -307,8 +307,7 @@ def read_geotiff(path: str | os.PathLike, *, band: int = 1, window: object = Non
     if not p.exists():
         raise FileNotFoundError(f"path: no such file: {p}")
     k = _int_arg("decimate", decimate, 1)
-    if resampling not in _RESAMPLING:
-        raise ValueError(f"resampling: expected one of {list(_RESAMPLING)}, got {resampling!r}")
+    check_choice("resampling", resampling, _RESAMPLING)
     with _open(p) as src:
         b = _band(src, band, p)
         pw = _pixel_window(src, window, bounds)

@@ -36,7 +36,7 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels import bintree as _k
-from ..kernels.checks import check_int
+from ..kernels.checks import check_choice, check_int
 from ..kernels.lod import frustum_planes
 from ..mesh import Mesh
 
@@ -105,8 +105,7 @@ class Bintree:
             raise TypeError(f"heightmap: expected a Heightmap, got {type(heightmap).__name__}")
         if not np.all(np.isfinite(heightmap.heights)):
             raise ValueError("heightmap: expected finite heights (fill no-data first)")
-        if method not in HEIGHT_METHODS:
-            raise ValueError(f"method: expected one of {list(HEIGHT_METHODS)}, got {method!r}")
+        check_choice("method", method, HEIGHT_METHODS)
         rows, cols = heightmap.shape
         if depth is None:
             depth = 2 * max(1, math.ceil(math.log2(max(rows, cols, 2) - 1))) + 1

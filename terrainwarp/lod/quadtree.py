@@ -45,7 +45,7 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import write_text
-from ..kernels.checks import check_int
+from ..kernels.checks import check_device, check_int
 from ..kernels.lod import (
     DENSE_MAX_CELLS,
     QuadtreeWalk,
@@ -178,6 +178,7 @@ class Terrain:
             depth: deepest level; default: the smallest D with roots * T * 2**D cells covering the grid
                 (one vertex per sample at level D).
         """
+        check_device("device", device)
         if isinstance(heightmap, StreamedHeightmap):
             return cls.prepare_streamed(heightmap, roots=roots, tess=tess, depth=depth, device=device)
         if not isinstance(heightmap, Heightmap):

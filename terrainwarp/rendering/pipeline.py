@@ -69,6 +69,7 @@ from __future__ import annotations
 
 import functools
 import time
+import warnings
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -81,6 +82,7 @@ from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.display import depth_picture, html_table, id_picture, png_bytes
 from ..io.files import atomic_path, output_set, write_image, write_json
+from ..kernels.checks import check_device
 from ..kernels.counters import frame_counters, indexed_draw_counters
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
@@ -97,7 +99,8 @@ from ..scene import Scene
 from ..surface.differential import compute_curvature
 from .sources import MeshSource, StreamedSource, missing_members, scene_source
 
-__all__ = ["render", "Frame", "Report", "StageRecord", "Plan", "plan_for", "stages_for", "MeshSource", "pop_stats"]
+__all__ = ["render", "Frame", "Report", "StageRecord", "Plan", "plan_for", "stages_for", "MeshSource", "pop_stats",
+           "EmptyFrameWarning"]
 
 TERRAINS_HELD = 4  # quadtree layouts (roots, tess) a heightmap holds prepared, per device: the latest drawn
 STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
@@ -389,9 +392,9 @@ class _Run:
         the stages that read every sample (curvature, the reference and the error)."""
         hm = self.scene.heightmap
         if isinstance(hm, StreamedHeightmap):
-            if "loaded" not in hm.held:
-                hm.held["loaded"] = hm.load()
-            return hm.held["loaded"]
+            if hm.held.loaded is None:
+                hm.held.loaded = hm.load()
+            return hm.held.loaded
         return hm
 
     @property
@@ -464,10 +467,11 @@ def _streamed_source(scene: Scene, terrain: Terrain | None, source: MeshSource |
                          "shaded 'hillshade', 'level' or 'wireframe'")
     if patches is not None:
         raise ValueError("patches: a streamed heightmap selects its own patches (hold its StreamedSource)")
-    key = ("streamed_source", tuple(sorted(scene.lod.__dict__.items())), device)
-    if key not in hm.held:
-        hm.held[key] = StreamedSource(hm, scene.lod, device=device, terrain=terrain)
-    return hm.held[key]
+    key = (tuple(sorted(scene.lod.__dict__.items())), device)
+    held = hm.held.streamed_sources
+    if key not in held:
+        held[key] = StreamedSource(hm, scene.lod, device=device, terrain=terrain)
+    return held[key]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -477,7 +481,7 @@ def _streamed_source(scene: Scene, terrain: Terrain | None, source: MeshSource |
 def _held_terrain(hm: Heightmap, lod: Any, device: str, prepared: Terrain | None = None) -> Terrain | None:
     """The Terrain the heightmap holds for the layout (roots, tess) of ``lod`` on ``device`` (None: none yet); with
     ``prepared``, held from now on (the least recently drawn of more than TERRAINS_HELD layouts let go)."""
-    held = hm.held.setdefault(("terrains", device), OrderedDict())
+    held = hm.held.terrains.setdefault(device, OrderedDict())
     key = (lod.roots, lod.tess)
     if prepared is not None:
         held[key] = prepared
@@ -542,6 +546,12 @@ def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
         mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
     frame.mesh = mesh
     rec.counters.update(patches=n_patches, vertices=mesh.n_vertices, triangles=mesh.n_triangles)
+    shape = run.scene.heightmap.shape  # (run.hm would load a streamed heightmap whole)
+    if min(shape) < 2:  # said, not left to a puzzled look at an empty frame
+        why = (f"heightmap: {shape[0]}x{shape[1]} samples make no triangle (a cell needs 2x2 "
+               "samples); the frame is empty")
+        frame.report.info["empty"] = why
+        warnings.warn(why, EmptyFrameWarning, stacklevel=3)
     if run.counting:  # the draws' statistics, counted as part of the stage
         t0 = time.perf_counter()
         run.draw_counters = _draw_counters(mesh, run.device)
@@ -638,6 +648,19 @@ _STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {
 # ------------------------------------------------------------------------------------------------
 # render
 # ------------------------------------------------------------------------------------------------
+class EmptyFrameWarning(UserWarning):
+    """A frame that can hold nothing whatever the camera (a heightmap with a side of one sample)."""
+
+
+def _check_render_args(scene: object, terrain: object, state: object, reference: object, device: object) -> None:
+    for name, v, cls in (("scene", scene, Scene), ("terrain", terrain, Terrain), ("state", state, LodState),
+                         ("reference", reference, Frame)):
+        if not isinstance(v, cls) and not (v is None and name != "scene"):
+            what = f"a terrainwarp {cls.__name__}" + ("" if name == "scene" else " or None")
+            raise TypeError(f"{name}: expected {what}, got {type(v).__name__} {v!r:.60}")
+    check_device("device", device)
+
+
 def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None = None,
            reference: Frame | None = None, device: str = "cpu", *, source: MeshSource | None = None,
            patches: PatchList | None = None) -> Frame:
@@ -658,7 +681,12 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
 
     Returns:
         A :class:`Frame`; deterministic (bit-identical across runs for the same scene).
+
+    Raises:
+        TypeError: an argument of the wrong type (named). ValueError: a device Warp does not see (a CUDA device
+            on a machine without a GPU says so).
     """
+    _check_render_args(scene, terrain, state, reference, device)
     start = time.perf_counter()
     with kernel_clock() as in_kernels:
         run = _start(scene, terrain, state, reference, source, patches, device)

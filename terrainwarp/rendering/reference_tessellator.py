@@ -70,6 +70,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.files import save_figure
+from ..kernels.checks import check_choice
 from ..kernels.tessellator import SPACING_CODES
 
 __all__ = ["reference_tessellate_patch", "patch_counts", "SPACINGS"]
@@ -383,8 +384,7 @@ def _connectivity(lay: _Layout) -> list[tuple[int, int, int]]:
 
 
 def check_spacing(spacing: str) -> None:
-    if spacing not in SPACINGS:
-        raise ValueError(f"spacing: expected one of {list(SPACINGS)}, got {spacing!r}")
+    check_choice("spacing", spacing, SPACINGS)
 
 
 def _check_levels(outer, inner) -> tuple[np.ndarray, np.ndarray]:

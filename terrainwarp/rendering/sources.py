@@ -380,7 +380,7 @@ def scene_source(scene: Scene, device: str = "cpu") -> MeshSource:
     if not isinstance(hm, Heightmap) or isinstance(hm, StreamedHeightmap):
         raise ValueError(f"lod.policy: the scheme {lod.policy!r} draws an in-memory Heightmap; a streamed heightmap "
                          f"is drawn by the quadtree policies ({', '.join(POLICY_TABLE)})")
-    cache = hm.held.setdefault(("schemes", device), {})
+    cache = hm.held.schemes.setdefault(str(device), {})
     params = dict(lod.params)
     value = params.pop(SCHEMES[lod.policy].parameter, None)
     if value is None:

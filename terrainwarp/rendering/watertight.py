@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..heightmap import Heightmap
+from ..kernels.checks import check_triangles
 from ..lod.quadtree import PatchList
 from .pipeline import Frame
 
@@ -122,12 +123,7 @@ def _check_arrays(pos: object, tri: object) -> tuple[np.ndarray, np.ndarray]:
     if pos.ndim != 2 or pos.shape[1] != 3:
         raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
     pos = np.ascontiguousarray(pos, dtype=np.float32)
-    tri = np.asarray(tri)
-    if tri.ndim != 2 or tri.shape[1] != 3 or not np.issubdtype(tri.dtype, np.integer):
-        raise ValueError(f"triangles: expected (m, 3) integer indices, got {tri.shape} {tri.dtype}")
-    if tri.size and (tri.min() < 0 or tri.max() >= pos.shape[0]):
-        raise ValueError(f"triangles: expected indices in [0, {pos.shape[0]}), got [{tri.min()}, {tri.max()}]")
-    return pos, tri
+    return pos, check_triangles("triangles", tri, pos.shape[0])
 
 
 def _border_mask(merged: np.ndarray, once: np.ndarray, border: object) -> np.ndarray:
@@ -153,7 +149,7 @@ def check_watertight(mesh, triangles=None, border="auto", allowed: EdgeRule | No
 
     Args:
         mesh: a :class:`terrainwarp.Frame` (its mesh, classified by its patches and heightmap), a
-            :class:`terrainwarp.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or positions
+            :class:`terrainwarp.mesh.Mesh`, a ``Tessellation``, a ``(positions, triangles)`` pair, or positions
             (n, 3) float32 with ``triangles`` given separately (a patch's domain:
             :func:`check_watertight_domain`).
         triangles: (m, 3) int indices when ``mesh`` is a positions array.

@@ -28,6 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..heightmap import Heightmap
+from ..kernels.checks import check_device
 from ..kernels.curvature import (
     CURVATURE_METHODS,
     DIRECTIONS,
@@ -79,6 +80,7 @@ def compute_normals(heightmap: Heightmap | np.ndarray, method: str = "sobel", *,
         Not differentiable (discrete kernel).
     """
     h, dx_, dz_ = _unpack(heightmap, dx, dz)
+    check_device("device", device)
     return vertex_normals(h, dx_, dz_, method=method, border=border, constant=constant, device=device)
 
 
@@ -100,6 +102,7 @@ def compute_curvature(heightmap: Heightmap | np.ndarray, method: str = "three_no
         ``edge_angle``. Not differentiable.
     """
     h, dx_, dz_ = _unpack(heightmap, dx, dz)
+    check_device("device", device)
     return directional_curvature(h, dx_, dz_, method=method, scale=scale, distance=distance, normals=normals,
                                  device=device)
 

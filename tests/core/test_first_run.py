@@ -1,75 +1,92 @@
-"""The first run says, once, that Warp compiles the kernels (issue 20, item 11): it took a minute with no
-word. The note is for a person at a terminal; through a pipe (the CLI's callers, which expect one line on
-an error) nothing extra is printed. Run in subprocesses against a temporary Warp kernel cache
-(WARP_CACHE_PATH) with stderr on a pseudo-terminal; the real cache is never touched."""
+"""The first run compiles the kernels with a line per module, not in silence (issue 44, item 1); afterwards nothing
+is printed. Each run is a subprocess against a temporary Warp kernel cache (WARP_CACHE_PATH) that holds the real
+cache's compiled modules except a few small ones, so only those compile (a second or two, not a minute); the real
+cache is only read."""
 
-import io
+from __future__ import annotations
+
+import json
 import os
-import pty
 import subprocess
 import sys
+from pathlib import Path
 
+import pytest
 import warp as wp
 
-from terrainwarp.io.native import first_compile_note, say_first_compile
+from terrainwarp import warmup as wu
+from terrainwarp.kernels.device import start
 
-# what the terrainwarp command does on start (runtime.configure_from_env), then a first kernel
-CODE = "import terrainwarp as tw; from terrainwarp import runtime; runtime.configure_from_env(); tw.Heightmap.fbm(9)"
+MISSING = ("noise", "metrics", "visibility")  # the smallest modules: compiled by the runs below
 
 
-def _env(cache):
+@pytest.fixture(scope="module")
+def compiled() -> dict[str, Path]:
+    """Every kernel module's folder in the real cache (compiled now if missing: make test's warmup did that)."""
+    start()
+    wu.warmup(progress=False)
+    dev = wp.get_device("cpu")
+    return {n: wu._binary(m, dev).parent for n, m in wu.kernel_modules().items()}
+
+
+def _cache_without(tmp: Path, compiled: dict[str, Path], missing: tuple[str, ...]) -> Path:
+    base = tmp / "warp-cache"
+    root = base / wp.config.version
+    root.mkdir(parents=True)
+    for name, folder in compiled.items():
+        if name not in missing:
+            (root / folder.name).symlink_to(folder, target_is_directory=True)
+    return base
+
+
+def _run(code: str, cache: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "WARP_CACHE_PATH": str(cache)}
     env.pop("TERRAINWARP_VERBOSE", None)
-    return env
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
 
 
-def _run_on_tty(cache):
-    """(exit code, what the process wrote on its stderr, a terminal)."""
-    master, slave = pty.openpty()
-    try:
-        p = subprocess.Popen([sys.executable, "-c", CODE], env=_env(cache), stdin=subprocess.DEVNULL,
-                             stdout=subprocess.DEVNULL, stderr=slave)
-        os.close(slave)
-        chunks = []
-        while True:
-            try:
-                b = os.read(master, 4096)
-            except OSError:  # EIO: the child closed the terminal
-                break
-            if not b:
-                break
-            chunks.append(b)
-        rc = p.wait(timeout=600)
-    finally:
-        os.close(master)
-    return rc, b"".join(chunks).decode().replace("\r\n", "\n")
+def test_a_first_render_compiles_what_is_missing_with_a_line_each_then_says_nothing(tmp_path, compiled):
+    """The shading module (with the terrain noise's hash it shares) compiles here: its stderr is the progress lines
+    alone, so no compiler line either (issue 20: the first run printed four -Wconstant-conversion warnings)."""
+    cache = _cache_without(tmp_path, compiled, ("shading",))
+    code = ("import terrainwarp as tw; hm = tw.Heightmap.fbm(17, seed=1); "
+            "tw.render(tw.Scene(hm, camera=tw.Camera.default_for(hm, 16, 12), outputs=('image',)))")
+    r = _run(code, cache)
+    assert r.returncode == 0 and r.stdout == "", r.stderr
+    lines = r.stderr.splitlines()
+    assert lines == ["compiling kernels, first run only: 0/1 (each as it is first needed; 'terrainwarp warmup' "
+                     "compiles them all at once, in parallel)",
+                     "compiling kernels, first run only: 1/1 shading"]  # no CUDA warning, no Warp lines
+    assert _run(code, cache).stderr == ""  # compiled once: the next process finds it
 
 
-def test_first_run_on_a_terminal_says_once_that_kernels_are_compiled(tmp_path):
-    cache = tmp_path / "warp-cache"
-    rc, err = _run_on_tty(cache)
-    assert rc == 0, err
-    assert err == (f"terrainwarp: compiling Warp kernels on first use; they are cached in "
-                   f"{os.path.realpath(cache)}{os.sep}{wp.config.version} (about a minute, once)\n")
-    assert _run_on_tty(cache) == (0, "")  # once: the kernels are cached now
+def test_warmup_compiles_in_worker_processes_and_the_command_reports_it(tmp_path, compiled):
+    cache = _cache_without(tmp_path, compiled, MISSING)
+    code = ("import json, terrainwarp.warmup as w; r = w.warmup(workers=2); "
+            "print(json.dumps([sorted(r.compiled), len(r.cached), r.workers, w.pending()]))")
+    r = _run(code, cache)
+    assert r.returncode == 0, r.stderr
+    got, n_cached, workers, pending = json.loads(r.stdout)
+    assert got == sorted(MISSING) and n_cached == len(compiled) - len(MISSING) and workers == 2 and pending == []
+    lines = r.stderr.splitlines()
+    assert "0/3 (once per machine: 2 worker processes" in lines[0]
+    tail = [line.removeprefix("compiling kernels, first run only: ").split() for line in lines[1:]]
+    assert [t[0] for t in tail] == ["1/3", "2/3", "3/3"] and sorted(t[1] for t in tail) == sorted(MISSING)
 
 
-def test_first_run_through_a_pipe_prints_nothing(tmp_path):
-    r = subprocess.run([sys.executable, "-c", CODE], env=_env(tmp_path / "c"), capture_output=True, text=True,
-                       timeout=600)
-    assert (r.returncode, r.stdout, r.stderr) == (0, "", "")  # no compiler warnings either
+
+def test_the_warmup_command_says_all_is_compiled(compiled, capsys):
+    from terrainwarp.cli import main
+
+    assert main(["warmup"]) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and out.startswith(f"all {len(compiled)} kernel modules are compiled; cache: ")
+    assert main(["warmup", "--device", "tpu"]) == 2
+    assert capsys.readouterr().err.startswith("terrainwarp: error: --device: expected one of the devices Warp sees")
 
 
-def test_note_only_without_cached_terrainwarp_kernels(tmp_path):
-    assert first_compile_note(None) is None
-    assert first_compile_note(tmp_path / "missing").startswith("terrainwarp: compiling Warp kernels")
-    assert first_compile_note(tmp_path) is not None  # empty
-    (tmp_path / "wp_other.module_abc").mkdir()  # another program's kernels do not count
-    assert first_compile_note(tmp_path) is not None
-    tty, pipe = io.StringIO(), io.StringIO()
-    tty.isatty = lambda: True
-    assert say_first_compile(tmp_path, tty) and tty.getvalue().count("\n") == 1
-    assert not say_first_compile(tmp_path, pipe) and pipe.getvalue() == ""
-    (tmp_path / "wp_terrainwarp.kernels.noise_459b100").mkdir()
-    assert first_compile_note(tmp_path) is None
-    assert not say_first_compile(tmp_path, tty) and tty.getvalue().count("\n") == 1
+def test_warmup_validates_its_arguments():
+    with pytest.raises(ValueError, match=r"^device: 'cuda:7' asks for an NVIDIA GPU|^device: expected one of"):
+        wu.warmup("cuda:7", progress=False)
+    with pytest.raises(TypeError, match="^workers: expected an integer"):
+        wu.warmup(workers=1.5, progress=False)

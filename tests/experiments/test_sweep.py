@@ -73,6 +73,7 @@ def _jobs(n: int, *extra) -> list[Job]:
 
 
 # ------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_report_sweep_identical_for_one_and_two_workers(small):
     sc, cams = small
     one = run_sweep(sc, cams, SETTINGS, workers=1, progress=False)

@@ -178,6 +178,7 @@ def test_gradient_matches_the_exact_pipeline_where_topology_holds(hm, cam, terra
     assert len(found) == 2, f"too few targets in [2.5, 4] keep the topology over the step: {found}"
 
 
+@pytest.mark.slow
 def test_no_nan_or_inf_gradients_at_the_clamps(hm, cam, terrain):
     cases = {
         "all factors at 1": (cam, 1e4),

@@ -131,6 +131,7 @@ def test_one_knob_fit_meets_the_budget_in_fewer_frames_than_bisection(scene):
     assert res.trace and res.trace[-1][1] == res.validated.cost and res.trace[-1][0] <= res.evaluations
 
 
+@pytest.mark.slow
 def test_multi_knob_fit_is_confirmed_on_every_camera_and_costs_no_more_than_one_knob(scene):
     sc, cams, refs = scene
     one = fit_lod(sc, 1.5, "sse", cams, references=refs)
@@ -145,6 +146,7 @@ def test_multi_knob_fit_is_confirmed_on_every_camera_and_costs_no_more_than_one_
     assert any(h["stage"] == "relaxed" for h in many.history)  # the reduced-gradient rounds on the JAX model
 
 
+@pytest.mark.slow
 def test_fits_are_deterministic_across_runs_and_thread_counts_and_save_to_toml(scene, tmp_path):
     sc, cams, refs = scene
     a = fit_lod(sc, 1.0, "cdlod", cams, knobs=["ratio", "grid"], references=refs)

@@ -45,7 +45,7 @@ def test_check_viewport_one_rule_for_both_sides():
     with pytest.raises(ValueError, match=r"^camera.width: expected 1\.\.16384 pixels, got 16385$"):
         check_viewport(16385, 64, names=("camera.width", "camera.height"))
     for bad in (64.0, True, "64"):
-        with pytest.raises(TypeError, match=r"^width: expected an integer number of pixels"):
+        with pytest.raises(TypeError, match=r"^width: expected a positive integer number of pixels"):
             check_viewport(bad, 64)
 
 

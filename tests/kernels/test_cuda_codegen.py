@@ -8,6 +8,8 @@ import pytest
 import warp as wp
 from cuda_codegen import compile_all, kernel_modules, nvrtc_archs
 
+pytestmark = pytest.mark.slow  # (the few that must stay slow: make test runs them)
+
 
 @pytest.fixture(scope="module")
 def ptx():

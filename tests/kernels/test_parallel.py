@@ -188,6 +188,16 @@ def test_threads_that_start_together_load_a_module_once_and_one_at_a_time():
     assert all(b == 1 for _, _, b in loads)
 
 
+def test_a_module_is_built_once_for_the_block_size_its_launches_use():
+    """parallel.load loaded Warp's default variant (block_dim 256) and wp.launch on the CPU then built a second
+    (block_dim 1): every module compiled twice on a first run. Now only the launched variant is loaded."""
+    from terrainwarp.kernels import noise
+
+    tw.Heightmap.fbm(9, seed=3)
+    dims = {dim for (_, dim) in noise._fbm_kernel.module.execs}
+    assert dims == {1}
+
+
 def test_set_threads_validates():
     for bad, err in ((0, ValueError), (-2, ValueError), (1.5, TypeError), (True, TypeError), ("2", TypeError)):
         with pytest.raises(err, match="n: expected"):

@@ -174,24 +174,6 @@ def test_scene_rejects_an_unknown_shading():
         tw.Scene(hm, shading="cel")
 
 
-def test_first_compile_prints_no_compiler_warning(tmp_path):
-    """Issue 20 item 11: the shading module (with the terrain noise's hash it shares, whose 32-bit constants
-    are written as their int32 values) compiles without a single compiler line on stderr (the first run
-    printed four -Wconstant-conversion warnings). A fresh WARP_CACHE_PATH forces the compile; the real
-    cache is not touched."""
-    import os
-    import subprocess
-    import sys
-
-    code = ("import warp as wp; wp.config.log_level = wp.LOG_WARNING; wp.init(); "
-            "import terrainwarp.kernels.shading as m; wp.load_module(m, device='cpu'); print('compiled')")
-    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "cache")}
-    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0 and "compiled" in r.stdout, r.stderr
-    assert any((tmp_path / "cache").rglob("wp_terrainwarp.kernels.shading*.cpp"))  # it did compile here
-    assert "warning" not in r.stderr.lower().replace("warp cuda warning", ""), r.stderr
-
-
 def test_srgb8_is_the_correctly_rounded_encoding():
     """Each threshold encodes to its code and the float just below it to the code before (so every float32
     in [0, 1] gets the code nearest the exact transfer function); out-of-range values clamp, NaN is 0."""

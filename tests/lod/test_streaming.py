@@ -53,14 +53,19 @@ def test_on_demand_bounds_contain_every_nodes_own_stats(ridged):
                 assert pad == 0 and np.array_equal(e, er.ravel())
 
 
+@pytest.mark.slow
 def test_on_demand_selection_matches_the_in_memory_one():
     """Decisions are taken where the measured and the widened stats agree, so they are the exact pyramid's
     but where a node's own error is below a descendant's (the in-memory pyramid's monotone rule) or a
     node stays undecided at its finest step (1/8 of its vertex spacing; then it splits)."""
     hm = Heightmap.fbm(4097, seed=1, max_height=2000.0, dx=10.0)
     cam = _ground_camera(hm)
+    prepared = {}  # the in-memory pyramids by (roots, tess): the first two configurations share theirs
     for lod in (LodConfig(), LodConfig(policy="distance"), LodConfig(tolerance_px=4.0, tess=32)):
-        a = select(Terrain.prepare(hm, roots=lod.roots, tess=lod.tess), cam, make_policy(lod))
+        key = (lod.roots, lod.tess)
+        if key not in prepared:
+            prepared[key] = Terrain.prepare(hm, roots=lod.roots, tess=lod.tess)
+        a = select(prepared[key], cam, make_policy(lod))
         st = StreamedHeightmap.fbm(4097, seed=1, max_height=2000.0, dx=10.0)
         b = select(Terrain.prepare(st, roots=lod.roots, tess=lod.tess), cam, make_policy(lod))
         differ = len(np.setxor1d(a.key, b.key))  # one split decided otherwise: 1 key against 4

@@ -226,14 +226,14 @@ def test_a_render_loop_without_a_terrain_prepares_once_and_selects_as_a_prepared
     cams = sc.camera_path(3)
     frames = [render(sc.with_(camera=c)) for c in cams]
     assert [("prepare" in [s.name for s in f.report.stages]) for f in frames] == [True, False, False]
-    (held,) = hm.held[("terrains", "cpu")].values()
+    (held,) = hm.held.terrains["cpu"].values()
     mine = Terrain.prepare(hm, roots=4, tess=8)
     for f, c in zip(frames, cams, strict=True):
         ref = render(sc.with_(camera=c), terrain=mine)
         assert digest(f.depth, f.patches.key) == digest(ref.depth, ref.patches.key)
-    assert hm.held[("terrains", "cpu")][(4, 8)] is held  # the same Terrain every frame
+    assert hm.held.terrains["cpu"][(4, 8)] is held  # the same Terrain every frame
     render(sc.with_(lod=LodConfig(roots=4, tess=16)))  # another layout: held beside it
-    assert set(hm.held[("terrains", "cpu")]) == {(4, 8), (4, 16)}
+    assert set(hm.held.terrains["cpu"]) == {(4, 8), (4, 16)}
 
 
 def test_lod_config_with_policy():
