@@ -179,11 +179,18 @@ def _cmd_report(args: argparse.Namespace) -> int:
     print(f"path: {path['text']}")
     print(f"cost: {ranking.label}")
     for r in summarise(rows, ranking):
+        if r["failed"] == r["frames"]:
+            print(f"{r['setting']:>18}  every frame failed ({r['failed']})")
+            continue
         print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  image p99 {r['image_err_p99_px']:8.3f} px  "
-              f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {int(r['triangles']):>9} tris  "
-              f"{r['frame_ms']:9.2f} CPU ms")
+              f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {r['triangles']:>9.0f} tris  "
+              f"{r['frame_ms']:9.2f} CPU ms" + (f"  ({r['failed']} of {r['frames']} frames failed)" if r["failed"]
+                                                else ""))
     print("wrote: " + ", ".join(str(p) for p in paths))
-    return 0
+    if failed:
+        print(f"terrainwarp: {len(failed)} of {len(rows)} frames failed (frames.csv has their errors); a rerun into "
+              f"{args.out} runs them again", file=sys.stderr)
+    return 1 if failed else 0
 
 
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
