@@ -10,7 +10,9 @@ set of files whole, nothing new but a sweep's resumable journal, one line on std
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import json
 import os
 import shutil
@@ -124,3 +126,85 @@ def test_ctrl_c_during_report_on_workers_prints_one_line_and_keeps_the_journal(t
     r = subprocess.run(argv[:-2] + ["--workers", "0"], capture_output=True, text=True, env=ENV, timeout=600)
     assert r.returncode == 0, r.stderr
     assert {"frames.csv", "pareto.png", "report.md"} <= set(_files(out)) and not journal.exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# issue 43: a sweep with failed jobs still reports, a rerun retries them; a cluster that fails to start
+# ------------------------------------------------------------------------------------------------
+_FLAKY = '''
+import os
+import terrainwarp as tw
+from terrainwarp.schemes import scheme_source
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+class Flaky(tw.rendering.SourceBase):
+    """Chunked LOD that raises on the second half of the path while the file 'fail' lies beside this plugin."""
+
+    def __init__(self, hm, v, cache):
+        self.inner, self.hm = scheme_source("chunked", hm, v, cache=cache), hm
+
+    def __getattr__(self, k):
+        return getattr(self.__dict__["inner"], k)
+
+    def mesh_for(self, camera):
+        (x0, _), (x1, _) = self.hm.bounds_xz
+        late = camera.position[0] > 0.5 * (x0 + x1)
+        with open(os.path.join(HERE, "calls.log"), "a") as f:
+            f.write(f"{late}\\n")
+        if late and os.path.exists(os.path.join(HERE, "fail")):
+            raise RuntimeError("flaky frame")
+        return self.inner.mesh_for(camera)
+
+
+tw.schemes.register_scheme("flaky", lambda hm, v, *, cache, **kw: Flaky(hm, v, cache), parameter="v", lo=0.1,
+                           hi=64, larger_is_finer=False, replace=True)
+'''
+
+
+def test_a_report_with_failed_frames_is_written_and_a_rerun_retries_them(tmp_path, capsys):
+    from terrainwarp.cli import main
+
+    plugin = tmp_path / "flaky.py"
+    plugin.write_text(_FLAKY)
+    (tmp_path / "fail").touch()
+    scene = tmp_path / "s.toml"
+    scene.write_text('[heightmap]\nfbm = { rows = 65, seed = 3 }\n[camera]\nwidth = 48\nheight = 32\n')
+    out = tmp_path / "r"
+    argv = ["report", str(scene), "--plugin", str(plugin), "--policies", "grid,flaky", "--quick", "--frames", "2",
+            "--workers", "0", "--no-progress", "--no-images", "--out", str(out)]
+    assert main(argv) == 1  # written, and the exit says some frames failed
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "cannot convert float NaN" not in err
+    assert err.strip().splitlines()[-1].startswith("terrainwarp: 2 of 6 frames failed")
+    rows = list(csv.DictReader(io.StringIO((out / "frames.csv").read_text())))
+    assert [r["error"] for r in rows if r["policy"] == "flaky"].count("RuntimeError: flaky frame") == 2
+    md = (out / "report.md").read_text()
+    assert "Failed frames: 2 of 6" in md and "left out of the Pareto fronts" in md
+    assert "## Pareto front" in md and "flaky" not in md.split("## Pareto front")[1].split("## Cameras")[0]
+    assert (out / "frames.csv.partial").exists()  # the failed frames are to run again
+    (tmp_path / "calls.log").unlink()
+    (tmp_path / "fail").unlink()
+    assert main(argv) == 0
+    # the two failed frames alone (frame 1 of each setting: its own mesh, then frame 0's for its popping)
+    assert (tmp_path / "calls.log").read_text().split() == ["True", "False"] * 2
+    rows = list(csv.DictReader(io.StringIO((out / "frames.csv").read_text())))
+    assert all(r["error"] == "" for r in rows) and not (out / "frames.csv.partial").exists()
+    assert "Failed frames" not in (out / "report.md").read_text()
+
+
+def test_a_cluster_that_fails_to_start_is_one_line_and_exit_2(tmp_path):
+    die = tmp_path / "die"
+    die.mkdir()
+    (die / "sitecustomize.py").write_text("import os\nos._exit(3)\n")  # every worker process dies as it starts
+    env = {**ENV, "DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON": json.dumps({"PYTHONPATH": str(die)})}
+    r = subprocess.run([*CLI, "report", "--quick", "--frames", "1", "--width", "48", "--height", "32", "--workers",
+                        "1", "--policies", "grid", "--no-progress", "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert lines[0].startswith("terrainwarp: error: workers: the local Dask cluster of 1 worker process(es) failed "
+                               "to start")
+    assert not (tmp_path / "o").exists()
