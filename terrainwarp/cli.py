@@ -5,10 +5,13 @@ none is given. ``--plugin FILE.py`` (or a module name; before or after the comma
 first, so the LOD schemes it registers (:func:`terrainwarp.schemes.register_scheme`) are names that
 ``report --policies`` and ``fit --policy`` take. Outputs go under ``--out DIR``, written as one set
 (:func:`terrainwarp.io.files.output_set`): renamed into place only when every file is written. Bad arguments,
-paths and scene files, a full disk or any other failure print one line on stderr and exit 2; Ctrl-C prints one
-line and exits 130. Either way ``--out`` is left as it was (the previous run's files whole, nothing new)
-except for a sweep's partial journal, from which a rerun resumes. A run that succeeds says which files in
-``--out`` it did not write (left from an earlier run; never deleted).
+paths and scene files, a full disk or any other failure print one line on stderr and exit 2; Ctrl-C (SIGINT),
+SIGTERM and SIGHUP print one line and exit 128 + the signal (130, 143, 129). Either way ``--out`` is left as it
+was (the previous run's files whole, nothing new) except for a sweep's partial journal, from which a rerun
+resumes; a signal that arrives while the set is being switched waits until it is whole
+(:func:`terrainwarp.io.files.interrupts_deferred`). Before it starts, a command finishes a commit that a killed
+run left half done and removes a killed run's temporaries (:func:`terrainwarp.io.files.recover`). A run that
+succeeds says which files in ``--out`` it did not write (left from an earlier run; never deleted).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import argparse
 import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -35,7 +39,7 @@ from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
 from .fit.knobs import main_knob
 from .heightmap import Heightmap
-from .io.files import output_set, write_json, write_text
+from .io.files import interrupt_handler, output_set, recover, write_json, write_text
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .measure.cost import Cost, cost
@@ -585,23 +589,54 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args = parser.parse_args(argv)
     configure_from_env()  # quiet Warp, kept frame memory: what a command run wants (import alone sets nothing)
+    with _signals_interrupt():
+        return _run(args)
+
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextlib.contextmanager
+def _signals_interrupt():
+    """SIGINT, SIGTERM and SIGHUP raise :class:`terrainwarp.io.files.Interrupted` (a KeyboardInterrupt) for the
+    command's run, held back while an output set is switched; the handlers before are restored after."""
+    before = {}
+    try:
+        for s in _SIGNALS:
+            before[s] = signal.signal(s, interrupt_handler)
+    except ValueError:  # not the main thread: signals stay as they are
+        pass
+    try:
+        yield
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
+def _run(args: argparse.Namespace) -> int:
     out = _OutDir(args.out) if getattr(args, "out", None) else None
+    oset = None
     try:
         if out is not None:
             out.check()
-        with output_set(args.out) if out is not None else contextlib.nullcontext():
+        with output_set(args.out) if out is not None else contextlib.nullcontext() as oset:
             rc = int(args.func(args) or 0)
     except (ValueError, TypeError, OSError) as e:
         if out is not None:
             out.clean_up()
         print(f"terrainwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        if out is not None:
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        whole = oset is not None and oset.committed  # the signal came as the new set was switched: keep it
+        if out is not None and not whole:
             out.clean_up()
-        print("terrainwarp: interrupted" + (f" (a rerun resumes from {out.journals()[0]})" if out is not None and
-                                            out.journals() else ""), file=sys.stderr)
-        return 130
+        by = "" if signum == signal.SIGINT else f" by {signal.Signals(signum).name}"
+        then = " after its files were written" if whole else ""
+        print(f"terrainwarp: interrupted{by}{then}" + (f" (a rerun resumes from {out.journals()[0]})" if out is
+                                                      not None and out.journals() and not whole else ""),
+              file=sys.stderr)
+        return 128 + int(signum)
     if out is not None:
         out.note_stale()
     return rc
@@ -643,6 +678,13 @@ class _OutDir:
         if not os.access(a, os.W_OK | os.X_OK):
             raise ValueError(f"--out: cannot write in {a} (read-only or no permission)")
         self.anchor = a
+        done = recover(p, self.DEPTH)  # a killed run's commit finished, its temporaries removed
+        if done["committed"]:
+            print(f"terrainwarp: note: finished the commit of an earlier run that was killed while switching its "
+                  f"files in {p}: {', '.join(done['committed'][:5])}", file=sys.stderr)
+        if done["removed"]:
+            print(f"terrainwarp: note: removed {len(done['removed'])} temporary file(s) that a killed run left in "
+                  f"{p}", file=sys.stderr)
         self.before = self._files()
         self.dirs = self._dirs()
 

@@ -208,3 +208,96 @@ def test_a_cluster_that_fails_to_start_is_one_line_and_exit_2(tmp_path):
     assert lines[0].startswith("terrainwarp: error: workers: the local Dask cluster of 1 worker process(es) failed "
                                "to start")
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# issue 43: SIGTERM and SIGHUP as SIGINT; a killed run leaves the old set or the new one, never a mix
+# ------------------------------------------------------------------------------------------------
+def _temporaries(d: Path) -> list[str]:
+    return sorted(str(p.relative_to(d)) for p in d.rglob("*") if ".tmp" in p.name or p.name.startswith(".terrain"))
+
+
+def _earlier_set(out: Path) -> dict[str, str]:
+    r = subprocess.run([*CLI, "demo", "--width", "160", "--height", "90", "--out", str(out)], capture_output=True,
+                       text=True, env=ENV, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return _files(out)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_while_writing_leave_the_earlier_set_whole(tmp_path, sig):
+    out = tmp_path / "o"
+    before = _earlier_set(out)
+    p = subprocess.Popen([*CLI, "demo", "--width", "1920", "--height", "1080", "--out", str(out)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV)
+    started = _wait_for(lambda: bool(_temporaries(out)), 300, p)  # its files being written
+    p.send_signal(sig)
+    err = p.communicate(timeout=120)[1]
+    assert started, err
+    assert p.returncode == 128 + sig, err
+    assert err.strip().splitlines() == [f"terrainwarp: interrupted by {signal.Signals(sig).name}"]
+    assert _files(out) == before and not _temporaries(out)
+
+
+def test_sigkill_in_the_write_phase_leaves_no_mix_and_the_next_run_no_temporary(tmp_path):
+    out = tmp_path / "o"
+    before = _earlier_set(out)
+    p = subprocess.Popen([*CLI, "demo", "--width", "1920", "--height", "1080", "--out", str(out)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
+    started = _wait_for(lambda: bool(_temporaries(out)), 300, p)
+    p.kill()
+    p.wait(timeout=60)
+    assert started
+    left = _files(out)
+    assert {k: v for k, v in left.items() if k in before} == before  # the earlier set, not one file new
+    assert set(left) - set(before) == set(_temporaries(out)) != set()  # and the dead run's temporaries
+    r = subprocess.run([*CLI, "tessellate", "--outer", "3", "5", "1", "7", "--inner", "4", "4", "--out", str(out)],
+                       capture_output=True, text=True, env=ENV, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "removed" in r.stderr and "temporary file(s) that a killed run left" in r.stderr
+    assert ".tmp" not in r.stderr  # the stale-file note names no temporary: there is none left
+    assert not _temporaries(out)
+    assert {k: v for k, v in _files(out).items() if k in before} == before
+
+
+_KILLED_IN_THE_COMMIT = r"""
+import os, signal, sys
+import terrainwarp.io.files as files
+real = files._roll_forward
+def roll_one_then_die(folder, body):  # the commit record is in place: rename one file, then SIGKILL
+    os.replace(folder / body["moves"][0][0], folder / body["moves"][0][1])
+    os.kill(os.getpid(), signal.SIGKILL)
+files._roll_forward = roll_one_then_die
+from terrainwarp.cli import main
+main(sys.argv[1:])
+"""
+
+
+def test_sigkill_in_the_commit_is_finished_by_the_next_run(tmp_path):
+    out, fresh = tmp_path / "o", tmp_path / "fresh"
+    before = _earlier_set(out)
+    argv = ["demo", "--width", "320", "--height", "180", "--out"]
+    r = subprocess.run([sys.executable, "-c", _KILLED_IN_THE_COMMIT, *argv, str(out)], env=ENV, timeout=300,
+                       capture_output=True, text=True)
+    assert r.returncode == -signal.SIGKILL, r.stderr
+    assert (out / ".terrainwarp-commit.json").exists()  # killed between the commit point and the last rename
+    mixed = _files(out)
+    assert sum(mixed[k] != before[k] for k in before) == 1  # one file switched, the others not yet
+    subprocess.run([*CLI, *argv, str(fresh)], env=ENV, timeout=300, capture_output=True, check=True)
+    new = _files(fresh)  # the set the killed run was committing (outputs are deterministic)
+    r = subprocess.run([*CLI, "tessellate", "--outer", "2", "2", "2", "2", "--inner", "2", "2", "--out", str(out)],
+                       capture_output=True, text=True, env=ENV, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "finished the commit of an earlier run that was killed" in r.stderr
+    got = _files(out)
+    assert {k: got[k] for k in ("frame.png", "depth.exr")} == {k: new[k] for k in ("frame.png", "depth.exr")}
+    assert _untimed(out / "report.json") == _untimed(fresh / "report.json") and not _temporaries(out)
+
+
+def _untimed(path: Path) -> object:
+    """A report.json without its wall times (``*_ms``: the one part of it that differs between runs)."""
+    def strip(o):
+        if isinstance(o, dict):
+            return {k: strip(v) for k, v in o.items() if not k.endswith("_ms")}
+        return [strip(v) for v in o] if isinstance(o, list) else o
+    return strip(json.loads(path.read_text()))

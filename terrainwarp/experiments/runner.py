@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..io.files import remove_when_written, write_text
+from ..io.files import remove_when_written, temp_path, write_text
 from ..kernels.checks import check_int, check_number
 from ..kernels.parallel import set_threads
 from .dask_worker import PRELOAD
@@ -74,9 +74,9 @@ RUN_COLUMNS = ("error", "retries")
 
 _CONNECT_TIMEOUT_S = 3.0
 MAX_TRIES = 3  # submissions of a job whose worker was lost with its inputs or its result (then a failed row)
-WORKER_WAIT_S = 60.0
+WORKER_WAIT_S = 60.0  # how long a sweep waits for a worker to come back before it restarts the cluster
 RESULT_WAIT_S = 10.0  # a finished job's row is fetched within this, else taken as lost with its worker
-_KEYS = itertools.count()  # task keys: unique within the process  # how long a sweep waits for a worker to come back before it restarts the cluster
+_KEYS = itertools.count()  # task keys: unique within the process
 
 
 class SchedulerUnreachableError(ConnectionError, ValueError):
@@ -276,7 +276,7 @@ class _Journal:
         self.path = _partial_path(out)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.columns = list(columns)
-        tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp = temp_path(self.path)
         with open(tmp, "w", newline="") as f:  # rewrite what we keep, then append
             f.write(_MAGIC + fingerprint + "\n")
             w = csv.writer(f, lineterminator="\n")

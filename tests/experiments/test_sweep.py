@@ -329,7 +329,7 @@ def test_losing_every_worker_of_a_remote_scheduler_is_one_clear_error(tmp_path):
             if len(seen) == 1:
                 cluster.scale(0)
 
-        with pytest.raises(WorkersLostError, match=r"workers: every Dask worker was lost and none came back within 1 s"):
+        with pytest.raises(WorkersLostError, match="workers: every Dask worker was lost and none came back within 1 s"):
             r.run(_jobs(40, None), _slow_square, out=tmp_path / "t.csv", fingerprint="x", columns=["i", "value"],
                   progress=False, on_row=scale_to_nothing)
         r.close()
