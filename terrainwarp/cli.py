@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import signal
 import subprocess
@@ -39,7 +38,7 @@ from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
 from .fit.knobs import main_knob
 from .heightmap import Heightmap
-from .io.files import interrupt_handler, output_set, recover, write_json, write_text
+from .io.files import dumps_strict, interrupt_handler, output_set, recover, write_json, write_text
 from .lod.policies import make_policy
 from .lod.quadtree import Terrain, select
 from .measure.cost import Cost, cost
@@ -59,7 +58,7 @@ from .scene import (
 )
 from .schemes import SCHEMES, load_plugin
 
-__all__ = ["main", "sweep_evaluator"]
+__all__ = ["main", "sweep_evaluator", "split_timings"]
 
 
 _LOD = LodConfig()  # the defaults of the LOD options
@@ -154,7 +153,7 @@ def _cmd_lod(args: argparse.Namespace) -> int:
     patches.to_csv(out / "patches.csv")
     plot_patches(sc.heightmap, patches, sc.camera, out / "lod.png",
                  title=f"{args.policy}: {len(patches)} patches, {patches.stats['culled']} culled")
-    print(json.dumps({**patches.stats, "levels": np.bincount(patches.level).tolist() if len(patches) else []}))
+    print(dumps_strict({**patches.stats, "levels": np.bincount(patches.level).tolist() if len(patches) else []}))
     print(f"wrote: {out / 'lod.png'}, {out / 'patches.csv'}")
     return 0
 
@@ -236,17 +235,21 @@ def _cmd_fit(args: argparse.Namespace) -> int:
             curve.append((b, r.validated.cost))
     runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
                          max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
-    write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
-                                  "baselines": runs})
+    doc, timing = split_timings({**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
+                                 "baselines": runs})
+    write_json(out / "fit.json", doc)
     plot_fit(res, out / "fit.png", curve or None)
     res.scene.save(out / "fitted.toml")
     if runs:
         plot_convergence({"fit_lod": res.trace, **{m: r["trace"] for m, r in runs.items()}}, out / "convergence.png",
                          title=f"{args.policy} at {args.budget_px:g} px", cost_label=res.cost)
     write_text(out / "report.md", "\n".join(_fit_report_lines(args, res, path, len(cams), runs)))
+    write_json(out / "timing.json", timing)
+    write_text(out / "timing.md", "\n".join(_fit_timing_lines(args, res, runs)))
     print(f"path: {path['text']}")
     print(res.message)
-    written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md"]
+    written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md",
+               "timing.json", "timing.md"]
     print("wrote: " + ", ".join(str(out / w) for w in written))
     return 0 if res.met else 1
 
@@ -266,27 +269,59 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
              f"worst frame {max(v.image_p99_px, default=float('nan')):.3g} px"
              + ("" if not v.pop_p99_px else f"; popping: the worst consecutive pair's pop p99 {v.worst_pop:.3g} px, "
                 f"max over pairs of the pop p99 (the previous camera's selection held)") + ".", "",
-             f"| method | value | worst p99 px | {res.cost}/frame | pipeline evaluations | wall s |",
-             "|---|---|---|---|---|---|",
-             f"| fit | {shown} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} | {res.wall_s:.1f} |"]
+             f"| method | value | worst p99 px | {res.cost}/frame | pipeline evaluations |",
+             "|---|---|---|---|---|",
+             f"| fit | {shown} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} |"]
     for name, r in (runs or {}).items():
         best = "none met the budget" if r["values"] is None else ", ".join(f"{k} = {x:.4g}"
                                                                            for k, x in r["values"].items())
-        lines.append(f"| {name} | {best} | {r['worst_p99_px']:.3g} | {r['cost']:.4g} | {r['frames']} | "
-                     f"{r['wall_s']:.1f} |")
+        lines.append(f"| {name} | {best} | {r['worst_p99_px']:.3g} | {r['cost']:.4g} | {r['frames']} |")
     if g:
         if g["value"] is None:
-            lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} | "
-                         f"{g['wall_s']:.1f} |")
+            lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} |")
         else:
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
-                         f"{g['cost']:.4g} | {g['evaluations']} | {g['wall_s']:.1f} |")
-    lines += ["", res.message, ""]
+                         f"{g['cost']:.4g} | {g['evaluations']} |")
+    lines += ["", res.message, "", "This run's wall times: [timing.md](timing.md).", ""]
     if res.mesh_only_frames:
         lines += [f"Frames only selected and meshed for their triangle count (not in the evaluations): "
                   f"{res.mesh_only_frames}. A try measures its critical cameras worst first and stops at the first "
                   "over the budget; the fitted value is measured on every camera.", ""]
     return lines
+
+
+def _fit_timing_lines(args: argparse.Namespace, res: FitResult, runs: dict | None) -> list[str]:
+    """The fit's timing.md: each method's wall time and the validated frames' CPU ms (they differ run to run;
+    timing.json holds the same numbers)."""
+    lines = ["# This run's timings", "", f"policy {args.policy}, budget {args.budget_px:g} px: wall seconds of this "
+             "simulator, not a GPU's (they differ from run to run and machine to machine).", "",
+             "| method | wall s |", "|---|---|", f"| fit | {res.wall_s:.1f} (relaxed model {res.model_s:.1f}) |"]
+    lines += [f"| {name} | {r['wall_s']:.1f} |" for name, r in (runs or {}).items()]
+    if res.grid:
+        lines.append(f"| grid search ({res.grid['points']} points) | {res.grid['wall_s']:.1f} |")
+    if res.validated is not None:
+        lines += ["", "Validated frames, CPU ms: " + ", ".join(f"{t:.1f}" for t in res.validated.frame_ms)]
+    return [*lines, ""]
+
+
+def split_timings(doc: object) -> tuple[object, object]:
+    """(``doc`` without its wall times, the wall times): every key ending in ``_s`` or ``_ms`` (seconds and
+    milliseconds measured on this machine) moves to the second, at the same place in the tree; what is left is
+    the same on every run."""
+    if isinstance(doc, dict):
+        kept, moved = {}, {}
+        for k, v in doc.items():
+            if str(k).endswith(("_s", "_ms")):
+                moved[k] = v
+                continue
+            kept[k], t = split_timings(v)
+            if t not in (None, {}, []):
+                moved[k] = t
+        return kept, moved
+    if isinstance(doc, list) and any(isinstance(v, dict) for v in doc):
+        pairs = [split_timings(v) for v in doc]
+        return [p[0] for p in pairs], ([p[1] for p in pairs] if any(p[1] for p in pairs) else None)
+    return doc, None
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:

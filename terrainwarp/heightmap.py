@@ -201,7 +201,8 @@ class Heightmap:
         dx = 1.0 if dx is None else dx
         return cls(heights=h, dx=_positive("dx", dx), dz=_positive("dz", dz if dz is not None else dx), name=p.stem,
                    meta={"source_dtype": str(source_dtype), "source": str(p),
-                         **({} if max_height is None else {"max_height": float(max_height)})})
+                         **({} if max_height is None else {"max_height": float(max_height)}),
+                         **({"channel": channel} if channel else {})})
 
     @classmethod
     def open(cls, path: str | os.PathLike, dx: float | None = None, dz: float | None = None, *, band: int = 1,

@@ -1,8 +1,10 @@
 """File output helpers: every file is written to a temporary name in its folder and renamed into
 place, so an interrupted or failed write never leaves a partial file behind; and a set of files written
 together (a frame's images and report, a sweep's table, plot and summary) is committed at once when every
-one of them is written (:func:`output_set`), so a failure leaves the previous set whole. Also the one digest
-of arrays that determinism checks compare, and the one way figures are saved.
+one of them is written (:func:`output_set`), so a failure leaves the previous set whole. Also strict JSON
+(:func:`strict_json`, what :func:`write_json` writes: no ``Infinity`` or ``NaN`` token, a ``null`` with its
+reason beside it), the one digest of arrays that determinism checks compare, and the one way figures are
+saved.
 
 What an output set guarantees, at any instant a process may die:
 
@@ -28,6 +30,7 @@ import errno
 import hashlib
 import itertools
 import json
+import math
 import os
 import re
 import shutil
@@ -35,7 +38,7 @@ import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -373,7 +376,70 @@ def write_image(path: str | os.PathLike, a: np.ndarray) -> Path:
 
 
 def write_json(path: str | os.PathLike, obj: object) -> Path:
-    return write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+    """Write ``obj`` as strict JSON (:func:`strict_json`: RFC 8259, no ``Infinity``/``NaN``), indented."""
+    return write_text(path, dumps_strict(obj, indent=2) + "\n")
+
+
+def dumps_strict(obj: object, **kw: Any) -> str:
+    """``json.dumps`` of :func:`strict_json` ``(obj)``, refusing any non-finite number left (``allow_nan=False``)."""
+    return json.dumps(strict_json(obj), allow_nan=False, **kw)
+
+
+#: What a ``null`` stands for in strict JSON, by the key it sits at (an exact key, else the key's suffix, else
+#: any key) and the value it replaces (``inf``, ``-inf``, ``nan``): the text of its ``<key>_reason`` sibling.
+NULL_REASONS: dict[tuple[str, str], str] = {
+    ("psnr_db", "inf"): "inf: the images are identical (PSNR is infinite)",
+    ("_px", "inf"): "inf: unbounded (visible heightmap samples were left undrawn, or a point lay behind the eye)",
+    ("cost", "inf"): "inf: no setting was measured to meet the budget",
+    ("", "inf"): "inf: infinite",
+    ("", "-inf"): "-inf: minus infinity",
+    ("", "nan"): "nan: not measured or undefined (e.g. popping of a path's first frame, an empty mean)",
+}
+
+
+def _null_reason(key: str, kind: str) -> str:
+    for k in (key, *(suffix for suffix in ("_px", "cost") if key.endswith(suffix)), ""):
+        if (k, kind) in NULL_REASONS:
+            return NULL_REASONS[(k, kind)]
+    return kind  # pragma: no cover - every kind has a catch-all
+
+
+def strict_json(obj: object) -> object:
+    """``obj`` as plain JSON values (numpy scalars and arrays, paths, tuples converted) with every non-finite
+    float replaced by ``None`` and its reason in a sibling field: in a dict, key ``k`` whose value is +-inf or
+    NaN becomes ``null`` and gains ``k_reason`` (:data:`NULL_REASONS`: what it stood for); a list under key
+    ``k`` with such entries gains ``k_reason`` naming them ("entries 0, 3: inf: ..."). What JSON parsers
+    everywhere read (Node's ``JSON.parse``, jq, Go's ``encoding/json``)."""
+    return _strict(obj, "")[0]
+
+
+def _strict(o: object, key: str) -> tuple[object, str | None]:
+    if isinstance(o, (np.generic, np.ndarray, Path)) and not isinstance(o, np.bool_):
+        o = _json_default(o)
+    if isinstance(o, float):
+        if math.isfinite(o):
+            return o, None
+        kind = "nan" if math.isnan(o) else "inf" if o > 0 else "-inf"
+        return None, _null_reason(key, kind)
+    if isinstance(o, dict):
+        out: dict = {}
+        for k, v in o.items():
+            out[k], why = _strict(v, str(k))
+            if why is not None:
+                out[f"{k}_reason"] = why
+        return out, None
+    if isinstance(o, (list, tuple)):
+        items = [_strict(v, key) for v in o]
+        bad: dict[str, list[int]] = {}
+        for i, (_, why) in enumerate(items):
+            if why is not None:
+                bad.setdefault(why, []).append(i)
+        why = "; ".join(f"entr{'y' if len(ix) == 1 else 'ies'} {', '.join(map(str, ix[:20]))}"
+                        f"{' ...' if len(ix) > 20 else ''}: {w}" for w, ix in bad.items()) or None
+        return [v for v, _ in items], why
+    if isinstance(o, np.bool_):
+        return bool(o), None
+    return o, None
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:

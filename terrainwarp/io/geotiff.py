@@ -67,8 +67,8 @@ _VERTICAL_UNITS = {
     "us survey foot": 1200.0 / 3937.0, "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0,
     "us survey feet": 1200.0 / 3937.0,
 }
-_RESAMPLING = ("nearest", "average", "bilinear", "cubic", "cubic_spline", "lanczos", "mode", "min", "max",
-               "med", "rms")
+# GDAL's resamplings that a read can use (min, max and med are warp-only: GDAL refuses them in a read)
+_RESAMPLING = ("nearest", "average", "bilinear", "cubic", "cubic_spline", "lanczos", "mode", "rms")
 _SAVE_DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64")
 # Relative tolerance under which a transform's rotation/shear terms count as zero (float noise in files).
 _SHEAR_RTOL = 1e-12
