@@ -22,6 +22,7 @@ import os
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,16 +32,14 @@ from .camera import Camera
 from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
 from .experiments.calibrate import calibrate
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
-from .experiments.plots import plot_patches
+from .experiments.plots import mesh_pieces, plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
 from .fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_convergence, plot_fit
 from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
 from .fit.knobs import main_knob
-from .heightmap import Heightmap
+from .heightmap import Heightmap, StreamedHeightmap
 from .io.files import dumps_strict, interrupt_handler, output_set, recover, write_json, write_text
-from .lod.policies import make_policy
-from .lod.quadtree import Terrain, select
 from .measure.cost import Cost, cost
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
@@ -71,11 +70,15 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _scene(args: argparse.Namespace) -> Scene:
+    """The command's scene: its file (every key applied; a flag that overrides one says so on stderr), or the
+    demo scene."""
     if getattr(args, "scene", None):
         sc = Scene.load(args.scene)
     else:
         sc = Scene(Heightmap.example("jacksboro"), name="demo")
     cam = sc.camera
+    _note_overrides(args, [("--width", getattr(args, "width", None), "camera", "width", cam.width),
+                           ("--height", getattr(args, "height", None), "camera", "height", cam.height)])
     if getattr(args, "width", None) is not None or getattr(args, "height", None) is not None:
         w = cam.width if args.width is None else args.width
         h = cam.height if args.height is None else args.height
@@ -83,11 +86,54 @@ def _scene(args: argparse.Namespace) -> Scene:
     return sc
 
 
+def _file_tables(args: argparse.Namespace) -> dict:
+    """The scene file's tables as written (the keys it sets), {} for the demo scene."""
+    if not getattr(args, "scene", None):
+        return {}
+    import tomllib
+
+    try:
+        return tomllib.loads(Path(args.scene).read_text())
+    except (OSError, ValueError):  # Scene.load says what is wrong with the file
+        return {}
+
+
+def _note_overrides(args: argparse.Namespace, flags: list[tuple[str, object, str, str, object]]) -> None:
+    """Say on stderr which flags override a key the scene file sets: ``(flag, value given or None, table, key,
+    the scene's value)``."""
+    tables = None
+    for flag, given, table, key, current in flags:
+        if given is None or given == current:
+            continue
+        tables = _file_tables(args) if tables is None else tables
+        if key in tables.get(table, {}):
+            print(f"terrainwarp: note: {flag} {given} overrides the scene's [{table}] {key} = {current!r}",
+                  file=sys.stderr)
+
+
+def _whole(sc: Scene, command: str) -> Scene:
+    """A streamed scene's heightmap read whole, for a command that measures every frame against the
+    full-resolution grid (a terrain too large for memory is refused, naming its size)."""
+    if not isinstance(sc.heightmap, StreamedHeightmap):
+        return sc
+    hm = sc.heightmap.load()
+    print(f"terrainwarp: note: {command} measures every frame against the full-resolution grid: the streamed "
+          f"heightmap {hm.name} ({hm.shape[0]} x {hm.shape[1]}) is read whole", file=sys.stderr)
+    return sc.with_(heightmap=hm)
+
+
+def _write_scene(sc: Scene, out: Path) -> Path | None:
+    """``scene.toml`` in ``out``: the scene the command ran (its file's keys, flags applied), which
+    ``terrainwarp render`` takes back."""
+    return sc.save(out / "scene.toml")
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     sc = _scene(args)
     if "report" not in sc.outputs:
         sc = sc.with_(outputs=(*sc.outputs, "report"))
     frame = render(sc)
+    frame.report.info["scene_file"] = sc.to_dict()  # the scene drawn, every key (report.json)
     written = frame.save(args.out)
     print(frame.report.table())
     print("wrote: " + ", ".join(str(p) for p in written))
@@ -131,38 +177,73 @@ def _tess_level(s: str) -> int:
         raise argparse.ArgumentTypeError(str(e).removeprefix("tess: ")) from None
 
 
-def _lod_config(args: argparse.Namespace) -> LodConfig:
-    """The LOD options as a LodConfig, validated by its rules (the policy table's) before any work: the
-    chosen policy's parameter (--tolerance-px, --k or --target-px), the hysteresis, the level, the roots and
-    the tessellation level (a power of two for a quadtree policy)."""
+_LOD_FLAGS = ("policy", *(s.field for s in POLICY_TABLE.values()), "level", "hysteresis", "roots", "tess")
+
+
+def _lod_config(args: argparse.Namespace, scene_lod: LodConfig, notes: bool = True) -> LodConfig:
+    """The scene's ``[lod]`` with the LOD flags given applied over it (each that overrides a key of the file
+    says so), validated by LodConfig's rules before any work: the policy's parameter, the hysteresis, the
+    level, the roots and the tessellation level (a power of two for a quadtree policy)."""
+    given = {k: getattr(args, k) for k in _LOD_FLAGS if getattr(args, k, None) is not None}
+    _note_overrides(args, [] if not notes else [("--" + k.replace("_", "-"), v, "lod", k, getattr(scene_lod, k)) for k, v in given.items()])
     try:
-        return LodConfig(policy=args.policy, hysteresis=args.hysteresis, level=args.level, roots=args.roots,
-                         tess=args.tess, **{s.field: getattr(args, s.field) for s in POLICY_TABLE.values()})
+        if given.get("policy", scene_lod.policy) != scene_lod.policy:  # another policy: its own knobs
+            keep = {f: getattr(scene_lod, f) for f in ("roots", "tess", "hysteresis", "level", "filter",
+                                                       "level_log_scale")}
+            spacing = POLICY_TABLE[given["policy"]].spacing if given["policy"] in POLICY_TABLE else None
+            scene_lod = LodConfig(policy=given["policy"], **keep, **({"spacing": spacing} if spacing else {}))
+        return replace(scene_lod, **given)
     except (TypeError, ValueError) as e:  # name the option: "lod.tess: ..." -> "--tess: ..."
         name, _, rest = str(e).removeprefix("lod.").partition(":")
-        raise ValueError(f"--{name.replace('_', '-')}:{rest}" if name in vars(args) else str(e)) from None
+        raise ValueError(f"--{name.replace('_', '-')}:{rest}" if name in given else str(e)) from None
+
+
+def _file_lod(args: argparse.Namespace) -> LodConfig:
+    """The scene file's ``[lod]`` table, read before its heightmap (a bad one: the defaults here, and Scene.load
+    names what is wrong)."""
+    try:
+        return LodConfig(**_file_tables(args).get("lod", {}))
+    except (TypeError, ValueError):
+        return LodConfig()
 
 
 def _cmd_lod(args: argparse.Namespace) -> int:
-    cfg = _lod_config(args)
+    _lod_config(args, _file_lod(args), notes=False)  # the flags checked against the file's [lod] before any work
     sc = _scene(args)
-    terrain = Terrain.prepare(sc.heightmap, roots=cfg.roots, tess=cfg.tess)
-    patches = select(terrain, sc.camera, make_policy(cfg))
+    cfg = _lod_config(args, sc.lod)
+    sc = sc.with_(mesh="lod", lod=cfg)
+    frame = render(sc.with_(outputs=("patches", "mesh")))  # quadtree policies, schemes, streamed terrains alike
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    patches = frame.patches if frame.patches is not None else mesh_pieces(frame.mesh)
     patches.to_csv(out / "patches.csv")
-    plot_patches(sc.heightmap, patches, sc.camera, out / "lod.png",
-                 title=f"{args.policy}: {len(patches)} patches, {patches.stats['culled']} culled")
+    culled = f", {patches.stats['culled']} culled" if "culled" in patches.stats else ""
+    plot_patches(sc.heightmap, patches, sc.camera, out / "lod.png", title=f"{cfg.policy}: {len(patches)} "
+                 f"{'patches' if frame.patches is not None else 'pieces'}{culled}",
+                 light=(sc.light_azimuth_deg, sc.light_elevation_deg))
+    _write_scene(sc, out)
     print(dumps_strict({**patches.stats, "levels": np.bincount(patches.level).tolist() if len(patches) else []}))
-    print(f"wrote: {out / 'lod.png'}, {out / 'patches.csv'}")
+    print(f"wrote: {out / 'lod.png'}, {out / 'patches.csv'}, {out / 'scene.toml'}")
     return 0
 
 
+def _path_overrides(args: argparse.Namespace, sc: Scene) -> None:
+    d = sc.path
+    _note_overrides(args, [("--frames", args.frames, "path", "n", d.n),
+                           ("--path", args.path, "path", "clearance", d.clearance),
+                           ("--path", args.path, "path", "preset", d.preset)])
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
-    sc = _scene(args)
+    given = _scene(args)
+    sc = _whole(given, "report")
+    _path_overrides(args, sc)
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
     settings = default_settings(sc.heightmap, quick=args.quick)
+    own = Setting(sc.lod.policy, float(sc.lod.value)) if sc.lod.value is not None else None
+    if own is not None and own not in settings and (own.policy in LOD_POLICIES or own.policy in SCHEMES):
+        settings.append(own)  # the scene's own [lod] setting, beside the sweep's
     if args.policies:
         want = set(args.policies.split(","))
         bad = want - {s.policy for s in settings}
@@ -178,7 +259,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
-    paths = write_report(sc, cams, rows, args.out, path=path, cost_of=ranking)
+    paths = [*write_report(sc, cams, rows, args.out, path=path, cost_of=ranking), _write_scene(given, Path(args.out))]
     print(f"path: {path['text']}")
     print(f"cost: {ranking.label}")
     for r in summarise(rows, ranking):
@@ -215,7 +296,11 @@ def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: i
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
-    sc = _scene(args)
+    given = _scene(args)
+    sc = _whole(given, "fit")
+    _path_overrides(args, sc)
+    _note_overrides(args, [("--policy", args.policy, "lod", "policy", sc.lod.policy)])
+    args.policy = args.policy or sc.lod.policy  # the scene's [lod] policy unless --policy says otherwise
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
     fit_cost = cost(args.cost)  # checked before the fit runs
@@ -239,7 +324,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                                  "baselines": runs})
     write_json(out / "fit.json", doc)
     plot_fit(res, out / "fit.png", curve or None)
-    res.scene.save(out / "fitted.toml")
+    res.scene.with_(heightmap=given.heightmap).save(out / "fitted.toml")  # streamed as the scene file said
     if runs:
         plot_convergence({"fit_lod": res.trace, **{m: r["trace"] for m, r in runs.items()}}, out / "convergence.png",
                          title=f"{args.policy} at {args.budget_px:g} px", cost_label=res.cost)
@@ -434,18 +519,22 @@ def _add_demo_render_lod(sub) -> None:
                         "report.json)", _cmd_render), "out/render")
     lo = _command(sub, "lod", "select LOD patches: top-down picture (lod.png) and table (patches.csv)", _cmd_lod)
     _add_scene(lo, "out/lod")
-    lo.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy, help="LOD policy")
+    lo.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=None,
+                    help=f"LOD policy or scheme (default: the scene's [lod] policy, else {_LOD.policy})")
     for spec in POLICY_TABLE.values():  # --tolerance-px, --k, --target-px
-        lo.add_argument("--" + spec.field.replace("_", "-"), type=_positive_float, default=getattr(_LOD, spec.field),
-                        help=f"{spec.help} (policy {spec.name})")
-    lo.add_argument("--level", type=_nonnegative_int, default=_LOD.level,
-                    help="continuous: the level of the uniform patch grid")
-    lo.add_argument("--hysteresis", type=float, default=_LOD.hysteresis,
-                    help="band in [0, 1) between the split and merge thresholds")
-    lo.add_argument("--roots", type=_positive_int, default=_LOD.roots, help="root nodes of the quadtree")
-    lo.add_argument("--tess", type=_tess_level, default=_LOD.tess,
+        lo.add_argument("--" + spec.field.replace("_", "-"), type=_positive_float, default=None,
+                        help=f"{spec.help} (policy {spec.name}; default: the scene's, else "
+                             f"{getattr(_LOD, spec.field)})")
+    lo.add_argument("--level", type=_nonnegative_int, default=None,
+                    help=f"continuous: the level of the uniform patch grid (default: the scene's, else {_LOD.level})")
+    lo.add_argument("--hysteresis", type=float, default=None,
+                    help="band in [0, 1) between the split and merge thresholds (default: the scene's, else "
+                         f"{_LOD.hysteresis})")
+    lo.add_argument("--roots", type=_positive_int, default=None,
+                    help=f"root nodes of the quadtree (default: the scene's, else {_LOD.roots})")
+    lo.add_argument("--tess", type=_tess_level, default=None,
                     help=f"tessellation level of every patch: a power of two in 1..{QUADTREE_TESS[-1]} for a "
-                         f"quadtree policy, 1..{MAX_TESS} for continuous")
+                         f"quadtree policy, 1..{MAX_TESS} for continuous (default: the scene's, else {_LOD.tess})")
 
 
 def _add_path(c: argparse.ArgumentParser) -> None:
@@ -488,8 +577,8 @@ def _add_report_fit(sub) -> None:
                   _cmd_fit)
     _add_scene(ft, "out/fit")
     ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
-    ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=_LOD.policy,
-                    help="LOD policy or registered scheme to fit")
+    ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=None,
+                    help="LOD policy or registered scheme to fit (default: the scene's [lod] policy, else sse)")
     ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     _add_path(ft)

@@ -176,9 +176,9 @@ class FbmSource(TileSource):
         self.seed, self.octaves, self.gain, self.lacunarity, self.ridged = (
             int(seed), int(octaves), float(gain), float(lacunarity), bool(ridged))
         self.name = f"fbm{rows}x{cols}s{seed}"
-        self.meta = {"source": "fbm", "seed": self.seed, "feature_size": self.feature_size,
-                     "octaves": self.octaves, "gain": gain, "lacunarity": lacunarity, "ridged": ridged,
-                     "streamed": True}
+        self.meta = {"source": "fbm", "seed": self.seed, "max_height": self.max_height,
+                     "feature_size": self.feature_size, "octaves": self.octaves, "gain": gain,
+                     "lacunarity": lacunarity, "ridged": ridged, "streamed": True}
 
     def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
         a = noise.fbm(int(rows), int(cols), seed=self.seed, base_frequency=1.0 / self.feature_size,
