@@ -185,7 +185,8 @@ def _lod_config(args: argparse.Namespace, scene_lod: LodConfig, notes: bool = Tr
     says so), validated by LodConfig's rules before any work: the policy's parameter, the hysteresis, the
     level, the roots and the tessellation level (a power of two for a quadtree policy)."""
     given = {k: getattr(args, k) for k in _LOD_FLAGS if getattr(args, k, None) is not None}
-    _note_overrides(args, [] if not notes else [("--" + k.replace("_", "-"), v, "lod", k, getattr(scene_lod, k)) for k, v in given.items()])
+    _note_overrides(args, [] if not notes else [("--" + k.replace("_", "-"), v, "lod", k, getattr(scene_lod, k))
+                                                for k, v in given.items()])
     try:
         if given.get("policy", scene_lod.policy) != scene_lod.policy:  # another policy: its own knobs
             keep = {f: getattr(scene_lod, f) for f in ("roots", "tess", "hysteresis", "level", "filter",
