@@ -22,13 +22,14 @@ import os
 import signal
 import subprocess
 import sys
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
-from .camera import Camera
+from .camera import Camera, DepthPrecisionWarning
 from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
 from .experiments.calibrate import calibrate
 from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
@@ -714,7 +715,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args = parser.parse_args(argv)
     configure_from_env()  # quiet Warp, kept frame memory: what a command run wants (import alone sets nothing)
-    with _signals_interrupt():
+    with _signals_interrupt(), _warnings_one_line():
         return _run(args)
 
 
@@ -736,6 +737,24 @@ def _signals_interrupt():
     finally:
         for s, h in before.items():
             signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def _warnings_one_line():
+    """terrainwarp's warnings (:class:`terrainwarp.camera.DepthPrecisionWarning`...) as one line each on stderr,
+    ``terrainwarp: warning: ...``, each text once (a path's cameras may repeat it)."""
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message).splitlines()[0] if str(message) else category.__name__
+        if text not in seen:
+            seen.add(text)
+            print(f"terrainwarp: warning: {text}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", DepthPrecisionWarning)
+        warnings.showwarning = show
+        yield
 
 
 def _run(args: argparse.Namespace) -> int:

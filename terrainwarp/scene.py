@@ -41,7 +41,7 @@ import tomli_w
 from .camera import Camera, flyover, orbit
 from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
 from .io.files import write_text
-from .io.geotiff import is_gdal_raster
+from .io.geotiff import TIFF_EXTS, is_gdal_raster
 from .io.tiles import ArraySource, FbmSource, GeoTiffSource
 from .kernels.checks import check_bool, check_choice, check_int, check_number, is_int
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
@@ -811,7 +811,7 @@ def _heightmap_file(hm_d: dict, base_dir: Path, stream: bool) -> Heightmap | Str
     if raster and hp.is_file() and not gdal:
         raise ValueError(f"heightmap.{sorted(raster)[0]}: applies to a GDAL raster (a GeoTIFF, .vrt, .hgt...); "
                          f"{hp.name} is read as an image or array")
-    if stream and gdal and not raster:
+    if stream and (gdal or hp.suffix.lower() in TIFF_EXTS) and not raster:  # read by windows through GDAL
         if hm_d.get("max_height") is not None:
             raise ValueError("heightmap.max_height: a streamed GeoTIFF's heights come from the file")
         return Heightmap.open(hp, hm_d.get("dx"), hm_d.get("dz"), band=channel + 1)
