@@ -501,6 +501,15 @@ class StreamedHeightmap:
         overview can miss (see the source's ``height_range``)."""
         return self.source.height_range(self.tiles)
 
+    def known_height_range(self) -> tuple[float, float] | None:
+        """:attr:`height_range` when it costs no scan of the terrain: worked out already, kept in a file's cache,
+        or cheap for the source (an fBm's overview, an array); None for a file whose range is not known yet (its
+        pyramid's build works it out)."""
+        if "height_range" in self.__dict__ or not isinstance(self.source, GeoTiffSource):
+            return self.height_range
+        got = self.source.cache().value("height_range")
+        return (float(got[0]), float(got[1])) if isinstance(got, list) and len(got) == 2 else None
+
     def __repr__(self) -> str:
         return (f"StreamedHeightmap({self.name!r}, shape={self.shape}, dx={self.dx:.4g}, dz={self.dz:.4g}, "
                 f"{type(self.source).__name__})")

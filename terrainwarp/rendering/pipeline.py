@@ -445,7 +445,8 @@ def _check_near(scene: Scene) -> None:
     (:func:`terrainwarp.camera.check_depth_range`)."""
     hm, cam = scene.heightmap, scene.camera
     (x0, z0), (x1, z1) = hm.bounds_xz
-    lo, hi = hm.height_range
+    known = hm.known_height_range() if isinstance(hm, StreamedHeightmap) else hm.height_range
+    lo, hi = known if known is not None else (cam.position[1], cam.position[1])  # a file's: its build's, later
     text = _depth_range_text(cam.position, cam.target, cam.up, cam.near, cam.far, (x0, lo, z0), (x1, hi, z1))
     if text is not None:
         warnings.warn(text, DepthPrecisionWarning, stacklevel=3)
