@@ -10,7 +10,7 @@ ORDER = ["frame", "terrain_frame", "select", "counters", "calibration", "gpu_che
          "gpu_frame", "calibration_gpu", "threads", "targets", "lod", "tessellate", "raster", "normals_curvature",
          "yardstick", "error_vs_time_jacksboro", "error_vs_time_fbm4097", "fit", "fit_640x360", "fit_fbm4097",
          "fit_fbm4097_640x360", "fit_knobs", "fit_knobs_cont1080_dem", "popping", "schemes", "stability", "fuzz",
-         "sweep", "bintree", "polytree", "outofcore",
+         "sweep", "bintree", "polytree", "outofcore", "outofcore_cache",
          "diff"]
 # a link in a results file is relative to benchmarks/results/; at the root it needs that prefix
 _LINK = re.compile(r"\]\((?!https?:|/|#|benchmarks/)([^)]+)\)")

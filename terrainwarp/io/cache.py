@@ -94,10 +94,11 @@ def content_digest(path: str | os.PathLike, record_dir: str | os.PathLike | None
         if doc.get("stat") == key and isinstance(doc.get("sha256"), str):
             got = doc["sha256"]
     if got is None:
-        h = hashlib.sha256()
-        with open(p, "rb") as f:
-            while chunk := f.read(_CHUNK):
-                h.update(chunk)
+        h, buf = hashlib.sha256(), bytearray(1 << 20)  # read 1 MiB at a time into one buffer
+        view = memoryview(buf)
+        with open(p, "rb", buffering=0) as f:
+            while n := f.readinto(buf):
+                h.update(view[:n])
         got = h.hexdigest()
         if key != _stat_key(p.stat()):  # changed while it was read: not a digest of any one version
             return content_digest(p, record_dir)

@@ -357,7 +357,9 @@ def _described(part: _Part, h64: np.ndarray, p: Path, file_meta: dict, b: int, k
 
 
 # -- the whole raster read by windows (a streamed heightmap) -----------------------------------------
-BLOCK_CACHE_MB = 32  # GDAL's block cache while reading windows (its default is 5% of the machine's memory)
+# GDAL's block cache while reading windows (its default is 5% of the machine's memory): the caller keeps the decoded
+# tiles (the tile cache), so GDAL's needs only the blocks that neighbouring tiles share along their edges
+BLOCK_CACHE_MB = 8
 
 
 class RasterHeader(NamedTuple):

@@ -49,6 +49,7 @@ BLOCK = 4  # nodes per side of an on-demand stats block
 MAX_BLOCKS = 65536  # on-demand blocks kept (3 x 4 x 4 float32 each: 12 MiB in all)
 FINEST = 8  # the finest step a node is measured at: 1/8 of its vertex spacing (1 at the finest levels)
 WINDOW_MARGIN = 2  # overview samples around a window's patches (bilinear footprint and central differences)
+BUILD_CACHE_MB = 16  # the pyramid build's own tile cache (a root row's edge tiles; each tile read once)
 
 
 class StreamedPyramid:
@@ -237,15 +238,16 @@ class StreamedPyramid:
         spec = (self.hm.source, s0, self.depth, self.tess, tuple(writers))
         bands = {st: _TileRows(w) for st, w in writers.items()}
         lo, hi = np.inf, -np.inf
-        tiles = TileCache(self.hm.source, 64)  # its own: each tile read once (roots share only their edges)
+        # its own tile cache, of about a row of roots' tiles (roots share the tiles along their edges)
+        tiles = TileCache(self.hm.source, BUILD_CACHE_MB)
         for ranges in rows:
             if self.map is not None:
                 parts = self.map(root_pyramid, ranges, spec)
                 bad = [p for p in parts if isinstance(p, Exception)]
                 if bad:
                     raise ValueError(f"heightmap: a root's pyramid failed on a worker: {bad[0]}")
-            else:
-                parts = [root_pyramid(spec, r, tiles=tiles) for r in ranges]
+            else:  # one root at a time: each root's window and overviews dropped once placed
+                parts = (root_pyramid(spec, r, tiles=tiles) for r in ranges)
             strips = {st: None for st in writers}
             for (y, x, _, _), part in zip(ranges, parts, strict=True):
                 if part is not None:
@@ -265,6 +267,7 @@ class StreamedPyramid:
             for st, strip in strips.items():
                 if strip is not None:
                     bands[st].add(int(ranges[0][0] * s0) // st, strip)
+            del parts, strips
         return levels, (None if not np.isfinite(lo) else (float(lo), float(hi)))
 
     def _overview_steps(self) -> list[int]:
@@ -312,26 +315,28 @@ def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *, tiles: TileCac
 class _TileRows:
     """An overview's rows arriving in order, a strip at a time (a strip's first row may repeat the last one
     in); each row of tiles is written (:class:`terrainwarp.io.cache.TiledWriter`) as soon as its ``tile + 1``
-    rows are in, and dropped."""
+    rows are in, and the strips below the next row of tiles are dropped."""
 
     def __init__(self, writer: TiledWriter):
         self.w, self.t = writer, writer.tile
-        self.buf = np.zeros((0, writer.shape[1]), np.float32)
-        self.start = 0  # the overview row of buf[0]
+        self.strips: list[tuple[int, np.ndarray]] = []  # (first overview row, rows), in order
         self.next = 0  # the next row of tiles to write
 
     def add(self, r0: int, strip: np.ndarray) -> None:
-        self.buf = np.concatenate([self.buf[:max(0, r0 - self.start)], strip])
-        last = self.start + len(self.buf) - 1
+        self.strips.append((r0, strip))
+        last = r0 + len(strip) - 1
         rows, t = self.w.shape[0], self.t
         while self.next < self.w.grid[0] and (last >= self.next * t + t or last == rows - 1):
-            a = self.next * t - self.start
-            band = self.buf[a:a + t + 1]
+            a, b = self.next * t, min(self.next * t + t, rows - 1) + 1
+            band = np.empty((b - a, self.w.shape[1]), np.float32)
+            for s0, s in self.strips:  # later strips overwrite a shared row with the same values
+                lo, hi = max(a, s0), min(b, s0 + len(s))
+                if lo < hi:
+                    band[lo - a:hi - a] = s[lo - s0:hi - s0]
             for tj in range(self.w.grid[1]):
                 self.w.write(self.next, tj, band[:, tj * t:tj * t + t + 1])
             self.next += 1
-            drop = min(self.next * t - self.start, len(self.buf))
-            self.buf, self.start = self.buf[drop:], self.start + drop
+            self.strips = [(s0, s) for s0, s in self.strips if s0 + len(s) > self.next * t]
 
 
 def overview_windows(hm: StreamedHeightmap, origin_cells: np.ndarray, size_cells: np.ndarray,
