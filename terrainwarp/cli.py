@@ -22,6 +22,7 @@ import os
 import signal
 import subprocess
 import sys
+import tomllib
 import warnings
 from dataclasses import replace
 from pathlib import Path
@@ -91,8 +92,6 @@ def _file_tables(args: argparse.Namespace) -> dict:
     """The scene file's tables as written (the keys it sets), {} for the demo scene."""
     if not getattr(args, "scene", None):
         return {}
-    import tomllib
-
     try:
         return tomllib.loads(Path(args.scene).read_text())
     except (OSError, ValueError):  # Scene.load says what is wrong with the file
