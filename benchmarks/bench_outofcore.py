@@ -252,7 +252,7 @@ def cache_study(views: tuple[str, ...] = ("960x540", "1920x1080")) -> None:
             first_s = first["open_s"] + first["frame0_s"] if first_s is None else first_s
             peak = lambda r: max(r["frame0_rss_mib"], r["frame1_rss_mib"])  # noqa: E731
             rows += [[view, label, r.get("cache", "-"), round(r["open_s"] + r["frame0_s"], 1), round(r["frame1_s"], 2),
-                      round(peak(r)), f"{peak(r) / peak(mem):.2f}x"]
+                      round(peak(r)), f"{peak(r) / peak(mem):.3f}x"]
                      for label, r in (("streamed, first open (builds the cache)", first),
                                       ("streamed, cache reused", later), ("in memory (Heightmap.load)", mem))]
         fp = fingerprint_costs(tif)

@@ -122,7 +122,7 @@ def _whole(sc: Scene, command: str) -> Scene:
     return sc.with_(heightmap=hm)
 
 
-def _write_scene(sc: Scene, out: Path) -> Path | None:
+def _write_scene(sc: Scene, out: Path) -> Path:
     """``scene.toml`` in ``out``: the scene the command ran (its file's keys, flags applied), which
     ``terrainwarp render`` takes back."""
     return sc.save(out / "scene.toml")
