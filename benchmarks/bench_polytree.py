@@ -387,9 +387,9 @@ def pareto_section(frames: int, width: int, height: int, quick: bool) -> str:
     summ = summarise(rows)
     front = {r["setting"] for r in pareto(summ, "frame_ms")}
     table = md_table(["setting", "triangles", "worst-frame p99 (px)", "mean (px)", "frame ms", "mesh ms",
-                      "cracks", "on the Pareto front"],
+                      "see-through px", "on the Pareto front"],
                      [[r["setting"], int(r["triangles"]), r["p99_px"], r["mean_px"], r["frame_ms"], r["mesh_ms"],
-                       r["cracks"], "yes" if r["setting"] in front else ""] for r in summ])
+                       r["see_through_px"], "yes" if r["setting"] in front else ""] for r in summ])
     return table + (
         f"\n\n`{hm.name}` ({hm.shape[0]}x{hm.shape[1]}), {len(cams)} cameras of the scene's path at "
         f"{width}x{height}, measured with `terrainwarp.measure.error.frame_error` against the full grid (the "

@@ -13,7 +13,9 @@ mean over frames; select ms apart), and popping between consecutive frames of a 
 camera and the one before it on a path of ``DENSE`` frames, 0.2% of the path apart: the selection of that frame
 drawn for the measured camera against the measured camera's own, ``measure.popping``; worst p99 / max).
 Winners among the families that meet the budget: lowest modelled cost (the ranking), fewest triangles, least
-CPU time, least popping.
+CPU time, least popping. Then the same families re-ranked under each GPU profile (``terrainwarp.measure.gpu``:
+published rates, a bottleneck model) beside llvmpipe, each winner with its bound stage and whether it stays the
+winner with every rate x1/3..x3 (``terrainwarp.measure.ranking.verdict``), from the same frames' counters.
 
 Usage: ``python benchmarks/bench_schemes.py [--fbm 1025] [--width 640 --height 360] [--frames 5]``
 """
@@ -31,12 +33,14 @@ from _common import RESULTS, md_table, write_result
 
 from terrainwarp import Heightmap, LodConfig, Scene, render
 from terrainwarp.camera import Camera, flyover
+from terrainwarp.experiments.winners import report_models
 from terrainwarp.kernels.lod import select_level
 from terrainwarp.lod import Terrain
 from terrainwarp.lod.cdlod import Cdlod
 from terrainwarp.lod.chunked import ChunkedLod
 from terrainwarp.lod.clipmaps import Clipmap
 from terrainwarp.measure.cost import shipped_model
+from terrainwarp.measure.ranking import verdict
 from terrainwarp.measure.sample_error import popping, sample_error
 from terrainwarp.rendering.pipeline import Frame, pop_stats
 from terrainwarp.rendering.sources import CdlodSource, ChunkedSource, ClipmapSource
@@ -94,7 +98,8 @@ def _summary(ctx: Ctx, meshes: list, frames: list[Frame], pops: list, counted: l
             "tris": float(np.mean([m.n_triangles for m in meshes])),
             "ms": float(np.mean([f.report.frame_ms for f in frames])),
             "sel_ms": float(np.mean([f.report.stage_ms("select") for f in frames])),
-            "pop99": max(p.p99_px for p in pops), "popmax": max(p.max_px for p in pops)}
+            "pop99": max(p.p99_px for p in pops), "popmax": max(p.max_px for p in pops),
+            "counters": [dict(f.report.counters) for f in counted]}
 
 
 def _run_policy(policy: str) -> Callable[[Ctx, float], dict]:
@@ -199,16 +204,26 @@ def _fmt_setting(fam: Family, v: float) -> str:
     return s + " (coarsest tried)" if v == fam.ladder[0] else s
 
 
+def profile_rows(ctx: Ctx, budget: float, found: list) -> list[list[object]]:
+    """One row per cost model (llvmpipe, the shipped GPU profiles): the winner among the families meeting the
+    budget, its modelled ms and bound stage, robust (rates x1/3..x3) and what would flip it."""
+    cands = {fam.name.split()[0]: r[1]["counters"] for fam, r in found if r is not None}
+    if not cands:
+        return []
+    return [[ctx.hm.name, _clearance(ctx), f"{budget:g}", m.name, *verdict(cands, m).row()] for m in report_models()]
+
+
 def budget_rows(fams: list[Family], ctx: Ctx, seen: dict[str, dict],
-                summary: list[list[object]]) -> list[list[object]]:
+                summary: list[list[object]], by_model: list[list[object]]) -> list[list[object]]:
     """One row per (budget, family) at the family's cheapest setting, winners starred; appends one row per
-    budget to ``summary`` (the winners, with their numbers)."""
+    budget to ``summary`` (the winners, with their numbers) and one per budget and cost model to ``by_model``."""
     rows = []
     for budget in BUDGETS:
         found = []
         for fam in fams:
             r = cheapest(fam, ctx, budget, seen.setdefault(fam.name, {}))
             found.append((fam, r))
+        by_model += profile_rows(ctx, budget, found)
         ok = [r for _, r in found if r is not None]
         best = {k: min((r[1][k] for r in ok), default=None) for k in ("cost", "tris", "ms")}
         best["pop99"] = min(((r[1]["pop99"], r[1]["popmax"]) for r in ok), default=None)  # ties: the max
@@ -280,7 +295,7 @@ def main() -> None:
     args = ap.parse_args()
     terrains = [Heightmap.example(), Heightmap.fbm(args.fbm, seed=1, dx=10.0, max_height=1500.0)]
     fams = families()
-    sections, sel_rows, summary = [], [], []
+    sections, sel_rows, summary, by_model = [], [], [], []
     header = ["budget px", "family (parameter)", "setting", "p99 / max px", "modelled GPU ms", "draw calls",
               "triangles", "CPU frame ms", "select ms", "pop p99 / max px"]
     for hm in terrains:
@@ -293,7 +308,7 @@ def main() -> None:
             ctx = Ctx(hm, cams, before, refs, terrain, cache, clearance)
             for fam in fams:  # compile and warm every family's kernels before anything is timed
                 fam.run(Ctx(hm, cams[:1], before[:1], refs[:1], terrain, cache, clearance), fam.ladder[0])
-            rows = budget_rows(fams, ctx, {}, summary)
+            rows = budget_rows(fams, ctx, {}, summary, by_model)
             if clearance == 0.02:
                 sel_rows += cdlod_select_rows(ctx)
             sections.append(f"### {hm.name} {hm.shape[0]}x{hm.shape[1]}, {clearance:.0%} clearance "
@@ -310,6 +325,14 @@ def main() -> None:
             "budget; details below)\n\n"
             + md_table(["heightmap", "clearance", "budget px", "lowest modelled GPU ms", "fewest triangles",
                         "least CPU frame ms", "least popping (p99 px)"], summary) + "\n\n"
+            + "### The same winners re-ranked under each cost model (llvmpipe's measured weights, the GPU profiles' "
+            "published rates)\n\nEach family at the same cheapest setting meeting the budget (the table above), "
+            "priced by the model from the same frames' counters: the winner, its modelled ms per frame, the stage "
+            "most of its frames are bound by (GPU profiles), robust: it stays the winner with every rate (llvmpipe: "
+            "every weight) multiplied by any of 1/3, 1/sqrt 3, 1, sqrt 3, 3 in every combination, else the smallest "
+            "change that flips it (a rate x f: f times faster; `terrainwarp.measure.ranking`).\n\n"
+            + md_table(["heightmap", "clearance", "budget px", "model", "winner", "modelled ms", "bound stage",
+                        "robust (x1/3..x3)", "smallest change that flips it"], by_model) + "\n\n"
             + "\n\n".join(sections)
             + "\n\n### CDLOD selection time per frame (2% clearance)\n\n"
             + md_table(["heightmap", "first_range / min", "triangles", "nodes visited", "levels", "select ms",

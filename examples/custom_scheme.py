@@ -1,6 +1,6 @@
 """Your own LOD scheme beside CDLOD, fitted to a budget: distance-banded grids. Tiles of 32 cells keep every sample
 within ``near_m`` of the eye, each doubling of the distance halves their sample rate (no skirts: the report counts
-the cracks where bands meet). Registered, "bands" is a policy name:
+the pixels seen through the cracks where bands meet). Registered, "bands" is a policy name:
 
     python examples/custom_scheme.py --out out/custom_scheme      # report beside CDLOD, then fit 2 px
     terrainwarp report --plugin examples/custom_scheme.py --policies bands,cdlod --quick
@@ -69,8 +69,8 @@ def main(argv: list[str] | None = None) -> tuple[list[dict], object]:
     settings = [Setting(p, v) for p in ("bands", "cdlod") for v in tw.schemes.sweep_values(p, hm, quick=True)]
     rows = sweep(scene, cams, settings, progress=False, images=False, workers=a.workers)
     write_report(scene, cams, rows, a.out)
-    for r in summarise(rows):
-        print(f"{r['setting']:>18}  p99 {r['p99_px']:7.3f} px  {r['triangles']:9.0f} tris  {r['cracks']} cracks")
+    for r in summarise(rows):  # see-through: background pixels seen through the cracks
+        print(f"{r['setting']:>18}  p99 {r['p99_px']:7.3f} px  {r['triangles']:9.0f} tris  {r['see_through_px']} px")
     fit = tw.fit_lod(scene, a.budget_px, policy="bands", cameras=cams)
     print(fit.message)
     return rows, fit

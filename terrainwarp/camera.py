@@ -13,20 +13,30 @@ Conventions (the one place they are stated; nothing else in terrainwarp contradi
 * Positions handed to the rasterizer are **camera-relative** float32 (world minus eye, subtracted in
   float64 on the host before the cast), which is how GPUs keep precision for terrains far from the
   origin; :meth:`Camera.view_matrix` with ``relative=True`` is the matching view matrix.
+* Heading, pitch and roll (:func:`camera_from_angles`, the camera-path CSV): yaw is the compass heading in
+  degrees, clockwise from north (-z) seen from above (90 looks east, +x); pitch is degrees above the
+  horizon (-90 looks straight down); roll is degrees of bank to the right (the camera's up vector tilts
+  toward its right, the horizon turns anticlockwise in the image).
+* A pixel measure belongs to a :class:`Viewport` (width, height, vertical field of view): a length of
+  ``e`` pixels is ``e / focal_px`` radians, ``focal_px = height / (2 tan(fov_y / 2))`` pixels per radian
+  at the centre of the view (Cesium's ``sseDenominator`` rule).
 """
 
 from __future__ import annotations
 
+import csv
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from .heightmap import Heightmap
 from .kernels.checks import check_number, is_int
 
-__all__ = ["Camera", "orbit", "flyover", "relative_origin", "DepthPrecisionWarning", "check_depth_range",
-           "DEPTH_STEPS"]
+__all__ = ["Camera", "Viewport", "orbit", "flyover", "relative_origin", "camera_from_angles", "read_camera_csv",
+           "CSV_COLUMNS", "DepthPrecisionWarning", "check_depth_range", "DEPTH_STEPS"]
 
 #: float32 window-depth steps (2^-24 each, near 1.0) that the farthest terrain must keep before the background
 #: depth 1.0: a fragment closer to 1.0 than this is drawn as background (it rounds to 1.0, or ties with it)
@@ -132,6 +142,38 @@ def _fov(v: object) -> float:
     return f
 
 
+class Viewport(NamedTuple):
+    """The viewport a pixel measure belongs to: ``width`` x ``height`` pixels and a vertical field of view of
+    ``fov_y_deg`` degrees. :meth:`of` checks the numbers by the camera's rules."""
+
+    width: int
+    height: int
+    fov_y_deg: float
+
+    @classmethod
+    def of(cls, width: object, height: object, fov_y_deg: object) -> Viewport:
+        """A checked viewport (width and height 1..16384 pixels, the field of view in (0, 180) degrees)."""
+        return cls(_pixels("width", width), _pixels("height", height), _fov(fov_y_deg))
+
+    @property
+    def focal_px(self) -> float:
+        """Pixels per radian at the centre of the view: ``height / (2 tan(fov_y / 2))``."""
+        return self.height / (2.0 * math.tan(math.radians(self.fov_y_deg) / 2.0))
+
+    def to_radians(self, px: float) -> float:
+        """``px`` pixels at this viewport as an angle (radians, at the centre of the view)."""
+        return float(px) / self.focal_px
+
+    def to_pixels(self, radians: float) -> float:
+        """An angle (radians) as pixels at this viewport."""
+        return float(radians) * self.focal_px
+
+    @property
+    def text(self) -> str:
+        """``"960x540, 60 degree fov"``."""
+        return f"{self.width}x{self.height}, {self.fov_y_deg:g} degree fov"
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera in OpenGL conventions (see the module docstring).
@@ -189,6 +231,11 @@ class Camera:
     def focal_px(self) -> float:
         """d = viewport_height / (2 tan(fovy/2)): pixels per unit of (size / distance)."""
         return self.height / (2.0 * math.tan(math.radians(self.fov_y_deg) / 2.0))
+
+    @property
+    def viewport(self) -> Viewport:
+        """The camera's (width, height, fov_y_deg)."""
+        return Viewport(self.width, self.height, self.fov_y_deg)
 
     def view_matrix(self, relative: bool = False) -> np.ndarray:
         """OpenGL lookAt view matrix, float64 (4, 4).
@@ -279,12 +326,32 @@ def orbit(center: object, radius: float, elevation: float, n: int, *, width: int
     return cams
 
 
+def _on_terrain(eye: np.ndarray, target: np.ndarray, bounds: tuple[tuple[float, float], tuple[float, float]],
+                ahead: float) -> np.ndarray:
+    """The look-ahead point ``target`` (x, z) of a camera at ``eye``, kept over the terrain: a point past the
+    terrain's border is replaced by the point ``ahead`` toward the terrain's centre (pulled back to the border).
+    An eye outside the terrain keeps its target."""
+    lo, hi = np.asarray(bounds[0], np.float64), np.asarray(bounds[1], np.float64)
+    inside = lambda p: bool(np.all(p >= lo) and np.all(p <= hi))  # noqa: E731
+    if not inside(eye) or inside(target):
+        return target
+    c = 0.5 * (lo + hi) - eye
+    if float(np.linalg.norm(c)) < 1e-9:  # at the centre: nothing is nearer the middle
+        return target
+    c /= np.linalg.norm(c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        reach = np.where(c > 0, (hi - eye) / c, np.where(c < 0, (lo - eye) / c, np.inf))
+    return eye + c * min(ahead, float(np.min(reach)))
+
+
 def flyover(heightmap: Heightmap, waypoints_xz: object, clearance: float, n: int, *,
             look_ahead: float | None = None, width: int = 640, height: int = 480,
             fov_y_deg: float = 60.0, near: float = 1.0, far: float = 1e5) -> list[Camera]:
     """``n`` cameras evenly spaced along a polyline of (x, z) waypoints, each ``clearance`` metres above
     the terrain beneath it (deaconu2021, "Navigation": only x and z are tracked, y follows the height
-    function), looking ``look_ahead`` metres further along the path and slightly down.
+    function), looking ``look_ahead`` metres further along the path and slightly down. A camera whose
+    look-ahead point lies past the terrain's border (the end of a path at the edge) looks toward the terrain's
+    centre instead, so that no camera looks off the terrain.
     """
     w = np.asarray(waypoints_xz, dtype=np.float64)
     if w.ndim != 2 or w.shape[1] != 2 or w.shape[0] < 2:
@@ -315,7 +382,7 @@ def flyover(heightmap: Heightmap, waypoints_xz: object, clearance: float, n: int
         t = at(s + ahead)
         if np.linalg.norm(t - at(s)) < 1e-9:  # end of path: keep the last heading
             t = at(s) + (at(s) - at(s - ahead))
-        tgts.append(t)
+        tgts.append(_on_terrain(at(s), t, heightmap.bounds_xz, ahead))
     tgts = np.array(tgts)
     he = heightmap.sample(eyes[:, 0], eyes[:, 1])
     ht = heightmap.sample(tgts[:, 0], tgts[:, 1])
@@ -326,3 +393,128 @@ def flyover(heightmap: Heightmap, waypoints_xz: object, clearance: float, n: int
         cams.append(Camera(position=(eyes[k, 0], y, eyes[k, 1]), target=(tgts[k, 0], ty, tgts[k, 1]),
                            fov_y_deg=fov_y_deg, width=width, height=height, near=near, far=far))
     return cams
+
+
+# -- cameras from angles and from files -------------------------------------------------------------
+def camera_from_angles(position: object, yaw_deg: float, pitch_deg: float, roll_deg: float = 0.0,
+                       **kw: object) -> Camera:
+    """The camera at ``position`` looking along heading ``yaw_deg`` (clockwise from north, -z), ``pitch_deg`` above
+    the horizon and banked ``roll_deg`` to the right (see the module docstring); ``kw``: the other
+    :class:`Camera` fields (fov_y_deg, width, height, near, far). Its target lies 1 m ahead."""
+    p = np.asarray(_vec3("position", position))
+    y, pt, r = (math.radians(check_number(n, v)) for n, v in (("yaw_deg", yaw_deg), ("pitch_deg", pitch_deg),
+                                                              ("roll_deg", roll_deg)))
+    fwd = np.array([math.sin(y) * math.cos(pt), math.sin(pt), -math.cos(y) * math.cos(pt)])
+    right = np.array([math.cos(y), 0.0, math.sin(y)])  # the heading's right, level (defined looking straight down)
+    up = _cross(right, fwd)
+    up = math.cos(r) * up + math.sin(r) * right
+    return Camera(position=tuple(p), target=tuple(p + fwd), up=tuple(up), **kw)
+
+
+#: The columns of a camera-path CSV (:func:`read_camera_csv`), each with the other names it is read by.
+CSV_COLUMNS: dict[str, tuple[str, ...]] = {
+    "time_s": ("time", "t"), "x": ("pos_x", "position_x"), "y": ("pos_y", "position_y"),
+    "z": ("pos_z", "position_z"), "target_x": (), "target_y": (), "target_z": (), "yaw_deg": ("yaw", "heading"),
+    "pitch_deg": ("pitch",), "roll_deg": ("roll",), "fov_y_deg": ("fov", "fovy"), "width": (), "height": (),
+    "near": (), "far": (),
+}
+_TARGET = ("target_x", "target_y", "target_z")
+_ANGLES = ("yaw_deg", "pitch_deg")
+
+
+def _csv_header(path: Path, header: list[str]) -> dict[str, int]:
+    """Column name (its CSV_COLUMNS name) -> index; ValueError naming a repeated, missing or unknown column."""
+    names = {alias: name for name, aliases in CSV_COLUMNS.items() for alias in (name, *aliases)}
+    where: dict[str, int] = {}
+    for i, raw in enumerate(header):
+        key = raw.strip().lower()
+        if key not in names:
+            raise ValueError(f"{path}: column {i + 1} {raw.strip()!r}: unknown; expected some of {list(CSV_COLUMNS)}")
+        if names[key] in where:
+            raise ValueError(f"{path}: column {i + 1} {raw.strip()!r}: {names[key]!r} is given twice")
+        where[names[key]] = i
+    for need in ("x", "y", "z"):
+        if need not in where:
+            raise ValueError(f"{path}: missing column {need!r} (the camera's position: x, y, z in metres); the "
+                             f"header has {[h.strip() for h in header]}")
+    has_t, has_a = [c for c in _TARGET if c in where], [c for c in _ANGLES if c in where]
+    if len(has_t) not in (0, 3) or len(has_a) not in (0, 2) or bool(has_t) == bool(has_a) or \
+            ("roll_deg" in where and not has_a):
+        raise ValueError(f"{path}: expected either the columns target_x, target_y, target_z or the columns yaw_deg, "
+                         f"pitch_deg (and optionally roll_deg); the header has {[h.strip() for h in header]}")
+    return where
+
+
+def _csv_number(path: Path, row: int, line: int, col: str, text: str) -> float:
+    where = f"{path}: row {row} (line {line}), column {col!r}"
+    text = text.strip()
+    if not text:
+        raise ValueError(f"{where}: expected a number, got an empty field")
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"{where}: expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{where}: expected a finite number, got {text!r}")
+    return v
+
+
+def read_camera_csv(path: str | Path, *, width: int = 640, height: int = 480, fov_y_deg: float = 60.0,
+                    near: float = 1.0, far: float = 1.0e5) -> tuple[list[Camera], list[float] | None]:
+    """The cameras of a recorded path: a CSV file with a header row, one camera per row.
+
+    Columns (names are case-insensitive; :data:`CSV_COLUMNS` lists the other names each is read by):
+    ``x, y, z`` the position (metres, this project's world: y up); then either ``target_x, target_y, target_z``
+    (the point looked at) or ``yaw_deg, pitch_deg`` and optionally ``roll_deg`` (heading clockwise from north
+    (-z), pitch above the horizon, bank to the right; see the module docstring); optionally ``time_s`` (seconds,
+    increasing), ``fov_y_deg``, ``width``, ``height``, ``near``, ``far`` (each row's own; left out: the
+    arguments).
+
+    Returns:
+        (cameras, times): the cameras in file order, and each row's time (None without a time column).
+
+    Raises:
+        ValueError: a missing file, a missing or unknown column, or a bad value, naming the row (1 = the first
+            camera; with its line in the file) and the column.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"path: no such camera-path file: {p}")
+    with p.open(newline="") as f:
+        rows = [r for r in csv.reader(f)]
+    rows = [(i + 1, r) for i, r in enumerate(rows) if any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise ValueError(f"{p}: empty file; expected a header row and one row per camera")
+    where = _csv_header(p, rows[0][1])
+    if len(rows) < 2:
+        raise ValueError(f"{p}: no cameras; expected one row per camera below the header")
+    defaults = {"fov_y_deg": fov_y_deg, "width": width, "height": height, "near": near, "far": far}
+    cams, times = [], []
+    for k, (line, r) in enumerate(rows[1:], start=1):
+        if len(r) != len(rows[0][1]):
+            raise ValueError(f"{p}: row {k} (line {line}): expected {len(rows[0][1])} fields, got {len(r)}")
+        v = {c: _csv_number(p, k, line, c, r[i]) for c, i in where.items()}
+        if "time_s" in v and times and v["time_s"] <= times[-1]:
+            raise ValueError(f"{p}: row {k} (line {line}), column 'time_s': expected a time after the previous "
+                             f"row's {times[-1]:g} s, got {v['time_s']:g}")
+        times.append(v.get("time_s", math.nan))
+        cams.append(_csv_camera(p, k, line, v, defaults))
+    return cams, (times if "time_s" in where else None)
+
+
+def _csv_camera(path: Path, row: int, line: int, v: dict[str, float], defaults: dict[str, float]) -> Camera:
+    """One row's camera; a value the camera refuses names the row and its column."""
+    kw = {c: v.get(c, d) for c, d in defaults.items()}
+    for c in ("width", "height"):
+        if float(kw[c]).is_integer():
+            kw[c] = int(kw[c])
+    try:
+        if "target_x" in v:
+            return Camera(position=(v["x"], v["y"], v["z"]), target=(v["target_x"], v["target_y"], v["target_z"]),
+                          **kw)
+        return camera_from_angles((v["x"], v["y"], v["z"]), v["yaw_deg"], v["pitch_deg"], v.get("roll_deg", 0.0),
+                                  **kw)
+    except (TypeError, ValueError) as e:
+        name = str(e).partition(":")[0]
+        col = {"target": "target_x", "position": "x", "up": "pitch_deg"}.get(name, name)
+        raise ValueError(f"{path}: row {row} (line {line}), column {col!r}: {str(e).partition(': ')[2]}") from None

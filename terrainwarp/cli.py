@@ -33,16 +33,29 @@ from . import __version__
 from .camera import Camera, DepthPrecisionWarning
 from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
 from .experiments.calibrate import calibrate
-from .experiments.pareto import Setting, default_settings, summarise, sweep, write_report
+from .experiments.pareto import Setting, complete, default_settings, summarise, sweep, write_report
 from .experiments.plots import mesh_pieces, plot_patches
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
-from .fit import Evaluation, FitResult, evaluations_from_rows, fit_lod, plot_convergence, plot_fit
+from .experiments.winners import budget_verdicts
+from .fit import (
+    Evaluation,
+    FitResult,
+    assess,
+    evaluations_from_rows,
+    export,
+    fit_lod,
+    pixel_knobs,
+    plot_convergence,
+    plot_fit,
+    rescale,
+)
 from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
+from .fit.export import FORMATS
 from .fit.knobs import main_knob
 from .heightmap import Heightmap, StreamedHeightmap
 from .io.files import dumps_strict, interrupt_handler, output_set, recover, write_json, write_text
-from .measure.cost import Cost, cost
+from .measure.cost import Cost, CostModel, cost
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
 from .runtime import configure_from_env
@@ -251,12 +264,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
         if bad:
             raise ValueError(f"--policies: unknown {sorted(bad)}")
         settings = [s for s in settings if s.policy in want]
-    ranking = cost(args.cost)  # checked before the sweep runs
+    ranking = cost(_cost_spec(args.cost))  # checked before the sweep runs
     # jobs run on a Dask LocalCluster (one process per core) or --scheduler; rows are saved to
     # frames.csv.partial as they arrive, so a rerun after an interruption resumes where it stopped
     rows = sweep(sc, cams, settings, progress=not args.no_progress, images=not args.no_images,
                  scheduler=args.scheduler, workers=args.workers, out=Path(args.out) / "frames.csv",
-                 cost_model=ranking.model)
+                 cost_model=_sweep_model(ranking))
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
@@ -271,11 +284,30 @@ def _cmd_report(args: argparse.Namespace) -> int:
               f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {r['triangles']:>9.0f} tris  "
               f"{r['frame_ms']:9.2f} CPU ms" + (f"  ({r['failed']} of {r['frames']} frames failed)" if r["failed"]
                                                 else ""))
+    print("winner per budget under each cost model (robust: the same winner with every rate x1/3..x3):")
+    whole = complete(summarise(rows, ranking))  # the settings whose every frame rendered
+    names = {r["setting"] for r in whole}
+    for b, name, v in budget_verdicts(whole, [r for r in rows if r["setting"] in names]):
+        print(f"  {b:4g} px  {name:>9}  " + ("no setting meets it" if v is None else
+              f"{v.winner:>18}  {v.cost:9.4g} ms  bound {v.bound or '-':>6}  robust "
+              + ("yes" if v.robust else f"no ({v.flip})")))
     print("wrote: " + ", ".join(str(p) for p in paths))
     if failed:
         print(f"terrainwarp: {len(failed)} of {len(rows)} frames failed (frames.csv has their errors); a rerun into "
               f"{args.out} runs them again", file=sys.stderr)
     return 1 if failed else 0
+
+
+def _cost_spec(text: str) -> str | list[str]:
+    """``--cost``: one cost, or several separated by commas (the worst of them per frame)."""
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    return parts if len(parts) > 1 else text
+
+
+def _sweep_model(c: Cost) -> CostModel | None:
+    """The linear model a sweep writes as each row's ``cost_ms`` (None: the shipped one); other costs (GPU
+    profiles, lists) price the rows afterwards."""
+    return c.model if isinstance(c.model, CostModel) else None
 
 
 def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: int | None = None,
@@ -289,7 +321,7 @@ def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: i
     def run(values: list[float]) -> list[Evaluation]:
         rows = sweep(scene, cameras, [Setting(policy, v) for v in values], progress=False, images=False,
                      device=device, scheduler=scheduler, workers=workers,
-                     cost_model=None if cost_of is None else cost_of.model)
+                     cost_model=None if cost_of is None else _sweep_model(cost_of))
         return evaluations_from_rows(rows, policy, values, knob, None if cost_of is None or cost_of.name == "triangles"
                                      else cost_of)
 
@@ -304,13 +336,13 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     args.policy = args.policy or sc.lod.policy  # the scene's [lod] policy unless --policy says otherwise
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
-    fit_cost = cost(args.cost)  # checked before the fit runs
+    fit_cost = cost(_cost_spec(args.cost))  # checked before the fit runs
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
     refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
-                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
+                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs, floor=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
@@ -368,7 +400,12 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
         else:
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
                          f"{g['cost']:.4g} | {g['evaluations']} |")
-    lines += ["", res.message, "", "This run's wall times: [timing.md](timing.md).", ""]
+    lines += ["", res.message, "", f"Pixels are at the fitted viewport: {_knob_words(res.scene, res.budget_px)}"
+              + ("" if len(res.viewports) < 2 else f"; the setting is fitted on {len(res.viewports)} viewports: "
+                 + ", ".join(vp.text for vp in res.viewports)) + ". Another viewport: terrainwarp export "
+              "fitted.toml --as json --viewport WxH@FOV (terrainwarp.fit.rescale).", "",
+              *(_frame_table(v, res.image_floor_p99_px, res.sparse) if v is not None and v.complete else []),
+              "This run's wall times: [timing.md](timing.md).", ""]
     if res.mesh_only_frames:
         lines += [f"Frames only selected and meshed for their triangle count (not in the evaluations): "
                   f"{res.mesh_only_frames}. A try measures its critical cameras worst first and stops at the first "
@@ -408,6 +445,83 @@ def split_timings(doc: object) -> tuple[object, object]:
         pairs = [split_timings(v) for v in doc]
         return [p[0] for p in pairs], ([p[1] for p in pairs] if any(p[1] for p in pairs) else None)
     return doc, None
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    sc = _scene(args)
+    cams = sc.camera_path(args.frames) if args.frames is not None else None
+    a = assess(sc, budget_px=args.budget_px, max_pop_px=args.max_pop_px, cost=args.cost, cameras=cams,
+               floor=not args.no_floor)
+    out = Path(args.out)
+    doc = {**a.to_dict(), "scene": args.scene, "path": sc.path_info(args.frames)["text"],
+           "pixel_knobs": pixel_knobs(sc, a.budget_px)}
+    write_json(out / "evaluate.json", doc)
+    write_text(out / "report.md", "\n".join(_evaluate_report_lines(sc, a, doc["path"])))
+    print(f"path: {doc['path']}")
+    print(a.message)
+    print("wrote: " + ", ".join(str(out / w) for w in ("evaluate.json", "report.md")))
+    return 0 if a.met else 1
+
+
+def _evaluate_report_lines(sc: Scene, a, path: str) -> list[str]:
+    """evaluate's report.md: the verdict, then one row per camera (the image error beside its floor)."""
+    v = a.evaluation
+    lines = ["# Evaluate", "", f"Setting: policy {sc.lod.policy} ({_knob_words(sc, a.budget_px)}).", "",
+             f"Camera path: {path}.", "", a.message, "", *_frame_table(v, a.image_floor_p99_px, a.sparse)]
+    return lines
+
+
+def _knob_words(sc: Scene, budget_px: float) -> str:
+    """Each pixel knob at the scene's viewport and as an angle."""
+    vp = sc.pixel_viewport
+    words = [f"{n} = {d['px']:.4g} px = {d['mrad']:.4g} mrad" for n, d in pixel_knobs(sc, budget_px).items()]
+    return "; ".join(words) + f" at {vp.text} ({vp.focal_px:.1f} px per radian)"
+
+
+def _frame_table(v: Evaluation, floor: list[float], sparse: list[dict]) -> list[str]:
+    """Per camera: the primary p99, the image p99 beside the family's full-detail floor, the samples, a flag."""
+    flagged = {s["camera"]: s["why"] for s in sparse}
+    rows = ["| camera | p99 px | image p99 px (floor) | visible samples | covered px | triangles | note |",
+            "|---|---|---|---|---|---|---|"]
+    for k, p in enumerate(v.p99_px):
+        img = v.image_p99_px[k] if k < len(v.image_p99_px) else float("nan")
+        fl = f" ({floor[k]:.3g})" if k < len(floor) else ""
+        vis = v.visible[k] if k < len(v.visible) else ""
+        cov = v.covered[k] if k < len(v.covered) else ""
+        note = f"too few samples for a p99: {flagged[k]}" if k in flagged else ""
+        rows.append(f"| {k} | {p:.3g} | {img:.3g}{fl} | {vis} | {cov} | {v.triangles[k]} | {note} |")
+    return rows + ["", "The image error is measured against the fixed-diagonal full-resolution grid; beside it, in "
+                       "brackets, the same family's full-detail frame's (its triangulation floor): only the "
+                       "difference is the setting's.", ""]
+
+
+def _viewport_arg(text: str) -> tuple[int, int, float | None]:
+    """``WxH`` or ``WxH@FOV`` (fov_y in degrees)."""
+    size, _, fov = text.partition("@")
+    w, _, h = size.lower().partition("x")
+    try:
+        return int(w), int(h), (float(fov) if fov else None)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT or WIDTHxHEIGHT@FOV_Y_DEG, got {text!r}") from None
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    sc = _scene(args)
+    out = Path(args.out)
+    written = []
+    stem = Path(args.scene).stem if args.scene else sc.name
+    if args.viewport is not None:
+        w, h, fov = args.viewport
+        r = rescale(sc, w, h, sc.pixel_viewport.fov_y_deg if fov is None else fov, budget_px=args.budget_px,
+                    confirm=not args.no_confirm)
+        print(f"rescale ({r.action}): {r.message}")
+        print(f"rule: {r.rule}")
+        sc = r.scene
+        stem = f"{stem}-{w}x{h}"
+        written.append(sc.save(out / f"{stem}.toml"))
+    written.append(export(sc, args.as_, out / f"{stem}.{args.as_}.json"))
+    print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
 
 
 def _cmd_stability(args: argparse.Namespace) -> int:
@@ -572,8 +686,10 @@ def _add_report_fit(sub) -> None:
     rp.add_argument("--workers", type=_nonnegative_int, default=None,
                     help="local worker processes (default: one per core; 0: in this process)")
     rp.add_argument("--cost", default="llvmpipe", metavar="COST",
-                    help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), triangles, a "
-                         "counter name (e.g. fragment_shader_invocations) or a weights file of terrainwarp calibrate")
+                    help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), a GPU profile "
+                         "(gpu:gf100, gpu:gcn, gpu:rdna, gpu:mali, gpu:nv40 or gpu:FILE.toml), several of them "
+                         "separated by commas (the worst per frame), triangles, a counter name (e.g. "
+                         "fragment_shader_invocations) or a weights file of terrainwarp calibrate")
     ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
                   _cmd_fit)
     _add_scene(ft, "out/fit")
@@ -592,8 +708,9 @@ def _add_report_fit(sub) -> None:
     ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[], metavar="PX",
                     help="also fit these budgets for the cost-against-budget curve")
     ft.add_argument("--cost", default="triangles", metavar="COST",
-                    help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model) or a "
-                         "weights file of terrainwarp calibrate")
+                    help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model), a "
+                         "GPU profile (gpu:gf100, ..., gpu:FILE.toml), several models separated by commas (the worst "
+                         "per frame: one setting for every GPU listed) or a weights file of terrainwarp calibrate")
     ft.add_argument("--knobs", type=_knob_list, default=None, metavar="A,B,C|all",
                     help="the knobs to fit together (terrainwarp.fit.knobs; default: the policy's main knob alone)")
     ft.add_argument("--baselines", type=_baseline_list, default=[], metavar="M,N",
@@ -601,6 +718,33 @@ def _add_report_fit(sub) -> None:
                          "ones need the extra 'tune'), for convergence.png")
     ft.add_argument("--trials", type=_positive_int, default=150, help="settings each black-box tuner tries")
     ft.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _add_evaluate_export(sub) -> None:
+    ev = _command(sub, "evaluate", "measure a saved setting over its camera path without fitting: error, cost and "
+                  "verdict (evaluate.json, report.md); exit 1 when it misses the budget", _cmd_evaluate)
+    _add_scene(ev, "out/evaluate", viewport=False)
+    ev.add_argument("--budget-px", type=_positive_float, default=None,
+                    help="p99 screen error budget, pixels (default: the scene's [budget])")
+    ev.add_argument("--max-pop-px", type=_nonnegative_float, default=None, metavar="PX",
+                    help="also bound the worst pair's pop p99 (default: the scene's [budget])")
+    ev.add_argument("--cost", default=None, metavar="COST", help="the cost to report (default: the scene's [budget] "
+                    "cost, else triangles)")
+    ev.add_argument("--frames", type=_positive_int, default=None,
+                    help="cameras of the path (default: all; a recorded path: that many, evenly spaced)")
+    ev.add_argument("--no-floor", action="store_true", help="skip the family's full-detail image floor (one frame "
+                    "per camera)")
+    ex = _command(sub, "export", "write a LOD setting as the engine takes it: CDLOD's level count, leaf size, grid "
+                  "and per-level ranges and morphs, Cesium's maximumScreenSpaceError, or the whole setting as JSON",
+                  _cmd_export)
+    _add_scene(ex, "out/export", viewport=False)
+    ex.add_argument("--as", dest="as_", choices=list(FORMATS), required=True, help="the engine's terms")
+    ex.add_argument("--viewport", type=_viewport_arg, default=None, metavar="WxH[@FOV]",
+                    help="rescale to this viewport first (terrainwarp.fit.rescale: confirmed on exact frames at it), "
+                         "and write the rescaled scene beside the export (default: the scene's viewport)")
+    ex.add_argument("--budget-px", type=_positive_float, default=None,
+                    help="with --viewport: the budget to confirm (default: the scene's [budget])")
+    ex.add_argument("--no-confirm", action="store_true", help="with --viewport: the rule alone, no exact frames")
 
 
 def _knob_list(text: str) -> list[str] | str:
@@ -684,6 +828,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True, parser_class=_Parser, metavar="COMMAND")
     _add_demo_render_lod(sub)
     _add_report_fit(sub)
+    _add_evaluate_export(sub)
     _add_calibrate(sub)
     _add_stability_tessellate_bench(sub)
     return p

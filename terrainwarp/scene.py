@@ -22,7 +22,13 @@ the API reference's scene-file page is made from::
     [lod]                         # LodConfig's fields: policy, tolerance_px, k, target_px, level, ...
     policy = "sse"
     [path]                        # CameraPath's fields: kind, n, waypoints, preset or clearance, ...
-    kind = "flyover"
+    kind = "flyover"              # or "orbit"; or "cameras" with file = "flight.csv" or [[path.cameras]] tables
+    [viewport]                    # optional: the viewport the [lod] table's pixel knobs are measured at
+    width = 960                   # (a fit writes it; left out: the path's)
+    height = 540
+    fov_y_deg = 60
+    [budget]                      # optional: what the setting was fitted to (terrainwarp evaluate's verdict)
+    budget_px = 1.0
 """
 
 from __future__ import annotations
@@ -36,9 +42,10 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import numpy as np
 import tomli_w
 
-from .camera import Camera, flyover, orbit
+from .camera import Camera, Viewport, flyover, orbit, read_camera_csv
 from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
 from .io.files import write_text
 from .io.geotiff import TIFF_EXTS, is_gdal_raster
@@ -47,8 +54,9 @@ from .kernels.checks import check_bool, check_choice, check_int, check_number, i
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
 from .schemes import SCHEMES
 
-__all__ = ["Scene", "LodConfig", "CameraPath", "SceneKey", "SCENE_FILE", "PolicySpec", "POLICY_TABLE", "OUTPUTS",
-           "MESH_POLICIES", "LOD_POLICIES", "SPACINGS", "FILTERS", "MAX_TESS", "QUADTREE_TESS", "check_policy_numbers",
+__all__ = ["Scene", "LodConfig", "CameraPath", "Budget", "Viewport", "SceneKey", "SCENE_FILE", "PolicySpec",
+           "POLICY_TABLE", "OUTPUTS", "MESH_POLICIES", "LOD_POLICIES", "SPACINGS", "FILTERS", "MAX_TESS",
+           "QUADTREE_TESS", "check_policy_numbers",
            "check_tess", "check_roots", "MAX_LOG_SCALE", "PATH_PRESETS", "GROUND_CLEARANCE", "HIGH_CLEARANCE",
            "PATH_FOV_Y_DEG"]
 
@@ -150,6 +158,32 @@ SCENE_FILE: dict[str, dict[str, SceneKey]] = {
     },
     "lod": {},  # LodConfig's fields: filled in below the class
     "path": {},  # CameraPath's fields: filled in below the class
+    "path.cameras": {
+        **{k: SceneKey(t, d, doc) for k, (t, d, doc) in (
+            ("position", ("array of 3 numbers", "-", "the eye (x, y, z), metres")),
+            ("target", ("array of 3 numbers", "-", "the point looked at (x, y, z), metres")),
+            ("up", ("array of 3 numbers", "[0, 1, 0]", "the up direction")),
+            ("fov_y_deg", ("number", "45", "vertical field of view, degrees")),
+            ("width", ("integer", "640", "viewport width, pixels")),
+            ("height", ("integer", "480", "viewport height, pixels")),
+            ("near", ("number", "1", "near clip distance, metres")),
+            ("far", ("number", "100000", "far clip distance, metres")),
+            ("time_s", ("number", "-", "the camera's time on the path, seconds (all cameras or none)")))},
+    },
+    "viewport": {
+        "width": SceneKey("integer", "the path's", "viewport width, pixels"),
+        "height": SceneKey("integer", "the path's", "viewport height, pixels"),
+        "fov_y_deg": SceneKey("number", "the path's", "vertical field of view, degrees: with the height, the pixels "
+                                                      "per radian the [lod] table's pixel knobs are measured at "
+                                                      "(height / (2 tan(fov_y / 2)))"),
+    },
+    "budget": {
+        "budget_px": SceneKey("number", "-", "the p99 screen-error budget the setting was fitted to, pixels at "
+                                             "the [viewport]"),
+        "max_pop_px": SceneKey("number", "-", "the worst consecutive pair's pop p99 bound, pixels (none: left out)"),
+        "cost": SceneKey("string or array of strings", '"triangles"', "what the fit minimised (triangles, a "
+                         "counter, llvmpipe, gpu:<profile>, a weights file, or a list of models: the worst per frame)"),
+    },
 }
 
 
@@ -386,16 +420,22 @@ class CameraPath:
 
     Attributes:
         kind: ``"flyover"`` (along ``waypoints``, ``clearance`` metres or a ``preset`` fraction of the extent
-            above the ground, looking 25% of the extent ahead) or ``"orbit"`` (a circle of ``radius`` around
-            the terrain's centre, ``elevation`` above its highest point, looking at the centre).
-        n: cameras (>= 1).
+            above the ground, looking 25% of the extent ahead, or less where that would look off the terrain),
+            ``"orbit"`` (a circle of ``radius`` around the terrain's centre, ``elevation`` above its highest
+            point, looking at the centre) or ``"cameras"`` (the ``cameras`` given: a recorded path, or the cameras
+            a fit was measured on).
+        n: cameras (>= 1; for ``"cameras"``, how many there are).
         waypoints: flyover: (x, z) pairs, >= 2 of them; fractions of the extent in [0, 1] (``units =
             "fraction"``) or metres (``units = "m"``).
         preset: flyover: ``"ground"`` or ``"high"`` (``PATH_PRESETS``); None: ``clearance``, else ``"ground"``.
         clearance: flyover: metres above the ground (> 0), instead of a preset.
         radius, elevation: orbit: fractions of the extent, or metres (> 0 and >= 0).
         units: ``"fraction"`` or ``"m"``.
-        fov_y_deg: the cameras' field of view, in (0, 180).
+        fov_y_deg: the cameras' field of view, in (0, 180) (``"cameras"``: the first camera's).
+        cameras: ``"cameras"``: the cameras, in path order (the ``[[path.cameras]]`` tables).
+        times: ``"cameras"``: each camera's time (seconds, increasing), or empty.
+        file: ``"cameras"``: the CSV file they were read from (:meth:`load`; a scene file names it instead of
+            listing the cameras; relative to the scene file's folder).
     """
 
     kind: str = "flyover"
@@ -407,11 +447,20 @@ class CameraPath:
     elevation: float = 0.5
     units: str = "fraction"
     fov_y_deg: float = PATH_FOV_Y_DEG
+    cameras: tuple[Camera, ...] = ()
+    times: tuple[float, ...] = ()
+    file: str | None = None
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 - frozen: the checked values
-        check_choice("path.kind", self.kind, ("flyover", "orbit"))
+        check_choice("path.kind", self.kind, _PATH_KEYS)
         check_choice("path.units", self.units, ("fraction", "m"))
+        if self.kind == "cameras":
+            self._check_cameras()
+            set_("n", len(self.cameras))
+            set_("fov_y_deg", self.cameras[0].fov_y_deg)
+        elif self.cameras or self.times or self.file is not None:
+            raise ValueError(f"path.cameras: only a path of kind = 'cameras' lists cameras, got kind = {self.kind!r}")
         set_("n", check_int("path.n", self.n, 1, MAX_PATH_CAMERAS))
         set_("fov_y_deg", check_number("path.fov_y_deg", self.fov_y_deg, 0.0, 180.0, lo_open=True, hi_open=True))
         if self.preset is not None:
@@ -424,16 +473,91 @@ class CameraPath:
         set_("elevation", check_number("path.elevation", self.elevation, 0.0))
         set_("waypoints", _waypoints(self.waypoints, self.units))
 
+    def _check_cameras(self) -> None:
+        cams = tuple(self.cameras)
+        if not cams or not all(isinstance(c, Camera) for c in cams):
+            raise ValueError("path.cameras: expected at least one Camera for kind = 'cameras'")
+        times = tuple(check_number(f"path.times[{i}]", t) for i, t in enumerate(self.times))
+        if times and (len(times) != len(cams) or any(b <= a for a, b in zip(times, times[1:]))):
+            raise ValueError(f"path.times: expected one increasing time per camera ({len(cams)}), got {list(times)}")
+        if self.file is not None and not isinstance(self.file, str):
+            raise TypeError(f"path.file: expected a file path string, got {self.file!r}")
+        object.__setattr__(self, "cameras", cams)
+        object.__setattr__(self, "times", times)
+
     @classmethod
-    def from_table(cls, d: object) -> CameraPath:
-        """A ``[path]`` table: every key is applied or refused (an orbit's keys on a flyover, and the reverse,
-        are refused too)."""
+    def of(cls, cameras: list[Camera] | tuple[Camera, ...], times: list[float] | None = None) -> CameraPath:
+        """The path of exactly these cameras (kind ``"cameras"``): what a fit saves, so that the scene loads back
+        to the frames it was fitted on."""
+        return cls(kind="cameras", cameras=tuple(cameras), times=tuple(times or ()))
+
+    @classmethod
+    def load(cls, path: str | Path, *, width: int = 640, height: int = 480, fov_y_deg: float = PATH_FOV_Y_DEG,
+             near: float = 1.0, far: float = 1.0e5) -> CameraPath:
+        """A recorded path from a CSV file (:func:`terrainwarp.camera.read_camera_csv`: columns for time, position,
+        target or yaw/pitch/roll, and fov; ``width`` ... ``far`` for the columns left out). A bad or missing
+        column raises ValueError naming the row and the column."""
+        cams, times = read_camera_csv(path, width=width, height=height, fov_y_deg=fov_y_deg, near=near, far=far)
+        return cls(kind="cameras", cameras=tuple(cams), times=tuple(times or ()), file=str(Path(path).resolve()))
+
+    @classmethod
+    def from_table(cls, d: object, base_dir: str | Path = ".", camera: Camera | None = None) -> CameraPath:
+        """A ``[path]`` table: every key is applied or refused (another kind's keys are refused too). A
+        ``"cameras"`` path's ``file`` is read relative to ``base_dir``, with ``camera``'s viewport, near and far
+        (and the table's ``fov_y_deg``) for the columns it leaves out."""
         _check_keys("path", d, set(SCENE_FILE["path"]))
-        kind = d.get("kind", "flyover")
-        wrong = ({"radius", "elevation"} if kind == "flyover" else {"waypoints", "clearance", "preset"}) & set(d)
+        kind = check_choice("path.kind", d.get("kind", "flyover"), _PATH_KEYS)
+        own = set(_PATH_KEYS[kind])
+        wrong = sorted(({k for o, keys in _PATH_KEYS.items() if o != kind for k in keys} - own) & set(d))
         if wrong:
-            raise ValueError(f"path.{sorted(wrong)[0]}: does not apply to kind = {kind!r}")
-        return cls(**d)
+            raise ValueError(f"path.{wrong[0]}: does not apply to kind = {kind!r}")
+        if kind != "cameras":
+            return cls(**d)
+        rest = {k: v for k, v in d.items() if k not in ("kind", "cameras", "file", "fov_y_deg", "n")}
+        if rest:
+            raise ValueError(f"path.{sorted(rest)[0]}: does not apply to kind = 'cameras'")
+        if ("file" in d) == ("cameras" in d):
+            raise ValueError("path: a path of kind = 'cameras' takes either file = \"flight.csv\" or [[path.cameras]] "
+                             "tables")
+        if "file" in d:
+            if not isinstance(d["file"], str):
+                raise TypeError(f"path.file: expected a file path string, got {d['file']!r}")
+            f = Path(d["file"]) if Path(d["file"]).is_absolute() else Path(base_dir) / d["file"]
+            cam = camera or Camera((0.0, 1.0, 0.0), (0.0, 0.0, -1.0))
+            loaded = cls.load(f, width=cam.width, height=cam.height, fov_y_deg=d.get("fov_y_deg", PATH_FOV_Y_DEG),
+                              near=cam.near, far=cam.far)
+        else:
+            loaded = cls.of(*_cameras_from(d["cameras"]))
+        if "n" in d and d["n"] != loaded.n:
+            raise ValueError(f"path.n: the path has {loaded.n} cameras, got n = {d['n']!r}")
+        return loaded
+
+
+# each kind of path and the keys that apply to it only
+_PATH_KEYS = {"flyover": ("waypoints", "clearance", "preset", "units"), "orbit": ("radius", "elevation", "units"),
+              "cameras": ("cameras", "times", "file")}
+
+
+def _cameras_from(tables: object) -> tuple[list[Camera], list[float] | None]:
+    """``[[path.cameras]]`` tables as cameras and their times (every table has ``time_s``, or none)."""
+    if not isinstance(tables, list) or not tables:
+        raise ValueError("path.cameras: expected a non-empty array of camera tables")
+    cams, times = [], []
+    for i, t in enumerate(tables):
+        _check_keys(f"path.cameras[{i}]", t, set(SCENE_FILE["path.cameras"]))
+        t = dict(t)
+        if "time_s" in t:
+            times.append(t.pop("time_s"))
+        for k in ("position", "target"):
+            if k not in t:
+                raise ValueError(f"path.cameras[{i}].{k}: missing")
+        try:
+            cams.append(Camera(**t))
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"path.cameras[{i}].{e}") from None
+    if times and len(times) != len(cams):
+        raise ValueError("path.cameras: give time_s for every camera or for none")
+    return cams, times or None
 
 
 def _waypoints(w: object, units: str) -> tuple[tuple[float, float], ...]:
@@ -472,7 +596,8 @@ def _attribute_docs(cls: type) -> dict[str, str]:
 
 _TOML_TYPES = {"bool": "boolean", "int": "integer", "float": "number", "str": "string", "str | None": "string",
                "float | None": "number", "tuple[tuple[float, float], ...]": "array of [x, z] pairs",
-               "tuple[float, ...]": "array of numbers", "tuple[tuple[str, float], ...]": "table"}
+               "tuple[float, ...]": "array of numbers", "tuple[tuple[str, float], ...]": "table",
+               "tuple[Camera, ...]": "array of camera tables ([[path.cameras]])"}
 
 
 def _keys_of(cls: type) -> dict[str, SceneKey]:
@@ -483,7 +608,33 @@ def _keys_of(cls: type) -> dict[str, SceneKey]:
 
 
 SCENE_FILE["lod"] = _keys_of(LodConfig)
-SCENE_FILE["path"] = _keys_of(CameraPath)
+SCENE_FILE["path"] = {k: v for k, v in _keys_of(CameraPath).items() if k != "times"}  # times: each camera's time_s
+
+
+@dataclass(frozen=True)
+class Budget:
+    """What a setting was fitted to (a scene file's ``[budget]`` table): the verdict of ``terrainwarp evaluate``.
+
+    Attributes:
+        budget_px: the p99 screen-error budget, pixels at the scene's viewport (> 0).
+        max_pop_px: the worst consecutive pair's pop p99 bound, pixels (None: no bound).
+        cost: what the fit minimised (``"triangles"``, a counter name, ``"llvmpipe"``, a GPU profile
+            ``"gpu:<name>"``, a weights file, or a list of models: the worst of them per frame).
+    """
+
+    budget_px: float
+    max_pop_px: float | None = None
+    cost: str | tuple[str, ...] = "triangles"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "budget_px", check_number("budget.budget_px", self.budget_px, 0.0, lo_open=True))
+        if self.max_pop_px is not None:
+            object.__setattr__(self, "max_pop_px", check_number("budget.max_pop_px", self.max_pop_px, 0.0))
+        if isinstance(self.cost, list | tuple) and self.cost and all(isinstance(c, str) for c in self.cost):
+            object.__setattr__(self, "cost", tuple(self.cost))
+        elif not isinstance(self.cost, str):
+            raise TypeError(f"budget.cost: expected a cost name, a weights file path or a list of models, got "
+                            f"{self.cost!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -505,6 +656,10 @@ class Scene:
             seen through the terrain in magenta).
         name: the scene's name (a scene file's stem).
         path: the :class:`CameraPath` that :meth:`camera_path` flies (a scene file's ``[path]`` table).
+        viewport: the :class:`terrainwarp.camera.Viewport` the ``lod`` setting's pixel knobs are measured at (a
+            scene file's ``[viewport]`` table; a fit and :func:`terrainwarp.fit.rescale` set it); None: the path's
+            (:attr:`path_viewport`).
+        budget: the :class:`Budget` the setting was fitted to (a scene file's ``[budget]`` table), or None.
     """
 
     heightmap: Heightmap
@@ -518,6 +673,8 @@ class Scene:
     shading: str = "hillshade"
     name: str = "scene"
     path: CameraPath = field(default_factory=CameraPath)
+    viewport: Viewport | None = None
+    budget: Budget | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.heightmap, Heightmap | StreamedHeightmap):
@@ -549,6 +706,26 @@ class Scene:
             object.__setattr__(self, "path", CameraPath.from_table(self.path))
         if not isinstance(self.path, CameraPath):
             raise TypeError(f"path: expected a CameraPath, got {type(self.path).__name__}")
+        if self.viewport is not None:
+            vp = self.viewport
+            if not isinstance(vp, tuple | list) or len(vp) != 3:
+                raise TypeError(f"viewport: expected a Viewport (width, height, fov_y_deg), got {vp!r}")
+            object.__setattr__(self, "viewport", Viewport.of(*vp))
+        if self.budget is not None and not isinstance(self.budget, Budget):
+            raise TypeError(f"budget: expected a Budget, got {type(self.budget).__name__}")
+
+    @property
+    def path_viewport(self) -> Viewport:
+        """The viewport the camera path is drawn at: a ``"cameras"`` path's first camera's, else the scene camera's
+        width and height with the path's field of view."""
+        if self.path.kind == "cameras":
+            return self.path.cameras[0].viewport
+        return Viewport(self.camera.width, self.camera.height, self.path.fov_y_deg)
+
+    @property
+    def pixel_viewport(self) -> Viewport:
+        """The viewport the setting's pixel knobs are measured at: :attr:`viewport`, else :attr:`path_viewport`."""
+        return self.viewport if self.viewport is not None else self.path_viewport
 
     def with_(self, **changes: Any) -> Scene:
         return replace(self, **changes)
@@ -568,8 +745,11 @@ class Scene:
         ``[path]`` keys: ``kind = "flyover"`` with ``waypoints`` (pairs of fractions of the extent, or
         metres with ``units = "m"``), ``preset`` (``"ground"`` or ``"high"``) or ``clearance`` (m), ``n``;
         or ``kind = "orbit"`` with ``radius`` and ``elevation`` (fractions of the extent, or metres with
-        units = "m") and ``n``. ``fov_y_deg`` (default 60, with or without a table).
+        units = "m") and ``n``. ``fov_y_deg`` (default 60, with or without a table). ``kind = "cameras"``: its
+        cameras as they are (``n`` of them evenly spaced along the list when ``n`` is given).
         """
+        if self.path.kind == "cameras":
+            return self._recorded(n)
         info = self.path_info(n, preset=preset)
         hm, cam = self.heightmap, self.camera
         (x0, z0), (x1, z1) = hm.bounds_xz
@@ -586,6 +766,13 @@ class Scene:
         return flyover(hm, info["waypoints_m"], clearance, k, look_ahead=0.25 * ext, width=cam.width,
                        height=cam.height, fov_y_deg=fov, near=max(clearance * 1e-2, 1e-4), far=far)
 
+    def _recorded(self, n: int | None) -> list[Camera]:
+        cams = list(self.path.cameras)
+        if n is None or n == len(cams):
+            return cams
+        n = check_int("n", n, 1, len(cams))
+        return [cams[int(i)] for i in np.round(np.linspace(0, len(cams) - 1, n)).astype(int)]
+
     def path_info(self, n: int | None = None, *, preset: str | None = None) -> dict[str, Any]:
         """What :meth:`camera_path` flies, for reports: ``kind``, ``n``, ``fov_y_deg``, ``extent_m`` and, for a
         flyover, ``preset`` (the preset used, or ``"custom"`` for a clearance in metres),
@@ -600,6 +787,14 @@ class Scene:
         ext = max(x1 - x0, z1 - z0, 1e-9)
         metres = d.units == "m"
         info: dict[str, Any] = {"kind": d.kind, "n": n, "fov_y_deg": d.fov_y_deg, "extent_m": ext}
+        if d.kind == "cameras":
+            vp = {c.viewport for c in self._recorded(n)}
+            info["n"] = len(self._recorded(n))
+            info["viewports"] = [list(v) for v in sorted(vp)]
+            info["text"] = (f"{info['n']} recorded cameras" + (f" of {d.n}" if info["n"] != d.n else "")
+                            + (f" from {Path(d.file).name}" if d.file else "") + " at "
+                            + "; ".join(Viewport(*v).text for v in sorted(vp)))
+            return info
         if info["kind"] == "orbit":
             info["radius_m"] = d.radius * (1.0 if metres else ext)
             info["elevation_m"] = d.elevation * (1.0 if metres else ext)
@@ -637,7 +832,9 @@ class Scene:
                            "light_azimuth_deg": self.light_azimuth_deg,
                            "light_elevation_deg": self.light_elevation_deg, "cull_back": self.cull_back,
                            "shading": self.shading},
-                "lod": _table_of(self.lod), "path": _table_of(self.path)}
+                "lod": _table_of(self.lod), "path": _table_of(self.path),
+                **({} if self.viewport is None else {"viewport": dict(self.viewport._asdict())}),
+                **({} if self.budget is None else {"budget": _table_of(self.budget)})}
 
     def save(self, path: str | Path) -> Path:
         """Write the scene as a TOML scene file (:meth:`to_dict`; atomically: a failed write leaves no file and
@@ -679,22 +876,39 @@ class Scene:
             _check_keys("lod", data["lod"], set(SCENE_FILE["lod"]))
             kw["lod"] = LodConfig(**data["lod"])
         if "path" in data:
-            kw["path"] = CameraPath.from_table(data["path"])
+            kw["path"] = CameraPath.from_table(data["path"], base_dir, cam)
+        if "viewport" in data:
+            vp = data["viewport"]
+            _check_keys("viewport", vp, set(SCENE_FILE["viewport"]))
+            if set(vp) != set(SCENE_FILE["viewport"]):
+                raise ValueError(f"viewport: expected the keys width, height and fov_y_deg, got {sorted(vp)}")
+            kw["viewport"] = Viewport.of(*(vp[k] for k in Viewport._fields))
+        if "budget" in data:
+            _check_keys("budget", data["budget"], set(SCENE_FILE["budget"]))
+            kw["budget"] = Budget(**data["budget"])
         return cls(heightmap=hm, camera=cam, name=name, **kw)
 
 
-def _table_of(config: LodConfig | CameraPath) -> dict[str, Any]:
+def _table_of(config: LodConfig | CameraPath | Budget) -> dict[str, Any]:
     """A config dataclass as its scene-file table: every field but those left None (and a path's keys of the
-    other kind), tuples as lists."""
+    other kinds), tuples as lists; a ``"cameras"`` path's cameras as ``[[path.cameras]]`` tables (or its
+    ``file``)."""
     out: dict[str, Any] = {}
-    skip = (set() if not isinstance(config, CameraPath) else
-            {"radius", "elevation"} if config.kind == "flyover" else {"waypoints", "clearance", "preset"})
+    skip: set[str] = set()
+    if isinstance(config, CameraPath):
+        skip = {k for o, keys in _PATH_KEYS.items() if o != config.kind for k in keys} - set(_PATH_KEYS[config.kind])
+        if config.kind == "cameras":
+            skip |= {"n", "waypoints", "clearance", "preset", "radius", "elevation", "units", "times"}
+            skip |= {"cameras"} if config.file is not None else {"fov_y_deg", "file"}  # a file's: its columns' fov
     for f in fields(config):
         v = getattr(config, f.name)
         if v is None or f.name in skip:
             continue
         if f.name == "params":
             v = dict(v)
+        elif f.name == "cameras":
+            v = [{**c.to_dict(), **({"time_s": t} if config.times else {})}
+                 for c, t in zip(v, config.times or [None] * len(v), strict=True)]
         elif isinstance(v, tuple):
             v = [list(x) if isinstance(x, tuple) else x for x in v]
         out[f.name] = v

@@ -92,7 +92,8 @@ def _subcommands():
 
 def test_every_option_has_help_and_shows_its_default():
     _, subs = _subcommands()
-    assert set(subs) == {"demo", "render", "lod", "report", "fit", "calibrate", "stability", "tessellate", "bench"}
+    assert set(subs) == {"demo", "render", "lod", "report", "fit", "evaluate", "export", "calibrate", "stability",
+                         "tessellate", "bench"}
     for name, sp in subs.items():
         fmt = sp.formatter_class(prog=name)
         for a in sp._actions:

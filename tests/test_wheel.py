@@ -34,6 +34,8 @@ def test_the_wheel_installs_offline_into_a_fresh_venv_and_runs(tmp_path):
     (wheel,) = (tmp_path / "dist").glob("terrainwarp-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert "terrainwarp/kernels/raster.py" in names and "terrainwarp/schemes.py" in names
+    profiles = {f"terrainwarp/measure/gpu_profiles/{g}.toml" for g in ("gf100", "gcn", "rdna", "mali", "nv40")}
+    assert profiles <= set(names)  # the GPU profiles ship as package data
     assert not any(n.startswith(("tests/", "kernels/", "examples/")) for n in names)  # kernels/ maps in, once
 
     venv = tmp_path / "venv"

@@ -10,11 +10,13 @@ issues (:class:`terrainwarp.mesh.Draws`). The same frame is rendered by terrainw
 
 Frames: per family ``frames_per_family`` (default 50) of its settings (fine to coarse) crossed with cameras
 (the scene's flyover at the ground and high presets, an orbit, the whole terrain in view) and viewports (640x360,
-1280x720, 1920x1080), drawn in a seeded order. Each frame's time is the least CPU time of the driver's draws and
-``glFinish`` over ``reps`` draws after a warm-up (``time.process_time``: every thread of the process, the work
-done, which a loaded machine disturbs far less than wall time). ``terrainwarp calibrate`` runs llvmpipe
-single-threaded (``LP_NUM_THREADS=0`` unless set: llvmpipe reads it when its first context is made), so the
-time adds up over the frame's work; the weights file names the driver and its threads.
+1280x720, 1920x1080), drawn in a seeded order. Each frame's time is the least of ``reps`` draws after a warm-up,
+on the clock :func:`time_column` picks for the driver: on Mesa's llvmpipe (a CPU renderer) the CPU time of the
+driver's draws and ``glFinish`` (``time.process_time``: every thread of the process, the work done, which a loaded
+machine disturbs far less than wall time; ``terrainwarp calibrate`` runs llvmpipe single-threaded,
+``LP_NUM_THREADS=0`` unless set, so the time adds up over the frame's work); on any other driver (a GPU) the
+GPU's own clock, a ``GL_TIME_ELAPSED`` query around the draws. Every clock is in ``calibration.csv``
+(``gl_cpu_ms``, ``gl_wall_ms``, ``gl_gpu_ms``); the weights file names the driver, its threads and the clock.
 
 Fit: non-negative least squares of the frame times (ms) on an intercept and :data:`terrainwarp.measure.cost.
 MODEL_FEATURES`, on a seeded 75% of each family's frames; R^2 is reported on the other 25% (held out), overall
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -50,12 +53,33 @@ from ..schemes import scheme_range, scheme_source
 from .gl import FrameDriver
 from .pareto import rows_to_csv
 
-__all__ = ["calibrate", "calibration_frames", "fit_cost_model", "FAMILIES", "VIEWPORTS", "CalibrationFrame"]
+__all__ = ["calibrate", "calibration_frames", "fit_cost_model", "time_column", "model_name", "FAMILIES", "VIEWPORTS",
+           "CalibrationFrame", "CLOCKS"]
 
 VIEWPORTS = ((640, 360), (1280, 720), (1920, 1080))
 _QUADTREE = ("sse", "distance", "continuous")
 FAMILIES = (*_QUADTREE, "grid", "cdlod", "clipmaps", "chunked", "martini", "delatin", "polytree", "bintree")
 HOLDOUT = 0.25
+#: what each time column of calibration.csv measures
+CLOCKS = {"gl_cpu_ms": "CPU time of the process (time.process_time) over the draws and glFinish",
+          "gl_wall_ms": "wall time over the draws and glFinish",
+          "gl_gpu_ms": "the GPU's own clock: a GL_TIME_ELAPSED query around the draws"}
+
+
+def time_column(renderer: str) -> str:
+    """The time a driver is fitted to: llvmpipe (Mesa's CPU renderer) its process CPU time, any other driver (a
+    GPU) its GPU timer."""
+    return "gl_cpu_ms" if "llvmpipe" in renderer.lower() else "gl_gpu_ms"
+
+
+def model_name(renderer: str) -> str:
+    """A weights file's model name from the driver's GL_RENDERER: ``"llvmpipe"``, else its words in lower case
+    joined by dashes up to the first ``/`` or ``(`` (``"NVIDIA GeForce RTX 3080/PCIe/SSE2"`` ->
+    ``"nvidia-geforce-rtx-3080"``)."""
+    if "llvmpipe" in renderer.lower():
+        return "llvmpipe"
+    head = re.split(r"[/(]", renderer, maxsplit=1)[0]
+    return "-".join(re.findall(r"[a-z0-9]+", head.lower())) or "gl"
 
 
 @dataclass(frozen=True)
@@ -151,16 +175,19 @@ def _ours(spec: CalibrationFrame, sources: _Sources) -> Frame:
     return render(Scene(hm, camera=spec.camera, outputs=outputs), source=src)
 
 
-def _time(driver: FrameDriver, f: Frame, reps: int) -> tuple[float, float, dict]:
-    """(least CPU ms, least wall ms, the driver's counters) of drawing frame ``f`` as its family does, ``reps``
-    times after a warm-up (the warm-up counted)."""
+def _time(driver: FrameDriver, f: Frame, reps: int) -> tuple[float, float, float, dict]:
+    """(least CPU ms, least wall ms, least GPU-timer ms, the driver's counters) of drawing frame ``f`` as its
+    family does, ``reps`` times after a warm-up (the warm-up counted)."""
     draw, release = driver.draws(f)
     try:
         got = draw(True)[4]
-        runs = [draw()[2:4] for _ in range(reps)]
+        runs = []
+        for _ in range(reps):
+            wall, cpu = draw()[2:4]
+            runs.append((wall, cpu, driver.last.last_gpu_ms))
     finally:
         release()
-    return 1e3 * min(r[1] for r in runs), 1e3 * min(r[0] for r in runs), got
+    return 1e3 * min(r[1] for r in runs), 1e3 * min(r[0] for r in runs), min(r[2] for r in runs), got
 
 
 def measure(frames: list[CalibrationFrame], hm: Heightmap, reps: int = 3, progress: bool = True) -> list[dict]:
@@ -176,11 +203,11 @@ def measure(frames: list[CalibrationFrame], hm: Heightmap, reps: int = 3, progre
     try:
         for k, spec in enumerate(frames):
             f = _ours(spec, sources)
-            cpu_ms, wall_ms, got = _time(driver, f, reps)
+            cpu_ms, wall_ms, gpu_ms, got = _time(driver, f, reps)
             rows.append({"frame": k, "family": spec.family, "param": spec.param, "width": spec.camera.width,
                          "height": spec.camera.height, "triangles": f.mesh.n_triangles,
                          **{c: f.report.counters[c] for c in PIPELINE_COUNTERS}, "gl_cpu_ms": cpu_ms,
-                         "gl_wall_ms": wall_ms, **{f"gl_{c}": v for c, v in got.items()}})
+                         "gl_wall_ms": wall_ms, "gl_gpu_ms": gpu_ms, **{f"gl_{c}": v for c, v in got.items()}})
             if bar is not None:
                 bar.update(1)
     finally:
@@ -229,7 +256,8 @@ def fit_cost_model(rows: list[dict], *, seed: int = 0, target: str = "gl_cpu_ms"
     per_family = {f: _r2(y[held & m], pred[held & m]) for f in fams
                   if (held & (m := np.array([r["family"] == f for r in rows]))).sum() >= 2}
     model = CostModel(name=name, weights=weights, intercept_ms=float(coef[0]),
-                      driver=rows[0].get("driver", "") + f" (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', '')})",
+                      driver=rows[0].get("driver", "") + f" (LP_NUM_THREADS={os.environ.get('LP_NUM_THREADS', '')})"
+                      + ("" if target == "gl_cpu_ms" else f"; timed by {CLOCKS.get(target, target)}"),
                       r2_heldout=_r2(y[held], pred[held]), frames=len(rows),
                       families={f: sum(r["family"] == f for r in rows) for f in fams}, command=command)
     return model, {"r2_heldout": model.r2_heldout, "r2_fit": _r2(y[~held], pred[~held]), "per_family": per_family,
@@ -249,7 +277,9 @@ def calibrate(out_dir: str | Path, *, frames_per_family: int = 50, seed: int = 0
     hm = heightmap if heightmap is not None else Heightmap.example()
     t0 = time.perf_counter()
     rows = measure(calibration_frames(hm, frames_per_family, seed, families), hm, reps=reps, progress=progress)
-    model, fit = fit_cost_model(rows, seed=seed, command=command)
+    renderer = rows[0].get("driver", "") if rows else ""
+    target = time_column(renderer)
+    model, fit = fit_cost_model(rows, seed=seed, target=target, name=model_name(renderer), command=command)
     for r, p, h in zip(rows, fit["predicted"], fit["held_out"], strict=True):
         r["predicted_ms"], r["held_out"] = float(p), bool(h)
     out = Path(out_dir)
@@ -270,9 +300,11 @@ def _summary(model: CostModel, fit: dict, rows: list[dict], seconds: float) -> s
              f"R^2 held out: **{fit['r2_heldout']:.3f}** (on the fitted frames {fit['r2_fit']:.3f}).", "",
              "| weight | ms per unit |", "|---|---|", f"| intercept | {model.intercept_ms:.4g} |"]
     lines += [f"| {k} | {w:.4g} |" for k, w in model.weights.items()]
-    lines += ["", "| family | frames | R^2 held out | mean driver ms | mean modelled ms |", "|---|---|---|---|---|"]
+    col = time_column(rows[0].get("driver", "")) if rows else "gl_cpu_ms"
+    lines += ["", f"Driver ms: `{col}`, {CLOCKS[col]}.", "",
+              "| family | frames | R^2 held out | mean driver ms | mean modelled ms |", "|---|---|---|---|---|"]
     for f in fams:
         rs = [r for r in rows if r["family"] == f]
         lines.append(f"| {f} | {len(rs)} | {fit['per_family'].get(f, math.nan):.3f} | "
-                     f"{np.mean([r['gl_cpu_ms'] for r in rs]):.2f} | {np.mean([r['predicted_ms'] for r in rs]):.2f} |")
+                     f"{np.mean([r[col] for r in rs]):.2f} | {np.mean([r['predicted_ms'] for r in rs]):.2f} |")
     return "\n".join(lines) + "\n"

@@ -452,6 +452,7 @@ class FrameDriver:
     def __init__(self):
         self.targets: dict[tuple, _Target] = {}
         self.renderer = ""
+        self.last: Any = None  # the target of the latest draws(): its last_gpu_ms is the latest draw's GPU time
 
     def _target(self, key: tuple, make) -> Any:
         if key not in self.targets:
@@ -472,8 +473,9 @@ class FrameDriver:
                                                                minlength=len(pl)))])
             rec = patch_records(pl.origin, pl.size, pl.outer, pl.inner, hm.origin, hm.dx, hm.dz)
             ranges = batches(t_off)
+            self.last = g
             return (lambda counters=False: g.draw(rec, ranges, counters=counters)), (lambda: None)
-        g = self._target(("mesh", w, h), lambda: GLMesh(w, h))
+        g = self.last = self._target(("mesh", w, h), lambda: GLMesh(w, h))
         d = None if indexed else mesh.draws
         tri = mesh.triangles if d is None or d.order is None else mesh.triangles[d.order]
         up = g.upload(clip_coordinates(mesh.positions, cam.view_matrix(relative=True), cam.proj_matrix()), tri)

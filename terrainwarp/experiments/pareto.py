@@ -5,7 +5,7 @@ A sweep is a list of settings (policy, parameter) crossed with the scene's camer
 measured by ``render``'s error stage, with the full-resolution grid rendered once per camera: the primary
 error ``p99_px``/``max_px``/``mean_px`` at the heightmap's samples (:mod:`terrainwarp.measure.sample_error`;
 0 for every family's full-detail mesh), the per-pixel grid-image error as the secondary
-``image_err_p99_px``/``image_err_max_px``/``image_err_mean_px`` (it carries a triangulation floor), cracks,
+``image_err_p99_px``/``image_err_max_px``/``image_err_mean_px`` (it carries a triangulation floor), see-through pixels,
 coverage and PSNR/SSIM; and popping for the pair (frame - 1, frame): ``pop_p99_px``, ``pop_max_px``,
 ``popped_samples`` (samples moving by more than 0.5 px; NaN for frame 0), the selection of camera frame - 1
 (held) against that of camera frame, both drawn for camera frame (:func:`terrainwarp.rendering.pipeline.pop_stats`;
@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
+from ..fit.verdict import MIN_SAMPLES, PIXELS_PER_SAMPLE
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.files import output_set, save_figure, write_text
 from ..lod.bintree import Bintree
@@ -63,9 +64,10 @@ from ..rendering.sources import BintreeSource, PeerSource, PolytreeSource
 from ..scene import LOD_POLICIES, Scene
 from ..schemes import PLUGIN_FLAG, SCHEMES, register_scheme, scheme_source, sweep_values
 from .runner import Job, Runner, SweepResult, pending_jobs
+from .winners import budget_verdicts, verdict_lines
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
-           "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table", "complete"]
+           "with_image_floor", "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table", "complete"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
 _FAMILIES = (*_PEERS, "polytree", "bintree")  # mesh families built once per worker, apart from frames
@@ -401,7 +403,7 @@ def summarise(rows: list[dict], cost_of: Cost | None = None) -> list[dict]:
     :data:`SUMMARY_COUNTERS` and frame time, and ``cost``: the mean of ``cost_of`` (None: ``cost_ms``) over the
     frames, the cost the report ranks by. Over the frames that did not fail: ``frames`` counts the setting's
     rows and ``failed`` those with an ``error`` (left out of every figure; a setting whose every frame failed has
-    NaN figures and ``cracks`` None). :func:`complete` says which settings every figure covers."""
+    NaN figures and ``see_through_px`` None). :func:`complete` says which settings every figure covers."""
     cost_of = cost_of if cost_of is not None else Cost("cost_ms", "modelled ms")
     out = []
     for label in dict.fromkeys(r["setting"] for r in rows):
@@ -419,7 +421,7 @@ def summarise(rows: list[dict], cost_of: Cost | None = None) -> list[dict]:
                     "cost_ms": _mean(rs, "cost_ms"), "triangles": _mean(rs, "triangles"),
                     **{c: _mean(rs, c) for c in SUMMARY_COUNTERS},
                     "frame_ms": _mean(rs, "frame_ms"), "select_ms": _mean(rs, "select_ms"),
-                    "mesh_ms": _mean(rs, "mesh_ms"), "cracks": int(sum(r["cracks"] for r in rs)),
+                    "mesh_ms": _mean(rs, "mesh_ms"), "see_through_px": int(sum(r["see_through_px"] for r in rs)),
                     "peer_mesh_ms": rs[0]["peer_mesh_ms"], "peer_error_m": rs[0]["peer_error_m"],
                     "psnr_db": float(np.nanmean([r["psnr_db"] for r in rs])) if any(
                         np.isfinite(r["psnr_db"]) for r in rs) else math.nan,
@@ -433,7 +435,7 @@ def _all_failed(every: list[dict]) -> dict:
     nan = dict.fromkeys(("p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px", "popped_samples",
                          "mean_px", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS, "frame_ms", "select_ms",
                          "mesh_ms", "peer_mesh_ms", "peer_error_m", "psnr_db"), math.nan)
-    return {"policy": r0["policy"], "param": r0["param"], "setting": r0["setting"], **nan, "cracks": None,
+    return {"policy": r0["policy"], "param": r0["param"], "setting": r0["setting"], **nan, "see_through_px": None,
             "frames": len(every), "failed": len(every)}
 
 
@@ -486,6 +488,32 @@ def image_floor(summary: list[dict]) -> dict[str, float]:
         v = r.get("image_err_p99_px", math.nan)
         if r["policy"] != "grid" and not math.isnan(v):
             out[r["policy"]] = min(out.get(r["policy"], math.inf), v)
+    return out
+
+
+def with_image_floor(rows: list[dict]) -> list[dict]:
+    """``rows`` with ``image_err_floor_p99_px`` beside ``image_err_p99_px``: on each camera, the lowest image p99 of
+    the row's family over the sweep's settings (its finest setting's, as a rule: the triangulation floor the image
+    error carries on that camera; a family's full-detail frame is not among a sweep's settings, so this is the
+    floor as near as the sweep goes); and ``sparse``: 1 where the frame's p99 rests on too few visible samples
+    (:data:`terrainwarp.fit.verdict.MIN_SAMPLES`, or fewer than one per
+    :data:`terrainwarp.fit.verdict.PIXELS_PER_SAMPLE` covered pixels), else 0."""
+    floor: dict[tuple, float] = {}
+    for r in rows:
+        v = float(r.get("image_err_p99_px", math.nan))
+        if not math.isnan(v):
+            key = (r["policy"], r["frame"])
+            floor[key] = min(floor.get(key, math.inf), v)
+    out = []
+    for r in rows:
+        d = {}
+        for k, v in r.items():
+            d[k] = v
+            if k == "image_err_p99_px":
+                d["image_err_floor_p99_px"] = floor.get((r["policy"], r["frame"]), math.nan)
+        n, cov = float(r.get("samples_visible", math.nan)), float(r.get("covered", math.nan))
+        d["sparse"] = int(n < MIN_SAMPLES or n * PIXELS_PER_SAMPLE < cov) if math.isfinite(n) else 0
+        out.append(d)
     return out
 
 
@@ -564,8 +592,13 @@ def write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out_dir:
 def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Path, path: dict | None,
                   c: Cost) -> list[Path]:
     summ = summarise(rows, c)
+    floors = with_image_floor(rows)
+    for r in summ:  # the floor on the camera of the worst image p99, beside it
+        rs = [f for f in floors if f["setting"] == r["setting"] and not math.isnan(float(f["image_err_p99_px"]))]
+        worst = max(rs, key=lambda f: float(f["image_err_p99_px"]), default=None)
+        r["image_err_floor_p99_px"] = math.nan if worst is None else worst["image_err_floor_p99_px"]
     hm = scene.heightmap
-    paths = [write_text(out / "frames.csv", rows_to_csv(rows)),
+    paths = [write_text(out / "frames.csv", rows_to_csv(floors)),
              plot_pareto(summ, out / "pareto.png", f"{hm.name}: error against cost, {len(cameras)} cameras at "
                                                    f"{cameras[0].width}x{cameras[0].height}", c.label)]
     head = [f"Heightmap {hm.shape[0]}x{hm.shape[1]}, dx={hm.dx:.4g} m, dz={hm.dz:.4g} m; {len(cameras)} cameras at "
@@ -573,18 +606,29 @@ def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Pa
             f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", ""]
     md = [f"# Error against cost: {hm.name}", "", *head, *_cost_lines(c), "", *_yardstick_lines(summ),
           *_failed_lines(summ),
-          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px",
-                                      "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS, "cracks",
-                                      "psnr_db", "peer_error_m"], summ),
+          "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "image_err_floor_p99_px",
+                                      "pop_p99_px", "pop_max_px",
+                                      "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS,
+                                      "see_through_px", "psnr_db", "peer_error_m"], summ),
           "", f"## Cheapest setting per budget ({c.label}; budgets on the primary p99)", "",
           "| budget_px | policy | setting | p99_px | cost | triangles | image_err_p99_px | pop_p99_px |",
           "|---|---|---|---|---|---|---|---|"]
     md += ["| " + " | ".join(str(v) for v in r) + " |" for r in budget_table(summ)]
+    md += ["", "## Winner per budget under each cost model", "",
+           "Every setting meeting the budget, priced by the shipped llvmpipe model and each shipped GPU profile "
+           "(terrainwarp.measure.gpu: published rates, a bottleneck model); robust: the winner stays with every rate "
+           "multiplied by 1/3..3 (terrainwarp.measure.ranking).", "", *verdict_lines(budget_verdicts(summ, rows))]
     md += ["", f"## Pareto front ({c.label})", "", ", ".join(r["setting"] for r in pareto(summ)),
            "", "## Pareto front (triangles)", "", ", ".join(r["setting"] for r in pareto(summ, "triangles")),
            "", "## Cameras", "", "| frame | position | target |", "|---|---|---|"]
     md += [f"| {k} | {tuple(round(v, 1) for v in cam.position)} | {tuple(round(v, 1) for v in cam.target)} |"
            for k, cam in enumerate(cameras)]
+    sparse = sorted({(r["frame"], int(r["samples_visible"])) for r in floors if r["sparse"] and r["policy"] == "grid"}
+                    or {(r["frame"], int(r["samples_visible"])) for r in floors if r["sparse"]})
+    if sparse:
+        md += ["", f"Frames whose p99 rests on too few visible samples (< {MIN_SAMPLES}, or < one per "
+               f"{PIXELS_PER_SAMPLE} covered pixels; frames.csv's `sparse`): "
+               + ", ".join(f"frame {k} ({n} samples)" for k, n in sparse) + "."]
     md += ["", "This simulator's CPU time per frame: [timing.md](timing.md).", "", "![pareto](pareto.png)", ""]
     timing = [f"# This run's timings: {hm.name}", "", *head, _jobs_line(rows), "",
               "CPU milliseconds of this simulator (select + mesh + raster = frame_ms), not a GPU's: they differ "
@@ -613,7 +657,10 @@ def _yardstick_lines(summ: list[dict]) -> list[str]:
     lines = ["Error (`p99_px`, `max_px`): the primary error, per visible heightmap sample the pixel distance "
              "between the sample and the drawn surface at its (x, z), worst frame (every family's full-detail "
              "mesh scores 0). `image_err_p99_px`: the per-pixel reprojection error against the fixed-diagonal "
-             "grid (secondary; the old yardstick)."]
+             "grid (secondary; the old yardstick); beside it `image_err_floor_p99_px`, the same family's lowest on "
+             "that camera over the swept settings (its triangulation floor: only the difference is the setting's; "
+             "frames.csv per camera, here the worst camera's). `see_through_px`: background pixels seen through the "
+             "terrain (a pixel heuristic; cracks are check_watertight's open edges, not counted in a sweep)."]
     if floor:
         lines += ["", "Old yardstick's floor here (grid-image p99 of each family's finest setting, which the "
                   "primary error scores near 0): " + ", ".join(f"{k} {v:.3g} px" for k, v in floor.items()) + "."]

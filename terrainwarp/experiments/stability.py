@@ -385,7 +385,7 @@ def _stage_error(case: ExtremeCase, scene) -> Row:
             f"{e.image_err_max_px:.3g} px over {e.covered} px)")
     el = render(_lod_scene(scene, ("error",))).error
     _check(all(math.isfinite(x) and x >= 0 for x in (el.max_px, el.p99_px)), "LOD error: non-finite or < 0")
-    note += f"; LOD (sse 1 px) max {el.max_px:.3g} px, p99 {el.p99_px:.3g} px, {el.cracks} crack px"
+    note += f"; LOD (sse 1 px) max {el.max_px:.3g} px, p99 {el.p99_px:.3g} px, {el.see_through_px} see-through px"
     return Row(case.name, "error", PASS, f"{_g(e.max_px)} px", "", note,
                digest(fr.error.error_map if fr.error.error_map is not None else np.zeros(0)))
 

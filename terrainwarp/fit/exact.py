@@ -44,7 +44,8 @@ class Evaluation:
     measured frame; ``image_p99_px``: the grid-image error per measured frame (secondary); ``pop_p99_px``: per
     consecutive pair (frame k-1 -> k), only when popping was measured (else empty); ``triangles`` and ``costs``:
     every frame's, in path order (``costs`` empty: the triangles are the cost). ``frames``: the cameras measured,
-    in the order they were (None: all, in path order)."""
+    in the order they were (None: all, in path order). ``visible``, ``covered``: per measured frame, the visible
+    heightmap samples the p99 is taken over and the pixels the frame covers (empty when not recorded)."""
 
     values: dict[str, float]
     p99_px: list[float]
@@ -56,6 +57,8 @@ class Evaluation:
     frames: list[int] | None = None
     costs: list[float] = field(default_factory=list)
     missing: list[float] = field(default_factory=list)
+    visible: list[int] = field(default_factory=list)
+    covered: list[int] = field(default_factory=list)
 
     @property
     def value(self) -> float:
@@ -161,8 +164,10 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
             i = done[k]
             ev.frames.append(k)
             for mine, theirs in ((ev.p99_px, known.p99_px), (ev.max_px, known.max_px), (ev.missing, known.missing),
-                                 (ev.image_p99_px, known.image_p99_px), (ev.frame_ms, known.frame_ms)):
-                mine.append(theirs[i])
+                                 (ev.image_p99_px, known.image_p99_px), (ev.frame_ms, known.frame_ms),
+                                 (ev.visible, known.visible), (ev.covered, known.covered)):
+                if theirs:
+                    mine.append(theirs[i])
             continue
         stopped = stopped or (stop_above is not None and bool(ev.p99_px) and ev.worst_p99 > stop_above)
         if stopped or (measure is not None and k not in measure):  # cost only
@@ -183,8 +188,9 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
     ev.costs = costs if cost_of is not None else []
     if ev.complete:  # back to path order, as every complete evaluation
         back = sorted(range(len(ev.frames)), key=lambda i: ev.frames[i])
-        for name in ("p99_px", "max_px", "missing", "image_p99_px", "frame_ms"):
-            setattr(ev, name, [getattr(ev, name)[i] for i in back])
+        for name in ("p99_px", "max_px", "missing", "image_p99_px", "frame_ms", "visible", "covered"):
+            if getattr(ev, name):
+                setattr(ev, name, [getattr(ev, name)[i] for i in back])
         ev.frames = None
     return ev
 
@@ -198,6 +204,8 @@ def _record(ev: Evaluation, k: int, row: Mapping[str, Any], cost_of: Cost | None
     ev.missing.append(float(row["samples_missing"]) / seen if seen else 0.0)
     ev.image_p99_px.append(float(row["image_err_p99_px"]))
     ev.frame_ms.append(row["frame_ms"])
+    ev.visible.append(int(row["samples_visible"]))
+    ev.covered.append(int(row["covered"]))
     ev.triangles[k] = int(row["triangles"])
     return cost_of.of(row) if cost_of is not None else 0.0
 

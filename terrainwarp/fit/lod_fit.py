@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, Viewport
 from ..heightmap import StreamedHeightmap
 from ..io.display import html_table
 from ..kernels.checks import check_int, check_number
@@ -46,6 +46,8 @@ from .baselines import grid_search
 from .exact import MISSING_TOL, Evaluation, Exact, evaluate, references_for
 from .families import Problem, problem
 from .search import bracket_search, calibrated_search, close_to_bound
+from .verdict import annotate
+from .viewport import pixel_knobs
 
 __all__ = ["FitResult", "fit_lod", "Progress"]
 
@@ -58,7 +60,9 @@ class FitResult:
         policy: the family fitted; budget_px, max_pop_px: the constraints; cost: what was minimised.
         met: True only if the exact pipeline's worst-frame p99 is within the budget (and the worst pair's pop p99
             within ``max_pop_px`` when given) on every camera.
-        values: the fitted knobs' values (name -> value); scene: the :class:`Scene` that draws them.
+        values: the fitted knobs' values (name -> value); scene: the :class:`Scene` that draws them, with the exact
+            cameras measured (its ``[path]``), the viewport its pixel knobs are measured at and its budget: it
+            loads back to the same frames, and ``terrainwarp evaluate`` on it reproduces ``validated``.
         validated: the exact evaluation of ``values`` on every camera (with the pop of each consecutive pair,
             measured for the record when ``max_pop_px`` is None: not counted in ``evaluations``).
         evaluations: exact frames the fit measured (error against the reference); mesh_only_frames: frames drawn
@@ -67,6 +71,13 @@ class FitResult:
         history: the fit's steps (the relaxed rounds, the polishes, the exact tries); trace: (exact frames, best
             confirmed cost) each time the best improved.
         grid: the grid search baseline of the one-knob fit, when asked for.
+        viewports: the viewports the cameras were drawn at (the first is the scene's ``viewport``, where the pixel
+            knobs are measured).
+        binding: the constraint that holds the setting (:func:`terrainwarp.fit.verdict.binding_constraint`: the
+            budget on camera k, the pop budget, or the main knob at a range limit); at_limits: the fitted knobs on
+            an end of their range; sparse: the validated frames whose p99 rests on too few samples
+            (:func:`terrainwarp.fit.verdict.sparse_frames`); image_floor_p99_px: per camera, the family's
+            full-detail image error (the floor of ``validated.image_p99_px``; with ``floor=True``, as the CLI fits).
     """
 
     policy: str
@@ -86,6 +97,11 @@ class FitResult:
     knobs: list[str] = field(default_factory=list)
     model_s: float = 0.0
     trace: list[tuple[int, float]] = field(default_factory=list)
+    viewports: list[Viewport] = field(default_factory=list)
+    binding: dict = field(default_factory=dict)
+    at_limits: list[dict] = field(default_factory=list)
+    sparse: list[dict] = field(default_factory=list)
+    image_floor_p99_px: list[float] = field(default_factory=list)
 
     @property
     def value(self) -> float:
@@ -112,14 +128,26 @@ class FitResult:
                 "message": self.message, "evaluations": self.evaluations, "mesh_only_frames": self.mesh_only_frames,
                 "wall_s": self.wall_s, "model_s": self.model_s,
                 "error": "primary: per visible heightmap sample, px (terrainwarp.measure.sample_error); "
-                         "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor)",
+                         "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor: "
+                         "image_floor_p99_px, the family's own full-detail frame's, per camera)",
+                **self._engine_dict(),
                 "validated": None if v is None else {"p99_px": v.p99_px, "max_px": v.max_px,
-                                                     "image_p99_px": v.image_p99_px, "pop_p99_px": v.pop_p99_px,
+                                                     "image_p99_px": v.image_p99_px,
+                                                     "image_floor_p99_px": self.image_floor_p99_px,
+                                                     "samples_visible": v.visible, "covered_px": v.covered,
+                                                     "pop_p99_px": v.pop_p99_px,
                                                      "triangles": v.triangles, "frame_ms": v.frame_ms,
                                                      "worst_p99_px": v.worst_p99, "worst_pop_p99_px": v.worst_pop,
                                                      "mean_triangles": float(np.mean(v.triangles)),
                                                      "costs": v.costs, "mean_cost": v.cost},
                 "history": self.history, "trace": self.trace, "grid": self.grid}
+
+
+    def _engine_dict(self) -> dict:
+        """The viewport, the pixel knobs as angles, what binds, the limits and the sparse frames (JSON)."""
+        return {"viewport": list(self.scene.pixel_viewport), "viewports": [list(v) for v in self.viewports],
+                "pixel_knobs": pixel_knobs(self.scene, self.budget_px) if self.scene.mesh == "lod" else {},
+                "binding": self.binding, "at_limits": self.at_limits, "sparse_frames": self.sparse}
 
 
 class Progress:
@@ -152,7 +180,8 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
             max_pop_px: float | None = None, references: list[Frame] | None = None, rel_tol: float = 0.02,
             max_tries: int = 8, grid_points: int = 0, grid_evaluator=None, gradient: str = "relaxed",
             device: str = "cpu", progress: bool = False, steps: int | None = None,
-            max_validations: int | None = None) -> FitResult:
+            max_validations: int | None = None, viewports: Sequence[Sequence[float]] | None = None,
+            floor: bool = False) -> FitResult:
     """Fit ``policy``'s knobs so that every frame's p99 screen error over the camera path is within ``budget_px``
     at the lowest mean cost per frame.
 
@@ -165,7 +194,9 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         knobs: None (the policy's main knob, as before multi-knob fits), ``"all"`` or a list of knob names
             (:func:`terrainwarp.fit.knobs`); the main knob is always fitted.
         cost: ``"triangles"``, a counter name, ``"llvmpipe"`` (the shipped cost model), a
-            :class:`terrainwarp.measure.cost.CostModel` or a weights file.
+            :class:`terrainwarp.measure.cost.CostModel` or a weights file, a GPU profile (``"gpu:gf100"``,
+            ``"gpu:mine.toml"``), or a list of models: each frame's worst modelled ms over them is minimised, a
+            setting that holds on every GPU listed (:func:`terrainwarp.measure.cost.cost`).
         max_pop_px: also bound the worst consecutive pair's pop p99 (px); every try then measures the whole path.
         references: the full-detail grid frames of the cameras (with depth), when the caller has them.
         rel_tol: a try within ``rel_tol`` under the budget ends the search; cost gaps within it are not chased.
@@ -179,6 +210,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         progress: a progress bar on stderr (reference frames, models built, optimiser steps, exact frames).
         steps, max_validations: accepted from earlier versions: ``max_validations`` sets ``max_tries``; ``steps``
             is unused (the optimiser's schedule is fixed).
+        viewports: ``[(w, h, fov_y_deg), ...]``: the cameras at each, one setting for all; floor: image floors too.
 
     Raises:
         ValueError, TypeError: a bad budget, policy, knob name, cost, count, or a streamed heightmap.
@@ -191,7 +223,7 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     cost_of = resolve_cost(cost)
     cost_of = None if cost_of.name == "triangles" else cost_of
     t0 = time.perf_counter()
-    cams = list(cameras) if cameras is not None else scene.camera_path()
+    cams, vps = _at_viewports(list(cameras) if cameras is not None else scene.camera_path(), viewports)
     if not cams:
         raise ValueError("cameras: expected at least one camera")
     bar = Progress(progress, len(cams) * (2 + max_tries + grid_points), f"fit {policy} {budget_px:g} px")
@@ -216,12 +248,38 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
         if max_pop_px is None and len(cams) > 1 and res.validated is not None:  # popping, for the record
             res.validated = evaluate(res.scene, cams, refs, terrain=exact.terrain_for(res.scene), device=device,
                                      values=res.values, pops=True, cost_of=cost_of)
+        annotate(res, prob.all_knobs, cams, refs, vps, cost, tried=[*exact.evals.values()], floor=floor, device=device)
         if grid_points:
             res.grid = grid_search(exact, prob, grid_points, evaluator=grid_evaluator)
         bar.expect(0)  # the total was an estimate: the bar ends full at the steps taken
     finally:
         bar.close()
     return res
+
+
+def _at_viewports(cams: list[Camera], viewports: Sequence[Sequence[float]] | None
+                  ) -> tuple[list[Camera], list[Viewport]]:
+    """The cameras at each of the checked viewports in turn (the first is the fitted scene's ``viewport``; the mean
+    cost is over them all), and the viewports (None: the cameras as they are, no viewports)."""
+    vps = _viewports(viewports)
+    return [c.with_(width=v.width, height=v.height, fov_y_deg=v.fov_y_deg) for v in vps for c in cams] or cams, vps
+
+
+def _viewports(viewports: Sequence[Sequence[float]] | None) -> list[Viewport]:
+    """The checked viewports (empty for None)."""
+    if viewports is None:
+        return []
+    if isinstance(viewports, str) or not isinstance(viewports, Sequence) or not viewports:
+        raise TypeError(f"viewports: expected a list of (width, height, fov_y_deg), got {viewports!r}")
+    out = []
+    for i, v in enumerate(viewports):
+        if not isinstance(v, Sequence) or len(v) != 3:
+            raise TypeError(f"viewports[{i}]: expected (width, height, fov_y_deg), got {v!r}")
+        try:
+            out.append(Viewport.of(*v))
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"viewports[{i}].{e}") from None
+    return list(dict.fromkeys(out))
 
 
 def _one_knob(exact: Exact, prob: Problem, budget_px: float, rel_tol: float, max_tries: int,

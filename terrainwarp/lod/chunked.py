@@ -114,6 +114,10 @@ class ChunkedLod(SelectThenMesh):
         self._h = np.ascontiguousarray(self.heightmap.heights, np.float32)
 
     # -- selection ------------------------------------------------------------------------------------
+    def split_above(self) -> float:
+        """The walk splits a chunk whose screen-space error (float32) is above this: ``max_sse_px``."""
+        return float(self.max_sse_px)
+
     def select(self, camera: Camera) -> ChunkSelection:
         """Screen-space-error selection (the tree walked in one launch, :class:`terrainwarp.kernels.schemes.
         ChunkTree`), neighbours and skirts."""
@@ -122,7 +126,7 @@ class ChunkedLod(SelectThenMesh):
         tree = t.cached(("chunk_tree", self.device), lambda: ChunkTree(
             t.stats, t.inside_counts(), t.roots, [t.node_size_world(lv) for lv in range(t.depth + 1)],
             device=self.device))
-        level, x, y, nbr_level, nbr_err, err, leaves, visited = tree.select(rel, planes, float(self.max_sse_px),
+        level, x, y, nbr_level, nbr_err, err, leaves, visited = tree.select(rel, planes, self.split_above(),
                                                                             camera.focal_px)
         s = t.root_cells / np.exp2(level.astype(np.float64))
         mask = ((nbr_level >= 0) << np.arange(4)).sum(axis=1).astype(np.int32)

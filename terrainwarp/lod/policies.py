@@ -6,7 +6,9 @@ way is coarser, how its numbers are validated) is the table ``terrainwarp.scene.
 maps each row to a class. The continuous factor rule (:func:`edge_pixels`, :func:`continuous_factors`)
 is the one used by :func:`terrainwarp.lod.select`, the fit's relaxed model and the differentiable path
 (which evaluate the same function with ``jax.numpy``). Beside it, :func:`dx11_edge_pixels`: the NVIDIA DX11
-terrain sample's per-edge screen size, and how it maps onto ``edge_pixels`` (not the same rule).
+terrain sample's per-edge screen size, and how it maps onto ``edge_pixels`` (not the same rule); and Cesium's
+heightmap-terrain rule (:func:`cesium_level_error`, :func:`cesium_sse`, :func:`cesium_refines`), which the
+``cesium`` scheme (:mod:`terrainwarp.lod.cesium`, a ``LodConfig.policy`` like the others) selects with.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ from ..heightmap import Heightmap
 from ..scene import MAX_LOG_SCALE, MAX_TESS, POLICY_TABLE, LodConfig, check_policy_numbers
 
 __all__ = ["DistancePolicy", "ScreenErrorPolicy", "ContinuousPolicy", "Policy", "POLICY_CLASSES", "make_policy",
-           "check_policy", "edge_pixels", "dx11_edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES"]
+           "check_policy", "edge_pixels", "dx11_edge_pixels", "continuous_factors", "MAX_TESS", "EDGE_PX_MAX", "EDGES",
+           "cesium_level_error", "cesium_sse", "cesium_refines", "CESIUM_TILE_SAMPLES", "CESIUM_HEIGHTMAP_QUALITY",
+           "CESIUM_DEFAULT_SSE"]
 
 # the projected length given to an edge whose midpoint is the eye (distance 0): any target gives MAX_TESS,
 # and it stays finite so that float32 derivatives through the rule stay finite (zero where clamped)
@@ -223,3 +227,44 @@ def continuous_factors(edge_px, target_px, xp: ModuleType = np, clamp: Callable 
     outer = xp.clip(f, 1.0, float(MAX_TESS)) if clamp is None else clamp(f, 1.0, float(MAX_TESS))
     inner = xp.stack([0.5 * (outer[:, 1] + outer[:, 3]), 0.5 * (outer[:, 0] + outer[:, 2])], axis=1)
     return outer, inner
+
+
+# ------------------------------------------------------------------------------------------------
+# Cesium's heightmap-terrain rule (CesiumJS: TerrainProvider, QuadtreePrimitive, HeightmapTerrainData)
+# ------------------------------------------------------------------------------------------------
+CESIUM_TILE_SAMPLES = 65  # a heightmap tile's samples per side (TerrainProvider's tileImageWidth)
+CESIUM_HEIGHTMAP_QUALITY = 0.25  # TerrainProvider.heightmapTerrainQuality
+CESIUM_DEFAULT_SSE = 2.0  # Globe.maximumScreenSpaceError's default
+
+
+def cesium_level_error(level: int | np.ndarray, level0_tile_width_m: float) -> float | np.ndarray:
+    """Cesium's geometric error (metres) of a heightmap tile at ``level`` (0: the root tiles):
+    ``heightmapTerrainQuality * level0_tile_width / (tileImageWidth * 2**level)``, i.e.
+    ``0.25 * W0 / (65 * 2**L)``.
+
+    CesiumJS estimates level 0 as ``ellipsoid.maximumRadius * 2 pi * 0.25 / (65 * tiles at level 0)``
+    (``TerrainProvider.getEstimatedLevelZeroGeometricErrorForAHeightmap``; the equator's length over the level-0
+    tiles across it is a level-0 tile's width) and halves it per level (``getLevelMaximumGeometricError``). On a
+    planar heightmap the level-0 tile's width ``W0`` is its extent along x in metres. A tile spans 64 sample
+    spacings, so this is 0.25 * 64/65 of the tile's sample spacing."""
+    return CESIUM_HEIGHTMAP_QUALITY * float(level0_tile_width_m) / (CESIUM_TILE_SAMPLES * np.exp2(level))
+
+
+def cesium_sse(geometric_error_m: float | np.ndarray, distance_m: float | np.ndarray, viewport_height: int,
+               fov_y_deg: float) -> float | np.ndarray:
+    """Cesium's screen-space error of a tile (QuadtreePrimitive ``screenSpaceError``, perspective, fog off,
+    pixelRatio 1): ``geometricError * viewportHeight / (distance * 2 tan(fovy / 2))``, ``distance`` from the eye
+    to the tile's bounding volume (infinite at distance 0)."""
+    den = np.asarray(distance_m, np.float64) * 2.0 * math.tan(math.radians(fov_y_deg) / 2.0)
+    with np.errstate(divide="ignore"):
+        out = np.where(den > 0, np.asarray(geometric_error_m, np.float64) * viewport_height / np.where(den > 0, den, 1),
+                       np.inf)
+    return out if out.ndim else float(out)
+
+
+def cesium_refines(sse: float | np.ndarray, maximum_screen_space_error: float) -> bool | np.ndarray:
+    """Whether Cesium refines a tile (draws its children instead): unless ``sse < maximumScreenSpaceError``
+    (QuadtreePrimitive ``visitTile``: a tile meets the SSE only strictly below it), and only where it has
+    children."""
+    out = np.asarray(sse) >= float(maximum_screen_space_error)
+    return out if out.ndim else bool(out)

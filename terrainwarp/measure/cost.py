@@ -9,7 +9,12 @@ A cost is one of (:func:`cost`):
   fitted by least squares (non-negative) to that driver's measured frame times
   (:mod:`terrainwarp.experiments.calibrate`); ``"llvmpipe"`` (or ``"model"``) is the model that ships with the
   package (``llvmpipe.json`` beside this module, fitted to Mesa's llvmpipe on the machine named in it), and a
-  path to a weights file written by ``terrainwarp calibrate --gl`` is a user's.
+  path to a weights file written by ``terrainwarp calibrate --gl`` is a user's;
+* a GPU profile (:class:`terrainwarp.measure.gpu.GpuProfile`): ms of a bottleneck model with a GPU's published
+  rates, ``"gpu:gf100"`` (a shipped profile: :func:`terrainwarp.measure.gpu.shipped_profiles`) or
+  ``"gpu:path/to/mine.toml"`` (a user's);
+* a list of any of these (:class:`WorstOf`): each frame's worst modelled ms over them, for a setting that has to
+  hold on every GPU it ships to.
 
 A weights file is JSON: ``{"name", "driver", "features", "weights" (ms per unit of each feature),
 "intercept_ms", "r2_heldout", "frames", "families", "command", "sha256"}``; ``sha256`` is the hash of the rest
@@ -29,8 +34,10 @@ from typing import Any
 
 from ..kernels.checks import check_number
 from ..kernels.counters import PIPELINE_COUNTERS
+from .gpu import GpuProfile, shipped_profile
 
-__all__ = ["CostModel", "Cost", "cost", "shipped_model", "MODEL_FEATURES", "COST_NAMES"]
+__all__ = ["CostModel", "Cost", "WorstOf", "cost", "cost_model", "shipped_model", "MODEL_FEATURES", "COST_NAMES",
+           "GPU_PREFIX"]
 
 #: The counters a cost model may weigh (a calibration fits these and keeps the ones it needs).
 MODEL_FEATURES = ("draw_calls", "tess_control_shader_patches", "tess_evaluation_shader_invocations",
@@ -38,6 +45,8 @@ MODEL_FEATURES = ("draw_calls", "tess_control_shader_patches", "tess_evaluation_
                   "fragment_shader_invocations_llvmpipe", "samples_passed", "bytes_heightmap")
 #: The names :func:`cost` takes besides a path or a model.
 COST_NAMES = ("triangles", "llvmpipe", "model", *PIPELINE_COUNTERS)
+#: the prefix of a GPU profile's name (``gpu:gf100``) or file (``gpu:mine.toml``)
+GPU_PREFIX = "gpu:"
 _SHIPPED = "llvmpipe.json"
 
 
@@ -127,13 +136,47 @@ def shipped_model() -> CostModel:
 
 
 @dataclass(frozen=True)
+class WorstOf:
+    """The worst of several cost models: a frame's cost is the largest of its modelled ms under ``models`` (cost
+    models, GPU profiles), so a setting fitted for it holds on each of them.
+
+    ``weights`` (the fit's linear surrogate) is the largest weight of each counter over the models."""
+
+    models: tuple
+
+    def __post_init__(self) -> None:
+        if len(self.models) < 1:
+            raise ValueError("cost: expected at least one cost model in the list")
+
+    @property
+    def name(self) -> str:
+        return "worst of " + ", ".join(m.name for m in self.models)
+
+    def __call__(self, counters: Mapping[str, Any]) -> float:
+        """The largest modelled ms of the frame over the models."""
+        return max(float(m(counters)) for m in self.models)
+
+    @property
+    def weights(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for m in self.models:
+            for k, w in m.weights.items():
+                out[k] = max(out.get(k, 0.0), float(w))
+        return out
+
+    def describe(self) -> str:
+        return f"the worst modelled ms per frame over: {'; '.join(m.describe() for m in self.models)}"
+
+
+@dataclass(frozen=True)
 class Cost:
     """A cost reports and fits rank by: ``name`` (a column name: ``"triangles"``, a counter, ``"cost_ms"`` for a
-    model) and ``of(row)``, the cost of a report row or a frame's counters (with ``triangles``)."""
+    model) and ``of(row)``, the cost of a report row or a frame's counters (with ``triangles``). ``model``: the
+    :class:`CostModel`, :class:`terrainwarp.measure.gpu.GpuProfile` or :class:`WorstOf` that prices a frame."""
 
     name: str
     label: str
-    model: CostModel | None = None
+    model: CostModel | GpuProfile | WorstOf | None = None
 
     @property
     def needs_counters(self) -> bool:
@@ -147,22 +190,46 @@ class Cost:
         return float(row[self.name])
 
 
-def cost(spec: str | Path | CostModel | Cost | None = None) -> Cost:
+def cost_model(spec: object) -> CostModel | GpuProfile:
+    """The one model ``spec`` names: ``"llvmpipe"``/``"model"``, ``"gpu:<name>"``, ``"gpu:<file>.toml"``, a
+    weights file (``*.json``), a :class:`CostModel` or a :class:`terrainwarp.measure.gpu.GpuProfile`."""
+    if isinstance(spec, CostModel | GpuProfile):
+        return spec
+    if spec in ("llvmpipe", "model"):
+        return shipped_model()
+    if isinstance(spec, Path) and spec.suffix == ".toml":
+        return GpuProfile.load(spec)
+    if isinstance(spec, Path) or (isinstance(spec, str) and spec.endswith(".json")):
+        return CostModel.load(spec)
+    if isinstance(spec, str) and spec.startswith(GPU_PREFIX):
+        rest = spec[len(GPU_PREFIX):]
+        return GpuProfile.load(rest) if rest.endswith(".toml") else shipped_profile(rest)
+    raise ValueError(f"cost: expected a cost model ('llvmpipe', 'gpu:<name>', 'gpu:<file>.toml', a weights file "
+                     f"(.json), a CostModel or a GpuProfile), got {spec!r}")
+
+
+def cost(spec: str | Path | CostModel | GpuProfile | Cost | list | tuple | None = None) -> Cost:
     """The cost named by ``spec``: None or ``"llvmpipe"`` / ``"model"`` (the shipped model), ``"triangles"``, a
-    counter name, a :class:`CostModel`, or the path of a weights file (``*.json``)."""
+    counter name, a :class:`CostModel`, the path of a weights file (``*.json``), a GPU profile
+    (``"gpu:gf100"``, ``"gpu:mine.toml"`` or a :class:`terrainwarp.measure.gpu.GpuProfile`), or a list of models
+    (:class:`WorstOf`: each frame's worst modelled ms over them)."""
     if isinstance(spec, Cost):
         return spec
-    if spec is None or spec in ("llvmpipe", "model"):
-        m = shipped_model()
-        return Cost("cost_ms", f"modelled {m.name} ms", m)
-    if isinstance(spec, CostModel):
-        return Cost("cost_ms", f"modelled {spec.name} ms", spec)
-    if isinstance(spec, Path) or (isinstance(spec, str) and spec.endswith(".json")):
-        m = CostModel.load(spec)
-        return Cost("cost_ms", f"modelled {m.name} ms", m)
+    if spec is None:
+        spec = "llvmpipe"
+    if isinstance(spec, list | tuple):
+        models = tuple(cost_model(s) for s in spec)
+        w = WorstOf(models)
+        return Cost("cost_ms", f"worst modelled ms over {', '.join(m.name for m in models)}", w)
     if isinstance(spec, str) and (spec == "triangles" or spec in PIPELINE_COUNTERS):
         return Cost(spec, spec)
-    if not isinstance(spec, str):
-        raise TypeError(f"cost: expected a name, a CostModel or a weights file's path, got {type(spec).__name__}")
-    raise ValueError(f"cost: expected 'triangles', a counter name ({', '.join(PIPELINE_COUNTERS)}), 'llvmpipe', "
-                     f"a CostModel or a weights file (.json), got {spec!r}")
+    if isinstance(spec, str) and not (spec in ("llvmpipe", "model") or spec.endswith(".json")
+                                      or spec.startswith(GPU_PREFIX)):
+        raise ValueError(f"cost: expected 'triangles', a counter name ({', '.join(PIPELINE_COUNTERS)}), 'llvmpipe', "
+                         f"'gpu:<profile>' or 'gpu:<file>.toml', a weights file (.json) or a list of models, got "
+                         f"{spec!r}")
+    if not isinstance(spec, str | Path | CostModel | GpuProfile):
+        raise TypeError(f"cost: expected a name, a CostModel, a GpuProfile, a list of them or a weights file's path, "
+                        f"got {type(spec).__name__}")
+    m = cost_model(spec)
+    return Cost("cost_ms", f"modelled {m.name} ms", m)

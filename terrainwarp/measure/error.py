@@ -9,12 +9,13 @@ the projections of P and R in pixels, exact (the full projection, not an approxi
 report the classic estimate ``|P.y - R.y| * focal_px / dist(eye, P)`` (the formula screen-space-error
 LOD policies use), to show how far it is from the truth.
 
-Coverage: pixels covered by one frame and not the other are *mismatched*; a *crack* is a pixel where
-the LOD frame shows background although the reference is covered there and the LOD terrain covers
-both neighbours across it (above and below, or left and right): background seen through the terrain.
-Requiring all four neighbours, the literal reading of the issue, would miss every crack longer than
-one pixel (along a line crack the neighbours along the line are crack pixels too). Other mismatches
-are *silhouette* pixels.
+Coverage: pixels covered by one frame and not the other are *mismatched*; a *see-through* pixel
+(``see_through_px``) is one where the LOD frame shows background although the reference is covered there
+and the LOD terrain covers both neighbours across it (above and below, or left and right): background seen
+through the terrain, where a crack would show it. It is a pixel heuristic, not the crack count: cracks are
+open edges of the mesh, :func:`terrainwarp.check_watertight`'s ``n_cracks``. Requiring all four neighbours
+would miss every see-through line longer than one pixel (along a line the neighbours along it are
+see-through too). Other mismatches are *silhouette* pixels.
 
 It runs in float64 (one Warp launch over pixels, :mod:`terrainwarp.kernels.metrics`): it measures the
 float32 pipeline, it is not part of it. :func:`pixel_positions` and :func:`reference_height` are the
@@ -92,15 +93,15 @@ class ErrorStats:
     covered: int
     mismatched: int
     silhouette: int
-    cracks: int
+    see_through_px: int
     max_depth_diff: float
     psnr_db: float | None = None
     ssim: float | None = None
     error_map: np.ndarray | None = field(default=None, repr=False)
-    crack_mask: np.ndarray | None = field(default=None, repr=False)
+    see_through_mask: np.ndarray | None = field(default=None, repr=False)
 
     def row(self) -> dict[str, float | int | None]:
-        return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "crack_mask")}
+        return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "see_through_mask")}
 
 
 @dataclass
@@ -120,12 +121,13 @@ class FrameError:
             triangulation floor (p99 0.69-0.94 px at 10% clearance, 2.4-5.7 px at 2%, on the bundled DEM
             at 1080p, for the finest quadtree frame).
         approx_max_px, approx_p99_px: the classic ``|dy| * focal / distance`` estimate of the image error.
-        covered, mismatched, silhouette, cracks, max_depth_diff: coverage against the grid frame (pixels;
-            window depth).
+        covered, mismatched, silhouette, see_through_px, max_depth_diff: coverage against the grid frame
+            (pixels; window depth); ``see_through_px``: background pixels seen through the terrain (the
+            module docstring; not the crack count, which is ``check_watertight``'s).
         psnr_db, ssim: of the hillshaded image against the grid's (None when not shaded).
         error_map: (rows, cols) float32 per-sample primary error, NaN where not measured.
         image_error_map: (H, W) float32 per-pixel image error, NaN on background.
-        crack_mask: (H, W) bool crack pixels.
+        see_through_mask: (H, W) bool see-through pixels.
     """
 
     p99_px: float
@@ -144,14 +146,14 @@ class FrameError:
     covered: int
     mismatched: int
     silhouette: int
-    cracks: int
+    see_through_px: int
     max_depth_diff: float
     psnr_db: float | None = None
     ssim: float | None = None
     samples_beside_hole: int = 0
     error_map: np.ndarray | None = field(default=None, repr=False)
     image_error_map: np.ndarray | None = field(default=None, repr=False)
-    crack_mask: np.ndarray | None = field(default=None, repr=False)
+    see_through_mask: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
     def combine(cls, samples: SampleError, image: ErrorStats) -> FrameError:
@@ -162,22 +164,23 @@ class FrameError:
                    samples_beside_hole=samples.beside_hole,
                    image_err_p99_px=image.p99_px, image_err_max_px=image.max_px, image_err_mean_px=image.mean_px,
                    approx_max_px=image.approx_max_px, approx_p99_px=image.approx_p99_px, covered=image.covered,
-                   mismatched=image.mismatched, silhouette=image.silhouette, cracks=image.cracks,
+                   mismatched=image.mismatched, silhouette=image.silhouette, see_through_px=image.see_through_px,
                    max_depth_diff=image.max_depth_diff, psnr_db=image.psnr_db, ssim=image.ssim,
-                   error_map=samples.error_map, image_error_map=image.error_map, crack_mask=image.crack_mask)
+                   error_map=samples.error_map, image_error_map=image.error_map,
+                   see_through_mask=image.see_through_mask)
 
     def _repr_html_(self) -> str:
         """The primary error, the secondary image error and the coverage as an HTML table (Jupyter)."""
         rows = [("primary (at the samples)", self.p99_px, self.max_px, self.mean_px,
                  f"{self.samples_visible} samples visible, {self.samples_hidden} hidden"),
                 ("image (against the grid; floor)", self.image_err_p99_px, self.image_err_max_px,
-                 self.image_err_mean_px, f"{self.cracks} crack pixels, {self.covered} covered"
+                 self.image_err_mean_px, f"{self.see_through_px} see-through pixels, {self.covered} covered"
                  + ("" if self.psnr_db is None else f", PSNR {self.psnr_db:.1f} dB, SSIM {self.ssim:.3f}"))]
         return html_table(("error", "p99_px", "max_px", "mean_px", "counted"), rows)
 
     def row(self) -> dict[str, float | int | None]:
         """The numbers (no maps), for tables and report.json."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "image_error_map", "crack_mask")}
+        return {k: v for k, v in self.__dict__.items() if k not in ("error_map", "image_error_map", "see_through_mask")}
 
 
 def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye: tuple[float, float, float],
@@ -214,7 +217,7 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
     stats = ErrorStats(
         max_px=q(err, np.max), p99_px=q(err, lambda a: percentile(a, 99)), mean_px=q(err, np.mean),
         approx_max_px=q(approx, np.max), approx_p99_px=q(approx, lambda a: percentile(a, 99)),
-        covered=n, mismatched=0, silhouette=0, cracks=0, max_depth_diff=0.0)
+        covered=n, mismatched=0, silhouette=0, see_through_px=0, max_depth_diff=0.0)
     if ref_triangle_id is not None:
         rc = ref_triangle_id >= 0
         mism = rc ^ cov
@@ -222,10 +225,10 @@ def frame_error(heightmap: Heightmap, camera: Camera, positions: np.ndarray, eye
         enclosed = (pad[:-2, 1:-1] & pad[2:, 1:-1]) | (pad[1:-1, :-2] & pad[1:-1, 2:])
         crack = ~cov & rc & enclosed
         stats.mismatched = int(mism.sum())
-        stats.cracks = int(crack.sum())
-        stats.silhouette = stats.mismatched - stats.cracks
+        stats.see_through_px = int(crack.sum())
+        stats.silhouette = stats.mismatched - stats.see_through_px
         if keep_maps:
-            stats.crack_mask = crack
+            stats.see_through_mask = crack
         if depth is not None and ref_depth is not None:
             both = rc & cov
             stats.max_depth_diff = float(np.abs(depth[both].astype(np.float64) - ref_depth[both]).max()) \

@@ -269,7 +269,7 @@ class Frame:
         error: :class:`terrainwarp.measure.error.FrameError`, when asked: ``p99_px``, ``max_px``, ``mean_px``
             the primary error at the heightmap's samples (0 for every family's full-detail mesh);
             ``image_err_*`` the per-pixel error against the fixed-diagonal grid (secondary: it carries a
-            triangulation floor); cracks, coverage, PSNR/SSIM.
+            triangulation floor); see-through pixels, coverage, PSNR/SSIM.
         report: the :class:`Report`.
     """
 
@@ -621,7 +621,7 @@ def _stage_error(run: _Run, rec: StageRecord) -> None:
                         device=run.device)
     frame.error = e = FrameError.combine(primary, image)
     rec.counters.update(max_px=round(e.max_px, 4), p99_px=round(e.p99_px, 4),
-                        image_err_p99_px=round(e.image_err_p99_px, 4), cracks=e.cracks)
+                        image_err_p99_px=round(e.image_err_p99_px, 4), see_through_px=e.see_through_px)
 
 
 _STAGES: dict[str, Callable[[_Run, StageRecord], float | None]] = {

@@ -24,7 +24,7 @@ __all__ = ["ROW_COLUMNS", "ERROR_COLUMNS", "STAGE_COLUMNS", "MESH_COLUMNS", "EXT
 
 STAGE_COLUMNS = ("select_ms", "mesh_ms", "raster_ms", "frame_ms")
 MESH_COLUMNS = ("patches", "vertices", "triangles")
-_MAPS = ("error_map", "image_error_map", "crack_mask")  # FrameError's images: not numbers of a row
+_MAPS = ("error_map", "image_error_map", "see_through_mask")  # FrameError's images: not numbers of a row
 ERROR_COLUMNS = tuple(f.name for f in fields(FrameError) if f.name not in _MAPS)
 COUNTER_COLUMNS = PIPELINE_COUNTERS
 #: what the caller of :func:`frame_row` adds (NaN when it does not)

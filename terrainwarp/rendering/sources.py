@@ -47,6 +47,7 @@ from ..kernels.stack import stack_displace
 from ..kernels.tessellator import tessellate_patches
 from ..lod.bintree import Bintree, select_bintree
 from ..lod.cdlod import Cdlod
+from ..lod.cesium import CesiumTerrain
 from ..lod.chunked import ChunkedLod
 from ..lod.clipmaps import Clipmap
 from ..lod.peers import PeerMesh
@@ -68,7 +69,7 @@ from ..schemes import (  # noqa: F401 - SCHEMES, SchemeSpec, scheme_range: impor
 
 # SCHEMES, SchemeSpec, scheme_source and scheme_range are terrainwarp.schemes', importable here as before
 __all__ = ["MeshSource", "SourceBase", "missing_members", "StreamedSource", "PeerSource", "PolytreeSource",
-           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource", "scene_source"]
+           "BintreeSource", "CdlodSource", "ClipmapSource", "ChunkedSource", "CesiumSource", "scene_source"]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -357,6 +358,18 @@ class ChunkedSource(_SchemeSource):
         return self.scheme.terrain.time_ms
 
 
+@dataclass(eq=False)
+class CesiumSource(_SchemeSource):
+    """Cesium's heightmap terrain (:class:`terrainwarp.lod.cesium.CesiumTerrain`): 65 x 65-sample tiles selected by
+    Cesium's screen-space-error rule, then their grids and skirts; ``build_ms`` the pyramids' time."""
+
+    scheme: CesiumTerrain
+
+    @property
+    def build_ms(self) -> float:
+        return self.scheme.terrain.time_ms
+
+
 def scene_source(scene: Scene, device: str = "cpu") -> MeshSource:
     """The mesh source that draws a LOD scene whose ``LodConfig.policy`` is a scheme (``render`` makes it):
     :func:`terrainwarp.schemes.scheme_source` with the configuration's ``params`` (a main parameter left out
@@ -415,6 +428,12 @@ def _make_chunked(heightmap: Heightmap, value: float, *, cache: dict, tile: int 
                          cache=cache)
 
 
+def _make_cesium(heightmap: Heightmap, value: float, *, cache: dict, **params: Any) -> CesiumSource:
+    """Cesium's heightmap terrain at ``maximumScreenSpaceError`` ``value`` (px); its tiles and errors are prepared
+    once per heightmap."""
+    return CesiumSource(scheme=_shared(CesiumTerrain, heightmap, cache, params, max_sse_px=value), cache=cache)
+
+
 def _cdlod_range(heightmap: Heightmap, cache: dict, params: dict) -> tuple[float, float]:
     """CDLOD's first range on ``heightmap`` (and the ``ratio`` and ``morph_start_ratio`` in ``params``): from
     its seam-free :attr:`terrainwarp.lod.cdlod.Cdlod.min_first_range` (at least one sample spacing) to twice the
@@ -460,3 +479,8 @@ register_scheme("chunked", _make_chunked, parameter="max_sse_px", lo=0.0,
                 doc="Chunked LOD with skirts: screen-space-error chunk selection; maximum error, px",
                 knobs=(SchemeKnob("tile", 8, 64, 32, integer=True, choices=(8, 16, 32, 64), structural=True,
                                   doc="quads per chunk side"),))
+# Cesium's maximumScreenSpaceError: a report sweeps 1, 2 (Cesium's default), 4 and 8 px
+register_scheme("cesium", _make_cesium, parameter="max_sse_px", lo=0.0, hi=64.0, larger_is_finer=False, builtin=True,
+                default=2.0, sweep=lambda lo, hi: [min(max(8.0 / f, lo), hi) for f in _STEPS],
+                doc="Cesium's heightmap terrain: 65x65-sample tiles, Cesium's geometric error and SSE rule; "
+                    "maximumScreenSpaceError, px")

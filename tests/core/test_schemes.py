@@ -30,7 +30,7 @@ class _Flat(SourceBase):
 
 
 def test_the_builtins_register_through_the_registry():
-    assert schemes.scheme_names(builtin=True) == ("cdlod", "clipmaps", "chunked")
+    assert schemes.scheme_names(builtin=True) == ("cdlod", "clipmaps", "chunked", "cesium")
     assert tw.rendering.sources.SCHEMES is schemes.SCHEMES  # the old import path is the same mapping
     spec = schemes.get_scheme("clipmaps")
     assert (spec.parameter, spec.lo, spec.hi, spec.odd_integer, spec.larger_is_finer) == ("n", 15, 4095, True, True)

@@ -94,3 +94,22 @@ def test_calibrate_needs_the_gl_flag(tmp_path, capsys):
     assert main(["calibrate", "--gl", "--out", str(tmp_path / "c"), "--families", "sse,nope"]) == 2
     assert "families" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+
+
+def test_a_gpu_is_fitted_to_its_own_clock_and_named_after_its_renderer():
+    from terrainwarp.experiments.calibrate import model_name, time_column
+
+    llvm = "llvmpipe (LLVM 15.0.6, 256 bits) / 4.5 (Core Profile) Mesa 22.3.6"
+    assert time_column(llvm) == "gl_cpu_ms" and model_name(llvm) == "llvmpipe"
+    gpu = "NVIDIA GeForce RTX 3080/PCIe/SSE2 / 4.6.0 NVIDIA 535.104.05"
+    assert time_column(gpu) == "gl_gpu_ms" and model_name(gpu) == "nvidia-geforce-rtx-3080"
+    assert model_name("AMD Radeon RX 5700 XT (radeonsi, navi10, LLVM 15.0.7, DRM 3.49)") == "amd-radeon-rx-5700-xt"
+    rng = np.random.default_rng(1)
+    rows = [{**{c: float(rng.uniform(0, 1e6)) for c in MODEL_FEATURES}, "family": ("a", "b")[k % 2]}
+            for k in range(40)]
+    for r in rows:  # a GPU: its timer query says 1 ns per fragment lane; its CPU time says nothing of the work
+        r["gl_gpu_ms"] = 0.2 + 1e-6 * r["fragment_shader_invocations_llvmpipe"]
+        r["gl_cpu_ms"], r["driver"] = 0.05, gpu
+    model, fit = fit_cost_model(rows, target=time_column(gpu), name=model_name(gpu))
+    assert model.name == "nvidia-geforce-rtx-3080" and "GL_TIME_ELAPSED" in model.driver
+    assert model.weights["fragment_shader_invocations_llvmpipe"] == pytest.approx(1e-6, rel=1e-6)

@@ -45,11 +45,11 @@ def test_sweep_is_reproducible_apart_from_timings(small):
     assert _strip(rows_to_csv(a)) == _strip(rows_to_csv(b))
     assert len(a) == len(SETTINGS) * len(cams)
     grid = [r for r in a if r["policy"] == "grid"]
-    assert all(r["p99_px"] < 1e-2 and r["cracks"] == 0 for r in grid)
+    assert all(r["p99_px"] < 1e-2 and r["see_through_px"] == 0 for r in grid)
     coarse = [r for r in a if r["setting"] == "sse=8"]
     fine = [r for r in a if r["setting"] == "sse=0.1"]
     assert sum(r["triangles"] for r in coarse) < sum(r["triangles"] for r in fine)
-    assert all(r["cracks"] == 0 for r in a if r["policy"] in ("sse", "continuous", "polytree", "bintree"))
+    assert all(r["see_through_px"] == 0 for r in a if r["policy"] in ("sse", "continuous", "polytree", "bintree"))
     assert all(r["triangles"] > 0 and r["peer_mesh_ms"] > 0 for r in a if r["policy"] in ("polytree", "bintree"))
 
 
@@ -78,8 +78,8 @@ def test_frames_csv_has_the_primary_image_and_popping_columns(small, tmp_path):
                  images=False)
     write_report(sc, cams, rows, tmp_path, path=sc.path_info(2))
     got = _frames_csv(tmp_path)
-    for col in ("p99_px", "max_px", "image_err_p99_px", "image_err_max_px", "cracks", "pop_p99_px", "pop_max_px",
-                "popped_samples"):
+    for col in ("p99_px", "max_px", "image_err_p99_px", "image_err_max_px", "see_through_px", "pop_p99_px",
+                "pop_max_px", "popped_samples"):
         assert col in got[0], col
     for r in got:
         assert (r["pop_p99_px"] == "nan") == (r["frame"] == "0")  # no pair before the first frame
@@ -90,6 +90,14 @@ def test_frames_csv_has_the_primary_image_and_popping_columns(small, tmp_path):
     md = (tmp_path / "report.md").read_text()
     assert "Camera path: flyover of 2 cameras at" in md and "2.0% of the" in md and "'ground'" in md
     assert "Popping" in md and "Old yardstick's floor here" in md and "image_err_p99_px" in md
+    # beside each image p99, its family's floor on that camera (the lowest over the family's swept settings)
+    for r in got:
+        same = [float(x["image_err_p99_px"]) for x in got if x["policy"] == r["policy"] and x["frame"] == r["frame"]]
+        assert float(r["image_err_floor_p99_px"]) == min(same) <= float(r["image_err_p99_px"])
+    assert "image_err_floor_p99_px" in md and "cracks" not in md.replace("cracks are check_watertight", "")
+    for r in got:  # too few samples for a p99: flagged per frame
+        n, cov = int(r["samples_visible"]), int(r["covered"])
+        assert r["sparse"] == str(int(n < 1000 or 50 * n < cov))
 
 
 def test_popping_is_zero_for_a_static_camera_and_an_unchanged_selection(small):

@@ -4,6 +4,7 @@ returns for them, the same call a notebook makes)."""
 from __future__ import annotations
 
 import io
+from html import escape
 
 import numpy as np
 import pytest
@@ -61,8 +62,8 @@ def test_report_error_and_fit_show_as_tables(shell, hm):
     assert [f"<td>{k}</td><td>{v}</td>" in rep for k, v in counted.counters.items()
             if isinstance(v, int)] == [True] * sum(isinstance(v, int) for v in counted.counters.values())
     err = shell.display_formatter.format(f.error)[0]["text/html"]
-    assert f"<td>{f.error.p99_px:.4g}</td>" in err and "primary" in err and "crack pixels" in err
+    assert f"<td>{f.error.p99_px:.4g}</td>" in err and "primary" in err and "see-through pixels" in err
     fit = tw.fit_lod(sc, 2.0, policy="chunked", cameras=[cam])
     html = shell.display_formatter.format(fit)[0]["text/html"]
-    assert fit.message.replace("<", "&lt;") in html and f"<td>{fit.value:.4g}</td>" in html
+    assert escape(fit.message) in html and f"<td>{fit.value:.4g}</td>" in html
     assert html.count("<table>") == 2  # the fit, then its camera

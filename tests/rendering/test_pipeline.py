@@ -179,7 +179,7 @@ def test_stage_plan_for_lod_scenes():
 def test_error_output_of_the_grid_is_zero(tmp_path):
     hm = Heightmap.fbm(65, seed=6, dx=5.0, max_height=150.0)
     f = render(Scene(hm, camera=Camera.default_for(hm, 96, 72), outputs=("error", "report")))
-    assert f.error.max_px < 2e-3 and f.error.cracks == 0 and f.error.mismatched == 0
+    assert f.error.max_px < 2e-3 and f.error.see_through_px == 0 and f.error.mismatched == 0
     assert f.report.stage("reference").counters["reused"] is True
     names = {p.name for p in f.save(tmp_path)}
     assert "error_px.exr" in names and "report.json" in names
@@ -210,7 +210,7 @@ def test_lod_frame_is_watertight_and_close_to_the_reference():
         f = render(sc, terrain=terrain)
         wt = check_watertight(f.mesh)
         assert wt.n_open_edges == 0 and wt.n_t_junctions == 0
-        assert f.error.cracks == 0
+        assert f.error.see_through_px == 0
         assert f.error.p99_px < 1.0
         assert f.mesh.n_triangles < 2 * 343 * 402 / 2  # far fewer triangles than the grid
         assert "prepare" not in [s.name for s in f.report.stages]  # the caller's terrain was used
@@ -250,7 +250,7 @@ def test_render_draws_prebuilt_mesh_sources():
         m, _ = src.mesh_for(cam)
         ref = rasterize(m.positions, m.triangles, cam.view_matrix(relative=True), cam.proj_matrix(), 64, 48)
         assert np.array_equal(f.triangle_id, ref.triangle_id) and np.array_equal(f.depth, ref.depth)
-        assert f.image.shape == (48, 64, 3) and np.isfinite(f.error.max_px) and f.error.cracks == 0
+        assert f.image.shape == (48, 64, 3) and np.isfinite(f.error.max_px) and f.error.see_through_px == 0
         assert r.stage("mesh").counters["triangles"] == m.n_triangles
     assert ("normal_map", "cpu") in cache  # made once, shared by the sources
     assert [s.name for s in render(sc, source=sources[0]).report.stages][:1] == ["normal_map"]
@@ -276,9 +276,10 @@ def test_frame_error_is_the_primary_error_with_the_image_error_beside_it():
     assert f.error.samples_visible == s.visible > 0 and f.error.samples_hidden == s.hidden
     i = frame_error(hm, cam, f.mesh.positions, f.mesh.eye, f.mesh.triangles, f.triangle_id, f.barycentrics,
                     f.depth, ref.triangle_id, ref.depth)
-    assert (f.error.image_err_p99_px, f.error.image_err_max_px, f.error.cracks) == (i.p99_px, i.max_px, i.cracks)
+    assert (f.error.image_err_p99_px, f.error.image_err_max_px, f.error.see_through_px) == \
+        (i.p99_px, i.max_px, i.see_through_px)
     row = f.error.row()
-    assert {"p99_px", "image_err_p99_px", "image_err_max_px", "cracks", "psnr_db"} <= set(row)
+    assert {"p99_px", "image_err_p99_px", "image_err_max_px", "see_through_px", "psnr_db"} <= set(row)
     assert f.report.stage("error").counters["image_err_p99_px"] == round(i.p99_px, 4)
 
 

@@ -56,7 +56,7 @@ def test_a_source_with_only_mesh_for_renders_measures_and_pops(scene):
     assert f.report.info["stages_run"] == ["normal_map", "select", "mesh", "raster", "shade", "reference", "error"]
     assert f.report.stage_ms("select") == 0.25  # the source's own selection time
     assert f.image.shape == (48, 64, 3) and f.patches is None
-    assert f.error.p99_px > 0 and f.error.cracks == 0
+    assert f.error.p99_px > 0 and f.error.see_through_px == 0
     full = tw.render(scene, source=GridEvery(scene.heightmap, 1))
     # every sample drawn: no error as the field defines it, up to float32 rounding (this source subtracts the eye
     # in float64 and rounds once; the grid kernel adds float32 offsets to a rounded origin)
