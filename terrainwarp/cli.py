@@ -252,6 +252,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     given = _scene(args)
     sc = _whole(given, "report")
     _path_overrides(args, sc)
+    args.budget_px = None
+    _budget_defaults(args, sc, ("cost",), {"cost": "llvmpipe"})
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
     settings = default_settings(sc.heightmap, quick=args.quick)
@@ -298,6 +300,21 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _budget_defaults(args: argparse.Namespace, sc: Scene, keys: tuple[str, ...], fallback: dict) -> None:
+    """The ``[budget]`` keys a flag leaves out, from the scene (else ``fallback``); a flag that overrides one the
+    file sets says so. Sets ``args.budget_px``, ``args.max_pop_px``, ``args.cost`` (those in ``keys``)."""
+    b = sc.budget
+    given = {"budget_px": args.budget_px, "max_pop_px": getattr(args, "max_pop_px", None), "cost": args.cost}
+    scene = {} if b is None else {"budget_px": b.budget_px, "max_pop_px": b.max_pop_px,
+                                  "cost": b.cost if isinstance(b.cost, str) else ",".join(b.cost)}
+    _note_overrides(args, [("--" + k.replace("_", "-"), given[k], "budget", k, scene.get(k)) for k in keys])
+    for k in keys:
+        v = given[k] if given[k] is not None else scene.get(k, fallback.get(k))
+        if v is None and k == "budget_px":
+            raise ValueError("--budget-px: expected the p99 budget in pixels (or a [budget] budget_px in the scene)")
+        setattr(args, k, v)
+
+
 def _cost_spec(text: str) -> str | list[str]:
     """``--cost``: one cost, or several separated by commas (the worst of them per frame)."""
     parts = [p.strip() for p in text.split(",") if p.strip()]
@@ -334,21 +351,23 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     _path_overrides(args, sc)
     _note_overrides(args, [("--policy", args.policy, "lod", "policy", sc.lod.policy)])
     args.policy = args.policy or sc.lod.policy  # the scene's [lod] policy unless --policy says otherwise
+    _budget_defaults(args, sc, ("budget_px", "max_pop_px", "cost"), {"cost": "triangles"})
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
-    fit_cost = cost(_cost_spec(args.cost))  # checked before the fit runs
+    spec = _cost_spec(args.cost)
+    fit_cost = cost(spec)  # checked before the fit runs
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
                                                                     cost_of=fit_cost)
     refs = references_for(sc, cams)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
-                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs, floor=True)
+                  max_pop_px=args.max_pop_px, cost=spec, references=refs, floor=True)  # (named: fitted.toml's cost)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
     for b in args.curve_budgets:
         r = fit_lod(sc, b, policy=args.policy, cameras=cams, knobs=args.knobs, progress=not args.no_progress,
-                    max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
+                    max_pop_px=args.max_pop_px, cost=spec, references=refs)
         if r.met:
             curve.append((b, r.validated.cost))
     runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
@@ -455,11 +474,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     doc = {**a.to_dict(), "scene": args.scene, "path": sc.path_info(args.frames)["text"],
            "pixel_knobs": pixel_knobs(sc, a.budget_px)}
+    doc, timing = split_timings(doc)  # the frames' CPU ms: timing.json, so evaluate.json is the same every run
     write_json(out / "evaluate.json", doc)
+    write_json(out / "timing.json", timing)
     write_text(out / "report.md", "\n".join(_evaluate_report_lines(sc, a, doc["path"])))
     print(f"path: {doc['path']}")
     print(a.message)
-    print("wrote: " + ", ".join(str(out / w) for w in ("evaluate.json", "report.md")))
+    print("wrote: " + ", ".join(str(out / w) for w in ("evaluate.json", "timing.json", "report.md")))
     return 0 if a.met else 1
 
 
@@ -685,32 +706,36 @@ def _add_report_fit(sub) -> None:
                     help="run the jobs on this Dask scheduler's cluster (default: a local cluster)")
     rp.add_argument("--workers", type=_nonnegative_int, default=None,
                     help="local worker processes (default: one per core; 0: in this process)")
-    rp.add_argument("--cost", default="llvmpipe", metavar="COST",
+    rp.add_argument("--cost", default=None, metavar="COST",
                     help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), a GPU profile "
                          "(gpu:gf100, gpu:gcn, gpu:rdna, gpu:mali, gpu:nv40 or gpu:FILE.toml), several of them "
                          "separated by commas (the worst per frame), triangles, a counter name (e.g. "
-                         "fragment_shader_invocations) or a weights file of terrainwarp calibrate")
+                         "fragment_shader_invocations) or a weights file of terrainwarp calibrate (default: the "
+                         "scene's [budget] cost, else llvmpipe)")
     ft = _command(sub, "fit", "fit LOD thresholds to a screen-space error budget (fit.json, fit.png, report.md)",
                   _cmd_fit)
     _add_scene(ft, "out/fit")
-    ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
+    ft.add_argument("--budget-px", type=_positive_float, default=None,
+                    help="p99 screen error budget, pixels (default: the scene's [budget] budget_px; one is needed)")
     ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=None,
                     help="LOD policy or registered scheme to fit (default: the scene's [lod] policy, else sse)")
     ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     _add_path(ft)
     ft.add_argument("--max-pop-px", type=_nonnegative_float, default=None, metavar="PX",
-                    help="also bound the worst consecutive pair's pop p99, pixels (default: no bound)")
+                    help="also bound the worst consecutive pair's pop p99, pixels (default: the scene's [budget] "
+                         "max_pop_px, else no bound)")
     ft.add_argument("--grid-points", type=_nonnegative_int, default=0,
                     help="also run a grid search baseline with N points (0: none)")
     ft.add_argument("--workers", type=_nonnegative_int, default=0,
                     help="grid search on the sweep runner with N worker processes (0: in this process)")
     ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[], metavar="PX",
                     help="also fit these budgets for the cost-against-budget curve")
-    ft.add_argument("--cost", default="triangles", metavar="COST",
+    ft.add_argument("--cost", default=None, metavar="COST",
                     help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model), a "
                          "GPU profile (gpu:gf100, ..., gpu:FILE.toml), several models separated by commas (the worst "
-                         "per frame: one setting for every GPU listed) or a weights file of terrainwarp calibrate")
+                         "per frame: one setting for every GPU listed) or a weights file of terrainwarp calibrate "
+                         "(default: the scene's [budget] cost, else triangles)")
     ft.add_argument("--knobs", type=_knob_list, default=None, metavar="A,B,C|all",
                     help="the knobs to fit together (terrainwarp.fit.knobs; default: the policy's main knob alone)")
     ft.add_argument("--baselines", type=_baseline_list, default=[], metavar="M,N",

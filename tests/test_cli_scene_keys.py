@@ -58,6 +58,14 @@ waypoints = [[100.0, 900.0], [800.0, 200.0]]
 units = "m"
 clearance = 40.0
 fov_y_deg = 55.0
+[viewport]
+width = 120
+height = 90
+fov_y_deg = 48.0
+[budget]
+budget_px = 2.0
+max_pop_px = 50.0
+cost = "fragment_shader_invocations"
 """
 
 
@@ -73,10 +81,12 @@ def test_the_scene_sets_every_key_away_from_its_default(scene_file):
 
     tables = tomllib.loads(scene_file.read_text())
     defaults = {"lod": {f.name: f.default for f in fields(LodConfig)}}
-    for table in ("camera", "render", "lod", "path"):
+    assert set(tables) == {t for t in SCENE_FILE if "." not in t}
+    for table in ("camera", "render", "lod", "path", "viewport", "budget"):
         left = set(SCENE_FILE[table]) - set(tables[table])
-        # the keys left out: a flyover cannot take an orbit's, clearance excludes preset, and params is a scheme's
-        assert left <= {"radius", "elevation", "preset", "params"}, (table, left)
+        # the keys left out: a flyover cannot take an orbit's or a recorded path's, clearance excludes preset, and
+        # params is a scheme's
+        assert left <= {"radius", "elevation", "preset", "params", "cameras", "file"}, (table, left)
     assert all(tables["lod"][k] != v for k, v in defaults["lod"].items() if k in tables["lod"])
     assert set(tables["heightmap"]["fbm"]) == set(SCENE_FILE["heightmap.fbm"])
 
@@ -123,6 +133,7 @@ def test_report_sweeps_with_the_scenes_lod_path_and_own_setting(scene_file, tmp_
                  "--no-images", "--no-progress", "--out", str(tmp_path)]) == 0
     md = (tmp_path / "report.md").read_text()
     assert "LOD: 4 roots, tess 8." in md and "3 cameras at 80x60" in md
+    assert "Cost (`cost`): `fragment_shader_invocations` per frame" in md  # the scene's [budget] cost
     assert "40 m above the ground" in md and "55 degree fov" in md
     settings = {r["setting"] for r in csv.DictReader(io.StringIO((tmp_path / "frames.csv").read_text()))}
     assert "distance=3" in settings  # the scene's own setting, beside the sweep's
@@ -130,17 +141,24 @@ def test_report_sweeps_with_the_scenes_lod_path_and_own_setting(scene_file, tmp_
 
 
 def test_fit_fits_the_scenes_policy_and_keeps_every_other_key(scene_file, tmp_path, capsys):
-    assert main(["fit", str(scene_file), "--budget-px", "2", "--no-progress", "--out", str(tmp_path)]) in (0, 1)
-    assert json.loads((tmp_path / "fit.json").read_text())["policy"] == "distance"  # it fitted sse before
+    assert main(["fit", str(scene_file), "--no-progress", "--out", str(tmp_path)]) in (0, 1)  # [budget]'s budget
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert doc["policy"] == "distance"  # it fitted sse before
+    assert (doc["budget_px"], doc["max_pop_px"]) == (2.0, 50.0) and "fragment_shader_invocations" in doc["cost"]
     got, want = Scene.load(tmp_path / "fitted.toml").to_dict(), _scene_keys(scene_file)
-    assert {k: v for k, v in got.items() if k != "lod"} == {k: v for k, v in want.items() if k != "lod"}
+    assert all(got[t] == want[t] for t in ("heightmap", "camera", "render", "budget"))
     assert {k: v for k, v in got["lod"].items() if k != "k"} == {k: v for k, v in want["lod"].items() if k != "k"}
+    # the fitted scene records the path it was fitted on (the [path]'s 3 cameras, 55 degree fov) and its viewport
+    assert got["path"]["kind"] == "cameras" and len(got["path"]["cameras"]) == 3
+    assert all(c["fov_y_deg"] == 55.0 for c in got["path"]["cameras"])
+    assert got["viewport"] == {"width": 80, "height": 60, "fov_y_deg": 55.0}
     capsys.readouterr()
     assert main(["fit", str(scene_file), "--policy", "sse", "--frames", "2", "--budget-px", "2", "--no-progress",
                  "--out", str(tmp_path / "o")]) in (0, 1)
     err = capsys.readouterr().err
     assert "--policy sse overrides the scene's [lod] policy = 'distance'" in err
     assert "--frames 2 overrides the scene's [path] n = 3" in err
+    assert "--budget-px 2.0 overrides" not in err  # the same value: nothing overridden
 
 
 def test_streamed_scenes_reach_every_command(tmp_path, capsys):

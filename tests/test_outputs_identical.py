@@ -96,13 +96,15 @@ def _untimed_files(d: Path) -> dict[str, str]:
     return out
 
 
-@pytest.mark.parametrize("command", ["fit", "report"])
+@pytest.mark.parametrize("command", ["fit", "report", "evaluate"])
 def test_fit_and_report_write_the_same_bytes_but_their_timing_files(command, tmp_path, capsys):
     """Issue 43 (finding 9): fit.json held wall_s, model_s and the validated frames' frame_ms, and the fit's
-    report.md a wall-s column; they live in timing.json / timing.md now, the timing files the README names."""
+    report.md a wall-s column (evaluate.json the frames' frame_ms); they live in timing.json / timing.md now, the
+    timing files the README names."""
     scene = tmp_path / "s.toml"
-    scene.write_text(SMALL_SCENE)
-    argv = {"fit": ["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress"],
+    scene.write_text(SMALL_SCENE + "[render]\nmesh = \"lod\"\n[budget]\nbudget_px = 2.0\n")
+    argv = {"evaluate": ["evaluate", str(scene), "--frames", "2"],
+            "fit": ["fit", str(scene), "--frames", "2", "--budget-px", "2", "--no-progress"],
             "report": ["report", str(scene), "--frames", "2", "--quick", "--policies", "grid,sse", "--workers", "0",
                        "--no-images", "--no-progress"]}[command]
     runs = []
@@ -112,7 +114,7 @@ def test_fit_and_report_write_the_same_bytes_but_their_timing_files(command, tmp
     capsys.readouterr()
     assert runs[0] == runs[1]
     timing = {p.name for p in (tmp_path / "a").iterdir() if p.name.startswith("timing.")}
-    assert timing == ({"timing.json", "timing.md"} if command == "fit" else {"timing.md"})
+    assert timing == {"fit": {"timing.json", "timing.md"}, "report": {"timing.md"}, "evaluate": {"timing.json"}}[command]
     if command == "fit":
         doc = json.loads((tmp_path / "a" / "fit.json").read_text())
         assert "wall_s" not in doc and "frame_ms" not in doc["validated"]
