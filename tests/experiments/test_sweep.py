@@ -205,7 +205,7 @@ def test_report_cli_uses_the_runner_and_leaves_no_partial_file(tmp_path, capsys)
     assert main(["report", "--out", str(tmp_path), "--frames", "1", "--quick", "--policies", "grid,sse",
                  "--width", "48", "--height", "32", "--workers", "2", "--no-progress", "--no-images"]) == 0
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["frames.csv", "pareto.png", "report.md", "timing.md"]
+    assert names == ["frames.csv", "pareto.png", "report.md", "scene.toml", "timing.md"]
     rows = list(csv.DictReader(io.StringIO((tmp_path / "frames.csv").read_text())))
     assert len(rows) == 3 and all(r["error"] == "" and r["retries"] == "0" for r in rows)
     assert "Jobs (setting, frame): 3, failed 0, retried after a worker died 0." in (tmp_path / "timing.md").read_text()
