@@ -163,7 +163,18 @@ tw.schemes.register_scheme("flaky", lambda hm, v, *, cache, **kw: Flaky(hm, v, c
 '''
 
 
-def test_a_report_with_failed_frames_is_written_and_a_rerun_retries_them(tmp_path, capsys):
+@pytest.fixture
+def _schemes_restored():
+    """The schemes registry as it was (the plugin's scheme must not reach the other tests' policy lists)."""
+    from terrainwarp.schemes import SCHEMES, unregister_scheme
+
+    before = set(SCHEMES)
+    yield
+    for name in set(SCHEMES) - before:
+        unregister_scheme(name)
+
+
+def test_a_report_with_failed_frames_is_written_and_a_rerun_retries_them(tmp_path, capsys, _schemes_restored):
     from terrainwarp.cli import main
 
     plugin = tmp_path / "flaky.py"

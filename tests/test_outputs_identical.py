@@ -114,7 +114,8 @@ def test_fit_and_report_write_the_same_bytes_but_their_timing_files(command, tmp
     capsys.readouterr()
     assert runs[0] == runs[1]
     timing = {p.name for p in (tmp_path / "a").iterdir() if p.name.startswith("timing.")}
-    assert timing == {"fit": {"timing.json", "timing.md"}, "report": {"timing.md"}, "evaluate": {"timing.json"}}[command]
+    want = {"fit": {"timing.json", "timing.md"}, "report": {"timing.md"}, "evaluate": {"timing.json"}}
+    assert timing == want[command]
     if command == "fit":
         doc = json.loads((tmp_path / "a" / "fit.json").read_text())
         assert "wall_s" not in doc and "frame_ms" not in doc["validated"]
