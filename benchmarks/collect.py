@@ -6,8 +6,9 @@ import re
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ORDER = ["frame", "terrain_frame", "select", "counters", "calibration", "gpu_check", "cuda_parity", "cuda_parity_nofma",
-         "gpu_frame", "calibration_gpu", "threads", "targets", "lod", "tessellate", "raster", "normals_curvature",
+ORDER = ["frame", "terrain_frame", "raster46", "select", "counters", "calibration", "gpu_check", "cuda_parity",
+         "cuda_parity_nofma", "gpu_frame", "calibration_gpu", "threads", "targets", "lod", "tessellate", "raster",
+         "normals_curvature",
          "yardstick", "error_vs_time_jacksboro", "error_vs_time_fbm4097", "fit", "fit_640x360", "fit_fbm4097",
          "fit_fbm4097_640x360", "fit_knobs", "fit_knobs_cont1080_dem", "popping", "schemes", "gpu_whitepaper",
          "gpu_clipmap", "gpu_fits", "stability", "fuzz",

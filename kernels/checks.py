@@ -5,6 +5,10 @@ an integer) raises ``TypeError``; a value of the right type outside its range (N
 unknown name) raises ``ValueError``. Every message names the argument and says what was expected and what was
 given: ``"lod.tolerance_px: expected a number, got '1.0'"``, ``"dx: expected a finite number > 0, got -30.0"``.
 
+Arrays have their own checks with the same rule: a triangle list of the wrong shape or out-of-range indices
+raises ``ValueError``, one of a non-integer dtype ``TypeError`` (:func:`check_triangles`); a viewport side that is
+not an integer raises ``TypeError``, one outside ``1..MAX_VIEWPORT`` ``ValueError`` (:func:`check_viewport`).
+
 Integers are Python or numpy integers (bool is not one); numbers are integers or Python/numpy floats. Each
 check returns the value converted (``int`` or ``float``), so the caller keeps a plain Python scalar.
 """
@@ -16,7 +20,11 @@ from collections.abc import Iterable
 
 import numpy as np
 
-__all__ = ["is_int", "is_number", "check_int", "check_number", "check_bool", "check_choice", "check_optional"]
+__all__ = ["MAX_VIEWPORT", "is_int", "is_number", "check_int", "check_number", "check_bool", "check_choice",
+           "check_optional", "check_pixels", "check_viewport", "check_triangle_shape", "check_triangles"]
+
+#: The largest viewport side, in pixels (a GPU's GL_MAX_VIEWPORT_DIMS; the renderer's own limit).
+MAX_VIEWPORT = 16384
 
 
 def is_int(v: object) -> bool:
@@ -93,3 +101,52 @@ def check_choice(name: str, v: object, choices: Iterable[str]) -> str:
 def check_optional(check, name: str, v: object, *args, **kwargs):
     """``None``, or ``check(name, v, *args, **kwargs)``."""
     return None if v is None else check(name, v, *args, **kwargs)
+
+
+def check_pixels(name: str, v: object) -> int:
+    """``v``, one side of a viewport in pixels, as an ``int`` in ``1..MAX_VIEWPORT``.
+
+    Raises:
+        TypeError: ``v`` is not an integer. ValueError: it lies outside ``1..MAX_VIEWPORT``.
+    """
+    if not is_int(v):
+        raise TypeError(f"{name}: expected an integer number of pixels, got {v!r}")
+    if not 1 <= int(v) <= MAX_VIEWPORT:
+        raise ValueError(f"{name}: expected 1..{MAX_VIEWPORT} pixels, got {v}")
+    return int(v)
+
+
+def check_viewport(width: object, height: object, names: tuple[str, str] = ("width", "height")) -> tuple[int, int]:
+    """``(width, height)`` in pixels, each checked by :func:`check_pixels` under its name in ``names``."""
+    return check_pixels(names[0], width), check_pixels(names[1], height)
+
+
+def check_triangle_shape(name: str, shape: tuple[int, ...], dtype: object) -> None:
+    """The shape and dtype rule of a triangle list, for arrays that cannot be read on the host (a traced JAX
+    array): ``(m, 3)`` of an integer dtype (any dtype when ``m == 0``).
+
+    Raises:
+        ValueError: another shape. TypeError: a non-integer dtype.
+    """
+    shape = tuple(int(s) for s in shape)
+    if len(shape) != 2 or shape[1] != 3:
+        raise ValueError(f"{name}: expected shape (m, 3), got {shape}")
+    if shape[0] and not np.issubdtype(np.dtype(dtype), np.integer):
+        raise TypeError(f"{name}: expected integer vertex indices, got dtype {np.dtype(dtype)}")
+
+
+def check_triangles(name: str, triangles: object, n_vertices: int | None = None) -> np.ndarray:
+    """``triangles`` as a C-contiguous ``(m, 3)`` int32 array of vertex indices, each in ``[0, n_vertices)``
+    (``n_vertices`` None: only ``>= 0`` and below 2**31).
+
+    Raises:
+        ValueError: not ``(m, 3)``, or an index out of range. TypeError: a non-integer dtype.
+    """
+    tri = np.asarray(triangles)
+    check_triangle_shape(name, tri.shape, tri.dtype)
+    if tri.size:
+        lo, hi = int(tri.min()), int(tri.max())
+        top = np.iinfo(np.int32).max + 1 if n_vertices is None else int(n_vertices)
+        if lo < 0 or hi >= top:
+            raise ValueError(f"{name}: expected indices in [0, {top}), got [{lo}, {hi}]")
+    return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)

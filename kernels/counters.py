@@ -1,7 +1,10 @@
 """Pipeline statistics of the draws that make a frame, as OpenGL's ARB_pipeline_statistics_query names them
 (lower-case): what the input assembler, the vertex and tessellation stages would count for the draw calls a
-family issues. The rasterizer's own counters (clipping, fragment shader invocations, samples passed) come from
-:func:`terrainwarp.kernels.raster.rasterize` with ``counters=True``.
+family issues, and the rasterizer's tallies turned into its counters.
+
+* The rasterizer (:func:`terrainwarp.kernels.raster.rasterize`) adds what it counts into an int64 array of
+  ``TALLIES`` columns, one row per launch chunk (``T_*`` name the columns); :func:`raster_stats` and
+  :func:`raster_counters` read the rows' sums into its ``stats`` and its pipeline statistics (``counters=True``).
 
 * A patch draw (:func:`patch_draw_counters`): 4 control points per patch, each through the vertex shader;
   every patch through the tessellation control shader (``tess_control_shader_patches``, culled ones too); one
@@ -25,8 +28,9 @@ import warp as wp
 from .parallel import launch
 from .pool import pooled_rows_array
 
-__all__ = ["patch_draw_counters", "indexed_draw_counters", "frame_counters", "PATCH_RECORD_BYTES", "INDEX_BYTES",
-           "DRAW_COUNTERS", "RASTER_COUNTERS", "DERIVED_COUNTERS", "PIPELINE_COUNTERS"]
+__all__ = ["patch_draw_counters", "indexed_draw_counters", "frame_counters", "raster_stats", "raster_counters",
+           "PATCH_RECORD_BYTES", "INDEX_BYTES", "DRAW_COUNTERS", "RASTER_COUNTERS", "DERIVED_COUNTERS",
+           "PIPELINE_COUNTERS", "TALLIES"]
 
 PATCH_RECORD_BYTES = 48  # box (4 floats), outer (4), inner (2), padding (2): one storage-buffer record per patch
 INDEX_BYTES = 4  # 32-bit indices
@@ -44,6 +48,39 @@ RASTER_COUNTERS = ("clipping_input_primitives", "clipping_output_primitives", "f
 DERIVED_COUNTERS = ("quad_efficiency", "overdraw")
 PIPELINE_COUNTERS = DRAW_COUNTERS + RASTER_COUNTERS + DERIVED_COUNTERS
 _MIN_TRIANGLES = 16384
+
+# The rasterizer's tallies: the columns of its per-chunk int64 rows (kernels/raster.py adds into them)
+T_RASTERIZED = 0  # triangles that reach the coverage test (after rejection, clipping, zero area and culling)
+T_BINNED = 1  # large triangles (pixel box of SMALL_PX or more), drawn on the 16-pixel depth grid
+T_TILE16 = 2  # the 16x16 screen tiles those large triangles may cover (their corners do not exclude them)
+T_TESTED = 3  # pixel centres in the 4x4 blocks the corner tests did not reject
+T_INSIDE = 4  # pixel centres covered, every (fan) triangle's: samples_covered
+T_PASSED = 5  # fragments that passed GL_LESS in submission order: samples_passed
+T_COVERED = 6  # pixels covered in the end
+T_QUADS = 7  # 2x2 quads with a covered centre, per (fan) triangle
+T_BLOCKS = 8  # 4x4 blocks with a covered centre, per (fan) triangle
+T_CLIPPED = 9  # the clipper's output triangles
+TALLIES = 10
+
+
+def raster_stats(tally: np.ndarray, triangles: int) -> dict[str, int]:
+    """The rasterizer's ``Fragments.stats`` from its tallies summed over the rows (``tally``, (TALLIES,) int64) for
+    a draw of ``triangles`` triangles."""
+    return {"triangles_in": int(triangles), "triangles_rasterized": int(tally[T_RASTERIZED]),
+            "triangles_binned": int(tally[T_BINNED]), "tile_entries": int(tally[T_TILE16]),
+            "fragments_tested": int(tally[T_TESTED]), "fragments_inside": int(tally[T_INSIDE]),
+            "pixels_written": int(tally[T_PASSED]), "pixels_covered": int(tally[T_COVERED])}
+
+
+def raster_counters(tally: np.ndarray, triangles: int) -> dict[str, int]:
+    """The rasterizer's pipeline statistics (:data:`RASTER_COUNTERS`) from its summed tallies: the clipper's input
+    and output, 4 fragment shader invocations per 2x2 quad (``quad2x2``) and 16 per 4x4 block (``llvmpipe``) a
+    (fan) triangle covers a centre of, samples passed and covered, pixels covered."""
+    return {"clipping_input_primitives": int(triangles), "clipping_output_primitives": int(tally[T_CLIPPED]),
+            "fragment_shader_invocations": 4 * int(tally[T_QUADS]),
+            "fragment_shader_invocations_llvmpipe": 16 * int(tally[T_BLOCKS]),
+            "samples_passed": int(tally[T_PASSED]), "samples_covered": int(tally[T_INSIDE]),
+            "pixels_covered": int(tally[T_COVERED])}
 
 
 def frame_counters(draw: dict[str, int], raster: dict[str, int]) -> dict[str, float | int]:

@@ -192,8 +192,8 @@ def _interpolate_kernel(
     # outputs
     out: wp.array3d(dtype=wp.float32),
 ):
-    """Perspective-correct interpolation at each pixel centre, every channel; 0 on background (the
-    arithmetic of ``raster.interpolate_kernel``, one thread per pixel instead of per channel)."""
+    """Perspective-correct interpolation at each pixel centre (:func:`.raster.clip_barycentrics` at
+    :func:`.raster.pixel_ndc`), every channel, one thread per pixel; 0 on background."""
     i, j = wp.tid()
     i += offset
     t = ids[i, j]

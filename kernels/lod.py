@@ -102,6 +102,16 @@ def screen_error(e: float, dist: float, focal_px: float) -> float:
     return sse
 
 
+@wp.func
+def splits(code: int, metric: float, threshold: float, hysteresis: float, was_split: wp.bool) -> wp.bool:
+    """The quadtree policies' split rule, with hysteresis: code 0 (distance) splits while the distance ``metric`` is
+    below ``threshold * (1 + h)`` for a node split in the previous frame and ``threshold * (1 - h)`` for another;
+    code 1 (screen error) while the error is above ``threshold * (1 - h)`` or ``threshold * (1 + h)``."""
+    if code == 0:
+        return metric < threshold * wp.where(was_split, 1.0 + hysteresis, 1.0 - hysteresis)
+    return metric > threshold * wp.where(was_split, 1.0 - hysteresis, 1.0 + hysteresis)
+
+
 @wp.kernel(enable_backward=False)
 def _select_kernel(
     offset: int,
@@ -138,20 +148,13 @@ def _select_kernel(
     prev = False
     if n_prev > 0:  # keys are read only with a previous frame to look them up in
         prev = _was_split(prev_split, n_prev, node_key[k])
+    metric = dist
+    if policy != 0:
+        metric = screen_error(gerr[k], dist, focal_px)
+    out_metric[k] = metric
     split = int(0)
-    if policy == 0:
-        thr = threshold * wp.where(prev, 1.0 + hysteresis, 1.0 - hysteresis)
-        out_metric[k] = dist
-        if dist < thr:
-            split = 1
-    else:
-        sse = screen_error(gerr[k], dist, focal_px)
-        out_metric[k] = sse
-        thr = threshold * wp.where(prev, 1.0 - hysteresis, 1.0 + hysteresis)
-        if sse > thr:
-            split = 1
-    if culled != 0 or can_split == 0:
-        split = 0
+    if splits(policy, metric, threshold, hysteresis, prev) and culled == 0 and can_split != 0:
+        split = 1
     out_split[k] = split
 
 
@@ -639,6 +642,169 @@ def _evaluate_node(qt: QuadTree, lv: int, x: int, y: int, rel: wp.vec3, planes: 
     return box_outside(planes, lo, hi), dist, metric
 
 
+@wp.func
+def _cell_of(qt: QuadTree, lv: int, x: int, y: int) -> int:
+    """Node (lv, x, y)'s cell in the dense tree map."""
+    return _tree_cell(lv, x, y, qt.roots[0], qt.roots[0] * qt.roots[1])
+
+
+@wp.func
+def _descend(qt: QuadTree, rel: wp.vec3, planes: wp.array(dtype=wp.vec4), thresholds: wp.array(dtype=wp.float32),
+             params: wp.array(dtype=wp.float32), ints: wp.array(dtype=wp.int32), prev: wp.array(dtype=wp.int64),
+             front: wp.array3d(dtype=wp.int32), code: wp.array(dtype=wp.int32), tree: TreeMap,
+             nodes: wp.array2d(dtype=wp.int32), dm: wp.array2d(dtype=wp.float32),
+             out_split: wp.array2d(dtype=wp.int32)) -> wp.vec3i:
+    """The descent from the roots, level by level: nodes outside the grid are leaves that only complete the tiling;
+    the others split by the policy (:func:`splits`, ``ints[0]`` its code, against the previous frame's split keys
+    in ``prev``, ``ints[2]`` of them), culled nodes and the deepest level do not, and with a fixed level
+    (``ints[1]`` >= 0, the continuous policy) everything splits down to it. Split nodes go to ``out_split`` and are
+    marked -1 in the tree map, the rest to the tiling ``nodes``. Returns (nodes of the tiling, split nodes, nodes
+    visited)."""
+    pcode = ints[0]
+    fixed = ints[1]
+    n = walk_roots(front, qt.roots)
+    p = int(0)
+    nn = int(0)
+    ns = int(0)
+    visited = int(0)
+    for lvl in range(qt.depth + 1):
+        cnt = qt.inside[lvl]
+        m = int(0)
+        for i in range(n):  # outside the grid: a leaf that only completes the tiling
+            x = front[p, i, 0]
+            y = front[p, i, 1]
+            if is_inside(cnt, x, y):
+                front[p, m, 0] = x
+                front[p, m, 1] = y
+                m += 1
+            else:
+                _add_node(nodes, dm, nn, lvl, x, y, 7, 0.0, 0.0)
+                nn += 1
+        n = m
+        if n == 0:
+            break
+        visited += n
+        can = lvl < qt.depth
+        if fixed >= 0:
+            can = lvl < fixed
+        for i in range(n):
+            x = front[p, i, 0]
+            y = front[p, i, 1]
+            culled, dist, metric = _evaluate_node(qt, lvl, x, y, rel, planes, pcode, params[0])
+            was = False
+            if ints[2] > 0:
+                was = _was_split(prev, ints[2], _tile_key(lvl, x, y))
+            split = int(0)
+            if splits(pcode, metric, thresholds[lvl], params[1], was) and culled == 0 and can:
+                split = 1
+            if fixed >= 0 and lvl < fixed:
+                split = 1  # a uniform grid: everything splits down to the level
+            code[i] = split
+            if split == 1:
+                out_split[ns, 0] = lvl
+                out_split[ns, 1] = x
+                out_split[ns, 2] = y
+                ns += 1
+                tree.dense[_cell_of(qt, lvl, x, y)] = -1
+            else:
+                _add_node(nodes, dm, nn, lvl, x, y, 4 + culled, dist, metric)
+                nn += 1
+        n = push_children(front, p, n, code, 1)
+        p = 1 - p
+    return wp.vec3i(nn, ns, visited)
+
+
+@wp.func
+def _balance(qt: QuadTree, tree: TreeMap, nodes: wp.array2d(dtype=wp.int32), dm: wp.array2d(dtype=wp.float32),
+             level_of: wp.array(dtype=wp.int32), bad: wp.array(dtype=wp.int32), out_split: wp.array2d(dtype=wp.int32),
+             nn: int, ns: int) -> wp.vec3i:
+    """The 2:1 balance: every pass splits at once the leaves with a neighbour more than one level finer, their
+    four children joining the tiling and the tree map. Returns (nodes of the tiling, split nodes, forced
+    splits)."""
+    forced = int(0)
+    for _ in range(4 * (qt.depth + 1) + 8):
+        nb = int(0)
+        for j in range(nn):
+            if nodes[j, 3] == 4 or nodes[j, 3] == 5:  # alive, inside the grid
+                e = edge_levels(tree, level_of, nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.depth, qt.roots[1])
+                if wp.max(wp.max(e[0], e[1]), wp.max(e[2], e[3])) > nodes[j, 0] + 1:
+                    bad[nb] = j
+                    nb += 1
+        if nb == 0:
+            break
+        forced += nb
+        for b in range(nb):
+            j = bad[b]
+            lv = nodes[j, 0]
+            nodes[j, 3] = nodes[j, 3] & 3  # no longer alive
+            out_split[ns, 0] = lv
+            out_split[ns, 1] = nodes[j, 1]
+            out_split[ns, 2] = nodes[j, 2]
+            ns += 1
+            tree.dense[_cell_of(qt, lv, nodes[j, 1], nodes[j, 2])] = -1
+            cnt = qt.inside[lv + 1]
+            for c in range(4):
+                x = 2 * nodes[j, 1] + c % 2
+                y = 2 * nodes[j, 2] + c / 2
+                flags = int(4)
+                if not is_inside(cnt, x, y):
+                    flags = 6
+                _add_node(nodes, dm, nn, lv + 1, x, y, flags, 0.0, 0.0)
+                level_of[nn] = lv + 1
+                tree.dense[_cell_of(qt, lv + 1, x, y)] = nn + 1
+                nn += 1
+    return wp.vec3i(nn, ns, forced)
+
+
+@wp.func
+def _children_stats(qt: QuadTree, rel: wp.vec3, planes: wp.array(dtype=wp.vec4), code: int, focal: float,
+                    nodes: wp.array2d(dtype=wp.int32), dm: wp.array2d(dtype=wp.float32), first: int, nn: int):
+    """The balance's children (tiling nodes ``first`` on) that stayed leaves: their own culling, distance and
+    metric (the policy's ``code``)."""
+    for j in range(first, nn):
+        if nodes[j, 3] >= 4:
+            culled, dist, metric = _evaluate_node(qt, nodes[j, 0], nodes[j, 1], nodes[j, 2], rel, planes, code, focal)
+            nodes[j, 3] = nodes[j, 3] | culled
+            dm[j, 0] = dist
+            dm[j, 1] = metric
+
+
+@wp.func
+def _emit_leaves(qt: QuadTree, tree: TreeMap, nodes: wp.array2d(dtype=wp.int32), dm: wp.array2d(dtype=wp.float32),
+                 level_of: wp.array(dtype=wp.int32), nn: int, out_patch: wp.array2d(dtype=wp.int32),
+                 out_f: wp.array2d(dtype=wp.float32), out_key: wp.array(dtype=wp.int64)) -> wp.vec3i:
+    """The drawn leaves (inside the grid, not culled) with their neighbours' levels (-1 outside the grid), distance,
+    metric, geometric error and key, in tiling order (the host puts them in key order). Returns (leaves drawn,
+    leaves, culled leaves)."""
+    leaves = int(0)
+    culled_leaves = int(0)
+    for j in range(nn):  # level_of for the patches' neighbours: -1 outside the grid
+        f = nodes[j, 3]
+        if f >= 4 and (f & 2) == 0:
+            leaves += 1
+            culled_leaves += f & 1
+        if (f & 2) != 0:
+            level_of[j] = -1
+    q = int(0)
+    for j in range(nn):
+        if nodes[j, 3] == 4:
+            lv = nodes[j, 0]
+            x = nodes[j, 1]
+            y = nodes[j, 2]
+            e = edge_levels(tree, level_of, lv, x, y, qt.depth, qt.roots[1])
+            out_patch[q, 0] = lv
+            out_patch[q, 1] = x
+            out_patch[q, 2] = y
+            for k in range(4):
+                out_patch[q, 3 + k] = e[k]
+            out_f[q, 0] = dm[j, 0]
+            out_f[q, 1] = dm[j, 1]
+            out_f[q, 2] = qt.herr[node_index(qt, lv, x, y)]
+            out_key[q] = _tile_key(lv, x, y)
+            q += 1
+    return wp.vec3i(q, leaves, culled_leaves)
+
+
 @wp.kernel(enable_backward=False)
 def _quadtree_select_kernel(
     qt: QuadTree,
@@ -662,156 +828,34 @@ def _quadtree_select_kernel(
     out_key: wp.array(dtype=wp.int64),
     out_n: wp.array(dtype=wp.int64),
 ):
-    """One thread: the descent, the 2:1 balance, and the drawn leaves and their keys with their neighbours' levels
-    (see :meth:`QuadtreeWalk.select`). ``params``: focal px, hysteresis; ``ints``: policy code (0 distance, 1
-    screen error), the fixed level of the continuous policy (-1 none), the previous frame's split keys (in
-    ``prev``, sorted). The tree map is all 0 on entry and is left all 0."""
+    """One thread: the descent (:func:`_descend`), the 2:1 balance (:func:`_balance`) and its children's stats, and
+    the drawn leaves and their keys with their neighbours' levels (:func:`_emit_leaves`); see
+    :meth:`QuadtreeWalk.select`. ``params``: focal px, hysteresis; ``ints``: policy code (0 distance, 1 screen
+    error), the fixed level of the continuous policy (-1 none), the previous frame's split keys (in ``prev``,
+    sorted). The tree map is all 0 on entry and is left all 0."""
     rel = eye[0]
-    focal = params[0]
-    hyst = params[1]
-    pcode = ints[0]
-    fixed = ints[1]
-    n_prev = ints[2]
-    n = walk_roots(front, qt.roots)
-    p = int(0)
-    nn = int(0)  # nodes of the tiling
-    ns = int(0)  # split nodes
-    visited = int(0)
-    for lvl in range(qt.depth + 1):
-        cnt = qt.inside[lvl]
-        m = int(0)
-        for i in range(n):  # outside the grid: a leaf that only completes the tiling
-            x = front[p, i, 0]
-            y = front[p, i, 1]
-            if is_inside(cnt, x, y):
-                front[p, m, 0] = x
-                front[p, m, 1] = y
-                m += 1
-            else:
-                _add_node(nodes, dm, nn, lvl, x, y, 7, 0.0, 0.0)
-                nn += 1
-        n = m
-        if n == 0:
-            break
-        visited += n
-        thr0 = thresholds[lvl]
-        can = lvl < qt.depth
-        if fixed >= 0:
-            can = lvl < fixed
-        for i in range(n):
-            x = front[p, i, 0]
-            y = front[p, i, 1]
-            culled, dist, metric = _evaluate_node(qt, lvl, x, y, rel, planes, pcode, focal)
-            was = False
-            if n_prev > 0:
-                was = _was_split(prev, n_prev, _tile_key(lvl, x, y))
-            split = int(0)
-            if pcode == 0:
-                if dist < thr0 * wp.where(was, 1.0 + hyst, 1.0 - hyst):
-                    split = 1
-            elif metric > thr0 * wp.where(was, 1.0 - hyst, 1.0 + hyst):
-                split = 1
-            if culled != 0 or not can:
-                split = 0
-            if fixed >= 0 and lvl < fixed:
-                split = 1  # a uniform grid: everything splits down to the level
-            code[i] = split
-            if split == 1:
-                out_split[ns, 0] = lvl
-                out_split[ns, 1] = x
-                out_split[ns, 2] = y
-                ns += 1
-                tree.dense[_tree_cell(lvl, x, y, qt.roots[0], qt.roots[0] * qt.roots[1])] = -1
-            else:
-                _add_node(nodes, dm, nn, lvl, x, y, 4 + culled, dist, metric)
-                nn += 1
-        n = push_children(front, p, n, code, 1)
-        p = 1 - p
-    n_roots = qt.roots[0] * qt.roots[1]
+    d = _descend(qt, rel, planes, thresholds, params, ints, prev, front, code, tree, nodes, dm, out_split)
+    nn = d[0]
     for j in range(nn):
-        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.roots[0], n_roots)] = j + 1
+        tree.dense[_cell_of(qt, nodes[j, 0], nodes[j, 1], nodes[j, 2])] = j + 1
         level_of[j] = nodes[j, 0]
-    # 2:1 balance: every pass splits at once the leaves with a neighbour more than one level finer
-    first_child = nn
-    forced = int(0)
-    for _ in range(4 * (qt.depth + 1) + 8):
-        nb = int(0)
-        for j in range(nn):
-            if nodes[j, 3] == 4 or nodes[j, 3] == 5:  # alive, inside the grid
-                e = edge_levels(tree, level_of, nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.depth, qt.roots[1])
-                if wp.max(wp.max(e[0], e[1]), wp.max(e[2], e[3])) > nodes[j, 0] + 1:
-                    bad[nb] = j
-                    nb += 1
-        if nb == 0:
-            break
-        forced += nb
-        for b in range(nb):
-            j = bad[b]
-            lv = nodes[j, 0]
-            nodes[j, 3] = nodes[j, 3] & 3  # no longer alive
-            out_split[ns, 0] = lv
-            out_split[ns, 1] = nodes[j, 1]
-            out_split[ns, 2] = nodes[j, 2]
-            ns += 1
-            tree.dense[_tree_cell(lv, nodes[j, 1], nodes[j, 2], qt.roots[0], n_roots)] = -1
-            cnt = qt.inside[lv + 1]
-            for c in range(4):
-                x = 2 * nodes[j, 1] + c % 2
-                y = 2 * nodes[j, 2] + c / 2
-                flags = int(4)
-                if not is_inside(cnt, x, y):
-                    flags = 6
-                _add_node(nodes, dm, nn, lv + 1, x, y, flags, 0.0, 0.0)
-                level_of[nn] = lv + 1
-                tree.dense[_tree_cell(lv + 1, x, y, qt.roots[0], n_roots)] = nn + 1
-                nn += 1
-    for j in range(first_child, nn):  # the balance's children that stayed leaves: their own stats
-        if nodes[j, 3] >= 4:
-            lv = nodes[j, 0]
-            x = nodes[j, 1]
-            y = nodes[j, 2]
-            ccode = pcode
-            if fixed >= 0:
-                ccode = 0
-            culled, dist, metric = _evaluate_node(qt, lv, x, y, rel, planes, ccode, focal)
-            nodes[j, 3] = nodes[j, 3] | culled
-            dm[j, 0] = dist
-            dm[j, 1] = metric
-    leaves = int(0)
-    culled_leaves = int(0)
-    for j in range(nn):  # level_of for the patches' neighbours: -1 outside the grid
-        f = nodes[j, 3]
-        if f >= 4 and (f & 2) == 0:
-            leaves += 1
-            culled_leaves += f & 1
-        if (f & 2) != 0:
-            level_of[j] = -1
-    q = int(0)
-    for j in range(nn):  # the drawn leaves (the host puts them in key order)
-        if nodes[j, 3] == 4:
-            lv = nodes[j, 0]
-            x = nodes[j, 1]
-            y = nodes[j, 2]
-            e = edge_levels(tree, level_of, lv, x, y, qt.depth, qt.roots[1])
-            out_patch[q, 0] = lv
-            out_patch[q, 1] = x
-            out_patch[q, 2] = y
-            for k in range(4):
-                out_patch[q, 3 + k] = e[k]
-            out_f[q, 0] = dm[j, 0]
-            out_f[q, 1] = dm[j, 1]
-            out_f[q, 2] = qt.herr[node_index(qt, lv, x, y)]
-            out_key[q] = _tile_key(lv, x, y)
-            q += 1
+    b = _balance(qt, tree, nodes, dm, level_of, bad, out_split, nn, d[1])
+    ccode = ints[0]
+    if ints[1] >= 0:
+        ccode = 0
+    _children_stats(qt, rel, planes, ccode, params[0], nodes, dm, nn, b[0])
+    nn = b[0]
+    ns = b[1]
+    e = _emit_leaves(qt, tree, nodes, dm, level_of, nn, out_patch, out_f, out_key)
     for j in range(nn):  # the map all 0 again
-        tree.dense[_tree_cell(nodes[j, 0], nodes[j, 1], nodes[j, 2], qt.roots[0], n_roots)] = 0
+        tree.dense[_cell_of(qt, nodes[j, 0], nodes[j, 1], nodes[j, 2])] = 0
     for j in range(ns):
-        tree.dense[_tree_cell(out_split[j, 0], out_split[j, 1], out_split[j, 2], qt.roots[0], n_roots)] = 0
-    out_n[0] = wp.int64(q)
-    out_n[1] = wp.int64(visited)
-    out_n[2] = wp.int64(leaves)
-    out_n[3] = wp.int64(culled_leaves)
-    out_n[4] = wp.int64(forced)
+        tree.dense[_cell_of(qt, out_split[j, 0], out_split[j, 1], out_split[j, 2])] = 0
+    out_n[0] = wp.int64(e[0])
+    out_n[1] = wp.int64(d[2])
+    out_n[2] = wp.int64(e[1])
+    out_n[3] = wp.int64(e[2])
+    out_n[4] = wp.int64(b[2])
     out_n[5] = wp.int64(ns)
 
 

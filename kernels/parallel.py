@@ -209,14 +209,16 @@ def load(kernel: wp.Kernel, device: str | wp.Device | None = None) -> None:
     """Build (or read from the kernel cache) and load ``kernel``'s module on ``device`` once per process, under a
     lock: Warp's code generation parses Python sources with ``ast``, which CPython 3.11 does not allow from two
     threads at once (``SystemError: AST constructor recursion depth mismatch``), so the first frames of threads
-    that start together must not build a module side by side. Every launch helper here calls it."""
+    that start together must not build a module side by side. Every launch helper here calls it. On the CPU the
+    module is loaded for ``block_dim`` 1, the build ``wp.launch`` runs there (Warp's default build for the module,
+    256, would be compiled as well and never run)."""
     dev = wp.get_device(device)
     key = (kernel.module, dev.alias)
     if key in _loaded:
         return
     with _load_lock:
         if key not in _loaded:
-            kernel.module.load(dev)
+            kernel.module.load(dev, 1 if dev.is_cpu else None)
             _loaded.add(key)
 
 

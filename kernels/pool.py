@@ -14,8 +14,8 @@ through a :class:`Lease`, and a buffer is lent again only after its lease has en
   pointer (``ctypes``, ``__array_interface__['data']``, ``wp.array(ptr=...)``) does not hold the lease:
   keep an array alive as long as its pointer is used.
 * **Scratch leases** (:func:`take`, :meth:`Lease.give_back`): a buffer one function takes and gives back
-  itself when it is done (the rasterizer's depth|id keys, given back all empty). A scratch lease that is
-  never given back (its function failed part-way) is dropped with its buffer: its state is unknown.
+  itself when it is done (the rasterizer's work arrays for a call, which the next call clears). A scratch lease
+  that is never given back (its function failed part-way) is dropped with its buffer: its state is unknown.
 
 At most ``keep`` buffers of a kind are kept (leased or free); more are plain allocations that nobody keeps.
 :func:`release_buffers` lets every free buffer go (leased ones are dropped when their lease ends).
@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "take", "release_buffers",
-           "kept_bytes", "host_layout"]
+__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "filled_array", "take",
+           "release_buffers", "kept_bytes", "host_layout"]
 
 
 class _Kind:
@@ -169,6 +169,19 @@ def pooled_array(shape: int | Sequence[int], dtype: type, device: str | wp.Devic
     if not dev.is_cpu:
         return wp.empty(shape, dtype=dtype, device=dev)
     a = pooled(*host_layout(shape, dtype), keep, max_bytes)
+    return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+def filled_array(shape: int | Sequence[int], dtype: type, value: float, device: str | wp.Device | None = None, *,
+                 keep: int = 2, max_bytes: int = 64 << 20) -> wp.array:
+    """A Warp array holding ``value`` everywhere: on the CPU from :func:`pooled` (a kept buffer, filled), on CUDA
+    ``wp.zeros`` / ``wp.full``."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        return wp.zeros(shape, dtype=dtype, device=dev) if value == 0 else wp.full(shape, value=value, dtype=dtype,
+                                                                                   device=dev)
+    a = pooled(*host_layout(shape, dtype), keep, max_bytes)
+    a.fill(value)
     return wp.array(a, dtype=dtype, device=dev, copy=False)
 
 

@@ -1,99 +1,137 @@
-"""The rasterizer: a visibility pass (coverage + depth test) and a resolve pass, as Warp kernels.
+"""The rasterizer: a visibility pass (coverage and depth test, screen tile by screen tile) and the lazy
+barycentric resolve, as Warp kernels.
 
-The rules are OpenGL's as Mesa's llvmpipe implements them (checked pixel for pixel against llvmpipe
-through EGL in tests/kernels/test_raster.py, with the same clip-space vertices):
+The rules are OpenGL's as Mesa's llvmpipe implements them (checked pixel for pixel against llvmpipe through EGL in
+tests/kernels/test_raster.py, with the same clip-space vertices):
 
-1. Vertices go to clip space in one kernel (``clip = (proj @ view) @ (p, 1)``, the matrix product
-   rounded to float32 first, like a uniform); :func:`rasterize_clip` starts from clip coordinates.
-2. A triangle is trivially rejected when all three vertices lie outside one clip plane. When a vertex
-   lies outside the viewport's x or y planes (llvmpipe here has no guard band: matching its pixels
-   needs the viewport planes), or outside near ``z >= -w`` or far ``z <= w``, the triangle is clipped
-   (Sutherland-Hodgman, x and y planes first, then near, then far, interpolating from the outside
-   vertex to the inside one, as Mesa's clipper does) and drawn as a fan of triangles, each on its
-   own. Clipping far as well as near matters: a vertex with ``-w <= z`` but ``z > w`` may have w < 0.
-3. Window coordinates are ``x / w * (W / 2) + W / 2`` (fused multiply-add, as llvmpipe's vertex
-   stage), snapped to 8 sub-pixel bits by rounding half to even (``lrintf``). Zero-area triangles
-   (in fixed point) are dropped, and clockwise ones too with ``cull_back``; the others are made
-   counter-clockwise.
-4. Coverage: 64-bit integer edge functions at pixel centres with llvmpipe's fill convention for an
-   OpenGL framebuffer (lower-left origin): a centre exactly on an edge belongs to the triangle for
-   which the edge is a *left* edge or a *bottom* edge in the image (interior above it, window y up).
-   A centre on an edge shared by two triangles is covered by exactly one of them.
-5. Depth: the plane through the unsnapped window positions (x, y, z_window) of each (fan) triangle,
-   evaluated at the pixel centre in float32 and clamped to [0, 1]. The test keeps the nearest fragment
-   with one ``atomic_min`` on a 64-bit key ``(float bits of depth) << 32 | id``: window depth is a
-   non-negative float, whose bit pattern orders like its value, so ties go to the lower triangle id
-   and the result never depends on launch order (as ``GL_LESS`` in submission order). As with
-   ``GL_LESS`` against a depth buffer cleared to 1.0, a fragment at depth exactly 1.0 is not drawn.
-6. Speed: small triangles (pixel box < SMALL_PX each way; most terrain triangles, many without any
-   pixel centre) are set up and drawn by their own thread without clipping arrays; larger ones are
-   binned into TILE x TILE screen tiles (count -> scan -> emit) and drawn tile by tile, each tile
-   touched only by triangles whose edges do not exclude it.
+1. Vertices go to clip space in one kernel (``clip = (proj @ view) @ (p, 1)``, the matrix product rounded to
+   float32 first, like a uniform); :func:`rasterize_clip` starts from clip coordinates.
+2. A triangle is trivially rejected when all three vertices lie outside one clip plane. When a vertex lies outside
+   the viewport's x or y planes (llvmpipe here has no guard band: matching its pixels needs the viewport planes),
+   or outside near ``z >= -w`` or far ``z <= w``, the triangle is clipped (Sutherland-Hodgman, x and y planes
+   first, then near, then far, interpolating from the outside vertex to the inside one, as Mesa's clipper does)
+   and drawn as a fan of triangles, each on its own. Clipping far as well as near matters: a vertex with
+   ``-w <= z`` but ``z > w`` may have w < 0.
+3. Window coordinates are ``x / w * (W / 2) + W / 2`` (fused multiply-add, as llvmpipe's vertex stage), snapped to
+   8 sub-pixel bits by rounding half to even (``lrintf``). Zero-area triangles (in fixed point) are dropped, and
+   clockwise ones too with ``cull_back``; the others are made counter-clockwise.
+4. Coverage: 64-bit integer edge functions at pixel centres with llvmpipe's fill convention for an OpenGL
+   framebuffer (lower-left origin): a centre exactly on an edge belongs to the triangle for which the edge is a
+   *left* edge or a *bottom* edge in the image (interior above it, window y up). A centre on an edge shared by two
+   triangles is covered by exactly one of them.
+5. Depth: the plane through the unsnapped window positions (x, y, z_window) of each (fan) triangle, anchored at a
+   pixel centre and stepped from it in float32, clamped to [0, 1]. The anchor is the first pixel (lowest x and y)
+   of the triangle's pixel box; a large triangle (pixel box of ``SMALL_PX`` or more either way) is anchored again
+   in each ``DEPTH_TILE`` x ``DEPTH_TILE`` cell of the screen (its first pixel in the cell). The depth test is
+   ``GL_LESS`` against a buffer cleared to 1.0, in submission order (triangle by triangle in index order, a clipped
+   triangle's fan in order): a fragment at depth exactly 1.0 is never drawn, and of two at the same depth the
+   lower triangle id stays.
 
-Resolve: the key decodes to the triangle id and depth, in the screen tiles the drawing kernels flagged
-(where they wrote a key; the rest of the image is background, a host fill); perspective-correct
-barycentrics of each pixel centre on the original (unclipped) triangle come from its clip-space vertices: with
+How it runs (binning, then one thread per screen tile):
+
+* **bin** (:func:`_bin_kernel`, one thread per triangle): clipping and setup. A small unclipped triangle (most
+  terrain triangles) becomes a 32-byte :class:`Record` (its fixed-point vertices and depth plane) unless its
+  box holds at most 4 pixel centres and it covers none; every other drawn triangle is set up again where drawn.
+  Each goes into the list of every ``TILE`` x ``TILE`` screen tile its pixel box meets (a large one only those its
+  edges do not exclude), one list per tile and launch chunk (:class:`Bins`). A chunk's triangles are consecutive
+  and its thread writes them in order, so a tile's lists, chunk after chunk, are in submission order (on CUDA the
+  tile sorts its list). The lists are written as they are counted when the room kept from the last frame of the
+  same kind holds them; otherwise the counts give exact room and the batch is binned again.
+* **draw** (:func:`_tile_kernel`): each tile is drawn by one thread (CPU threads take tiles from a shared counter)
+  in a scratch tile that fits the cache, which starts as the background and is copied into the images at the
+  end: records row by row, 8 pixel centres at a time in SIMD (edge functions, coverage mask, depth, test and
+  write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted whole by their corners, else given a
+  16-bit mask (:func:`_cover`); CUDA draws every entry in 4x4 blocks, in the images themselves. The depth test and
+  the writes need no atomics, and the pipeline statistics are counted on the way (samples passed as the test
+  passes in submission order, quads and blocks from the masks).
+  Frames of more than ``BATCH`` triangles go through bin and draw in batches, in order.
+
+The barycentrics of :class:`Fragments` are computed on first access from the clip-space vertices: with
 ``a_i = x_i - px*w_i`` and ``c_i = y_i - py*w_i`` (px, py the centre in NDC) they are
-``cross(a, c) / sum(cross(a, c))``, exact for clipped triangles too. :func:`interpolate_warp` is the
-same computation as a differentiable kernel (gradients to clip positions and attributes).
+``cross(a, c) / sum(cross(a, c))``, exact for clipped triangles too. Interpolation of attributes is the
+differentiable path's (``terrainwarp.diff.interpolate``, ``kernels/gradients.py``).
 
 Output images have row 0 at the top (window y is flipped once, here).
 """
 
-
 import numpy as np
 import warp as wp
 
-from .checks import check_bool, is_int
-from .parallel import atomic_add_i32, atomic_min_u64, launch, launch_one, max_parts, scan
+from .checks import check_bool, check_triangles, check_viewport
+from .counters import (
+    T_BINNED,
+    T_BLOCKS,
+    T_CLIPPED,
+    T_COVERED,
+    T_INSIDE,
+    T_PASSED,
+    T_QUADS,
+    T_RASTERIZED,
+    T_TESTED,
+    T_TILE16,
+    TALLIES,
+    raster_counters,
+    raster_stats,
+)
+from .parallel import atomic_add_i32, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import Lease, host_layout, pooled, pooled_array, take
+from .pool import filled_array, pooled_array, pooled_rows_array, take
+
+__all__ = ["Fragments", "rasterize", "rasterize_clip", "clip_coordinates", "clip_barycentrics", "pixel_ndc",
+           "SUBPIXEL", "TILE"]
 
 SUBPIXEL_BITS = 8
 SUBPIXEL = 1 << SUBPIXEL_BITS
 SUBPIXEL_HALF = SUBPIXEL // 2
 GUARD_BAND_PX = 0.0  # x and y are clipped at the viewport itself, as llvmpipe does (its pixels match then)
-TILE = 16  # screen tile edge in pixels (binning of large triangles)
-SMALL_PX = 16  # triangles whose pixel box spans fewer pixels than this each way are drawn at once
-_EMPTY_KEY = np.uint64(0xFFFFFFFFFFFFFFFF)
+TILE = 64  # screen tile edge in pixels: one thread draws a tile
+DEPTH_TILE = 16  # the screen cells in which a large triangle's depth plane is anchored again
+SMALL_PX = 16  # a triangle whose pixel box spans fewer pixels than this each way is small
+BATCH = 1 << 22  # triangles binned and drawn at a time (bounds the lists' memory)
+PITCH = TILE + 16  # pixels per row of a CPU thread's scratch tile: a row's 16 lanes from any pixel of the tile
 # the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
 _MIN_TRIANGLES = 2048
-_MIN_TILES = 64
+_MIN_VERTICES = 1 << 16  # a vertex costs ~2 ns: fewer per thread are not worth the hand-off
 _MIN_PIXELS = 32768
-_OVERSPLIT = 4  # chunks per thread where the work per item is uneven (near and far triangles)
+_BACKGROUND_BITS = 0x3F800000  # 1.0f
 
 poly9 = wp.types.matrix(shape=(9, 4), dtype=wp.float32)
 vec9l = wp.types.vector(length=9, dtype=wp.int64)
 vec9f = wp.types.vector(length=9, dtype=wp.float32)
 vec8l = wp.types.vector(length=8, dtype=wp.int64)
-_LISTED = 32  # records of a pixel's list sorted in place by the staircase pass
-vec_listed = wp.types.vector(length=_LISTED, dtype=wp.uint64)
 
 
 @wp.struct
-class Counting:
-    """What the drawing functions count besides drawing (the pipeline statistics of :func:`rasterize` with
-    ``counters=True``).
+class Record:
+    """A small unclipped triangle in a tile's list (32 bytes): its CCW fixed-point vertices (``xy``: a, then b - a
+    and c - a as int16 pairs), its depth plane (``plane``: the depth at the first centre of its pixel box, dz/dx,
+    dz/dy) and its index ``t``. ``t`` < 0: triangle ``-1 - t``, set up again where drawn (nothing else is set)."""
 
-    ``mode`` 0: nothing. 1: each (fan) triangle's 2x2 quads and 4x4 blocks (window-aligned) with a covered
-    pixel centre, the clipper's output triangles, and every fragment (depth < 1) that reaches a pixel holding
-    a key: it appends itself and the holder, two ``rec_key`` records (its depth|id key and the one it found),
-    to the pixel's list (``head[p]``: the latest record, -1 when none; ``rec_next``: the one before), the
-    pixel's first pair adding the pixel to ``pixels``. ``count`` = (records asked for, pixels listed); records
-    past ``cap`` are left out (the caller draws again with room for them). Every fragment at a pixel that two
-    reach is then listed at least once, whatever the arrival order: the second to arrive lists the first."""
+    xy: wp.vec4i
+    plane: wp.vec3
+    t: int
 
-    mode: int
-    cap: int
-    head: wp.array(dtype=wp.int32)
-    rec_key: wp.array(dtype=wp.uint64)
-    rec_next: wp.array(dtype=wp.int32)
-    pixels: wp.array(dtype=wp.int32)
+
+@wp.struct
+class Bins:
+    """The screen tiles' lists of a batch. Cell ``tile * nparts + part`` (a tile and a chunk of the binning launch,
+    whose triangles are consecutive) lists the chunk's triangles that the tile draws, in order, at
+    ``entries[start[cell]:start[cell] + count[cell]]``: ``t`` for a record, ``-1 - t`` for a triangle set up again
+    where drawn. ``emit`` 0: the binning only counts (``count``); 1: it also writes the entries, each cell holding
+    at most ``room[cell]`` (past that ``overflow[0]`` is set and the batch is binned again with exact room)."""
+
+    tiles_x: int
+    nparts: int
+    emit: int
+    start: wp.array(dtype=wp.int32)
+    room: wp.array(dtype=wp.int32)
     count: wp.array(dtype=wp.int32)
+    entries: wp.array(dtype=Record)
+    overflow: wp.array(dtype=wp.int32)
 
 
 # ------------------------------------------------------------------------------------------------
-# functions
+# functions: clipping and setup
 # ------------------------------------------------------------------------------------------------
 
 
@@ -120,86 +158,8 @@ def _clip_poly(poly: poly9, n: int, plane: wp.vec4) -> tuple[poly9, int]:
     return out, m
 
 
-@wp.func_native("""union { float f; uint32_t u; } c; c.f = x; return c.u;""")
-def float_bits(x: float) -> wp.uint32: ...
-
-
-@wp.func_native("""union { float f; uint32_t u; } c; c.u = x; return c.f;""")
-def bits_float(x: wp.uint32) -> float: ...
-
-
 @wp.func_native("""return fmaf(a, b, c);""")
 def _fma(a: float, b: float, c: float) -> float: ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return __popc((unsigned)x);
-#else
-return __builtin_popcount((unsigned)x);
-#endif
-""")
-def _popcount(x: int) -> int: ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-return atomicExch(wp::address(a, i), v);
-#else
-return __atomic_exchange_n(wp::address(a, i), v, __ATOMIC_RELAXED);
-#endif
-""")
-def _exchange_i32(a: wp.array(dtype=wp.int32), i: int, v: int) -> int:
-    """``a[i] = v`` atomically; returns the old value."""
-    ...
-
-
-@wp.func_native("""
-uint64_t* k = wp::address(key, p0);
-int32_t* ids = wp::address(out_id, p0);
-float* dep = wp::address(out_depth, p0);
-int64_t covered = 0;
-if (flagged != 0) {
-    for (int i = 0; i < n; ++i) {
-        uint64_t v = k[i];
-        union { uint32_t u; float f; } b;
-        b.u = (uint32_t)(v >> 32);
-        float d = b.f;
-        bool c = v != 0xFFFFFFFFFFFFFFFFull;
-        ids[i] = c ? (int32_t)(uint32_t)v : -1;
-        dep[i] = c ? d : 1.0f;
-        k[i] = 0xFFFFFFFFFFFFFFFFull;
-        covered += c ? 1 : 0;
-    }
-} else {
-    for (int i = 0; i < n; ++i) {
-        ids[i] = -1;
-        dep[i] = 1.0f;
-    }
-}
-return covered;
-""")
-def _resolve_run(key: wp.array(dtype=wp.uint64), out_id: wp.array(dtype=wp.int32),
-                 out_depth: wp.array(dtype=wp.float32), p0: int, n: int, flagged: int) -> wp.int64:
-    """Pixels p0 .. p0 + n - 1 of one image row: with ``flagged``, each key decoded into its triangle id and
-    window depth (-1 and 1.0 where the key is empty) and set back to empty; else background. A straight loop
-    over contiguous memory the compiler vectorises. Returns the pixels covered."""
-    ...
-
-
-@wp.func
-def _record_overlap(cnt: Counting, p: int, key: wp.uint64, held: wp.uint64):
-    """A fragment (depth|id ``key``) found ``held`` at pixel p (:class:`Counting` mode 1): both appended to the
-    pixel's list."""
-    i = atomic_add_i32(cnt.count, 0, 2)
-    if i + 2 <= cnt.cap:
-        cnt.rec_key[i] = key
-        cnt.rec_key[i + 1] = held
-        cnt.rec_next[i + 1] = i
-        prev = _exchange_i32(cnt.head, p, i + 1)
-        cnt.rec_next[i] = prev
-        if prev < 0:
-            cnt.pixels[atomic_add_i32(cnt.count, 1, 1)] = p
 
 
 @wp.func
@@ -216,114 +176,8 @@ def _pixel_hi(v: wp.int64) -> int:
 
 @wp.func
 def _snap(v: float) -> wp.int64:
-    # round half to even, as llvmpipe's util_iround (lrintf) does
+    """A window coordinate in fixed point: rounded half to even, as llvmpipe's util_iround (lrintf)."""
     return wp.int64(wp.rint(v * float(SUBPIXEL)))
-
-
-@wp.func
-def _is_top_left(dx: wp.int64, dy: wp.int64) -> wp.bool:
-    # Edge a->b of a counter-clockwise triangle in window coordinates (y up, interior on the left).
-    # Included edges (llvmpipe's convention for GL framebuffers, checked against it in the tests):
-    # a left edge (it runs downwards, dy < 0, interior at +x) or a horizontal edge with the interior
-    # above it in window y (dx > 0), which is the bottom edge of the triangle in the image.
-    return dy < wp.int64(0) or (dy == wp.int64(0) and dx > wp.int64(0))
-
-
-@wp.func
-def _setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, gb: wp.vec2):
-    """Trivial reject, near-plane and guard-band clipping, viewport transform and snapping.
-
-    Returns (n, xs, ys, fxs, fys, zs): the clipped convex polygon with n vertices (0 when rejected),
-    window x and y in fixed point (8 sub-pixel bits, pixel centres at k * 256 + 128), the same in float
-    before snapping, and window depth.
-    """
-    xs = vec9l()
-    ys = vec9l()
-    fxs = vec9f()
-    fys = vec9f()
-    zs = vec9f()
-    n = int(0)  # noqa: UP018 -- a mutable Warp int
-    if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb) and c0[3] > 0.0 and c1[3] > 0.0 and c2[3] > 0.0:
-        # nothing to reject or clip (most triangles): what the polygon path below gives for them, without the
-        # polygon arrays (the tile kernel sets a large triangle up again for every tile it is binned to)
-        n = 3
-        hw3 = 0.5 * float(width)
-        hh3 = 0.5 * float(height)
-        fa = _window(c0, hw3, hh3)
-        fb = _window(c1, hw3, hh3)
-        fc = _window(c2, hw3, hh3)
-        fxs[0] = fa[0]
-        fxs[1] = fb[0]
-        fxs[2] = fc[0]
-        fys[0] = fa[1]
-        fys[1] = fb[1]
-        fys[2] = fc[1]
-        zs[0] = fa[2]
-        zs[1] = fb[2]
-        zs[2] = fc[2]
-        for k in range(3):
-            xs[k] = _snap(fxs[k])
-            ys[k] = _snap(fys[k])
-        return n, xs, ys, fxs, fys, zs
-    reject = wp.bool(False)
-    if c0[0] > c0[3] and c1[0] > c1[3] and c2[0] > c2[3]:
-        reject = True
-    if c0[0] < -c0[3] and c1[0] < -c1[3] and c2[0] < -c2[3]:
-        reject = True
-    if c0[1] > c0[3] and c1[1] > c1[3] and c2[1] > c2[3]:
-        reject = True
-    if c0[1] < -c0[3] and c1[1] < -c1[3] and c2[1] < -c2[3]:
-        reject = True
-    if c0[2] > c0[3] and c1[2] > c1[3] and c2[2] > c2[3]:
-        reject = True
-    if c0[2] < -c0[3] and c1[2] < -c1[3] and c2[2] < -c2[3]:
-        reject = True
-    if reject:
-        return n, xs, ys, fxs, fys, zs
-    poly = poly9()
-    poly[0] = c0
-    poly[1] = c1
-    poly[2] = c2
-    n = 3
-    # Mesa's clipper order: the guard-band x and y planes first, then near, then far
-    outside = wp.bool(False)
-    for k in range(n):
-        v = poly[k]
-        if wp.abs(v[0]) > gb[0] * v[3] or wp.abs(v[1]) > gb[1] * v[3]:
-            outside = True
-    if outside:
-        poly, n = _clip_poly(poly, n, wp.vec4(-1.0, 0.0, 0.0, gb[0]))
-        poly, n = _clip_poly(poly, n, wp.vec4(1.0, 0.0, 0.0, gb[0]))
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, -1.0, 0.0, gb[1]))
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 1.0, 0.0, gb[1]))
-    if c0[2] < -c0[3] or c1[2] < -c1[3] or c2[2] < -c2[3]:
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, 1.0, 1.0))
-    # the far plane too, geometrically, when a vertex lies beyond it: such a vertex may have w < 0
-    # (-w <= z and z > w), and only after both clips is w >= |z| >= 0 for every vertex
-    if c0[2] > c0[3] or c1[2] > c1[3] or c2[2] > c2[3]:
-        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, -1.0, 1.0))
-    if n < 3:
-        n = 0
-        return n, xs, ys, fxs, fys, zs
-    for k in range(n):
-        if poly[k][3] <= 0.0:
-            n = 0
-            return n, xs, ys, fxs, fys, zs
-    hw = 0.5 * float(width)
-    hh = 0.5 * float(height)
-    for k in range(n):
-        v = poly[k]
-        f = _window(v, hw, hh)
-        if not (_same(v, c0) or _same(v, c1) or _same(v, c2)):
-            # a vertex made by the clipper: Mesa computes its window position in C, x * (1 / w) * scale
-            # + translate with separate roundings (the original vertices come from its fused JIT path)
-            f = _window_unfused(v, hw, hh)
-        fxs[k] = f[0]
-        fys[k] = f[1]
-        zs[k] = f[2]
-        xs[k] = _snap(f[0])
-        ys[k] = _snap(f[1])
-    return n, xs, ys, fxs, fys, zs
 
 
 @wp.func
@@ -351,6 +205,106 @@ def _window_unfused(c: wp.vec4, hw: float, hh: float) -> wp.vec3:
 
 
 @wp.func
+def _rejected(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4) -> wp.bool:
+    """All three vertices outside one clip plane."""
+    reject = wp.bool(False)
+    if c0[0] > c0[3] and c1[0] > c1[3] and c2[0] > c2[3]:
+        reject = True
+    if c0[0] < -c0[3] and c1[0] < -c1[3] and c2[0] < -c2[3]:
+        reject = True
+    if c0[1] > c0[3] and c1[1] > c1[3] and c2[1] > c2[3]:
+        reject = True
+    if c0[1] < -c0[3] and c1[1] < -c1[3] and c2[1] < -c2[3]:
+        reject = True
+    if c0[2] > c0[3] and c1[2] > c1[3] and c2[2] > c2[3]:
+        reject = True
+    if c0[2] < -c0[3] and c1[2] < -c1[3] and c2[2] < -c2[3]:
+        reject = True
+    return reject
+
+
+@wp.func
+def _clipped(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, gb: wp.vec2):
+    """The triangle clipped by the guard-band x and y planes (when a vertex lies outside them), then near, then far
+    (Mesa's clipper order): (polygon, vertex count)."""
+    poly = poly9()
+    poly[0] = c0
+    poly[1] = c1
+    poly[2] = c2
+    n = int(3)
+    outside = wp.bool(False)
+    for k in range(n):
+        v = poly[k]
+        if wp.abs(v[0]) > gb[0] * v[3] or wp.abs(v[1]) > gb[1] * v[3]:
+            outside = True
+    if outside:
+        poly, n = _clip_poly(poly, n, wp.vec4(-1.0, 0.0, 0.0, gb[0]))
+        poly, n = _clip_poly(poly, n, wp.vec4(1.0, 0.0, 0.0, gb[0]))
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, -1.0, 0.0, gb[1]))
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 1.0, 0.0, gb[1]))
+    if c0[2] < -c0[3] or c1[2] < -c1[3] or c2[2] < -c2[3]:
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, 1.0, 1.0))
+    # the far plane too, geometrically, when a vertex lies beyond it: such a vertex may have w < 0
+    # (-w <= z and z > w), and only after both clips is w >= |z| >= 0 for every vertex
+    if c0[2] > c0[3] or c1[2] > c1[3] or c2[2] > c2[3]:
+        poly, n = _clip_poly(poly, n, wp.vec4(0.0, 0.0, -1.0, 1.0))
+    return poly, n
+
+
+@wp.func
+def _setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, gb: wp.vec2):
+    """Trivial reject, clipping (:func:`_clipped`), viewport transform and snapping.
+
+    Returns (n, xs, ys, fxs, fys, zs): the clipped convex polygon with n vertices (0 when rejected), window x and y
+    in fixed point (8 sub-pixel bits, pixel centres at k * 256 + 128), the same in float before snapping, and
+    window depth.
+    """
+    xs = vec9l()
+    ys = vec9l()
+    fxs = vec9f()
+    fys = vec9f()
+    zs = vec9f()
+    n = int(0)  # noqa: UP018 -- a mutable Warp int
+    hw = 0.5 * float(width)
+    hh = 0.5 * float(height)
+    if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb) and c0[3] > 0.0 and c1[3] > 0.0 and c2[3] > 0.0:
+        # nothing to reject or clip: the polygon is the triangle, each vertex on llvmpipe's fused path
+        n = 3
+        fa = _window(c0, hw, hh)
+        fb = _window(c1, hw, hh)
+        fc = _window(c2, hw, hh)
+        fxs = vec9f(fa[0], fb[0], fc[0], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        fys = vec9f(fa[1], fb[1], fc[1], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        zs = vec9f(fa[2], fb[2], fc[2], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        for k in range(3):
+            xs[k] = _snap(fxs[k])
+            ys[k] = _snap(fys[k])
+        return n, xs, ys, fxs, fys, zs
+    if _rejected(c0, c1, c2):
+        return n, xs, ys, fxs, fys, zs
+    poly, m = _clipped(c0, c1, c2, gb)
+    if m < 3:
+        return n, xs, ys, fxs, fys, zs
+    for k in range(m):
+        if poly[k][3] <= 0.0:
+            return n, xs, ys, fxs, fys, zs
+    n = m
+    for k in range(n):
+        v = poly[k]
+        f = _window(v, hw, hh)
+        if not (_same(v, c0) or _same(v, c1) or _same(v, c2)):
+            # a vertex made by the clipper: Mesa computes its window position in C, x * (1 / w) * scale
+            # + translate with separate roundings (the original vertices come from its fused JIT path)
+            f = _window_unfused(v, hw, hh)
+        fxs[k] = f[0]
+        fys[k] = f[1]
+        zs[k] = f[2]
+        xs[k] = _snap(f[0])
+        ys[k] = _snap(f[1])
+    return n, xs, ys, fxs, fys, zs
+
+
+@wp.func
 def _poly_pixels(n: int, xs: vec9l, ys: vec9l, width: int, height: int) -> wp.vec4i:
     """Pixel index range (x0, x1, y0, y1) whose centres may be covered, clamped to the viewport."""
     xmin = xs[0]
@@ -362,6 +316,18 @@ def _poly_pixels(n: int, xs: vec9l, ys: vec9l, width: int, height: int) -> wp.ve
         xmax = wp.max(xmax, xs[k])
         ymin = wp.min(ymin, ys[k])
         ymax = wp.max(ymax, ys[k])
+    return wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
+                    wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
+
+
+@wp.func
+def _tri_box(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, width: int,
+             height: int) -> wp.vec4i:
+    """The pixel box (x0, x1, y0, y1) of a triangle's possibly covered centres, clamped to the viewport."""
+    xmin = wp.min(ax, wp.min(bx, cx))
+    xmax = wp.max(ax, wp.max(bx, cx))
+    ymin = wp.min(ay, wp.min(by, cy))
+    ymax = wp.max(ay, wp.max(by, cy))
     return wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
                     wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
 
@@ -382,7 +348,10 @@ def _fan_tri(xs: vec9l, ys: vec9l, k: int, cull_back: int):
 
 @wp.func
 def _edge_bias(dx: wp.int64, dy: wp.int64) -> wp.int64:
-    if _is_top_left(dx, dy):
+    """0 for an edge a->b (of a CCW triangle, window y up) whose centres are covered, -1 for one whose are not:
+    llvmpipe's convention for GL framebuffers includes a left edge (it runs downwards, dy < 0, interior at +x)
+    and a horizontal edge with the interior above it (dx > 0), the triangle's bottom edge in the image."""
+    if dy < wp.int64(0) or (dy == wp.int64(0) and dx > wp.int64(0)):
         return wp.int64(0)
     return wp.int64(-1)
 
@@ -421,214 +390,23 @@ def _tri_rect(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int
 
 
 @wp.func
-def _raster_tri(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
-                fa: wp.vec3, fb: wp.vec3, fc: wp.vec3, t: int, r: wp.vec4i, width: int, height: int,
-                out_key: wp.array(dtype=wp.uint64), cnt: Counting) -> vec8l:
-    """Cover the pixel centres of rectangle r = (x0, x1, y0, y1) inside the CCW triangle; depth-test
-    with a 64-bit atomic min (a true one: chunks of a launch run on several CPU threads); with ``cnt.mode``
-    1, count as :class:`Counting` says. Returns (0, fragments tested, fragments inside, pixels written, 2x2
-    quads touched, 4x4 blocks touched, 0, 0) (quads and blocks with counting only)."""
-    half = wp.int64(SUBPIXEL_HALF)
-    one = wp.int64(SUBPIXEL)
-    xmin = wp.min(ax, wp.min(bx, cx))
-    xmax = wp.max(ax, wp.max(bx, cx))
-    ymin = wp.min(ay, wp.min(by, cy))
-    ymax = wp.max(ay, wp.max(by, cy))
-    px0 = wp.max(r[0], _pixel_lo(xmin))
-    px1 = wp.min(r[1], _pixel_hi(xmax))
-    py0 = wp.max(r[2], _pixel_lo(ymin))
-    py1 = wp.min(r[3], _pixel_hi(ymax))
-    if px0 > px1 or py0 > py1:
-        return vec8l()
-    bias0 = _edge_bias(cx - bx, cy - by)
-    bias1 = _edge_bias(ax - cx, ay - cy)
-    bias2 = _edge_bias(bx - ax, by - ay)
-    sx = wp.int64(px0) * one + half
-    sy = wp.int64(py0) * one + half
-    # E0: edge b->c (weight of a), E1: c->a (weight of b), E2: a->b (weight of c); bias folded in
-    e0r = (cx - bx) * (sy - by) - (cy - by) * (sx - bx) + bias0
-    e1r = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx) + bias1
-    e2r = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax) + bias2
-    e0dx = -(cy - by) * one
-    e1dx = -(ay - cy) * one
-    e2dx = -(by - ay) * one
-    e0dy = (cx - bx) * one
-    e1dy = (ax - cx) * one
-    e2dy = (bx - ax) * one
-    # depth plane from the float (unsnapped) window coordinates, as llvmpipe's triangle setup does,
-    # evaluated relative to the centre of pixel (px0, py0); fa = (x, y, z) of vertex a
-    dx01 = fa[0] - fb[0]
-    dy01 = fa[1] - fb[1]
-    dx20 = fc[0] - fa[0]
-    dy20 = fc[1] - fa[1]
-    ooa = 1.0 / (dx01 * dy20 - dx20 * dy01)
-    dz01 = fa[2] - fb[2]
-    dz20 = fc[2] - fa[2]
-    dzdx = (dz01 * dy20 - dz20 * dy01) * ooa
-    dzdy = (dx01 * dz20 - dx20 * dz01) * ooa
-    z00 = fa[2] - (dzdx * (fa[0] - (float(px0) + 0.5)) + dzdy * (fa[1] - (float(py0) + 0.5)))
-    tid = wp.uint64(t)
-    counting = cnt.mode == 1
-    tested = wp.int64(0)
-    inside = wp.int64(0)
-    written = wp.int64(0)
-    quads = wp.int64(0)
-    blocks = wp.int64(0)
-    qmask = int(0)  # noqa: UP018 -- the 2x2 quads touched in the current quad row (bit: quad column - px0 / 2)
-    bmask = int(0)  # noqa: UP018 -- likewise the 4x4 blocks in the current block row
-    for y in range(py0, py1 + 1):
-        e0 = e0r
-        e1 = e1r
-        e2 = e2r
-        row = (height - 1 - y) * width
-        zr = z00 + dzdy * float(y - py0)
-        first = px1 + 1  # the row's covered pixels: a run (the triangle is convex), first..last
-        last = px0 - 1
-        for x in range(px0, px1 + 1):
-            if (e0 | e1 | e2) >= wp.int64(0):
-                inside += wp.int64(1)
-                first = wp.min(first, x)
-                last = x
-                # coverage is geometric (the polygon is clipped to near and far); depth is clamped
-                # to [0, 1] as GL does, so a rounding excursion below 0 at the near plane stays drawn;
-                # the depth test is GL_LESS against a buffer cleared to 1.0: depth 1.0 is never drawn
-                d = wp.clamp(zr + dzdx * float(x - px0), 0.0, 1.0)
-                if d < 1.0:
-                    key = (wp.uint64(float_bits(d)) << wp.uint64(32)) | tid
-                    old = atomic_min_u64(out_key, row + x, key)
-                    if key < old:
-                        written += wp.int64(1)
-                    if counting and old != wp.uint64(0xFFFFFFFFFFFFFFFF):
-                        _record_overlap(cnt, row + x, key, old)
-            elif first <= last:
-                break  # past the row's run: a convex triangle covers no more of it
-            e0 += e0dx
-            e1 += e1dx
-            e2 += e2dx
-        if counting:
-            if first <= last:
-                qmask = qmask | _run_bits((first >> 1) - (px0 >> 1), (last >> 1) - (px0 >> 1))
-                bmask = bmask | _run_bits((first >> 2) - (px0 >> 2), (last >> 2) - (px0 >> 2))
-            if qmask != 0 and ((y & 1) == 1 or y == py1):
-                quads += wp.int64(_popcount(qmask))
-                qmask = 0
-            if bmask != 0 and ((y & 3) == 3 or y == py1):
-                blocks += wp.int64(_popcount(bmask))
-                bmask = 0
-        tested += wp.int64(px1 - px0 + 1)
-        e0r += e0dy
-        e1r += e1dy
-        e2r += e2dy
-    return vec8l(wp.int64(0), tested, inside, written, quads, blocks, wp.int64(0), wp.int64(0))
-
-
-@wp.func
-def _run_bits(lo: int, hi: int) -> int:
-    """Bits lo..hi set (0 <= lo <= hi < 31)."""
-    return ((1 << (hi - lo + 1)) - 1) << lo
-
-
-@wp.func
-def _raster_poly(n: int, xs: vec9l, ys: vec9l, fxs: vec9f, fys: vec9f, zs: vec9f, t: int, r: wp.vec4i,
-                 cull_back: int, width: int, height: int, out_key: wp.array(dtype=wp.uint64),
-                 cnt: Counting) -> vec8l:
-    """Draw the polygon's fan, each triangle on its own as llvmpipe does after clipping.
-    Returns (fan triangles drawn, then :func:`_raster_tri`'s counts summed over them)."""
-    acc = vec8l()
-    for k in range(1, n - 1):
-        ok, swap = _fan_tri(xs, ys, k, cull_back)
-        if ok:
-            kb = k
-            kc = k + 1
-            if swap == 1:
-                kb = k + 1
-                kc = k
-            c = _raster_tri(xs[0], ys[0], xs[kb], ys[kb], xs[kc], ys[kc], wp.vec3(fxs[0], fys[0], zs[0]),
-                            wp.vec3(fxs[kb], fys[kb], zs[kb]), wp.vec3(fxs[kc], fys[kc], zs[kc]), t, r,
-                            width, height, out_key, cnt)
-            acc = acc + c
-            acc[0] += wp.int64(1)
-    return acc
-
-
-@wp.func
-def _mark_tiles(out_dirty: wp.array(dtype=wp.int32), tiles_x: int, r: wp.vec4i):
-    """Flag the screen tiles of pixel rectangle r = (x0, x1, y0, y1) (inside the viewport) as holding
-    drawn keys: the resolve and the barycentrics visit only flagged tiles, so a caller flags every
-    rectangle in which it wrote a key (a plain store of 1: concurrent writers all store the same)."""
-    for ty in range(r[2] / TILE, r[3] / TILE + 1):
-        for tx in range(r[0] / TILE, r[1] / TILE + 1):
-            out_dirty[ty * tiles_x + tx] = 1
-
-
-@wp.func
 def _poly_rect(n: int, xs: vec9l, ys: vec9l, r: wp.vec4i, cull_back: int) -> wp.bool:
     """Whether some drawable fan triangle of the polygon may cover a pixel centre of rectangle r."""
     hit = wp.bool(False)
     for k in range(1, n - 1):
         ok, swap = _fan_tri(xs, ys, k, cull_back)
         if ok and not hit:
-            kb = k
-            kc = k + 1
-            if swap == 1:
-                kb = k + 1
-                kc = k
+            kb = k + swap
+            kc = k + 1 - swap
             if _tri_rect(xs[0], ys[0], xs[kb], ys[kb], xs[kc], ys[kc], r):
                 hit = True
     return hit
 
 
 @wp.func
-def _tile_rect(tx: int, ty: int, width: int, height: int) -> wp.vec4i:
-    return wp.vec4i(tx * TILE, wp.min(tx * TILE + TILE - 1, width - 1),
-                    ty * TILE, wp.min(ty * TILE + TILE - 1, height - 1))
-
-
-@wp.func
-def pixel_ndc(i: int, j: int, h: int, w: int) -> wp.vec2:
-    """NDC of the centre of image pixel (row i from the top, column j)."""
-    return wp.vec2((float(j) + 0.5) / float(w) * 2.0 - 1.0, (float(h - 1 - i) + 0.5) / float(h) * 2.0 - 1.0)
-
-
-@wp.func
-def clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.vec3:
-    """Perspective-correct barycentrics of the point on the triangle (clip-space vertices) seen at NDC p:
-    with a_k = x_k - px w_k and c_k = y_k - py w_k, b = cross(a, c) / sum(cross(a, c)). Differentiable."""
-    a = wp.vec3(c0[0] - p[0] * c0[3], c1[0] - p[0] * c1[3], c2[0] - p[0] * c2[3])
-    c = wp.vec3(c0[1] - p[1] * c0[3], c1[1] - p[1] * c1[3], c2[1] - p[1] * c2[3])
-    b = wp.cross(a, c)
-    return b * (1.0 / (b[0] + b[1] + b[2]))
-
-
-# ------------------------------------------------------------------------------------------------
-# kernels
-# ------------------------------------------------------------------------------------------------
-
-
-@wp.kernel(enable_backward=False)
-def _vertex_kernel(
-    offset: int,
-    pos: wp.array(dtype=wp.vec3),
-    mvp: wp.mat44,
-    # outputs
-    out_clip: wp.array(dtype=wp.vec4),
-):
-    k = wp.tid() + offset
-    p = pos[k]
-    out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
-
-
-@wp.kernel
-def _transform_kernel(
-    pos: wp.array(dtype=wp.vec3),
-    mvp: wp.mat44,
-    # outputs
-    out_clip: wp.array(dtype=wp.vec4),
-):
-    """Differentiable twin of _vertex_kernel (the same arithmetic), for gradients to positions."""
-    k = wp.tid()
-    p = pos[k]
-    out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+def _cell_rect(x: int, y: int, size: int, width: int, height: int) -> wp.vec4i:
+    """The pixels (x0, x1, y0, y1) of screen cell (x, y) of a grid of ``size``-pixel cells, inside the viewport."""
+    return wp.vec4i(x * size, wp.min(x * size + size - 1, width - 1), y * size, wp.min(y * size + size - 1, height - 1))
 
 
 @wp.func
@@ -643,10 +421,9 @@ def _front_facing(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4) -> wp.bool:
 
 @wp.func
 def _fast_setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int):
-    """The setup of a triangle inside every clip plane (most triangles: no clipping, no polygon arrays), the
-    same arithmetic as :func:`_setup` and :func:`_raster_poly` for n = 3. Returns (drawn: not zero-area nor a
-    culled back face, small: drawn at once, the CCW vertices in fixed point (ax, ay, bx, by, cx, cy) and in
-    float (fa, fb, fc), its pixel box clamped to the viewport)."""
+    """The setup of a triangle inside every clip plane (no clipping, no polygon arrays). Returns (drawn: not
+    zero-area nor a culled back face, small: a fixed-point extent below SMALL_PX - 1 pixels each way, the CCW
+    vertices in fixed point (ax, ay, bx, by, cx, cy) and in float (fa, fb, fc), its pixel box (:func:`_tri_box`))."""
     hw = 0.5 * float(width)
     hh = 0.5 * float(height)
     fa = _window(c0, hw, hh)
@@ -675,291 +452,709 @@ def _fast_setup(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, 
     ymin = wp.min(ay, wp.min(by, cy))
     ymax = wp.max(ay, wp.max(by, cy))
     small = xmax - xmin < wp.int64((SMALL_PX - 1) * SUBPIXEL) and ymax - ymin < wp.int64((SMALL_PX - 1) * SUBPIXEL)
-    box = wp.vec4i(wp.max(0, _pixel_lo(xmin)), wp.min(width - 1, _pixel_hi(xmax)),
-                   wp.max(0, _pixel_lo(ymin)), wp.min(height - 1, _pixel_hi(ymax)))
-    return drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box
+    return drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, _tri_box(ax, ay, bx, by, cx, cy, width, height)
 
 
 @wp.func
-def _add_stats(out_stats: wp.array2d(dtype=wp.int64), part: int, acc: vec8l, mode: int):
-    """A drawn triangle's counts (:func:`_raster_poly`'s) into row ``part``: triangles, tested, inside, written;
-    with counting (mode 1) the quads and blocks too (columns 8 and 9)."""
-    wp.atomic_add(out_stats, part, 0, wp.int64(1))
-    wp.atomic_add(out_stats, part, 1, acc[1])
-    wp.atomic_add(out_stats, part, 2, acc[2])
-    wp.atomic_add(out_stats, part, 3, acc[3])
-    if mode == 1:
-        wp.atomic_add(out_stats, part, 8, acc[4])
-        wp.atomic_add(out_stats, part, 9, acc[5])
-
-
-@wp.kernel(enable_backward=False)
-def _small_count_kernel(
-    offset: int,
-    part: int,
-    clip: wp.array(dtype=wp.vec4),
-    tris: wp.array2d(dtype=wp.int32),
-    width: int,
-    height: int,
-    cull_back: int,
-    gb: wp.vec2,
-    tiles_x: int,
-    cnt: Counting,
-    # outputs
-    out_key: wp.array(dtype=wp.uint64),
-    out_dirty: wp.array(dtype=wp.int32),
-    out_big: wp.array(dtype=wp.int32),
-    out_tile_count: wp.array(dtype=wp.int32),
-    out_stats: wp.array2d(dtype=wp.int64),
-):
-    """Per triangle: set up; draw it at once when its pixel box spans at most SMALL_PX pixels each
-    way, else count the screen tiles it may cover (out_big[t] = 1). Counters go to row ``part``; the
-    tiles where a key was written are flagged in ``out_dirty``. With counting (``cnt.mode`` 1) the
-    clipper's output triangles go to column 10, the quads and blocks to columns 8 and 9."""
-    t = wp.tid() + offset
-    out_big[t] = 0
-    c0 = clip[tris[t, 0]]
-    c1 = clip[tris[t, 1]]
-    c2 = clip[tris[t, 2]]
-    mode = cnt.mode
+def _prepared(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int, gb: wp.vec2):
+    """A triangle set up for drawing: (n, xs, ys, fxs, fys, zs, box, mode, fast, inside3). A triangle inside every
+    clip plane that is small (:func:`_fast_setup`) is ``fast``: its CCW vertices are the polygon (n = 3); the
+    others go through :func:`_setup`. ``box``: the polygon's pixel box; ``mode`` 0: nothing to draw (rejected,
+    zero-area or culled, an empty box, no drawable fan triangle), 1: small (depth anchored once per fan triangle),
+    2: large (anchored per DEPTH_TILE cell); ``inside3``: every vertex inside every clip plane."""
+    xs = vec9l()
+    ys = vec9l()
+    fxs = vec9f()
+    fys = vec9f()
+    zs = vec9f()
     inside3 = _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb)
+    box = wp.vec4i(0, -1, 0, -1)
     if inside3:
-        if mode == 1:  # the clipper passes it on as it is
-            wp.atomic_add(out_stats, part, 10, wp.int64(1))
         drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box = _fast_setup(c0, c1, c2, width, height, cull_back)
         if not drawn:
-            return
+            return 0, xs, ys, fxs, fys, zs, box, 0, True, inside3
         if small:
-            c = _raster_tri(ax, ay, bx, by, cx, cy, fa, fb, fc, t, wp.vec4i(0, width - 1, 0, height - 1),
-                            width, height, out_key, cnt)
-            if c[3] > wp.int64(0):  # a key written: somewhere in the triangle's pixel box
-                _mark_tiles(out_dirty, tiles_x, box)
-            if c[1] > wp.int64(0):
-                _add_stats(out_stats, part, c, mode)
-            return
+            xs = vec9l(ax, bx, cx, wp.int64(0), wp.int64(0), wp.int64(0), wp.int64(0), wp.int64(0), wp.int64(0))
+            ys = vec9l(ay, by, cy, wp.int64(0), wp.int64(0), wp.int64(0), wp.int64(0), wp.int64(0), wp.int64(0))
+            fxs = vec9f(fa[0], fb[0], fc[0], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            fys = vec9f(fa[1], fb[1], fc[1], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            zs = vec9f(fa[2], fb[2], fc[2], 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+            return 3, xs, ys, fxs, fys, zs, box, wp.where(box[0] <= box[1] and box[2] <= box[3], 1, 0), True, inside3
     n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
-    if mode == 1 and not inside3 and n >= 3 and (cull_back == 0 or _front_facing(c0, c1, c2)):
-        # a clipped polygon goes on as a fan of n - 2 triangles; with culling, llvmpipe's draw pipeline culls a
-        # triangle it must clip before the clipper (the others after it, in triangle setup)
-        wp.atomic_add(out_stats, part, 10, wp.int64(n - 2))
-    if n == 0:
-        return
-    box = _poly_pixels(n, xs, ys, width, height)
-    if box[0] > box[1] or box[2] > box[3]:
-        return
-    if box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX:
-        acc = _raster_poly(n, xs, ys, fxs, fys, zs, t, box, cull_back, width, height, out_key, cnt)
-        if acc[3] > wp.int64(0):
-            _mark_tiles(out_dirty, tiles_x, box)
-        if acc[0] > wp.int64(0):
-            _add_stats(out_stats, part, acc, mode)
-        return
-    ntiles = int(0)  # noqa: UP018 -- a mutable Warp int
+    mode = int(0)
+    if n > 0:
+        box = _poly_pixels(n, xs, ys, width, height)
+        if box[0] <= box[1] and box[2] <= box[3]:
+            for k in range(1, n - 1):
+                ok, swap = _fan_tri(xs, ys, k, cull_back)
+                if ok:
+                    mode = 1
+            if mode == 1 and not (box[1] - box[0] < SMALL_PX and box[3] - box[2] < SMALL_PX):
+                mode = 2
+    return n, xs, ys, fxs, fys, zs, box, mode, False, inside3
+
+
+@wp.func
+def _depth_plane(fa: wp.vec3, fb: wp.vec3, fc: wp.vec3):
+    """(dz/dx, dz/dy) of the plane through the window positions (x, y, depth) of a triangle's vertices, as
+    llvmpipe's triangle setup computes it from the unsnapped coordinates."""
+    dx01 = fa[0] - fb[0]
+    dy01 = fa[1] - fb[1]
+    dx20 = fc[0] - fa[0]
+    dy20 = fc[1] - fa[1]
+    ooa = 1.0 / (dx01 * dy20 - dx20 * dy01)
+    dz01 = fa[2] - fb[2]
+    dz20 = fc[2] - fa[2]
+    dzdx = (dz01 * dy20 - dz20 * dy01) * ooa
+    dzdy = (dx01 * dz20 - dx20 * dz01) * ooa
+    return dzdx, dzdy
+
+
+@wp.func
+def _depth_at(fa: wp.vec3, dzdx: float, dzdy: float, px: int, py: int) -> float:
+    """The depth plane at the centre of pixel (px, py): the anchor the pixels around it step from."""
+    return fa[2] - (dzdx * (fa[0] - (float(px) + 0.5)) + dzdy * (fa[1] - (float(py) + 0.5)))
+
+
+# ------------------------------------------------------------------------------------------------
+# functions: coverage and depth into a tile's buffer
+# ------------------------------------------------------------------------------------------------
+# A tile is drawn into a buffer of ids and depth bits (the images' own on CUDA; on the CPU a scratch tile of
+# TILE rows of PITCH pixels per thread, copied into the images when the tile is done): pixel (x, y) of the window
+# is element ``bb + (y - oy) * stride + (x - ox)`` of it.
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+#define RZ_POPC(x) __popc(x)
+#define RZ_CTZ(x) (__ffs(x) - 1)
+#else
+#define RZ_POPC(x) __builtin_popcount(x)
+#define RZ_CTZ(x) __builtin_ctz(x)
+#endif
+#if !defined(__CUDA_ARCH__)
+#pragma clang fp contract(off)
+#endif
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = 0;
+if (x0 > x1 || y0 > y1) return acc;
+int32_t* ids = (int32_t*)buf_id.data;
+uint32_t* dep = (uint32_t*)buf_depth.data;
+const int64_t S = 256, HALF = 128;
+// edge k from vertex k + 1 to k + 2 (a, b, c): at centre (sx, sy) (qx - px) (sy - py) - (qy - py) (sx - px) + bias,
+// its steps per pixel, and the most and the least it adds over a 4x4 block to its value at the first centre
+const int64_t vx[3] = {ax, bx, cx}, vy[3] = {ay, by, cy};
+int64_t px[3], py[3], dx[3], dy[3], bias[3], hi[3], lo[3];
+for (int k = 0; k < 3; ++k) {
+    px[k] = vx[(k + 1) % 3], py[k] = vy[(k + 1) % 3], dx[k] = vx[(k + 2) % 3] - px[k], dy[k] = vy[(k + 2) % 3] - py[k];
+    bias[k] = (dy[k] < 0 || (dy[k] == 0 && dx[k] > 0)) ? 0 : -1;
+    hi[k] = 3 * S * ((dy[k] < 0 ? -dy[k] : 0) + (dx[k] > 0 ? dx[k] : 0));
+    lo[k] = 3 * S * ((dy[k] > 0 ? -dy[k] : 0) + (dx[k] < 0 ? dx[k] : 0));
+}
+int64_t tested = 0, inside = 0, passed = 0, covered = 0, quads = 0, blocks = 0;
+for (int qy = y0 & ~3; qy <= y1; qy += 4) {
+    const int r0 = y0 > qy ? y0 - qy : 0, r1 = y1 < qy + 3 ? y1 - qy : 3;
+    const uint32_t rows = ((1u << (4 * r1 + 4)) - 1u) & ~((1u << (4 * r0)) - 1u);
+    const int64_t sy = (int64_t)qy * S + HALF;
+    for (int qx = x0 & ~3; qx <= x1; qx += 4) {
+        const int k0 = x0 > qx ? x0 - qx : 0, k1 = x1 < qx + 3 ? x1 - qx : 3;
+        const uint32_t rect = rows & ((((1u << (k1 + 1)) - 1u) & ~((1u << k0) - 1u)) * 0x1111u);
+        const int64_t sx = (int64_t)qx * S + HALF;
+        int64_t e[3];
+        bool out = false, all = true;
+        for (int k = 0; k < 3; ++k) {
+            e[k] = dx[k] * (sy - py[k]) - dy[k] * (sx - px[k]) + bias[k];
+            out = out || e[k] + hi[k] < 0;
+            all = all && e[k] + lo[k] >= 0;
+        }
+        if (out) continue;  // no centre of the block inside
+        tested += RZ_POPC(rect);
+        uint32_t m = 0xFFFFu;
+        for (int j = 0; j < 4 && !all; ++j) {  // not every centre inside: the block's mask
+            for (int i = 0; i < 4; ++i) {
+                const int64_t v = (e[0] + S * (j * dx[0] - i * dy[0])) | (e[1] + S * (j * dx[1] - i * dy[1]))
+                                  | (e[2] + S * (j * dx[2] - i * dy[2]));
+                m = (m & ~(1u << (4 * j + i))) | ((uint32_t)(v >= 0) << (4 * j + i));
+            }
+        }
+        m &= rect;
+        if (m == 0) continue;
+        inside += RZ_POPC(m);
+        quads += RZ_POPC((m | (m >> 1) | (m >> 4) | (m >> 5)) & 0x0505u);
+        blocks += 1;
+        while (m != 0) {
+            const int i = RZ_CTZ(m);
+            m &= m - 1u;
+            const int x = qx + (i & 3), y = qy + (i >> 2);
+            // the anchor's depth stepped to the centre: two roundings per axis, rows first
+            const float ty = dzdy * (float)(y - ry);
+            const float zr = z00 + ty;
+            const float tx = dzdx * (float)(x - rx);
+            const float d = wp::clamp(zr + tx, 0.0f, 1.0f);
+            if (!(d < 1.0f)) continue;  // GL_LESS against the cleared 1.0
+            union { float f; uint32_t u; } b;
+            b.f = d;
+            const int64_t p = (int64_t)bb + (int64_t)(y - oy) * stride + (x - ox);
+            const bool first = ids[p] < 0;
+            if (first || b.u < dep[p]) {  // non-negative floats order as their bits
+                ids[p] = tid;
+                dep[p] = b.u;
+                passed += 1;
+                covered += first ? 1 : 0;
+            }
+        }
+    }
+}
+acc[0] = tested, acc[1] = inside, acc[2] = passed, acc[3] = covered, acc[4] = quads, acc[5] = blocks;
+return acc;
+#undef RZ_POPC
+#undef RZ_CTZ
+""")
+def _cover(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, x0: int, x1: int,
+           y0: int, y1: int, rx: int, ry: int, z00: float, dzdx: float, dzdy: float, tid: int, ox: int, oy: int,
+           bb: int, stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """The CCW fixed-point triangle a, b, c over pixels (x0..x1, y0..y1) of a tile's buffer (``bb``, ``stride``,
+    origin (ox, oy)) in window-aligned 4x4 blocks: skipped or covered whole by their corners, else a 16-bit mask
+    from their centres' int64 edge functions. A covered centre's depth is ``z00`` (at pixel (rx, ry)) stepped by
+    ``dzdy`` rows then ``dzdx`` columns, clamped to [0, 1]; passing ``GL_LESS`` it writes ``tid`` and its depth.
+    Returns (centres tested, covered, passed, pixels covered anew, 2x2 quads and 4x4 blocks covered, 0, 0)."""
+    ...
+
+
+@wp.func_native("""
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = k == 6 ? j0 : 0;
+#if !defined(__CUDA_ARCH__)
+if (simd != 0) {
+#pragma clang fp contract(off)
+typedef int32_t v8 __attribute__((vector_size(32)));
+typedef uint32_t v8u __attribute__((vector_size(32)));
+typedef float v8f __attribute__((vector_size(32)));
+typedef int32_t v8_ld __attribute__((vector_size(32), aligned(4)));  // loads and stores at any pixel
+typedef uint32_t v8u_ld __attribute__((vector_size(32), aligned(4)));
+#if defined(__AVX__)
+#define RZ_SIGNS(v) ((uint32_t)__builtin_ia32_movmskps256((v8f)(v)))
+#else
+#define RZ_SIGNS(v) ((uint32_t)__builtin_reduce_or(((v) >> 31) & (v8){1, 2, 4, 8, 16, 32, 64, 128}))
+#endif
+const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
+int32_t* __restrict ids = (int32_t*)buf_id.data;
+uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
+int64_t j = j0;
+for (; j < j1 && entries.data[j].t >= 0; ++j) {
+    const auto& r = entries.data[j];
+    // the vertices a (x[0]), b, c, and the pixel box: first centre at or after the least coordinate, last at or
+    // before the largest
+    const int64_t x[3] = {r.xy[0], r.xy[0] + (int16_t)(r.xy[2] & 0xFFFF), r.xy[0] + (int16_t)(r.xy[3] & 0xFFFF)};
+    const int64_t y[3] = {r.xy[1], r.xy[1] + (r.xy[2] >> 16), r.xy[1] + (r.xy[3] >> 16)};
+    const int rx = wp::max(0, (int)((wp::min(x[0], wp::min(x[1], x[2])) + 127) >> 8));
+    const int ry = wp::max(0, (int)((wp::min(y[0], wp::min(y[1], y[2])) + 127) >> 8));
+    const int x0 = wp::max(rx, tx0), x1 = wp::min((int)((wp::max(x[0], wp::max(x[1], x[2])) - 128) >> 8), tx1);
+    const int y0 = wp::max(ry, ty0), y1 = wp::min((int)((wp::max(y[0], wp::max(y[1], y[2])) - 128) >> 8), ty1);
+    if (x0 > x1 || y0 > y1) continue;
+    // edge k from vertex k + 1 to k + 2 at the first centre of the rows, and per pixel down a row: a record's
+    // triangle spans under SMALL_PX pixels, so over 16 centres of a row its edge functions fit in int32
+    v8 ra[2][3], dy[3];
+    for (int k = 0; k < 3; ++k) {
+        const int64_t px = x[(k + 1) % 3], py = y[(k + 1) % 3], dx = x[(k + 2) % 3] - px, ey = y[(k + 2) % 3] - py;
+        const int64_t e = dx * ((int64_t)y0 * 256 + 128 - py) - ey * ((int64_t)x0 * 256 + 128 - px)
+                          + ((ey < 0 || (ey == 0 && dx > 0)) ? 0 : -1);
+        ra[0][k] = (int32_t)e + lane * (int32_t)(-ey * 256);
+        ra[1][k] = ra[0][k] + 8 * (int32_t)(-ey * 256);
+        dy[k] = lane - lane + (int32_t)(dx * 256);
+    }
+    const v8f tx[2] = {r.plane[1] * __builtin_convertvector(lane + (x0 - rx), v8f),
+                       r.plane[1] * __builtin_convertvector(lane + (x0 + 8 - rx), v8f)};
+    const uint32_t cols = (uint32_t)((1u << (x1 - x0 + 1)) - 1u);
+    const int nch = x1 - x0 >= 8 ? 2 : 1;  // a row in chunks of 8 centres: two when it is wider
+    uint32_t qrow = 0, brow = 0;
+    acc[0] += (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1);
+    for (int yy = y0; yy <= y1; ++yy) {
+        uint32_t mc[2] = {0, 0};
+        for (int c = 0; c < nch; ++c) {
+            mc[c] = ~RZ_SIGNS(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
+            for (int k = 0; k < 3; ++k) ra[c][k] += dy[k];
+        }
+        const uint32_t m = mc[0] | (mc[1] << 8);
+        qrow |= m << (x0 & 3);  // the row's centres from the first 4-aligned column: quads, then blocks, done
+        brow |= m << (x0 & 3);
+        if ((yy & 1) == 1 || yy == y1) acc[4] += __builtin_popcount((qrow | qrow >> 1) & 0x55555u), qrow = 0;
+        const uint32_t bm = brow | brow >> 1 | brow >> 2 | brow >> 3;
+        if ((yy & 3) == 3 || yy == y1) acc[5] += __builtin_popcount(bm & 0x11111u), brow = 0;
+        acc[1] += __builtin_popcount(m);
+        // the anchor's depth stepped to the row, then to each centre: two roundings per axis, as set up
+        const float zr = r.plane[0] + r.plane[2] * (float)(yy - ry);
+        const int64_t p0 = (int64_t)bb + (int64_t)(yy - ty0) * stride + (x0 - tx0);
+        for (int c = 0; c < nch; ++c) {
+            if (mc[c] == 0) continue;
+            const v8f d0 = zr + tx[c];
+            const v8f d1 = d0 > 0.0f ? d0 : 0.0f;  // wp::clamp(d, 0, 1) on the host: NaN and -0.0 become 0.0
+            const v8f d = d1 <= 1.0f ? d1 : 1.0f;
+            const v8u bits = (v8u)d;
+            int32_t* pi = ids + p0 + 8 * c;
+            uint32_t* pd = dep + p0 + 8 * c;
+            const v8 oid = *(const v8_ld*)pi;
+            const v8u od = *(const v8u_ld*)pd;
+            const v8 first = oid < 0;
+            // GL_LESS (depth bits order as depths) at a covered centre
+            const v8 win = ((((lane - lane + (int32_t)mc[c]) >> lane) & 1) != 0) & (d < 1.0f) & (first | (bits < od));
+            const uint32_t wm = RZ_SIGNS(win);
+            if (wm != 0) {
+                *(v8_ld*)pi = win ? (v8)(lane - lane + r.t) : oid;
+                *(v8u_ld*)pd = win ? bits : od;
+                acc[2] += __builtin_popcount(wm), acc[3] += __builtin_popcount(wm & RZ_SIGNS(first));
+            }
+        }
+    }
+}
+#undef RZ_SIGNS
+acc[6] = j;
+}
+#endif
+return acc;
+""")
+def _draw_records(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
+                  ty1: int, width: int, height: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                  buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records, over the tile's pixels
+    (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32 lanes): mask,
+    depths, tests, writes. The same pixels, depths and counts as :func:`_cover`; returns them, the entry it stopped
+    at in slot 6 (``j0`` without ``simd`` and on CUDA, where :func:`_cover` draws records)."""
+    ...
+
+
+@wp.func
+def _record(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, z00: float,
+            dzdx: float, dzdy: float, t: int) -> Record:
+    """Triangle ``t``'s :class:`Record`, or, when its vertices do not fit one, its entry as a triangle set up again
+    where drawn."""
+    r = Record()
+    r.t = -1 - t
+    lim = wp.int64(1) << wp.int64(31)
+    fits = ax >= -lim and ax < lim and ay >= -lim and ay < lim
+    d = wp.vec4l(bx - ax, by - ay, cx - ax, cy - ay)
+    for k in range(4):
+        if d[k] < wp.int64(-32768) or d[k] > wp.int64(32767):
+            fits = False
+    if fits:
+        r.xy = wp.vec4i(int(ax), int(ay), (int(bx - ax) & 0xFFFF) | (int(by - ay) << 16),
+                        (int(cx - ax) & 0xFFFF) | (int(cy - ay) << 16))
+        r.plane = wp.vec3(z00, dzdx, dzdy)
+        r.t = t
+    return r
+
+
+@wp.func
+def _lo16(v: int) -> int:
+    """The signed 16-bit number in the low half of ``v``."""
+    return ((v & 0xFFFF) ^ 0x8000) - 0x8000
+
+
+@wp.func_native("""
+for (int y = 0; y < h; ++y) {
+    const int64_t p = (int64_t)bb + (int64_t)y * stride;
+    int32_t* __restrict ids = (int32_t*)buf_id.data + p;
+    uint32_t* __restrict dep = (uint32_t*)buf_depth.data + p;
+    for (int x = 0; x < w; ++x) ids[x] = -1;
+    for (int x = 0; x < w; ++x) dep[x] = 0x3F800000u;
+}
+""")
+def _fill(bb: int, stride: int, w: int, h: int, buf_id: wp.array(dtype=wp.int32),
+          buf_depth: wp.array(dtype=wp.float32)):
+    """The background (id -1, depth 1.0) over ``h`` rows of ``w`` pixels of a buffer."""
+    ...
+
+
+@wp.func_native("""
+for (int y = 0; y < h; ++y) {
+    const int64_t p = (int64_t)sb + (int64_t)y * sstride, q = (int64_t)db + (int64_t)y * dstride;
+    const int32_t* __restrict si = (const int32_t*)src_id.data + p;
+    const uint32_t* __restrict sd = (const uint32_t*)src_depth.data + p;
+    int32_t* __restrict di = (int32_t*)dst_id.data + q;
+    uint32_t* __restrict dd = (uint32_t*)dst_depth.data + q;
+#if defined(__CUDA_ARCH__)
+    for (int x = 0; x < w; ++x) di[x] = si[x];
+    for (int x = 0; x < w; ++x) dd[x] = sd[x];
+#elif defined(__x86_64__)
+    for (int x = 0; x < w; ++x) __builtin_nontemporal_store(si[x], di + x);  // the images are not read here again
+    for (int x = 0; x < w; ++x) __builtin_nontemporal_store(sd[x], dd + x);
+#else
+    __builtin_memcpy(di, si, sizeof(int32_t) * w);
+    __builtin_memcpy(dd, sd, sizeof(uint32_t) * w);
+#endif
+}
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+__builtin_ia32_sfence();  // the non-temporal stores visible before anything later
+#endif
+""")
+def _copy(sb: int, sstride: int, db: int, dstride: int, w: int, h: int, src_id: wp.array(dtype=wp.int32),
+          src_depth: wp.array(dtype=wp.float32), dst_id: wp.array(dtype=wp.int32),
+          dst_depth: wp.array(dtype=wp.float32)):
+    """``h`` rows of ``w`` pixels (ids and depth) from one buffer to another (non-temporal stores on the CPU: the
+    frame's images are written once and not read again by the pass; a fence after them)."""
+    ...
+
+
+@wp.func
+def _draw_fan(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64, fa: wp.vec3,
+              fb: wp.vec3, fc: wp.vec3, t: int, mode: int, tile: wp.vec4i, width: int, height: int, bb: int,
+              stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """One CCW (fan) triangle over one screen tile (:func:`_cover`): small (``mode`` 1), its depth anchored at its
+    box's first pixel; large (2), anchored again in each DEPTH_TILE cell (at the triangle's first pixel there)."""
+    box = _tri_box(ax, ay, bx, by, cx, cy, width, height)
+    x0 = wp.max(box[0], tile[0])
+    x1 = wp.min(box[1], tile[1])
+    y0 = wp.max(box[2], tile[2])
+    y1 = wp.min(box[3], tile[3])
+    acc = vec8l()
+    if x0 > x1 or y0 > y1:
+        return acc
+    dzdx, dzdy = _depth_plane(fa, fb, fc)
+    if mode == 1:
+        z00 = _depth_at(fa, dzdx, dzdy, box[0], box[2])
+        return _cover(ax, ay, bx, by, cx, cy, x0, x1, y0, y1, box[0], box[2], z00, dzdx, dzdy, t, tile[0], tile[2],
+                      bb, stride, buf_id, buf_depth)
+    for gy in range(y0 / DEPTH_TILE, y1 / DEPTH_TILE + 1):
+        for gx in range(x0 / DEPTH_TILE, x1 / DEPTH_TILE + 1):
+            sx = wp.max(x0, gx * DEPTH_TILE)
+            sy = wp.max(y0, gy * DEPTH_TILE)
+            z00 = _depth_at(fa, dzdx, dzdy, sx, sy)
+            acc = acc + _cover(ax, ay, bx, by, cx, cy, sx, wp.min(x1, gx * DEPTH_TILE + DEPTH_TILE - 1), sy,
+                               wp.min(y1, gy * DEPTH_TILE + DEPTH_TILE - 1), sx, sy, z00, dzdx, dzdy, t, tile[0],
+                               tile[2], bb, stride, buf_id, buf_depth)
+    return acc
+
+
+@wp.func
+def _draw_prepared(t: int, c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, tile: wp.vec4i, width: int, height: int,
+                   cull_back: int, gb: wp.vec2, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                   buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """Triangle ``t`` set up again (:func:`_prepared`) and drawn over one screen tile: its fan in order."""
+    n, xs, ys, fxs, fys, zs, box, mode, fast, inside3 = _prepared(c0, c1, c2, width, height, cull_back, gb)
+    acc = vec8l()
+    if mode == 0:
+        return acc
+    if fast:
+        return _draw_fan(xs[0], ys[0], xs[1], ys[1], xs[2], ys[2], wp.vec3(fxs[0], fys[0], zs[0]),
+                         wp.vec3(fxs[1], fys[1], zs[1]), wp.vec3(fxs[2], fys[2], zs[2]), t, 1, tile, width, height,
+                         bb, stride, buf_id, buf_depth)
+    for k in range(1, n - 1):
+        ok, swap = _fan_tri(xs, ys, k, cull_back)
+        if ok:
+            kb = k + swap
+            kc = k + 1 - swap
+            acc = acc + _draw_fan(xs[0], ys[0], xs[kb], ys[kb], xs[kc], ys[kc], wp.vec3(fxs[0], fys[0], zs[0]),
+                                  wp.vec3(fxs[kb], fys[kb], zs[kb]), wp.vec3(fxs[kc], fys[kc], zs[kc]), t, mode,
+                                  tile, width, height, bb, stride, buf_id, buf_depth)
+    return acc
+
+
+@wp.func
+def _tile16_count(n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, cull_back: int, width: int, height: int) -> int:
+    """The DEPTH_TILE cells of ``box`` that some drawable fan triangle may cover (by their corners)."""
+    cells = int(0)  # noqa: UP018 -- a mutable Warp int
+    for gy in range(box[2] / DEPTH_TILE, box[3] / DEPTH_TILE + 1):
+        for gx in range(box[0] / DEPTH_TILE, box[1] / DEPTH_TILE + 1):
+            if _poly_rect(n, xs, ys, _cell_rect(gx, gy, DEPTH_TILE, width, height), cull_back):
+                cells += 1
+    return cells
+
+
+@wp.func
+def _bin(entry: Record, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.bool, cull_back: int, width: int,
+         height: int, part: int, bins: Bins):
+    """``entry`` into the lists (:class:`Bins`) of the screen tiles of ``box`` (of a large triangle, those its
+    edges do not exclude), for chunk ``part``."""
     for ty in range(box[2] / TILE, box[3] / TILE + 1):
         for tx in range(box[0] / TILE, box[1] / TILE + 1):
-            if _poly_rect(n, xs, ys, _tile_rect(tx, ty, width, height), cull_back):
-                atomic_add_i32(out_tile_count, ty * tiles_x + tx, 1)
-                ntiles += 1
-    if ntiles > 0:
-        out_big[t] = 1
-        wp.atomic_add(out_stats, part, 0, wp.int64(1))
-        wp.atomic_add(out_stats, part, 4, wp.int64(1))
-        wp.atomic_add(out_stats, part, 5, wp.int64(ntiles))
+            if not large or _poly_rect(n, xs, ys, _cell_rect(tx, ty, TILE, width, height), cull_back):
+                cell = (ty * bins.tiles_x + tx) * bins.nparts + part
+                slot = wp.atomic_add(bins.count, cell, 1)  # one chunk per part: a plain add on the CPU
+                if bins.emit != 0:
+                    if slot < bins.room[cell]:
+                        bins.entries[bins.start[cell] + slot] = entry
+                    else:
+                        bins.overflow[0] = 1
 
 
-@wp.func
-def _order_key(k: wp.uint64) -> wp.uint64:
-    """A depth|id key as id|depth: ordered by submission (triangle id), then depth."""
-    return (k << wp.uint64(32)) | (k >> wp.uint64(32))
-
-
-@wp.func
-def _passes_listed(head: int, rec_key: wp.array(dtype=wp.uint64), rec_next: wp.array(dtype=wp.int32)) -> wp.int64:
-    """The fragments of one pixel's list (each counted once, however often listed) that pass ``GL_LESS`` in
-    submission order: those whose depth is below that of every fragment of an earlier triangle. Up to
-    ``_LISTED`` records are sorted in place by (triangle, depth) and scanned once; a longer list is compared
-    pair by pair."""
-    buf = vec_listed()
-    n = int(0)  # noqa: UP018 -- a mutable Warp int
-    i = head
-    while i >= 0 and n < _LISTED:
-        k = _order_key(rec_key[i])
-        m = n  # insertion sort: the lists are short (2 records per fragment after the first)
-        while m > 0 and buf[m - 1] > k:
-            buf[m] = buf[m - 1]
-            m -= 1
-        buf[m] = k
-        n += 1
-        i = rec_next[i]
-    passed = wp.int64(0)
-    if i < 0:  # all of it sorted: a fragment passes when its depth is below every earlier one's
-        best = wp.uint64(0xFFFFFFFF)  # the smallest depth bits so far (above any depth's bits: none yet)
-        for m in range(n):
-            if m == 0 or buf[m] != buf[m - 1]:
-                d = buf[m] & wp.uint64(0xFFFFFFFF)
-                if d < best:
-                    passed += wp.int64(1)
-                    best = d
-        return passed
-    i = head
-    pos = int(0)  # noqa: UP018 -- i's place in the list
-    while i >= 0:
-        ki = rec_key[i]
-        ti = wp.uint32(ki & wp.uint64(0xFFFFFFFF))
-        di = wp.uint32(ki >> wp.uint64(32))  # depth bits: non-negative floats order like their bits
-        ok = wp.bool(True)
-        j = head
-        q = int(0)  # noqa: UP018
-        while j >= 0 and ok:
-            kj = rec_key[j]
-            if kj == ki:
-                if q < pos:  # listed before: counted there
-                    ok = False
-            elif wp.uint32(kj & wp.uint64(0xFFFFFFFF)) < ti and wp.uint32(kj >> wp.uint64(32)) <= di:
-                ok = False  # an earlier triangle's fragment at the same or a smaller depth: fails GL_LESS
-            j = rec_next[j]
-            q += 1
-        if ok:
-            passed += wp.int64(1)
-        i = rec_next[i]
-        pos += 1
-    return passed
+# ------------------------------------------------------------------------------------------------
+# kernels
+# ------------------------------------------------------------------------------------------------
 
 
 @wp.kernel(enable_backward=False)
-def _staircase_kernel(
+def _vertex_kernel(
     offset: int,
-    part: int,
-    pixels: wp.array(dtype=wp.int32),
-    rec_key: wp.array(dtype=wp.uint64),
-    rec_next: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec3),
+    mvp: wp.mat44,
     # outputs
-    out_head: wp.array(dtype=wp.int32),
-    out_stats: wp.array2d(dtype=wp.int64),
+    out_clip: wp.array(dtype=wp.vec4),
 ):
-    """Per pixel that two fragments reached (``pixels``, :class:`Counting`): the fragments listed there that
-    pass in submission order (:func:`_passes_listed`), less the first (which always passes), added to
-    ``out_stats[part, 0]``; the pixel's list is then emptied (``out_head[p] = -1``)."""
-    p = pixels[wp.tid() + offset]
-    passed = _passes_listed(out_head[p], rec_key, rec_next)
-    out_head[p] = -1
-    wp.atomic_add(out_stats, part, 0, passed - wp.int64(1))
+    k = wp.tid() + offset
+    p = pos[k]
+    out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+
+
+@wp.func
+def _covers_none(ax: wp.int64, ay: wp.int64, bx: wp.int64, by: wp.int64, cx: wp.int64, cy: wp.int64,
+                 box: wp.vec4i) -> wp.bool:
+    """Whether a CCW triangle whose pixel box holds at most 4 centres covers none of them (tested one by one; a
+    larger box: False)."""
+    if (box[1] - box[0] + 1) * (box[3] - box[2] + 1) > 4:
+        return False
+    for y in range(box[2], box[3] + 1):
+        for x in range(box[0], box[1] + 1):
+            sx = wp.int64(x) * wp.int64(SUBPIXEL) + wp.int64(SUBPIXEL_HALF)
+            sy = wp.int64(y) * wp.int64(SUBPIXEL) + wp.int64(SUBPIXEL_HALF)
+            e0 = (cx - bx) * (sy - by) - (cy - by) * (sx - bx) + _edge_bias(cx - bx, cy - by)
+            e1 = (ax - cx) * (sy - cy) - (ay - cy) * (sx - cx) + _edge_bias(ax - cx, ay - cy)
+            e2 = (bx - ax) * (sy - ay) - (by - ay) * (sx - ax) + _edge_bias(bx - ax, by - ay)
+            if (e0 | e1 | e2) >= wp.int64(0):
+                return False
+    return True
+
+
+@wp.func
+def _small_entry(t: int, c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, width: int, height: int, cull_back: int):
+    """A triangle inside every clip plane (:func:`_fast_setup`): (drawn, small, its pixel box, what to bin: 0
+    nothing, 1 its record, 2 nothing but a centre was tested; the record). A small one with a centre in its box
+    is drawn from its record, unless its box holds at most 4 centres and it covers none of them."""
+    drawn, small, ax, ay, bx, by, cx, cy, fa, fb, fc, box = _fast_setup(c0, c1, c2, width, height, cull_back)
+    what = int(0)
+    rec = Record()
+    if drawn and small and box[0] <= box[1] and box[2] <= box[3]:
+        what = 2
+        if not _covers_none(ax, ay, bx, by, cx, cy, box):
+            dzdx, dzdy = _depth_plane(fa, fb, fc)
+            rec = _record(ax, ay, bx, by, cx, cy, _depth_at(fa, dzdx, dzdy, box[0], box[2]), dzdx, dzdy, t)
+            what = 1
+    return drawn, small, box, what, rec
+
+
+@wp.func
+def _tally(tally: wp.array2d(dtype=wp.int64), part: int, column: int, v: int, on: int):
+    if on != 0:
+        wp.atomic_add(tally, part, column, wp.int64(v))
 
 
 @wp.kernel(enable_backward=False)
 def _bin_kernel(
     offset: int,
+    part: int,
+    base: int,
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
-    big: wp.array(dtype=wp.int32),
     width: int,
     height: int,
     cull_back: int,
     gb: wp.vec2,
-    tiles_x: int,
-    tile_start: wp.array(dtype=wp.int32),
+    tallying: int,
     # outputs
-    out_cursor: wp.array(dtype=wp.int32),
-    out_list: wp.array(dtype=wp.int32),
+    out_bins: Bins,
+    out_tally: wp.array2d(dtype=wp.int64),
 ):
-    """Per large triangle: write its id into the list of every tile it may cover (the order within a
-    tile's list depends on thread timing; what the tile kernel draws from it does not)."""
-    t = wp.tid() + offset
-    if big[t] == 0:
-        return
+    """Per triangle ``t = base + i`` of a batch: set up, and binned (:func:`_bin`) into the tiles it will be drawn
+    in: a small unclipped one as its record (:func:`_small_entry`), the others (clipped, large) to be set up again
+    there (:func:`_prepared`). With ``tallying``, tallies (row ``part``) the clipper's output, the triangles
+    rasterized, the centres of tiny boxes tested here and, for large triangles, the DEPTH_TILE cells they may
+    cover."""
+    t = base + wp.tid() + offset
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
     c2 = clip[tris[t, 2]]
-    n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
-    box = _poly_pixels(n, xs, ys, width, height)
-    for ty in range(box[2] / TILE, box[3] / TILE + 1):
-        for tx in range(box[0] / TILE, box[1] / TILE + 1):
-            if _poly_rect(n, xs, ys, _tile_rect(tx, ty, width, height), cull_back):
-                tile = ty * tiles_x + tx
-                slot = atomic_add_i32(out_cursor, tile, 1)
-                out_list[tile_start[tile] + slot] = t
+    xs = vec9l()
+    if _inside(c0, gb) and _inside(c1, gb) and _inside(c2, gb):  # the clipper passes it on as it is
+        _tally(out_tally, part, T_CLIPPED, 1, tallying)
+        drawn, small, box, what, rec = _small_entry(t, c0, c1, c2, width, height, cull_back)
+        if what != 0:  # most triangles
+            _tally(out_tally, part, T_RASTERIZED, 1, tallying)
+            if what == 1:
+                _bin(rec, 0, xs, xs, box, False, cull_back, width, height, part, out_bins)
+            else:
+                _tally(out_tally, part, T_TESTED, (box[1] - box[0] + 1) * (box[3] - box[2] + 1), tallying)
+            return
+        if not drawn:
+            return
+    n, xs, ys, fxs, fys, zs, box, mode, fast, inside3 = _prepared(c0, c1, c2, width, height, cull_back, gb)
+    if not inside3 and n >= 3 and (cull_back == 0 or _front_facing(c0, c1, c2)):
+        # a clipped polygon goes on as a fan of n - 2 triangles; with culling, llvmpipe's draw pipeline culls a
+        # triangle it must clip before the clipper (the others after it, in triangle setup)
+        _tally(out_tally, part, T_CLIPPED, n - 2, tallying)
+    cells = int(1)
+    if mode == 2:
+        cells = _tile16_count(n, xs, ys, box, cull_back, width, height)
+        if cells > 0:
+            _tally(out_tally, part, T_BINNED, 1, tallying)
+            _tally(out_tally, part, T_TILE16, cells, tallying)
+    if mode != 0 and cells > 0:
+        _tally(out_tally, part, T_RASTERIZED, 1, tallying)
+        again = Record()
+        again.t = -1 - t
+        _bin(again, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
+
+
+@wp.func
+def _sort_list(entries: wp.array(dtype=Record), s: int, e: int):
+    """Shell sort of entries[s:e] by triangle, in place (on CUDA, where the lists are written in no order)."""
+    gap = (e - s) / 2
+    while gap > 0:
+        for i in range(s + gap, e):
+            v = entries[i]
+            t = wp.where(v.t >= 0, v.t, -1 - v.t)
+            j = i
+            while j >= s + gap:
+                u = entries[j - gap].t
+                if wp.where(u >= 0, u, -1 - u) <= t:
+                    break
+                entries[j] = entries[j - gap]
+                j -= gap
+            entries[j] = v
+        gap = gap / 2
+
+
+@wp.func
+def _draw_entry(r: Record, tile: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32), width: int,
+                height: int, cull_back: int, gb: wp.vec2, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """One list entry over one tile: a record in 4x4 blocks (:func:`_cover`), another triangle set up again
+    (:func:`_draw_prepared`)."""
+    if r.t < 0:
+        t = -1 - r.t
+        return _draw_prepared(t, clip[tris[t, 0]], clip[tris[t, 1]], clip[tris[t, 2]], tile, width, height, cull_back,
+                              gb, bb, stride, buf_id, buf_depth)
+    ax = wp.int64(r.xy[0])
+    ay = wp.int64(r.xy[1])
+    bx = ax + wp.int64(_lo16(r.xy[2]))
+    by = ay + wp.int64(r.xy[2] >> 16)
+    cx = ax + wp.int64(_lo16(r.xy[3]))
+    cy = ay + wp.int64(r.xy[3] >> 16)
+    box = _tri_box(ax, ay, bx, by, cx, cy, width, height)
+    return _cover(ax, ay, bx, by, cx, cy, wp.max(box[0], tile[0]), wp.min(box[1], tile[1]), wp.max(box[2], tile[2]),
+                  wp.min(box[3], tile[3]), box[0], box[2], r.plane[0], r.plane[1], r.plane[2], r.t, tile[0], tile[2],
+                  bb, stride, buf_id, buf_depth)
+
+
+@wp.func
+def _draw_list(simd: int, s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
+               entries: wp.array(dtype=Record), width: int, height: int, cull_back: int, gb: wp.vec2, bb: int,
+               stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """A tile's list entries[s:e], in order: with ``simd`` runs of records row by row (:func:`_draw_records`), every
+    other entry (without, every entry) by :func:`_draw_entry`."""
+    acc = vec8l()
+    j = s
+    while j < e:
+        c = _draw_records(simd, entries, j, e, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id, buf_depth)
+        j = int(c[6])
+        c[6] = wp.int64(0)
+        acc = acc + c
+        if j < e:
+            acc = acc + _draw_entry(entries[j], r, clip, tris, width, height, cull_back, gb, bb, stride, buf_id,
+                                    buf_depth)
+            j += 1
+    return acc
+
+
+@wp.func
+def _listed(bins: Bins, tile: int) -> int:
+    """The entries in a tile's lists."""
+    n = int(0)
+    for p in range(bins.nparts):
+        n += bins.count[tile * bins.nparts + p]
+    return n
 
 
 @wp.kernel(enable_backward=False)
 def _tile_kernel(
     offset: int,
     part: int,
+    scratch: int,
+    queue: wp.array(dtype=wp.int32),
+    ntiles: int,
+    first: int,
     clip: wp.array(dtype=wp.vec4),
     tris: wp.array2d(dtype=wp.int32),
+    bins: Bins,
     width: int,
     height: int,
     cull_back: int,
     gb: wp.vec2,
-    tiles_x: int,
-    tile_start: wp.array(dtype=wp.int32),
-    tile_count: wp.array(dtype=wp.int32),
-    tri_list: wp.array(dtype=wp.int32),
-    cnt: Counting,
     # outputs
-    out_key: wp.array(dtype=wp.uint64),
-    out_dirty: wp.array(dtype=wp.int32),
-    out_stats: wp.array2d(dtype=wp.int64),
-):
-    """Per screen tile: draw the large triangles binned to it, clipped to the tile; flag it in
-    ``out_dirty`` when a key was written."""
-    tile = wp.tid() + offset
-    ty = tile / tiles_x
-    tx = tile - ty * tiles_x
-    r = _tile_rect(tx, ty, width, height)
-    acc = vec8l()
-    s = tile_start[tile]
-    for i in range(s, s + tile_count[tile]):
-        t = tri_list[i]
-        c0 = clip[tris[t, 0]]
-        c1 = clip[tris[t, 1]]
-        c2 = clip[tris[t, 2]]
-        n, xs, ys, fxs, fys, zs = _setup(c0, c1, c2, width, height, gb)
-        acc = acc + _raster_poly(n, xs, ys, fxs, fys, zs, t, r, cull_back, width, height, out_key, cnt)
-    if acc[3] > wp.int64(0):
-        out_dirty[tile] = 1
-    if tile_count[tile] > 0:
-        wp.atomic_add(out_stats, part, 1, acc[1])
-        wp.atomic_add(out_stats, part, 2, acc[2])
-        wp.atomic_add(out_stats, part, 3, acc[3])
-        if cnt.mode == 1:
-            wp.atomic_add(out_stats, part, 8, acc[4])
-            wp.atomic_add(out_stats, part, 9, acc[5])
-
-
-@wp.kernel(enable_backward=False)
-def _resolve_ids_kernel(
-    offset: int,
-    part: int,
-    dirty: wp.array(dtype=wp.int32),
-    width: int,
-    height: int,
-    # outputs
-    out_key: wp.array(dtype=wp.uint64),
+    out_buf_id: wp.array(dtype=wp.int32),
+    out_buf_depth: wp.array(dtype=wp.float32),
     out_id: wp.array(dtype=wp.int32),
     out_depth: wp.array(dtype=wp.float32),
-    out_covered: wp.array(dtype=wp.int64),
+    out_dirty: wp.array(dtype=wp.int32),
+    out_tally: wp.array2d(dtype=wp.int64),
 ):
-    """Decode the depth|id keys of the flagged screen tiles (``dirty``) of one band of TILE window rows (band
-    ``ty``, from window row 0 up) into the triangle id and window depth of each drawn pixel, and set the key back
-    to empty: unflagged tiles hold no drawn key, so the buffer is then clear for the next frame. Row by row
-    (memory order); every pixel of the band is written, background as -1 and 1.0. Covered pixels are counted
-    into ``out_covered[part]``."""
-    ty = wp.tid() + offset
-    tiles_x = (width + TILE - 1) / TILE
-    covered = wp.int64(0)
-    for y in range(ty * TILE, wp.min(ty * TILE + TILE, height)):
-        p0 = (height - 1 - y) * width
-        x0 = int(0)  # runs of tiles flagged alike, one straight loop each
-        for tx in range(1, tiles_x + 1):
-            flag = int(dirty[ty * tiles_x + tx - 1] != 0)
-            ends = tx == tiles_x
-            if not ends:
-                ends = int(dirty[ty * tiles_x + tx] != 0) != flag
-            if ends:
-                x1 = wp.min(tx * TILE, width)
-                covered += _resolve_run(out_key, out_id, out_depth, p0 + x0, x1 - x0, flag)
-                x0 = x1
-    wp.atomic_add(out_covered, part, covered)  # one writer per part on the CPU; a true atomic on CUDA
+    """Screen tiles, one thread each: the background (``first`` batch) or the images' pixels so far, the tile's
+    lists (:class:`Bins`) drawn in order (:func:`_draw_list`), a tile with a pixel covered flagged in ``out_dirty``,
+    the tallies into row ``part``. With ``scratch`` (the CPU, one launch index per thread) each thread takes the
+    next tile from the shared counter ``queue`` until none is left and draws it in its own TILE x PITCH tile of
+    ``out_buf_*``, then copies it into the images; without (CUDA), tile ``offset + tid`` is drawn in the images
+    themselves (``out_buf_*`` are the images, a tile's sorted list first)."""
+    tile = wp.tid() + offset
+    slot = tile
+    if scratch != 0:
+        tile = atomic_add_i32(queue, 0, 1)
+    while tile < ntiles:
+        if first == 0 and _listed(bins, tile) == 0:  # a later batch that draws nothing here: the images stand
+            if scratch == 0:
+                break
+            tile = atomic_add_i32(queue, 0, 1)
+            continue
+        ty = tile / bins.tiles_x
+        r = _cell_rect(tile - ty * bins.tiles_x, ty, TILE, width, height)
+        w = r[1] - r[0] + 1
+        h = r[3] - r[2] + 1
+        ib = (height - 1 - r[2]) * width + r[0]  # the tile's first pixel in the images (rows run down)
+        bb = ib
+        stride = -width
+        if scratch != 0:
+            bb = slot * TILE * PITCH
+            stride = PITCH
+            if first == 0:
+                _copy(ib, -width, bb, PITCH, w, h, out_id, out_depth, out_buf_id, out_buf_depth)
+        if first != 0:
+            _fill(bb, stride, w, h, out_buf_id, out_buf_depth)
+        acc = vec8l()
+        for p in range(bins.nparts):  # the chunks' lists in order: submission order
+            cell = tile * bins.nparts + p
+            s = bins.start[cell]
+            e = s + bins.count[cell]
+            if scratch == 0:
+                _sort_list(bins.entries, s, e)
+            acc = acc + _draw_list(scratch, s, e, r, clip, tris, bins.entries, width, height, cull_back, gb, bb, stride,
+                                   out_buf_id, out_buf_depth)
+        if scratch != 0:
+            _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
+        if acc[3] > wp.int64(0):
+            out_dirty[tile] = 1
+        if acc[0] > wp.int64(0):
+            wp.atomic_add(out_tally, part, T_TESTED, acc[0])
+            wp.atomic_add(out_tally, part, T_INSIDE, acc[1])
+            wp.atomic_add(out_tally, part, T_PASSED, acc[2])
+            wp.atomic_add(out_tally, part, T_COVERED, acc[3])
+            wp.atomic_add(out_tally, part, T_QUADS, acc[4])
+            wp.atomic_add(out_tally, part, T_BLOCKS, acc[5])
+        if scratch == 0:
+            break
+        tile = atomic_add_i32(queue, 0, 1)
+
+
+@wp.func
+def pixel_ndc(i: int, j: int, h: int, w: int) -> wp.vec2:
+    """NDC of the centre of image pixel (row i from the top, column j)."""
+    return wp.vec2((float(j) + 0.5) / float(w) * 2.0 - 1.0, (float(h - 1 - i) + 0.5) / float(h) * 2.0 - 1.0)
+
+
+@wp.func
+def clip_barycentrics(c0: wp.vec4, c1: wp.vec4, c2: wp.vec4, p: wp.vec2) -> wp.vec3:
+    """Perspective-correct barycentrics of the point on the triangle (clip-space vertices) seen at NDC p:
+    with a_k = x_k - px w_k and c_k = y_k - py w_k, b = cross(a, c) / sum(cross(a, c)). Differentiable."""
+    a = wp.vec3(c0[0] - p[0] * c0[3], c1[0] - p[0] * c1[3], c2[0] - p[0] * c2[3])
+    c = wp.vec3(c0[1] - p[1] * c0[3], c1[1] - p[1] * c1[3], c2[1] - p[1] * c2[3])
+    b = wp.cross(a, c)
+    return b * (1.0 / (b[0] + b[1] + b[2]))
 
 
 @wp.kernel(enable_backward=False)
@@ -1020,32 +1215,6 @@ def _barycentrics_kernel(
                             out_bary[i, j] = wp.vec2(1.0 / 3.0, 1.0 / 3.0)
 
 
-@wp.kernel
-def interpolate_kernel(
-    pix_id: wp.array3d(dtype=wp.int32),
-    clip: wp.array(dtype=wp.vec4),
-    tris: wp.array2d(dtype=wp.int32),
-    attr: wp.array2d(dtype=wp.float32),
-    # outputs
-    out: wp.array3d(dtype=wp.float32),
-):
-    """Differentiable resolve, one thread per (row, column, channel); background gives 0.
-
-    ``pix_id`` is the (H, W, C) triangle id image repeated over the C channels: the first input's shape
-    is the launch and output shape that ``warp.jax_kernel`` infers (it takes no ``output_dims`` with
-    ``enable_backward=True``). Differentiable with respect to ``clip`` and ``attr``."""
-    i, j, ch = wp.tid()
-    t = pix_id[i, j, ch]
-    v = float(0.0)
-    if t >= 0:
-        i0 = tris[t, 0]
-        i1 = tris[t, 1]
-        i2 = tris[t, 2]
-        b = clip_barycentrics(clip[i0], clip[i1], clip[i2], pixel_ndc(i, j, pix_id.shape[0], pix_id.shape[1]))
-        v = b[0] * attr[i0, ch] + b[1] * attr[i1, ch] + b[2] * attr[i2, ch]
-    out[i, j, ch] = v
-
-
 # ------------------------------------------------------------------------------------------------
 # host
 # ------------------------------------------------------------------------------------------------
@@ -1061,15 +1230,17 @@ class Fragments:
             vertices 0 and 1 at the pixel centre (b2 = 1 - b0 - b1); 0 for background. Computed from
             the clip-space vertices on first access (the resolve half of a visibility buffer: the
             visibility pass itself produces ids and depth, as a GPU's depth pre-pass would).
-        stats: per-frame counters: triangles_in; triangles_rasterized (that reached the coverage test
-            after trivial rejection, clipping, zero-area and back-face culling); triangles_binned (large
-            triangles drawn tile by tile) and tile_entries; fragments_tested (pixel centres
-            evaluated), fragments_inside (centres covered), pixels_written (depth tests passed), and
-            pixels_covered (non-background pixels in the end). pixels_written alone depends on the
-            order of the depth tests, so, as on a GPU, it may differ between runs with more than one
-            thread (``terrainwarp.set_threads``); the images and every other counter never do.
+        stats: per-frame counts, the same on every run and for any thread count: triangles_in;
+            triangles_rasterized (that reached the coverage test after trivial rejection, clipping, zero-area and
+            back-face culling); triangles_binned (large triangles: a pixel box of SMALL_PX or more) and
+            tile_entries (the DEPTH_TILE x DEPTH_TILE cells their edges do not exclude); fragments_tested (the pixel
+            centres whose edge functions were evaluated: on the CPU every centre of a small unclipped triangle's
+            pixel box, row by row, and for the others those of the 4x4 blocks their corners did not reject; on
+            CUDA 4x4 blocks for every triangle), fragments_inside (centres covered),
+            pixels_written (depth tests passed, in submission order) and pixels_covered (non-background pixels in
+            the end). All but fragments_tested are the same on every device.
         counters: the pipeline statistics of the draw, as OpenGL's ARB_pipeline_statistics_query names them,
-            when asked for (``counters=True``; None otherwise), bit-identical for any thread count:
+            when asked for (``counters=True``; None otherwise) (:func:`terrainwarp.kernels.counters.raster_counters`):
             ``clipping_input_primitives`` (the triangles), ``clipping_output_primitives`` (1 per triangle
             inside every clip plane, n - 2 per clipped n-gon, 0 rejected; zero-area and back faces included,
             as they are culled after the clipper), ``fragment_shader_invocations`` (4 per 2x2 quad with a
@@ -1082,14 +1253,14 @@ class Fragments:
             each fan triangle of a clipped one on its own, as llvmpipe draws them; quads and blocks are
             aligned in window coordinates (origin at the bottom left).
 
-    Iterating yields (triangle_id, depth, barycentrics, stats), as the earlier NamedTuple did.
+    Iterating yields (triangle_id, depth, barycentrics, stats).
     """
 
     __slots__ = ("triangle_id", "depth", "stats", "counters", "_bary", "_clip", "_tris", "_device", "_ids",
-                 "_rows", "_tiles")
+                 "_tiles")
 
     def __init__(self, triangle_id, depth, barycentrics, stats, *, clip=None, tris=None, device="cpu", ids=None,
-                 rows=None, tiles=None):
+                 tiles=None):
         self.triangle_id = triangle_id
         self.depth = depth
         self.stats = stats
@@ -1097,19 +1268,18 @@ class Fragments:
         self._bary = barycentrics
         self._clip, self._tris, self._device = clip, tris, device
         self._ids = ids  # the triangle ids as a device array (on the CPU: triangle_id's own memory)
-        self._rows = rows  # image rows [top, bottom) outside which every pixel is background
         self._tiles = tiles  # int32 flag per screen tile (window order), 0: every pixel in it is background
 
     @property
     def barycentrics(self) -> np.ndarray:
         if self._bary is None:
             hh, ww = self.triangle_id.shape
-            dirty = _band_tiles(ww, hh, self._rows) if self._tiles is None else self._tiles
+            dirty = np.ones(_tiles_x(ww) * _tiles_x(hh), np.int32) if self._tiles is None else self._tiles
             bands = _bands(dirty, ww)
             ids = self._ids
             if ids is None or ids.device.is_cuda:  # the host image, as the caller may have changed it
                 ids = wp.array(self.triangle_id, dtype=wp.int32, device=self._device)
-            out = _filled((hh, ww), wp.vec2, 0.0, self._device)  # the background; the kernel writes covered pixels
+            out = filled_array((hh, ww), wp.vec2, 0.0, self._device)  # background; the kernel writes covered pixels
             if len(bands):
                 ndc_x = wp.empty(ww, dtype=float, device=self._device)
                 launch_one(_ndc_x_kernel, ww, [0, ww], [ndc_x], device=self._device)
@@ -1137,60 +1307,8 @@ def _as_matrix(name: str, m: object) -> np.ndarray:
     return a
 
 
-def _check_triangles(triangles: object, n: int) -> np.ndarray:
-    tri = np.asarray(triangles)
-    if tri.ndim != 2 or tri.shape[1] != 3:
-        raise ValueError(f"triangles: expected shape (m, 3), got {tri.shape}")
-    if tri.size and not np.issubdtype(tri.dtype, np.integer):
-        raise TypeError(f"triangles: expected an integer array, got {tri.dtype}")
-    if tri.size and (tri.min() < 0 or tri.max() >= n):
-        raise ValueError(f"triangles: indices must lie in [0, {n}), got [{tri.min()}, {tri.max()}]")
-    return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)
-
-
-def _check_size(width: object, height: object) -> tuple[int, int]:
-    for nm, v in (("width", width), ("height", height)):
-        if not is_int(v):
-            raise TypeError(f"{nm}: expected an integer, got {v!r}")
-        if not 1 <= int(v) <= 16384:
-            raise ValueError(f"{nm}: expected 1..16384 pixels, got {v}")
-    return int(width), int(height)
-
-
-# Depth|id key buffers, all empty, on scratch leases of the frame-buffer pool (pool.take), by (device, pixels): the
-# drawing kernels flag each screen tile in which they wrote a key, and the resolve reads the flagged tiles only and
-# sets every drawn key it reads back to empty, so a buffer is given back clear and the next frame of that size
-# clears nothing (a frame-sized fill per frame saved; the resolve's cost follows the tiles drawn, not the viewport).
-# A rasterize that fails part-way never gives its lease back: that buffer is dropped.
-_KEYS_KEPT = 2  # buffers kept per (device, size)
-
-
-def _new_keys(npx: int, device: str) -> wp.array:
-    if wp.get_device(device).is_cpu:
-        key_np = np.empty(npx, np.uint64)  # numpy's large allocations ask for huge pages (parallel.empty)
-        key_np.view(np.uint8).fill(255)  # all ones: the empty key (a byte fill is faster than wp.full)
-        return wp.array(key_np, dtype=wp.uint64, device=device, copy=False)
-    return wp.full(npx, value=_EMPTY_KEY, dtype=wp.uint64, device=device)
-
-
-def _take_keys(npx: int, device: str):
-    """A scratch lease of an all-empty key buffer of ``npx`` pixels (``lease.buffer``)."""
-    return take(("raster_keys", str(wp.get_device(device)), npx), lambda: _new_keys(npx, device), keep=_KEYS_KEPT)
-
-
 def _tiles_x(width: int) -> int:
     return (width + TILE - 1) // TILE
-
-
-def _band_tiles(width: int, height: int, rows: tuple[int, int] | None) -> np.ndarray:
-    """Flags (int32, window tile order, as the binning's) of the screen tiles that meet image rows
-    [top, bottom), all of them with None."""
-    top, bottom = (0, height) if rows is None else rows
-    tx = _tiles_x(width)
-    flags = np.zeros(tx * ((height + TILE - 1) // TILE), np.int32)
-    if bottom > top:
-        flags[(height - bottom) // TILE * tx:((height - 1 - top) // TILE + 1) * tx] = 1
-    return flags
 
 
 def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
@@ -1198,159 +1316,136 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
     return np.flatnonzero(dirty.reshape(-1, _tiles_x(width)).any(axis=1)).astype(np.int32)
 
 
-# Output images (ids, depth, barycentrics) on the CPU come from the frame-buffer pool (parallel.pooled): a frame's
-# images are the caller's, but once the caller holds no view of one any more, the next frame of that size takes it
-# again. Freshly allocated frame-sized memory costs page faults on its first write (~5-10 ms for a 1080p frame's
-# 32 MB here, more than drawing 10k triangles); memory seen before costs a fill.
-_IMAGES_KEPT = 2  # per (shape, dtype): the frame being made and the one before it, still held by its caller
+_SCRATCH = True  # on the CPU: scratch tiles, records drawn in SIMD (False: the way CUDA draws, for the tests)
+_IMAGES_KEPT = 2  # output images kept per (shape, dtype): the frame being made and the one before it
 _IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
 
 
-def _image(shape: tuple[int, ...], dtype: type) -> np.ndarray:
-    """An uninitialised host array for an output image: a kept one no view of which is alive, else a new one."""
-    return pooled(shape, dtype, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
+class _Work:
+    """What a rasterize call of one kind (device, viewport, chunks per launch) works in besides its outputs, leased
+    from the pool (:func:`.pool.take`) and given back when the call is done (a call that fails keeps its lease and
+    the work is dropped): the tile flags, the tallies, the lists' counts, the tile queue, the CPU's scratch tiles,
+    the lists' storage (grown as frames need), and per batch the lists' room. The room is the counts of the last
+    frame binned here and a quarter more, so that a frame like it writes its entries as it counts them (one binning
+    pass); a frame that needs more is binned again with exact room, and leaves its counts for the next."""
+
+    def __init__(self, device: str, width: int, height: int, nparts: int, scratch: bool) -> None:
+        self.device, self.cpu = device, wp.get_device(device).is_cpu
+        self.tiles_x = _tiles_x(width)
+        self.ntiles = self.tiles_x * _tiles_x(height)
+        self.nparts, ncells = nparts, self.tiles_x * _tiles_x(height) * nparts
+        zeros = lambda *shape, dt=wp.int32: wp.zeros(shape, dtype=dt, device=device)  # noqa: E731
+        self.dirty, self.queue, self.overflow = zeros(self.ntiles), zeros(1), zeros(1)
+        self.count, self.cursor, self.tally = zeros(ncells), zeros(ncells), zeros(nparts, TALLIES, dt=wp.int64)
+        self.cleared = [self.dirty, self.tally, self.queue, self.count, self.cursor, self.overflow]
+        self.views = [a.numpy() for a in self.cleared] if self.cpu else None  # the CPU clears them in numpy
+        self.workers = min(nparts, self.ntiles) if scratch else self.ntiles
+        n = self.workers * TILE * PITCH if scratch else 1
+        self.buf_id, self.buf_depth = zeros(n), zeros(n, dt=wp.float32)
+        self.room: dict[int, tuple[np.ndarray, np.ndarray, wp.array, wp.array]] = {}
+        self.entries = wp.empty(1, dtype=Record, device=device)
+
+    def clear(self, first: int = 0) -> None:
+        """Zero the arrays from ``cleared[first]`` on: all of them for a frame, the lists' for a batch."""
+        for k in range(first, len(self.cleared)):
+            if self.views is not None:
+                self.views[k].fill(0)
+            else:
+                self.cleared[k].zero_()
+
+    def bins(self, counting: wp.array, room: tuple | None) -> Bins:
+        """Lists counted into ``counting`` with ``room`` = (start, room, their device arrays) per cell, or counted
+        only (None)."""
+        b = Bins()
+        b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, int(room is not None), \
+            counting, self.overflow
+        b.start = b.room = counting
+        b.entries = self.entries
+        if room is not None:
+            start, slots, b.start, b.room = room
+            need = int(start[-1] + slots[-1])
+            if self.entries.shape[0] < need:  # grown by half again: a slowly denser flyover does not grow it each frame
+                self.entries = wp.empty(need + need // 2, dtype=Record, device=self.device)
+            b.entries = self.entries
+        return b
+
+    def bin_batch(self, base: int, mb: int, args: list) -> Bins:
+        """Bin a batch (:func:`_bin_kernel`): one pass when this batch's room holds it, else counting then binning
+        again with exact room."""
+        if base:
+            self.clear(2)  # the queue and the lists' counts, for this batch
+        bins = self.bins(self.count, self.room.get(base))
+        launch(_bin_kernel, mb, [base, *args, 1], [bins, self.tally], self.device, parts=True,
+               min_items=_MIN_TRIANGLES)
+        counts = self.count.numpy() if self.cpu else self.count.numpy().copy()
+        if not bins.emit or int(self.overflow.numpy()[0]):
+            bins = self.bins(self.cursor, self._room(counts, False))
+            launch(_bin_kernel, mb, [base, *args, 0], [bins, self.tally], self.device, parts=True,
+                   min_items=_MIN_TRIANGLES)
+        self.room[base] = self._room(counts, True)
+        return bins
+
+    def _room(self, counts: np.ndarray, spare: bool) -> tuple:
+        """(start, room) of lists holding ``counts`` (exactly, or with a quarter more and 8 spare per cell), with
+        their device arrays."""
+        slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
+        start = np.zeros(len(slots), np.int32)
+        np.cumsum(slots[:-1], out=start[1:])
+        return start, slots, as_warp(start, wp.int32, self.device), as_warp(slots, wp.int32, self.device)
 
 
-def _output(shape: int | tuple[int, ...], dtype: type, device: str) -> wp.array:
-    """A new output array, uninitialised (on the CPU a kept image, see _image, or a new one)."""
-    if not wp.get_device(device).is_cpu:
-        return wp.empty(shape, dtype=dtype, device=device)
-    return wp.array(_image(*host_layout(shape, dtype)), dtype=dtype, device=device, copy=False)
+_WORK_KEPT = 2  # per kind: a call, and another on another thread
 
 
-def _filled(shape: int | tuple[int, ...], dtype: type, value: float, device: str) -> wp.array:
-    """A new output array holding ``value`` everywhere (on the CPU a kept image, see _image, or a new one)."""
-    shape = (shape,) if isinstance(shape, int) else tuple(shape)
-    if not wp.get_device(device).is_cpu:
-        return wp.zeros(shape, dtype=dtype, device=device) if value == 0 else \
-            wp.full(shape, value=value, dtype=dtype, device=device)
-    a = _image(*host_layout(shape, dtype))
-    a.fill(value)
-    return wp.array(a, dtype=dtype, device=device, copy=False)
-
-
-def _resolve(key: wp.array, dirty: wp.array, width: int, height: int, device: str):
-    """Ids and depth images from the keys, decoding only the screen tiles flagged in ``dirty``; every other
-    pixel is background, filled on the host. -> (ids (H, W), depth (H, W), device ids, the tile flags (int32),
-    pixels covered)."""
+def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool, device: str):
+    """Bin and draw the triangles, BATCH at a time. -> (ids, depth (device arrays, every pixel written), the tile
+    flags (int32, window order), the tallies summed (TALLIES,) int64)."""
     npx = width * height
-    out_id, out_depth = _output(npx, wp.int32, device), _output(npx, wp.float32, device)  # the kernel writes all
-    covered = wp.zeros(max_parts(), dtype=wp.int64, device=device)
-    launch(_resolve_ids_kernel, (height + TILE - 1) // TILE, [dirty, width, height], [key, out_id, out_depth, covered],
-           device, parts=True, min_items=_MIN_PIXELS // (TILE * width) + 1)
+    out_id = pooled_array(npx, wp.int32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
+    out_depth = pooled_array(npx, wp.float32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
+    nparts = max_parts()
+    scratch = wp.get_device(device).is_cpu and _SCRATCH
+    lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
+                 lambda: _Work(device, width, height, nparts, scratch), keep=_WORK_KEPT)
+    work = lease.buffer
+    work.clear()
+    gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
+    cb = int(bool(cull_back))
+    buf_id, buf_depth = (work.buf_id, work.buf_depth) if scratch else (out_id, out_depth)
+    for base in range(0, max(m, 1), BATCH):
+        bins = work.bin_batch(base, max(min(BATCH, m - base), 0), [clip, tri_wp, width, height, cb, gb])
+        launch(_tile_kernel, work.workers, [int(scratch), work.queue, work.ntiles, int(base == 0), clip, tri_wp, bins,
+                                            width, height, cb, gb],
+               [buf_id, buf_depth, out_id, out_depth, work.dirty, work.tally], device, parts=True, min_items=1)
+    tiles, tally = work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0)
+    lease.give_back()
+    return out_id, out_depth, tiles, tally
+
+
+def _rasterize_clip(clip: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool, device: str,
+                    counters: bool = False) -> Fragments:
+    m = int(tri.shape[0])
+    tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
+    out_id, out_depth, tiles, tally = _draw(clip, tri_wp, m, width, height, cull_back, device)
     ids = out_id.numpy().reshape(height, width)
     depth = out_depth.numpy().reshape(height, width)
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
-    return ids, depth, out_id, dirty.numpy(), int(covered.numpy().sum())
-
-
-# Counting: the lists' heads of a frame of that size, all -1, on scratch leases of the frame-buffer pool (pool.take)
-# by (device, pixels): the staircase pass empties every list it reads (as the resolve empties the keys), so a buffer
-# is given back all -1; and the records a frame of that size has needed at most (the room the next one is given; a
-# frame that needs more is drawn again with room for them).
-_RECORDS: dict[tuple[str, int], int] = {}
-_NO_COUNTING: dict[str, Counting] = {}  # the Counting argument with counting off, per device
-
-
-def _take_heads(npx: int, device: str) -> Lease:
-    """A scratch lease of an all -1 heads buffer of ``npx`` pixels (``lease.buffer``)."""
-    return take(("raster_heads", str(wp.get_device(device)), npx),
-                lambda: wp.full(npx, value=-1, dtype=wp.int32, device=device), keep=_KEYS_KEPT)
-
-
-def _counting(npx: int, device: str) -> tuple[Counting, Lease]:
-    """A :class:`Counting` in mode 1 for a frame of ``npx`` pixels, with room for the records such a frame has
-    needed so far (at least a quarter of the pixels), and the lease of its heads."""
-    cnt = Counting()
-    cnt.mode = 1
-    cnt.cap = max(_RECORDS.get((str(wp.get_device(device)), npx), 0), npx // 4, 1 << 12)
-    heads = _take_heads(npx, device)
-    cnt.head = heads.buffer
-    cnt.rec_key = pooled_array(cnt.cap, wp.uint64, device)
-    cnt.rec_next = pooled_array(cnt.cap, wp.int32, device)
-    cnt.pixels = pooled_array(cnt.cap // 2 + 1, wp.int32, device)
-    cnt.count = wp.zeros(2, dtype=wp.int32, device=device)
-    return cnt, heads
-
-
-def _no_counting(device: str) -> Counting:
-    key = str(wp.get_device(device))
-    if key not in _NO_COUNTING:
-        cnt = Counting()
-        cnt.mode = 0
-        cnt.cap = 0
-        cnt.head = wp.zeros(1, dtype=wp.int32, device=device)
-        cnt.rec_key = wp.zeros(1, dtype=wp.uint64, device=device)
-        cnt.rec_next = wp.zeros(1, dtype=wp.int32, device=device)
-        cnt.pixels = wp.zeros(1, dtype=wp.int32, device=device)
-        cnt.count = wp.zeros(2, dtype=wp.int32, device=device)
-        _NO_COUNTING[key] = cnt
-    return _NO_COUNTING[key]
-
-
-def _passed_after_first(cnt: Counting, heads: Lease, npx: int, device: str) -> tuple[int, int]:
-    """The fragments that pass the depth test in submission order after the first at their pixel
-    (:func:`_staircase_kernel` over the listed pixels, which empties their lists), and the records the frame
-    asked for (more than ``cnt.cap``: some were left out, the count is short). Gives the heads back."""
-    asked, listed = (int(v) for v in cnt.count.numpy())
-    stats = wp.zeros((max_parts(_OVERSPLIT), 1), dtype=wp.int64, device=device)
-    launch(_staircase_kernel, listed, [cnt.pixels, cnt.rec_key, cnt.rec_next], [cnt.head, stats], device,
-           parts=True, min_items=_MIN_PIXELS // 8, oversplit=_OVERSPLIT)
-    heads.give_back()  # every list read is empty again
-    return int(stats.numpy().sum()), asked
-
-
-def _rasterize_clip(clip: wp.array, n: int, tri: np.ndarray, width: int, height: int, cull_back: bool,
-                    device: str, counters: bool = False) -> Fragments:
-    npx = width * height
-    lease = _take_keys(npx, device)
-    key = lease.buffer
-    stats = wp.zeros((max_parts(_OVERSPLIT), 16), dtype=wp.int64, device=device)  # a row per chunk, added up below
-    m = int(tri.shape[0])
-    tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    tiles_x = _tiles_x(width)
-    tiles_y = (height + TILE - 1) // TILE
-    dirty = as_warp(np.zeros(tiles_x * tiles_y, np.int32), wp.int32, device)  # flags of the tiles with keys written
-    cnt, heads = _counting(npx, device) if counters else (_no_counting(device), None)
-    if n and m:
-        gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
-        cb = int(bool(cull_back))
-        big = wp.empty(m, dtype=wp.int32, device=device)
-        tile_count = wp.zeros(tiles_x * tiles_y, dtype=wp.int32, device=device)
-        launch(_small_count_kernel, m, [clip, tri_wp, width, height, cb, gb, tiles_x, cnt],
-               [key, dirty, big, tile_count, stats], device, parts=True, min_items=_MIN_TRIANGLES,
-               oversplit=_OVERSPLIT)
-        total = int(stats.numpy()[:, 5].sum())
-        if total:
-            tile_start = wp.empty_like(tile_count)
-            scan(tile_count, tile_start, inclusive=False)
-            cursor = wp.zeros_like(tile_count)
-            tri_list = wp.empty(total, dtype=wp.int32, device=device)
-            launch(_bin_kernel, m, [clip, tri_wp, big, width, height, cb, gb, tiles_x, tile_start],
-                   [cursor, tri_list], device, min_items=_MIN_TRIANGLES)
-            launch(_tile_kernel, tiles_x * tiles_y,
-                   [clip, tri_wp, width, height, cb, gb, tiles_x, tile_start, tile_count, tri_list, cnt],
-                   [key, dirty, stats], device, parts=True, min_items=_MIN_TILES,
-                   oversplit=_OVERSPLIT)
-    ids, depth, ids_wp, tiles, covered = _resolve(key, dirty, width, height, device)
-    lease.give_back()  # every key drawn is empty again
+    frag = Fragments(ids, depth, None, raster_stats(tally, m), clip=clip, tris=tri_wp, device=device, ids=out_id,
+                     tiles=tiles)
     if counters:
-        extra, asked = _passed_after_first(cnt, heads, npx, device)
-        if asked > cnt.cap:  # records left out: the frame again, with room for them (the buffers are clear)
-            _RECORDS[(str(wp.get_device(device)), npx)] = asked
-            return _rasterize_clip(clip, n, tri, width, height, cull_back, device, counters)
-    c = stats.numpy()[:, :11].sum(axis=0)  # integer sums: the same whatever the chunks
-    stats_d = {"triangles_in": m, "triangles_rasterized": int(c[0]), "triangles_binned": int(c[4]),
-               "tile_entries": int(c[5]), "fragments_tested": int(c[1]), "fragments_inside": int(c[2]),
-               "pixels_written": int(c[3]), "pixels_covered": covered}
-    frag = Fragments(ids, depth, None, stats_d, clip=clip, tris=tri_wp, device=device, ids=ids_wp, tiles=tiles)
-    if counters:
-        frag.counters = {"clipping_input_primitives": m, "clipping_output_primitives": int(c[10]),
-                         "fragment_shader_invocations": 4 * int(c[8]),
-                         "fragment_shader_invocations_llvmpipe": 16 * int(c[9]),
-                         "samples_passed": covered + extra, "samples_covered": int(c[2]), "pixels_covered": covered}
+        frag.counters = raster_counters(tally, m)
     return frag
+
+
+def _points(name: str, a: object, k: int) -> np.ndarray:
+    """``a`` as an (n, k) float array, checked."""
+    p = np.asarray(a)
+    if p.ndim != 2 or p.shape[1] != k:
+        raise ValueError(f"{name}: expected shape (n, {k}), got {p.shape}")
+    if not np.issubdtype(p.dtype, np.floating):
+        raise TypeError(f"{name}: expected a float array, got {p.dtype}")
+    return p
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
@@ -1364,21 +1459,18 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         view, proj: (4, 4) matrices (OpenGL conventions, clip z in [-w, w]).
         width, height: viewport in pixels (1..16384).
         cull_back: drop clockwise (back-facing) triangles, as ``glEnable(GL_CULL_FACE)``.
-        counters: also count the draw's pipeline statistics (:attr:`Fragments.counters`); the images are the
+        counters: also return the draw's pipeline statistics (:attr:`Fragments.counters`); the images are the
             same either way.
 
     Returns:
-        :class:`Fragments`. Deterministic: bit-identical on every run.
+        :class:`Fragments`. Deterministic: bit-identical on every run and for any thread count.
     """
-    pos = np.asarray(positions)
-    if pos.ndim != 2 or pos.shape[1] != 3:
-        raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
-    if not np.issubdtype(pos.dtype, np.floating):
-        raise TypeError(f"positions: expected a float array, got {pos.dtype}")
-    tri = _check_triangles(triangles, len(pos))
-    width, height = _check_size(width, height)
+    pos = _points("positions", positions, 3)
+    tri = check_triangles("triangles", triangles, len(pos))
+    width, height = check_viewport(width, height)
+    counters = check_bool("counters", counters)
     clip = _transform(pos, view, proj, device)
-    return _rasterize_clip(clip, len(pos), tri, width, height, cull_back, device, _flag("counters", counters))
+    return _rasterize_clip(clip, tri, width, height, cull_back, device, counters)
 
 
 def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.array:
@@ -1386,19 +1478,17 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.a
     if not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
-    clip = wp.empty(max(len(pos32), 1), dtype=wp.vec4, device=device)
+    clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
     if len(pos32):
-        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device),
-                                            wp.mat44(*mvp.reshape(-1).tolist())], [clip], device)
+        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device), wp.mat44(*mvp.reshape(-1).tolist())],
+               [clip], device, min_items=_MIN_VERTICES)
     return clip
 
 
 def clip_coordinates(positions: object, view: object, proj: object, *, device: str = "cpu") -> np.ndarray:
     """The clip-space vertices :func:`rasterize` computes: (n, 4) float32 ``(proj @ view) @ (p, 1)``,
     with the product of the matrices rounded to float32 first, as a vertex shader's uniform would be."""
-    pos = np.asarray(positions)
-    if pos.ndim != 2 or pos.shape[1] != 3:
-        raise ValueError(f"positions: expected shape (n, 3), got {pos.shape}")
+    pos = _points("positions", positions, 3)
     return _transform(pos, view, proj, device).numpy()[: len(pos)].reshape(-1, 4)
 
 
@@ -1410,96 +1500,17 @@ def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, 
         clip: (n, 4) float32 clip-space positions (x, y, z, w), OpenGL conventions.
         triangles: (m, 3) int32 vertex indices; width, height: viewport in pixels (1..16384).
         cull_back: drop clockwise triangles.
-        counters: also count the pipeline statistics (:attr:`Fragments.counters`).
+        counters: also return the pipeline statistics (:attr:`Fragments.counters`).
 
     Returns:
         :class:`Fragments`, as :func:`rasterize`.
     """
-    c = np.asarray(clip)
-    if c.ndim != 2 or c.shape[1] != 4:
-        raise ValueError(f"clip: expected shape (n, 4), got {c.shape}")
-    if not np.issubdtype(c.dtype, np.floating):
-        raise TypeError(f"clip: expected a float array, got {c.dtype}")
-    tri = _check_triangles(triangles, len(c))
-    width, height = _check_size(width, height)
+    c = _points("clip", clip, 4)
+    tri = check_triangles("triangles", triangles, len(c))
+    width, height = check_viewport(width, height)
+    counters = check_bool("counters", counters)
     c32 = np.ascontiguousarray(c, dtype=np.float32)
     if not np.all(np.isfinite(c32)):
         raise ValueError("clip: expected finite coordinates")
     clip_wp = wp.array(c32 if len(c32) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
-    return _rasterize_clip(clip_wp, len(c32), tri, width, height, cull_back, device, _flag("counters", counters))
-
-
-def _flag(name: str, v: object) -> bool:
-    return check_bool(name, v)
-
-
-def transform_warp(positions: wp.array, view: object, proj: object) -> wp.array:
-    """Differentiable vertex transform on Warp arrays, recorded by an active ``wp.Tape``: (n,) vec3
-    positions -> (n,) vec4 clip coordinates, bit-identical to what :func:`rasterize` uses."""
-    mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
-    out = wp.zeros(positions.shape[0], dtype=wp.vec4, device=positions.device, requires_grad=positions.requires_grad)
-    launch_one(_transform_kernel, dim=positions.shape[0], inputs=[positions, wp.mat44(*mvp.reshape(-1).tolist())],
-               outputs=[out], device=positions.device)
-    return out
-
-
-def interpolate_warp(pix_id: wp.array, clip: wp.array, triangles: wp.array, attr: wp.array) -> wp.array:
-    """Differentiable resolve on Warp arrays; recorded by an active ``wp.Tape``.
-
-    Args:
-        pix_id: (H, W, C) int32 triangle id per pixel (-1 background), the visibility pass's
-            ``triangle_id`` repeated over the C channels.
-        clip: (n,) vec4 clip-space vertices (differentiable; ``requires_grad`` for gradients).
-        triangles: (m, 3) int32.
-        attr: (n, C) float32 vertex attributes (differentiable).
-
-    Returns:
-        (H, W, C) float32 perspective-correct interpolation at the pixel centres; 0 on background.
-        Gradients flow to ``clip`` (through the barycentrics recomputed from clip coordinates, as
-        nvdiffrast's ``interpolate`` does) and to ``attr``; none through the (discrete) coverage.
-    """
-    out = wp.zeros(pix_id.shape, dtype=wp.float32, device=attr.device,
-                   requires_grad=bool(clip.requires_grad or attr.requires_grad))
-    launch_one(interpolate_kernel, dim=pix_id.shape, inputs=[pix_id, clip, triangles, attr], outputs=[out],
-               device=attr.device)
-    return out
-
-
-def interpolate(attr: object, triangle_id: object, clip: object, triangles: object, *,
-                device: str = "cpu") -> np.ndarray:
-    """Perspective-correct interpolation of vertex attributes at pixel centres (forward only; see
-    :func:`interpolate_warp` for the tape and ``terrainwarp.diff.interpolate`` for JAX).
-
-    Args:
-        attr: (n, C) or (n,) float32 per-vertex attributes (position, normal, uv, level, ...).
-        triangle_id: (H, W) int32 from :func:`rasterize` / :func:`rasterize_clip`.
-        clip: (n, 4) float32 clip-space vertices (those the visibility pass used).
-        triangles: (m, 3) int32.
-
-    Returns:
-        (H, W, C) float32 (or (H, W) for 1-D ``attr``), 0 on background.
-    """
-    a = np.asarray(attr, dtype=np.float32)
-    squeeze = a.ndim == 1
-    if squeeze:
-        a = a[:, None]
-    c = np.asarray(clip, dtype=np.float32)
-    if c.ndim != 2 or c.shape[1] != 4:
-        raise ValueError(f"clip: expected shape (n, 4), got {c.shape}")
-    if a.ndim != 2 or a.shape[0] != c.shape[0]:
-        raise ValueError(f"attr: expected shape ({c.shape[0]}, C), got {a.shape}")
-    ids = np.asarray(triangle_id)
-    if ids.ndim != 2:
-        raise ValueError(f"triangle_id: expected shape (H, W), got {ids.shape}")
-    tri = _check_triangles(triangles, len(c))
-    if ids.size and ids.max() >= max(len(tri), 0):
-        raise ValueError(f"triangle_id: ids must be < {len(tri)}, got {ids.max()}")
-    hh, ww = ids.shape
-    ch = a.shape[1]
-    pid = np.ascontiguousarray(np.broadcast_to(ids.astype(np.int32)[..., None], (hh, ww, ch)))
-    out = interpolate_warp(
-        wp.array(pid, dtype=wp.int32, device=device),
-        wp.array(c if len(c) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device),
-        wp.array(tri if len(tri) else np.zeros((1, 3), np.int32), dtype=wp.int32, device=device),
-        wp.array(a if len(a) else np.zeros((1, ch), np.float32), dtype=wp.float32, device=device)).numpy()
-    return out[..., 0] if squeeze else out
+    return _rasterize_clip(clip_wp, tri, width, height, cull_back, device, counters)

@@ -452,6 +452,43 @@ def _farther_than(x: int, y: int, size: wp.vec2d, rel: wp.vec3d, mn: float, mx: 
     return 0
 
 
+@wp.func
+def _chunk_neighbours(qt: QuadTree, leaf_map: wp.array(dtype=wp.int32), leaf: wp.array2d(dtype=wp.int32), j: int,
+                      out_nbr: wp.array2d(dtype=wp.int32), out_err: wp.array2d(dtype=wp.float32)):
+    """Leaf ``j``'s neighbours across its west, north, east and south edges (the level of the leaf holding the
+    finest cell just outside each edge's first one, -1 beyond the grid) and the geometric errors of the chunk-sized
+    nodes there (0 for none), then its own error."""
+    lv = leaf[j, 0]
+    shift = qt.depth - lv
+    fx0 = leaf[j, 1] << shift
+    fy0 = leaf[j, 2] << shift
+    size = 1 << shift
+    out_err[j, 4] = qt.herr[node_index(qt, lv, leaf[j, 1], leaf[j, 2])]
+    for e in range(4):  # the finest cell just outside the edge's first one: west, north, east, south
+        fx = fx0
+        fy = fy0
+        if e == 0:
+            fx = fx0 - 1
+        elif e == 1:
+            fy = fy0 - 1
+        elif e == 2:
+            fx = fx0 + size
+        else:
+            fy = fy0 + size
+        found = int(-1)
+        if fx >= 0 and fy >= 0 and fx < (qt.roots[0] << qt.depth) and fy < (qt.roots[1] << qt.depth):
+            for k in range(qt.depth + 1):  # the leaf holding it: the one level where its ancestor is a leaf
+                if found < 0:
+                    if leaf_map[node_index(qt, k, fx >> (qt.depth - k), fy >> (qt.depth - k))] != 0:
+                        found = k
+        out_nbr[j, e] = found
+        err = float(0.0)
+        if found >= 0:  # a finer neighbour: the chunk-sized node holding it
+            at = wp.min(found, lv)
+            err = qt.herr[node_index(qt, at, fx >> (qt.depth - at), fy >> (qt.depth - at))]
+        out_err[j, e] = err
+
+
 @wp.kernel(enable_backward=False)
 def _chunk_select_kernel(
     qt: QuadTree,
@@ -509,35 +546,7 @@ def _chunk_select_kernel(
         lv = out_leaf[j, 0]
         leaf_map[node_index(qt, lv, out_leaf[j, 1], out_leaf[j, 2])] = j + 1
     for j in range(q):
-        lv = out_leaf[j, 0]
-        shift = qt.depth - lv
-        fx0 = out_leaf[j, 1] << shift
-        fy0 = out_leaf[j, 2] << shift
-        size = 1 << shift
-        out_err[j, 4] = qt.herr[node_index(qt, lv, out_leaf[j, 1], out_leaf[j, 2])]
-        for e in range(4):  # the finest cell just outside the edge's first one: west, north, east, south
-            fx = fx0
-            fy = fy0
-            if e == 0:
-                fx = fx0 - 1
-            elif e == 1:
-                fy = fy0 - 1
-            elif e == 2:
-                fx = fx0 + size
-            else:
-                fy = fy0 + size
-            found = int(-1)
-            if fx >= 0 and fy >= 0 and fx < (qt.roots[0] << qt.depth) and fy < (qt.roots[1] << qt.depth):
-                for k in range(qt.depth + 1):  # the leaf holding it: the one level where its ancestor is a leaf
-                    if found < 0:
-                        if leaf_map[node_index(qt, k, fx >> (qt.depth - k), fy >> (qt.depth - k))] != 0:
-                            found = k
-            out_nbr[j, e] = found
-            err = float(0.0)
-            if found >= 0:  # a finer neighbour: the chunk-sized node holding it
-                at = wp.min(found, lv)
-                err = qt.herr[node_index(qt, at, fx >> (qt.depth - at), fy >> (qt.depth - at))]
-            out_err[j, e] = err
+        _chunk_neighbours(qt, leaf_map, out_leaf, j, out_nbr, out_err)
     d = int(0)
     cells = qt.level_start[qt.depth] + (qt.roots[0] * qt.roots[1] << (2 * qt.depth))
     for cell in range(cells):  # the drawn chunks in key order: the map level by level, row-major
@@ -556,6 +565,37 @@ def _chunk_select_kernel(
     out_n[0] = wp.int64(q)
     out_n[1] = wp.int64(visited)
     out_n[2] = wp.int64(d)
+
+
+@wp.func
+def _cdlod_codes(qt: QuadTree, lvl: int, front: wp.array3d(dtype=wp.int32), p: int, n: int, rel: wp.vec3,
+                 planes: wp.array(dtype=wp.vec4), r_in: wp.float64, r_split: wp.float64,
+                 code: wp.array(dtype=wp.int32)) -> wp.vec2i:
+    """The level's nodes (frontier ``p``) classified into ``code``: 0 culled, 1 drawn as the parent's quadrant
+    (beyond the level's range), 2 drawn whole, 3 split (within the finer level's range). Returns (nodes drawn
+    whole, nodes culled)."""
+    base = qt.level_start[lvl]
+    width = qt.roots[0] << lvl
+    n_whole = int(0)
+    culled = int(0)
+    for i in range(n):
+        x = front[p, i, 0]
+        y = front[p, i, 1]
+        k = base + y * width + x
+        lo, hi = node_box(rel, qt.size32[lvl], x, y, qt.hmin[k], qt.hmax[k])
+        dist = wp.float64(box_distance(lo, hi))
+        kind = int(0)
+        if box_outside(planes, lo, hi) != 0:
+            culled += 1
+        elif not (dist < r_in):
+            kind = 1
+        elif dist < r_split:
+            kind = 3
+        else:
+            kind = 2
+            n_whole += 1
+        code[i] = kind
+    return wp.vec2i(n_whole, culled)
 
 
 @wp.kernel(enable_backward=False)
@@ -597,29 +637,13 @@ def _cdlod_select_kernel(
         visited += n
         base = qt.level_start[lvl]
         width = qt.roots[0] << lvl
-        sz = qt.size32[lvl]
         r_in = ranges[lod, 0]
         r_split = wp.float64(-1.0)
         if lod > 0:
             r_split = ranges[lod - 1, 0]
-        n_whole = int(0)
-        for i in range(n):  # 0 culled, 1 drawn as the parent's quadrant, 2 drawn whole, 3 split
-            x = front[p, i, 0]
-            y = front[p, i, 1]
-            k = base + y * width + x
-            lo, hi = node_box(rel, sz, x, y, qt.hmin[k], qt.hmax[k])
-            dist = wp.float64(box_distance(lo, hi))
-            kind = int(0)
-            if box_outside(planes, lo, hi) != 0:
-                culled += 1
-            elif not (dist < r_in):
-                kind = 1
-            elif dist < r_split:
-                kind = 3
-            else:
-                kind = 2
-                n_whole += 1
-            code[i] = kind
+        counts = _cdlod_codes(qt, lvl, front, p, n, rel, planes, r_in, r_split, code)
+        n_whole = counts[0]
+        culled += counts[1]
         s = root_cells / wp.float64(1 << lvl)
         if lvl > 0:  # a parent draws these quadrants with its grid: lod + 1
             st = root_cells / wp.float64(1 << (lvl - 1)) / wp.float64(grid)

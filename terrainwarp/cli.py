@@ -385,6 +385,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     write_text(out / "timing.md", "\n".join(_fit_timing_lines(args, res, runs)))
     print(f"path: {path['text']}")
     print(res.message)
+    print(res.timing_line())
     written = ["fit.json", "fit.png", "fitted.toml", *(["convergence.png"] if runs else []), "report.md",
                "timing.json", "timing.md"]
     print("wrote: " + ", ".join(str(out / w) for w in written))
@@ -437,6 +438,7 @@ def _fit_timing_lines(args: argparse.Namespace, res: FitResult, runs: dict | Non
     timing.json holds the same numbers)."""
     lines = ["# This run's timings", "", f"policy {args.policy}, budget {args.budget_px:g} px: wall seconds of this "
              "simulator, not a GPU's (they differ from run to run and machine to machine).", "",
+             res.timing_line() + ".", "",
              "| method | wall s |", "|---|---|", f"| fit | {res.wall_s:.1f} (relaxed model {res.model_s:.1f}) |"]
     lines += [f"| {name} | {r['wall_s']:.1f} |" for name, r in (runs or {}).items()]
     if res.grid:
@@ -448,12 +450,12 @@ def _fit_timing_lines(args: argparse.Namespace, res: FitResult, runs: dict | Non
 
 def split_timings(doc: object) -> tuple[object, object]:
     """(``doc`` without its wall times, the wall times): every key ending in ``_s`` or ``_ms`` (seconds and
-    milliseconds measured on this machine) moves to the second, at the same place in the tree; what is left is
-    the same on every run."""
+    milliseconds measured on this machine), and ``timings`` (a fit's wall time by part), moves to the second, at
+    the same place in the tree; what is left is the same on every run."""
     if isinstance(doc, dict):
         kept, moved = {}, {}
         for k, v in doc.items():
-            if str(k).endswith(("_s", "_ms")):
+            if str(k).endswith(("_s", "_ms")) or k == "timings":
                 moved[k] = v
                 continue
             kept[k], t = split_timings(v)

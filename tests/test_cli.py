@@ -234,7 +234,10 @@ def test_fit_with_knobs_and_baselines_writes_the_fitted_scene_and_the_convergenc
     assert loaded.lod.tess == doc["values"]["tess"] and loaded.lod.tolerance_px == pytest.approx(
         doc["values"]["tolerance_px"])
     assert (out / "convergence.png").stat().st_size > 0
-    capsys.readouterr()
+    timing = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fit took ")]
+    assert len(timing) == 1 and all(w in timing[0] for w in ("compile", "relaxed model", "hard model", "probes",
+                                                              "exact frames", "other"))
+    assert set(doc["timings"]) == {"compile", "relaxed", "hard", "probes", "exact", "other"}
     assert main(["fit", str(scene), "--budget-px", "2", "--knobs", "warp_factor", "--no-progress",
                  "--out", str(tmp_path / "bad")]) == 2
     err = capsys.readouterr().err

@@ -392,20 +392,19 @@ def _stage_error(case: ExtremeCase, scene) -> Row:
 
 def _stage_fit(case: ExtremeCase, scene) -> Row:
     """The JAX relaxed LOD model of :mod:`terrainwarp.fit` (the sse policy's, on its error probes): finite cost,
-    error and gradients, and the gradient against a central finite difference of the same float32 model."""
-    import jax  # lazy: heavy optional dependency
-    import jax.numpy as jnp
+    error and gradients, and the gradient against a central finite difference of the same float32 model (one
+    jitted program per model spec and padded size: the small cases share it, and JAX's cache keeps it)."""
+    import jax.numpy as jnp  # lazy: heavy optional dependency
 
     sc = scene.with_(lod=LodConfig(roots=4, tess=8))
     model = relaxed_model(sc, [scene.camera], "sse")
-    f_cost = jax.value_and_grad(lambda u: jnp.log(model.relaxed(u, 0.5)[0][0]))
-    f_err = jax.value_and_grad(lambda u: model.relaxed(u, 0.5)[1][0])
     u = jnp.asarray([model.knobs[0].to_unit(1.0)], jnp.float32)
-    (c, gc), (e, ge) = f_cost(u), f_err(u)
+    (c, gc), (e, ge) = _fit_grads()(model.spec, model.data, u)
     vals = [float(c), float(gc[0]), float(e), float(ge[0])]
     _check(all(math.isfinite(v) for v in vals), f"relaxed model: non-finite cost/error/gradients {vals}")
     h = 1e-2
-    fd = (float(f_cost(u + h)[0]) - float(f_cost(u - h)[0])) / (2 * h)
+    fd = (float(_fit_grads()(model.spec, model.data, u + h)[0][0])
+          - float(_fit_grads()(model.spec, model.data, u - h)[0][0])) / (2 * h)
     noise = 4.0 * float(np.spacing(_F32(abs(float(c))))) / (2 * h)  # what a float32 FD can resolve
     diff = abs(float(gc[0]) - fd)
     if diff <= noise:
@@ -415,6 +414,28 @@ def _stage_fit(case: ExtremeCase, scene) -> Row:
     return Row(case.name, "fit", PASS, txt, "",
                f"relaxed sse model at tolerance 1 px, temperature 0.5: log cost {float(c):.4g}, "
                f"d/du = {float(gc[0]):.4g}, log p99 {float(e):.3g}; finite", "")
+
+
+_FIT_JIT: dict = {}
+
+
+def _fit_grads():
+    """jitted (spec static): ((log cost, its gradient), (log p99, its gradient)) of the first camera at
+    temperature 0.5."""
+    if "grads" not in _FIT_JIT:
+        import jax  # lazy: heavy optional dependency
+        import jax.numpy as jnp
+
+        def cost(spec, data, u):
+            return jnp.log(spec.relaxed(data, u, jnp.float32(0.5))[0][0])
+
+        def err(spec, data, u):
+            return spec.relaxed(data, u, jnp.float32(0.5))[1][0]
+
+        _FIT_JIT["grads"] = jax.jit(lambda spec, data, u: (jax.value_and_grad(cost, argnums=2)(spec, data, u),
+                                                           jax.value_and_grad(err, argnums=2)(spec, data, u)),
+                                    static_argnums=0)
+    return _FIT_JIT["grads"]
 
 
 _STAGE_FUNCS = {"sampling": _stage_sampling, "select": _stage_select, "tessellate": _stage_tessellate,

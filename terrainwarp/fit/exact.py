@@ -11,23 +11,32 @@ when asked, the pop between consecutive frames. A setting with hysteresis draws 
 frames measured counted in ``frames``, frames drawn only for their cost in ``mesh_only``. A try may measure the
 cameras in a given order and stop at the first frame over the budget (the worst frame decides), and may measure
 only some cameras (the others drawn for their cost); a later call completes it.
+
+Frames a try draws whatever the others show (the cameras drawn only for their cost, every frame of a try that
+does not stop early, the references) are drawn on other threads beside the measured sequence: which frames are
+counted does not change, nor any frame (the kernels' outputs do not depend on the threads).
 """
 
 from __future__ import annotations
 
 import math
+import os
+import time
 from collections.abc import Callable, Collection, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..camera import Camera
+from ..kernels.parallel import threads
 from ..lod.quadtree import LodState, Terrain
 from ..measure.cost import Cost
 from ..rendering.pipeline import Frame, pop_stats, render
 from ..rendering.rows import frame_row
 from ..scene import Scene
+from .timings import part
 
 __all__ = ["Evaluation", "Exact", "evaluate", "evaluations_from_rows", "references_for", "MISSING_TOL"]
 
@@ -96,9 +105,13 @@ def references_for(scene: Scene, cams: list[Camera], references: object = None, 
                    on_frame=None) -> list[Frame]:
     """The full-detail grid frame (with depth) of each camera: the caller's, checked, or rendered here."""
     if references is None:
+        ahead = _ahead(lambda k, _: render(scene.with_(camera=cams[k], mesh="grid", outputs=("depth",)),
+                                           device=device), [(k, True) for k in range(1, len(cams))])
         out = []
-        for c in cams:
-            out.append(render(scene.with_(camera=c, mesh="grid", outputs=("depth",)), device=device))
+        for k, c in enumerate(cams):
+            job = ahead.get((k, True))
+            out.append(job.result() if job is not None else render(scene.with_(camera=c, mesh="grid",
+                                                                              outputs=("depth",)), device=device))
             if on_frame is not None:
                 on_frame()
         return out
@@ -157,27 +170,28 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
     costs = list(known.costs) if known is not None and known.costs else [0.0] * n
     counted = cost_of is not None and cost_of.needs_counters
     outputs = ("error", "counters") if counted else ("error",)
+
+    def draw(k: int, measured: bool) -> Frame:
+        if measured:
+            return render(setting.with_(camera=cameras[k], outputs=outputs), terrain, state, refs[k], device=device)
+        return render(setting.with_(camera=cameras[k], outputs=("counters",) if counted else ("mesh",)), terrain,
+                      state, device=device)
+
+    ahead = {} if state is not None or pops else _ahead(draw, _sure(order, done, measure, known, stop_above))
     prev: Frame | None = None
     stopped = False
     for k in order:
         if k in done:  # measured before at this setting
-            i = done[k]
-            ev.frames.append(k)
-            for mine, theirs in ((ev.p99_px, known.p99_px), (ev.max_px, known.max_px), (ev.missing, known.missing),
-                                 (ev.image_p99_px, known.image_p99_px), (ev.frame_ms, known.frame_ms),
-                                 (ev.visible, known.visible), (ev.covered, known.covered)):
-                if theirs:
-                    mine.append(theirs[i])
+            _take_known(ev, known, k, done[k])
             continue
         stopped = stopped or (stop_above is not None and bool(ev.p99_px) and ev.worst_p99 > stop_above)
         if stopped or (measure is not None and k not in measure):  # cost only
             if known is None:
-                f = render(setting.with_(camera=cameras[k], outputs=("counters",) if counted else ("mesh",)),
-                           terrain, state, device=device)
+                f = ahead.pop((k, False)).result() if (k, False) in ahead else draw(k, False)
                 ev.triangles[k] = int(f.mesh.n_triangles)
                 costs[k] = cost_of.of(frame_row(f)) if cost_of is not None else 0.0
             continue
-        f = render(setting.with_(camera=cameras[k], outputs=outputs), terrain, state, refs[k], device=device)
+        f = ahead.pop((k, True)).result() if (k, True) in ahead else draw(k, True)
         costs[k] = _record(ev, k, frame_row(f), cost_of)
         if pops and prev is not None:
             ev.pop_p99_px.append(pop_stats(setting.with_(camera=cameras[k]), cameras[k - 1], f, refs[k],
@@ -188,11 +202,49 @@ def evaluate(setting: Scene, cameras: list[Camera], refs: list[Frame], *, terrai
     ev.costs = costs if cost_of is not None else []
     if ev.complete:  # back to path order, as every complete evaluation
         back = sorted(range(len(ev.frames)), key=lambda i: ev.frames[i])
-        for name in ("p99_px", "max_px", "missing", "image_p99_px", "frame_ms", "visible", "covered"):
+        for name in _PER_FRAME:
             if getattr(ev, name):
                 setattr(ev, name, [getattr(ev, name)[i] for i in back])
         ev.frames = None
     return ev
+
+
+_PER_FRAME = ("p99_px", "max_px", "missing", "image_p99_px", "frame_ms", "visible", "covered")
+
+
+def _take_known(ev: Evaluation, known: Evaluation, k: int, i: int) -> None:
+    """Camera ``k``'s measurements from ``known`` (its ``i``-th measured frame) appended to ``ev``."""
+    ev.frames.append(k)
+    for name in _PER_FRAME:
+        theirs = getattr(known, name)
+        if theirs:
+            getattr(ev, name).append(theirs[i])
+
+
+_FRAMES: dict = {}
+
+
+def _sure(order: list[int], done: Collection[int], measure: Collection[int] | None, known: Evaluation | None,
+          stop_above: float | None) -> list[tuple[int, bool]]:
+    """The frames :func:`evaluate` draws whatever the others show, as (camera, measured): the cameras drawn only
+    for their cost, and every measured one when nothing stops early."""
+    sure = [(k, False) for k in order if known is None and k not in done and measure is not None and k not in measure]
+    if stop_above is None:
+        sure += [(k, True) for k in order if k not in done and (measure is None or k in measure)]
+    return sure
+
+
+def _ahead(draw: Callable[[int, bool], Frame], jobs: list[tuple[int, bool]]) -> dict:
+    """``draw(k, measured)`` of each job started on the frame threads (as many as the kernel launches' threads,
+    :func:`terrainwarp.kernels.parallel.threads`; one thread: none started): {job: future}. Every frame is the same
+    whichever thread draws it (the kernels' outputs do not depend on the threads)."""
+    if threads() < 2 or len(jobs) < 1:
+        return {}
+    pool = _FRAMES.get("pool")
+    if pool is None or _FRAMES.get("pid") != os.getpid():
+        pool = _FRAMES["pool"] = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="terrainwarp-frame")
+        _FRAMES["pid"] = os.getpid()
+    return {job: pool.submit(draw, *job) for job in jobs}
 
 
 def _record(ev: Evaluation, k: int, row: Mapping[str, Any], cost_of: Cost | None) -> float:
@@ -267,6 +319,8 @@ class Exact:
     history: list[dict] = field(default_factory=list)
     terrains: dict[tuple, Terrain] = field(default_factory=dict)
     trace: list[tuple[int, float]] = field(default_factory=list)  # (frames so far, best confirmed cost) per change
+    trace_s: list[float] = field(default_factory=list)  # seconds from ``started`` to each change of ``trace``
+    started: float = field(default_factory=time.perf_counter)
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
@@ -295,11 +349,12 @@ class Exact:
             return old
         setting = self.make(dict(key))
         whole = self.max_pop_px is not None or _state_of(setting) is not None
-        e = evaluate(setting, self.cams, self.refs, terrain=self.terrain_for(setting), device=self.device,
-                     values=dict(key), pops=self.max_pop_px is not None,
-                     cost_of=self.cost_of, order=None if whole else order,
-                     stop_above=self.budget_px if stop else None,
-                     measure=None if whole else measure, known=None if whole else old, on_frame=self.on_frame)
+        with part("exact"):
+            e = evaluate(setting, self.cams, self.refs, terrain=self.terrain_for(setting), device=self.device,
+                         values=dict(key), pops=self.max_pop_px is not None,
+                         cost_of=self.cost_of, order=None if whole else order,
+                         stop_above=self.budget_px if stop else None,
+                         measure=None if whole else measure, known=None if whole else old, on_frame=self.on_frame)
         n = len(self.cams)
         measured = n if e.frames is None else len(e.frames)
         before = 0 if old is None else (n if old.frames is None else len(old.frames))
@@ -323,4 +378,5 @@ class Exact:
         c = math.inf if b is None else b.cost
         if not self.trace or c < self.trace[-1][1]:
             self.trace.append((self.frames, c))
+            self.trace_s.append(time.perf_counter() - self.started)
 

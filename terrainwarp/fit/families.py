@@ -24,9 +24,11 @@ from ..rendering.pipeline import Frame, render
 from ..rendering.sources import scene_source
 from ..scene import POLICY_TABLE, Scene
 from .exact import prepared, references_for
+from .jaxrt import use_cache
 from .knobs import LEVEL_SCALE, Knob, apply, knobs, values_of
 from .probe import pop_pairs, probe_cameras, surfaces_of
 from .search import Calibration, Candidate
+from .timings import say
 
 __all__ = ["Problem", "problem", "relaxed_model", "MODELLED", "POPPED", "FEATURES", "cost_weights"]
 
@@ -129,6 +131,8 @@ def problem(scene: Scene, policy: str, names: Sequence[str] | str | None, cams: 
     prob = Problem(policy, scene, tuple(all_knobs), chosen, start, [], {})
     if max_pop_px is not None and policy not in POPPED:
         return prob
+    if models and policy in MODELLED:
+        use_cache()  # JAX's compiled programs kept in the user's cache folder (terrainwarp.fit.jaxrt)
     if models and policy in ("sse", "distance"):
         prob.cands = _quadtree_candidates(prob, cams, refs, cost_of, device, on_step, budget_px, max_pop_px)
     elif models and policy == "continuous":
@@ -149,7 +153,8 @@ def _quadtree_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], c
 
     weights = cost_weights(cost_of)
     out = []
-    for combo in combos:
+    for i, combo in enumerate(combos):
+        say(f"probes: model {i + 1}/{len(combos)}")
         fixed_int = {n: int(v) for n, v in zip(ints, combo, strict=True)}
         base = prob.make({**prob.start, **fixed_int})
         lod = base.lod
@@ -165,6 +170,7 @@ def _quadtree_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], c
         pops = None if max_pop_px is None else pop_pairs(scene.heightmap, cams, refs, surfaces, probes)
         model = QuadtreeModel(terrain, cams, probes, policy, cont, fixed,
                               lambda v, p=prob: p.make(v).lod, weights, device=device, pops=pops)
+        model.prepare()
         n = len(cams) + (0 if pops is None else len(cams) - 1)
         shift = np.zeros(n)
         if pops is not None:  # a pop compared with its bound as an error with the budget
@@ -186,7 +192,8 @@ def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame],
     base0 = prob.make(prob.start)
     levels = prob.knob("level").values if "level" in prob.names else (base0.lod.level,)
     out = []
-    for level in (int(v) for v in levels):
+    for i, level in enumerate(int(v) for v in levels):
+        say(f"probes: model {i + 1}/{len(levels)}")
         fixed = {"level": level}
         base = prob.make({**prob.start, **fixed})  # a deep level lays its patches out with a smaller T
         terrain = prepared(prob.terrains, scene.heightmap, base.lod.roots, base.lod.tess, device)
@@ -203,6 +210,7 @@ def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame],
         probes = probe_cameras(scene.heightmap, cams, refs, surfaces_of(scene.heightmap, meshes))
         model = ContinuousModel(terrain, cams, probes, ladder, patches, [prob.knob("target_px")], fixed,
                                 lambda v, p=prob: p.make(v).lod, weights, device=device)
+        model.prepare()
         out.append(Candidate(model, {"level": level} if "level" in prob.names else {}, Calibration(len(cams)),
                              u=np.array([prob.knob("target_px").to_unit(prob.start["target_px"])])))
         if on_step is not None:
@@ -221,7 +229,8 @@ def _cdlod_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], cost
     grids = prob.knob("grid").values if "grid" in prob.names else (every["grid"],)
     cont = [prob.knob(n) for n in prob.names if not prob.knob(n).integer]
     out = []
-    for g in (int(v) for v in grids):
+    for i, g in enumerate(int(v) for v in grids):
+        say(f"probes: model {i + 1}/{len(grids)}")
         fixed = {**{n: v for n, v in every.items() if n not in {k.name for k in cont}}, "grid": g}
         base = prob.make({**prob.start, **fixed})
         scheme = copy.copy(scene_source(base, device).scheme)  # the grid's pyramids, shared; the knobs its own
@@ -229,6 +238,7 @@ def _cdlod_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], cost
         probes = probe_cameras(scene.heightmap, cams, refs, surfaces_of(scene.heightmap, meshes))
         model = CdlodModel(scheme, cams, probes, cont, fixed, lambda v, p=prob: p.make(v).lod, weights,
                            device=device)
+        model.prepare()
         out.append(Candidate(model, {"grid": g} if "grid" in prob.names else {}, Calibration(len(cams)),
                              u=np.array([k.to_unit(prob.start[k.name]) for k in cont])))
         if on_step is not None:

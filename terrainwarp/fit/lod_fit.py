@@ -18,7 +18,10 @@ How (by module):
   enumerated, one model each;
 * :mod:`.exact`: the exact evaluations and their accounting (frames measured, frames drawn for their cost only);
 * families without a model (:data:`terrainwarp.fit.families.MODELLED` lists those with one) are fitted on the
-  exact pipeline alone (:func:`terrainwarp.fit.search.bracket_search`, one knob).
+  exact pipeline alone (:func:`terrainwarp.fit.search.bracket_search`, one knob), and so is a fit whose relaxed
+  model turns out not finite (:class:`terrainwarp.fit.optimise.NonFiniteModel`: said in the history);
+* :mod:`.timings`: where the time went (``FitResult.timings``) and the progress bar; :mod:`.jaxrt`: the relaxed
+  models' programs, compiled once per machine (JAX's persistent cache in the user's cache folder).
 
 A fit that misses the budget on the exact pipeline is reported as missed, never as met.
 """
@@ -26,7 +29,6 @@ A fit that misses the budget on the exact pipeline is reported as missed, never 
 from __future__ import annotations
 
 import math
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -45,7 +47,8 @@ from ..schemes import SCHEMES
 from .baselines import grid_search
 from .exact import MISSING_TOL, Evaluation, Exact, evaluate, references_for
 from .families import Problem, problem
-from .search import bracket_search, calibrated_search, close_to_bound
+from .search import NonFiniteModel, bracket_search, calibrated_search, close_to_bound
+from .timings import PARTS, Clock, Progress, part, running
 from .verdict import annotate
 from .viewport import pixel_knobs
 
@@ -67,7 +70,10 @@ class FitResult:
             measured for the record when ``max_pop_px`` is None: not counted in ``evaluations``).
         evaluations: exact frames the fit measured (error against the reference); mesh_only_frames: frames drawn
             only for their cost (the cameras a try did not need to measure).
-        knobs: the knobs fitted; model_s: seconds spent on the models (probes, optimisation); wall_s: in all.
+        knobs: the knobs fitted; model_s: seconds from the models' start to the result (the search); wall_s: the
+            whole call.
+        timings: the whole call's seconds by part (:data:`terrainwarp.fit.timings.PARTS`: ``compile``,
+            ``relaxed``, ``hard``, ``probes``, ``exact``, ``other``); they add up to ``wall_s``.
         history: the fit's steps (the relaxed rounds, the polishes, the exact tries); trace: (exact frames, best
             confirmed cost) each time the best improved.
         grid: the grid search baseline of the one-knob fit, when asked for.
@@ -102,6 +108,15 @@ class FitResult:
     at_limits: list[dict] = field(default_factory=list)
     sparse: list[dict] = field(default_factory=list)
     image_floor_p99_px: list[float] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    trace_s: list[float] = field(default_factory=list)  # seconds from the call to each entry of ``trace``
+
+    def timing_line(self) -> str:
+        """One line: the wall time and its parts (:attr:`timings`)."""
+        names = {"compile": "compile", "relaxed": "relaxed model", "hard": "hard model + polish", "probes": "probes",
+                 "exact": f"{self.evaluations} exact frames", "other": "other"}
+        parts = ", ".join(f"{names[k]} {self.timings.get(k, 0.0):.1f}" for k in PARTS)
+        return f"fit took {self.wall_s:.1f} s: {parts} s"
 
     @property
     def value(self) -> float:
@@ -126,7 +141,7 @@ class FitResult:
         return {"policy": self.policy, "budget_px": self.budget_px, "max_pop_px": self.max_pop_px, "cost": self.cost,
                 "met": self.met, "knobs": self.knobs, "values": self.values, "lod": dict(self.scene.lod.__dict__),
                 "message": self.message, "evaluations": self.evaluations, "mesh_only_frames": self.mesh_only_frames,
-                "wall_s": self.wall_s, "model_s": self.model_s,
+                "wall_s": self.wall_s, "model_s": self.model_s, "timings": dict(self.timings),
                 "error": "primary: per visible heightmap sample, px (terrainwarp.measure.sample_error); "
                          "image_p99_px: the per-pixel grid-image error (secondary, with a triangulation floor: "
                          "image_floor_p99_px, the family's own full-detail frame's, per camera)",
@@ -148,31 +163,6 @@ class FitResult:
         return {"viewport": list(self.scene.pixel_viewport), "viewports": [list(v) for v in self.viewports],
                 "pixel_knobs": pixel_knobs(self.scene, self.budget_px) if self.scene.mesh == "lod" else {},
                 "binding": self.binding, "at_limits": self.at_limits, "sparse_frames": self.sparse}
-
-
-class Progress:
-    """A tqdm bar on stderr (``leave=False``), or nothing when disabled; call it to advance one step."""
-
-    def __init__(self, enabled: bool, total: int, desc: str) -> None:
-        self.bar = None
-        if enabled:
-            from tqdm import tqdm  # lazy: heavy optional dependency
-
-            self.bar = tqdm(total=total, desc=desc, unit="step", leave=False, file=sys.stderr)
-
-    def __call__(self) -> None:
-        if self.bar is not None:
-            self.bar.update(1)
-
-    def expect(self, remaining: int) -> None:
-        """Set the total to the steps done plus ``remaining``."""
-        if self.bar is not None:
-            self.bar.total = self.bar.n + remaining
-            self.bar.refresh()
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[Camera] | None = None, *,
@@ -223,37 +213,79 @@ def fit_lod(scene: Scene, budget_px: float, policy: str = "sse", cameras: list[C
     cost_of = resolve_cost(cost)
     cost_of = None if cost_of.name == "triangles" else cost_of
     t0 = time.perf_counter()
+    clock = Clock()
     cams, vps = _at_viewports(list(cameras) if cameras is not None else scene.camera_path(), viewports)
     if not cams:
         raise ValueError("cameras: expected at least one camera")
     bar = Progress(progress, len(cams) * (2 + max_tries + grid_points), f"fit {policy} {budget_px:g} px")
+    job = _Job(scene, budget_px, policy, cams, knobs, cost_of, max_pop_px, rel_tol, max_tries, device, bar, t0,
+               vps, cost, floor)
     try:
-        refs = references_for(scene, cams, references, device, on_frame=bar)
-        prob = problem(scene, policy, knobs, cams, refs, cost_of, device=device, on_step=bar, budget_px=budget_px,
-                       max_pop_px=max_pop_px)
-        exact = Exact(prob.make, prob.key, cams, refs, budget_px, max_pop_px, cost_of, device, on_frame=bar,
-                      terrains=dict(prob.terrains))
-        t_model = time.perf_counter()
-        if gradient == "pixels":
-            good = _one_knob(exact, prob, budget_px, rel_tol, max_tries, newton=_pixel_newton(exact, prob))
-        elif prob.cands:
-            good = calibrated_search(exact, prob.cands, budget_px, prob.snap, rel_tol=rel_tol, max_tries=max_tries,
-                                     on_step=bar)
-            if good is not None:  # close the cost gap the model left on the exact pipeline's own bracket
-                good = _main_line(exact, prob, good, budget_px, rel_tol, max_tries)
-        else:
-            good = _one_knob(exact, prob, budget_px, rel_tol, max_tries)
-        res = _result(exact, prob, good, budget_px, t0, cost_of)
-        res.model_s = time.perf_counter() - t_model
-        if max_pop_px is None and len(cams) > 1 and res.validated is not None:  # popping, for the record
-            res.validated = evaluate(res.scene, cams, refs, terrain=exact.terrain_for(res.scene), device=device,
-                                     values=res.values, pops=True, cost_of=cost_of)
-        annotate(res, prob.all_knobs, cams, refs, vps, cost, tried=[*exact.evals.values()], floor=floor, device=device)
-        if grid_points:
-            res.grid = grid_search(exact, prob, grid_points, evaluator=grid_evaluator)
+        with running(clock, bar):
+            res = _run(job, references, gradient, grid_points, grid_evaluator)
         bar.expect(0)  # the total was an estimate: the bar ends full at the steps taken
     finally:
         bar.close()
+    res.timings = clock.close()
+    res.wall_s = time.perf_counter() - t0
+    return res
+
+
+@dataclass
+class _Job:
+    scene: Scene
+    budget_px: float
+    policy: str
+    cams: list[Camera]
+    knobs: Sequence[str] | str | None
+    cost_of: Cost | None
+    max_pop_px: float | None
+    rel_tol: float
+    max_tries: int
+    device: str
+    bar: Progress
+    t0: float
+    vps: list[Viewport]
+    cost: object
+    floor: bool
+
+
+def _run(job: _Job, references: list[Frame] | None, gradient: str, grid_points: int, grid_evaluator) -> FitResult:
+    """The fit of :func:`fit_lod`, each part on the running clock (:mod:`terrainwarp.fit.timings`)."""
+    budget_px, cams, device, bar = job.budget_px, job.cams, job.device, job.bar
+    with part("exact"):
+        refs = references_for(job.scene, cams, references, device, on_frame=bar)
+    with part("probes"):
+        prob = problem(job.scene, job.policy, job.knobs, cams, refs, job.cost_of, device=device, on_step=bar,
+                       budget_px=budget_px, max_pop_px=job.max_pop_px)
+    exact = Exact(prob.make, prob.key, cams, refs, budget_px, job.max_pop_px, job.cost_of, device, on_frame=bar,
+                  terrains=dict(prob.terrains), started=job.t0)
+    t_model = time.perf_counter()
+    if gradient == "pixels":
+        good = _one_knob(exact, prob, budget_px, job.rel_tol, job.max_tries, newton=_pixel_newton(exact, prob))
+    elif prob.cands:
+        try:
+            good = calibrated_search(exact, prob.cands, budget_px, prob.snap, rel_tol=job.rel_tol,
+                                     max_tries=job.max_tries, on_step=bar)
+            if good is not None:  # close the cost gap the model left on the exact pipeline's own bracket
+                good = _main_line(exact, prob, good, budget_px, job.rel_tol, job.max_tries)
+        except NonFiniteModel as e:  # never a NaN step: the main knob on the exact pipeline instead
+            exact.history.append({"stage": "fallback", "reason": str(e), "to": "bracket_search"})
+            good = _one_knob(exact, prob, budget_px, job.rel_tol, job.max_tries)
+    else:
+        good = _one_knob(exact, prob, budget_px, job.rel_tol, job.max_tries)
+    res = _result(exact, prob, good, budget_px, job.cost_of)
+    res.model_s = time.perf_counter() - t_model
+    if job.max_pop_px is None and len(cams) > 1 and res.validated is not None:  # popping, for the record
+        with part("exact"):
+            res.validated = evaluate(res.scene, cams, refs, terrain=exact.terrain_for(res.scene), device=device,
+                                     values=res.values, pops=True, cost_of=job.cost_of)
+    with part("exact"):
+        annotate(res, prob.all_knobs, cams, refs, job.vps, job.cost, tried=[*exact.evals.values()], floor=job.floor,
+                 device=device)
+    if grid_points:
+        with part("exact"):
+            res.grid = grid_search(exact, prob, grid_points, evaluator=grid_evaluator)
     return res
 
 
@@ -316,8 +348,9 @@ def _pixel_newton(exact: Exact, prob: Problem):
         sc = prob.make(e.values)
         order = e.frames if e.frames is not None else range(len(e.p99_px))
         w = list(order)[int(np.argmax(e.p99_px))]
-        _, slope = log_slope(sc.heightmap, exact.cams[w], v, sc.lod.level, exact.terrain_for(sc),
-                             cull_back=sc.cull_back, device=exact.device)
+        with part("relaxed"):
+            _, slope = log_slope(sc.heightmap, exact.cams[w], v, sc.lod.level, exact.terrain_for(sc),
+                                 cull_back=sc.cull_back, device=exact.device)
         exact.frames += 1
         exact.history.append({"stage": "pixel_slope", "value": v, "camera": w, "dlog_err_dlog_value": slope})
         s = (log_target - math.log(max(e.worst_p99, 1e-9))) / slope if slope > 1e-3 else \
@@ -352,7 +385,7 @@ def _undrawn(ev: Evaluation) -> str:
                                             f"{MISSING_TOL:.1%} allowed)")
 
 
-def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: float, t0: float,
+def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: float,
             cost_of: Cost | None) -> FitResult:
     """The fit's result: the cheapest setting measured on every camera that met the constraints, or, when none
     did, the finest setting of the main knob measured on every camera (met only if even that meets them)."""
@@ -360,7 +393,7 @@ def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: flo
     pop_txt = "" if pop is None else f" and worst pair pop p99 <= {pop:g} px"
     label = "triangles" if cost_of is None else cost_of.label
     common = {"history": exact.history, "max_pop_px": pop, "mesh_only_frames": exact.mesh_only, "cost": label,
-              "knobs": list(prob.names), "trace": list(exact.trace)}
+              "knobs": list(prob.names), "trace": list(exact.trace), "trace_s": list(exact.trace_s)}
     if good is None:
         main = prob.knob(prob.names[0])
         finest = {**prob.start, main.name: main.lo if main.coarser_up is not False else main.hi}
@@ -374,11 +407,11 @@ def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: flo
                    + _undrawn(floor)
                    + ("" if pop is None else f" and a worst pair pop p99 of {floor.worst_pop:.3g} px"))
             return FitResult(prob.policy, budget_px, False, values, prob.make(values), floor, exact.frames,
-                             time.perf_counter() - t0, msg, **common)
+                             0.0, msg, **common)
     values = dict(good.values)
     shown = ", ".join(f"{k} = {values[k]:.4g}" for k in prob.names)
     msg = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px"
            + ("" if pop is None else f", worst pair pop p99 {good.worst_pop:.3g} px <= {pop:g} px")
            + f" with {shown}, {good.cost:.4g} {label} per frame")
-    return FitResult(prob.policy, budget_px, True, values, prob.make(values), good, exact.frames,
-                     time.perf_counter() - t0, msg, **common)
+    return FitResult(prob.policy, budget_px, True, values, prob.make(values), good, exact.frames, 0.0, msg,
+                     **common)

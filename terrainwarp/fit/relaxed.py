@@ -28,15 +28,29 @@ that no model predicts (fragments, samples) enters only through the exact tries.
 
 Temperatures anneal (:mod:`terrainwarp.fit.search`) toward 0, where the relaxed selection is the hard one less
 what is said above.
+
+**Compiled once per machine.** A model is a static spec (a hashable :class:`typing.NamedTuple`: the family, the
+tree's depth, which knob plays which role) and its data (one pytree of arrays: the probes' pairs, the tree's
+metrics, parents and balance maps, the knobs' ranges, the fixed values, the cost weights), padded to a few
+fixed sizes (:func:`bucket`: powers of two of the cameras, the roots and the samples). The relaxed function
+(``spec.relaxed(data, u, temp)``) is pure and takes the data as an argument, so one program serves every model
+of the same spec and sizes, and JAX's persistent cache (:mod:`terrainwarp.fit.jaxrt`) keeps it across processes.
+Padded cameras see nothing (cost 0, error at the floor), padded nodes are invisible, padded pairs weigh 0.
+
+**The hard model** reads the real selection (:func:`terrainwarp.lod.select`, one launch a camera) and works on
+every camera at once in numpy: each kept sample's node at each level is found once, a patch's counts are read
+off a table of the factor rows seen before (:func:`terrainwarp.kernels.tessellator.count_patches` on the rows
+new to it), and the percentile is numpy's, camera by camera.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -45,21 +59,50 @@ import numpy as np
 from ..camera import Camera
 from ..kernels.tessellator import count_patches
 from ..lod.policies import make_policy
-from ..lod.quadtree import LodState, Terrain, node_metrics, select
+from ..lod.quadtree import LodState, PatchList, Terrain, node_metrics, select
 from ..scene import LodConfig
 from .knobs import LEVEL_SCALE, Knob
-from .probe import CameraProbe
+from .probe import FLOOR_PX, CameraProbe
 from .relaxed_tree import balance_maps, forces, inside_counts, node_of, subset, tree_probs
 from .search import Prediction
 
-__all__ = ["soft_quantile", "sorted_pairs", "QuadtreeModel", "hard_percentile"]
+__all__ = ["soft_quantile", "sorted_pairs", "QuadtreeModel", "QuadtreeSpec", "hard_percentile", "hard_percentiles",
+           "bucket", "knob_arrays", "relaxed_values", "PaddedModel", "CountTable", "relaxed_call", "pad_to",
+           "camera_mask"]
 
 Q = 0.99  # the percentile the budget bounds
+LOG_FLOOR = math.log(FLOOR_PX)  # the log error of a camera that sees no sample
+PAD_LOGV = 30.0  # the padding's log error: it sorts after every real pair (errors are clipped to 1e6 px)
+MIN_PAIRS = 256  # the fewest samples a camera's relaxed pairs are padded to
+HARD_MEMO = 4096  # the hard predictions a model keeps
 
 
 # ------------------------------------------------------------------------------------------------
-# the weighted percentile
+# padding, knobs, the weighted percentile
 # ------------------------------------------------------------------------------------------------
+def bucket(n: int, least: int = 1) -> int:
+    """The padded size of ``n`` items: the power of two at or above it (and at least ``least``)."""
+    n = max(int(n), int(least), 1)
+    return 1 << (n - 1).bit_length()
+
+
+def knob_arrays(knobs: Sequence[Knob]) -> dict[str, np.ndarray]:
+    """The knobs' ranges as the relaxed functions read them: ``klo`` (log lo for a log knob) and ``kspan`` (log hi
+    - log lo, or hi - lo), float32 (K,)."""
+    lo = [math.log(k.lo) if k.log else k.lo for k in knobs]
+    span = [math.log(k.hi) - math.log(k.lo) if k.log else k.hi - k.lo for k in knobs]
+    return {"klo": np.asarray(lo, np.float32), "kspan": np.asarray(span, np.float32)}
+
+
+def relaxed_values(u: jnp.ndarray, data: Mapping[str, Any], logs: Sequence[bool]) -> list:
+    """The knob values at unit coordinates ``u`` (traceable; ``data``'s :func:`knob_arrays`)."""
+    out = []
+    for i, is_log in enumerate(logs):
+        x = data["klo"][i] + jnp.clip(u[i], 0.0, 1.0) * data["kspan"][i]
+        out.append(jnp.exp(x) if is_log else x)
+    return out
+
+
 def sorted_pairs(probe: CameraProbe) -> tuple[np.ndarray, np.ndarray]:
     """(log errors of every (resolution, sample) pair, sorted ascending; the permutation that sorts the pairs of
     ``probe.err`` flattened resolution-major)."""
@@ -68,22 +111,24 @@ def sorted_pairs(probe: CameraProbe) -> tuple[np.ndarray, np.ndarray]:
     return lv[perm].astype(np.float32), perm.astype(np.int32)
 
 
-def soft_quantile(logv: jnp.ndarray, w: jnp.ndarray, q: float = Q) -> jnp.ndarray:
+def soft_quantile(logv: jnp.ndarray, w: jnp.ndarray, q: float = Q, n: Any = None) -> jnp.ndarray:
     """The ``q`` quantile of the sorted values ``logv`` (N,) with weights ``w`` (N,), in the same order: the hard
     weighted quantile as its value, with the quantile's implicit derivative in ``w`` (the density around it taken
-    over the pairs within 0.1% of the weight either side, at least 16 pairs)."""
-    n = logv.shape[0]
+    over the pairs within 0.1% of the weight either side, at least 16 pairs). ``n``: the length the window is
+    reckoned on (default N; a padded model passes its pairs' unpadded length). With no weight at all (a camera
+    that sees no sample): the floor's log (:data:`terrainwarp.fit.probe.FLOOR_PX`), gradient 0."""
+    n = logv.shape[0] if n is None else n
     cw = jnp.cumsum(w)
-    total = jnp.maximum(cw[-1], 1e-30)
+    total = jnp.maximum(cw[-1], 1e-12)
     cws = jax.lax.stop_gradient(cw)
     k = jnp.clip(jnp.searchsorted(cws, q * cws[-1]), 0, n - 1)
     q0 = logv[k]
-    m = max(16, n // 1000)
+    m = jnp.maximum(16, n // 1000)
     lo, hi = jnp.clip(k - m, 0, n - 1), jnp.clip(k + m, 0, n - 1)
     span = jnp.maximum(logv[hi] - logv[lo], 1e-3)
     dens = jax.lax.stop_gradient(jnp.maximum((cws[hi] - cws[lo]) / jnp.maximum(cws[-1], 1e-30), 1e-6) / span)
     frac = cw[k] / total
-    return q0 - (frac - jax.lax.stop_gradient(frac)) / dens
+    return jnp.where(cws[-1] > 0, q0 - (frac - jax.lax.stop_gradient(frac)) / dens, LOG_FLOOR)
 
 
 def hard_percentile(values: np.ndarray, q: float = 99.0) -> float:
@@ -92,7 +137,180 @@ def hard_percentile(values: np.ndarray, q: float = 99.0) -> float:
     return float(np.percentile(v, q)) if v.size else 0.0
 
 
-def _relaxed_pops(leaves: list, data: dict[str, Any], depth: int) -> jnp.ndarray:
+def hard_percentiles(values: np.ndarray, valid: np.ndarray, q: float = 99.0) -> np.ndarray:
+    """:func:`hard_percentile` of each row of ``values`` (C, V) over its ``valid`` (C, V) entries."""
+    return np.asarray([hard_percentile(v[ok], q) for v, ok in zip(values, valid, strict=True)])
+
+
+class CountTable:
+    """The domain points and triangles of each patch factor row (outer[4], inner[2]) of one spacing, counted once:
+    :func:`terrainwarp.kernels.tessellator.count_patches` runs on the rows the table has not seen."""
+
+    def __init__(self, spacing: str, device: str = "cpu") -> None:
+        self.spacing, self.device = spacing, device
+        self.known: dict[bytes, tuple[int, int]] = {}
+
+    def totals(self, outer: np.ndarray, inner: np.ndarray) -> tuple[int, int]:
+        """(domain points, triangles) of the patches (P, 4) and (P, 2), summed."""
+        if not len(outer):
+            return 0, 0
+        rows = np.ascontiguousarray(np.concatenate([np.asarray(outer, np.float32), np.asarray(inner, np.float32)],
+                                                   axis=1))
+        uniq, first, inv = np.unique(rows.view(np.dtype((np.void, 24))).ravel(), return_index=True,
+                                     return_inverse=True)
+        keys = [u.tobytes() for u in uniq]
+        new = [i for i, k in enumerate(keys) if k not in self.known]
+        if new:
+            pts, tris = count_patches(rows[first[new], :4], rows[first[new], 4:], self.spacing, self.device)
+            for i, p, t in zip(new, pts, tris, strict=True):
+                self.known[keys[i]] = (int(p), int(t))
+        mult = np.bincount(inv.ravel(), minlength=len(keys)).astype(np.int64)
+        counts = np.asarray([self.known[k] for k in keys], np.int64)
+        return int(counts[:, 0] @ mult), int(counts[:, 1] @ mult)
+
+
+# ------------------------------------------------------------------------------------------------
+# what the padded models share
+# ------------------------------------------------------------------------------------------------
+@functools.partial(jax.jit, static_argnums=0)
+def _relaxed_jit(spec, data, u, temp):
+    return spec.relaxed(data, jnp.asarray(u, jnp.float32), jnp.asarray(temp, jnp.float32))
+
+
+def relaxed_call(spec, data, u, temp) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """``spec.relaxed(data, u, temp)`` jitted (one program per spec and padded sizes)."""
+    return _relaxed_jit(spec, data, u, temp)
+
+
+class PaddedModel:
+    """What every model with a padded relaxed function shares (``spec``, ``data``, ``cams``, ``predict``): the
+    relaxed model at its own cameras, the padded layout of the bounded values (each camera's p99, then each pair's
+    pop), and the hard model with a memo of the settings seen."""
+
+    cams: list[Camera]
+
+    @property
+    def padded_cameras(self) -> int:
+        return int(self.data["cmask"].shape[0])
+
+    def padded(self, values: np.ndarray, fill: float) -> np.ndarray:
+        """``values`` (one per bounded value) laid out as the padded model's bounded output; ``fill`` on padding."""
+        c, cb = len(self.cams), self.padded_cameras
+        values = np.asarray(values, np.float32)
+        out = np.full(cb + (cb - 1 if self.spec.pops else 0), fill, np.float32)
+        out[:c] = values[:c]
+        if self.spec.pops:
+            out[cb:cb + c - 1] = values[c:]
+        return out
+
+    def hard(self, values: Mapping[str, float]) -> Prediction:
+        """The hard model at ``values`` (:meth:`predict`), each setting computed once (the polish's lines meet the
+        same settings again; the prediction is a function of the values alone)."""
+        memo = self.__dict__.setdefault("_hard_memo", {})
+        key = tuple(sorted((k, float(v)) for k, v in values.items()))
+        if key not in memo:
+            if len(memo) >= HARD_MEMO:
+                memo.clear()
+            memo[key] = self.predict(values)
+        return memo[key]
+
+    def relaxed(self, u: jnp.ndarray, temp: float) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """(cost per camera (C,), log p99 px per camera (C,), then with a pop bound each consecutive pair's log pop
+        p99 (C-1,)) at unit coordinates ``u`` and temperature ``temp`` (jitted; differentiable in ``u``)."""
+        cost, b = relaxed_call(self.spec, self.data, u, temp)
+        c, cb = len(self.cams), self.padded_cameras
+        if self.spec.pops:
+            return cost[:c], jnp.concatenate([b[:c], b[cb:cb + c - 1]])
+        return cost[:c], b[:c]
+
+
+def pad_to(a: np.ndarray, shape: tuple[int, ...], fill: float = 0.0) -> np.ndarray:
+    """``a`` in the top corner of a ``fill``-ed array of ``shape`` (same dtype)."""
+    out = np.full(shape, fill, a.dtype)
+    out[tuple(slice(0, s) for s in a.shape)] = a
+    return out
+
+
+def camera_mask(c: int) -> np.ndarray:
+    """1 on the real cameras of a padded camera axis."""
+    out = np.zeros(bucket(c), np.float32)
+    out[:c] = 1.0
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# the quadtree policies: the relaxed model
+# ------------------------------------------------------------------------------------------------
+class QuadtreeSpec(NamedTuple):
+    """The static part of a :class:`QuadtreeModel` (its program): the tree's depth, the policy (sse splits above
+    its threshold, distance below), whether the cameras chain (hysteresis), whether pops are predicted, and per
+    fitted knob its space and role (index in ``u``; -1: fixed, read from the data)."""
+
+    kind: str
+    depth: int
+    sse: bool
+    chained: bool
+    pops: bool
+    logs: tuple[bool, ...]
+    main: int
+    scales: tuple[int, ...]
+    hyst: int
+
+    def relaxed(self, data: Mapping[str, Any], u: jnp.ndarray, temp: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        return quadtree_relaxed(self, data, u, temp)
+
+
+def _thresholds(spec: QuadtreeSpec, d: Mapping[str, Any], v: list) -> tuple[list, Any]:
+    """log threshold per level (sse: px; distance: m, the level's node size in), and the hysteresis band."""
+    base = jnp.log(v[spec.main]) if spec.main >= 0 else d["base"]
+    thr = [base + (v[s] if s >= 0 else d["scale"][L]) + d["size"][L] for L, s in enumerate(spec.scales)]
+    return thr, (v[spec.hyst] if spec.hyst >= 0 else d["hyst"])
+
+
+def quadtree_relaxed(spec: QuadtreeSpec, d: Mapping[str, Any], u: jnp.ndarray,
+                     temp: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(cost per padded camera, log p99 per padded camera [, log pop p99 per padded pair]) (pure; see the module
+    docstring)."""
+    thr, h = _thresholds(spec, d, relaxed_values(u, d, spec.logs))
+    depth, parents, maps = spec.depth, d["parent"], d["balance"]
+    sign = 1.0 if spec.sse else -1.0  # sse splits above the threshold, distance below
+    # the kernel's band: a node not split at the camera before needs threshold * (1 + h) (sse) or is split
+    # below threshold * (1 - h) (distance); one split before, the other way round
+    fresh, held = (jnp.log1p(h), jnp.log1p(-h)) if spec.sse else (jnp.log1p(-h), jnp.log1p(h))
+
+    def camera(prev, cam):
+        metric, vis_c, logv, gidx, mask = cam
+        split = []  # each level's split probability where reached: the policy's, then the balance's
+        for L in range(depth + 1):
+            if L == depth:
+                split.append(jnp.zeros_like(vis_c[L]))
+                continue
+            s = jax.nn.sigmoid(sign * (metric[L] - (thr[L] + fresh)) / temp)
+            if spec.chained:
+                held_s = jax.nn.sigmoid(sign * (metric[L] - (thr[L] + held)) / temp)
+                s = prev[L] * held_s + (1.0 - prev[L]) * s
+            split.append(s * vis_c[L])
+        force = [jnp.zeros_like(v) for v in vis_c]
+        for _ in range(2):  # the balance reads the tree it changes: two rounds
+            inside, total = tree_probs(split, force, vis_c, parents)
+            force = forces(total, inside, vis_c, maps)
+        inside, total = tree_probs(split, force, vis_c, parents)
+        leaves = [r * (1.0 - s) * v for r, s, v in zip(inside, total, vis_c, strict=True)]
+        splits = [r * s for r, s in zip(inside, total, strict=True)]
+        cost = d["unit_cost"] * sum(jnp.sum(lf) for lf in leaves)
+        w = jnp.concatenate(leaves)[gidx] * mask
+        return (splits if spec.chained else prev), (cost, soft_quantile(logv, w, n=d["npairs"]), leaves)
+
+    # scan over the cameras (the leading axis of every array): the body is traced once
+    xs = (list(d["metric"]), list(d["vis"]), d["logv"], d["gidx"], d["mask"])
+    init = [jnp.zeros_like(d["vis"][L][0]) for L in range(depth + 1)]
+    _, (costs, errs, leaves) = jax.lax.scan(camera, init, xs)
+    if not spec.pops:
+        return costs, errs
+    return costs, jnp.concatenate([errs, _relaxed_pops(leaves, d["pop"], depth)])
+
+
+def _relaxed_pops(leaves: list, data: Mapping[str, Any], depth: int) -> jnp.ndarray:
     """Each consecutive pair's log pop p99: per sample, the probability of each pair of levels (drawn at one for
     the camera before, at the other now) weighs that pair's pop, and of the same level, no pop."""
     R = depth + 1
@@ -103,7 +321,7 @@ def _relaxed_pops(leaves: list, data: dict[str, Any], depth: int) -> jnp.ndarray
         A = jnp.stack([before[L][node[L]] for L in range(R)])  # (R, V): drawn at L for the camera before
         B = jnp.stack([now[L][node[L]] for L in range(R)])
         w = [A[a] * B[b] + A[b] * B[a] for a, b in pairs] + [jnp.sum(A * B, axis=0)]
-        return None, soft_quantile(logv, jnp.concatenate(w)[idx] * mask)
+        return None, soft_quantile(logv, jnp.concatenate(w)[idx] * mask, n=data["npairs"])
 
     before = [lv[:-1] for lv in leaves]
     now = [lv[1:] for lv in leaves]
@@ -111,8 +329,11 @@ def _relaxed_pops(leaves: list, data: dict[str, Any], depth: int) -> jnp.ndarray
     return out
 
 
+# ------------------------------------------------------------------------------------------------
+# the quadtree policies: the model
+# ------------------------------------------------------------------------------------------------
 @dataclass(eq=False)
-class QuadtreeModel:
+class QuadtreeModel(PaddedModel):
     """The sse or distance policy on one terrain (roots, tess) over a camera path.
 
     Attributes:
@@ -165,26 +386,60 @@ class QuadtreeModel:
         return d
 
     @cached_property
-    def _balance_maps(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        return balance_maps(self.terrain)
-
-    @cached_property
     def _inside(self) -> list[tuple[int, int]]:
         return inside_counts(self.terrain)
 
     @cached_property
+    def _sizes(self) -> tuple[list[int], list[int]]:
+        """Per level, the nodes of its full grid, and the padded count (the roots padded to a power of two)."""
+        (nx, nz), R = self.terrain.roots, self.terrain.depth + 1
+        return [(nx * nz) << (2 * L) for L in range(R)], [bucket(nx * nz) << (2 * L) for L in range(R)]
+
+    @cached_property
+    def spec(self) -> QuadtreeSpec:
+        names = [k.name for k in self.knobs]
+        main = "tolerance_px" if self.policy == "sse" else "k"
+        h = float(self.fixed.get("hysteresis", 0.0))
+        return QuadtreeSpec("quadtree", self.terrain.depth, self.policy == "sse",
+                            "hysteresis" in names or h > 0, self.pops is not None, tuple(k.log for k in self.knobs),
+                            names.index(main) if main in names else -1,
+                            tuple(names.index(f"{LEVEL_SCALE}{L}") if f"{LEVEL_SCALE}{L}" in names else -1
+                                  for L in range(self.terrain.depth + 1)),
+                            names.index("hysteresis") if "hysteresis" in names else -1)
+
+    @cached_property
+    def data(self) -> dict[str, Any]:
+        """The arrays the relaxed model reads (one pytree, numpy, padded: see the module docstring)."""
+        tree, (_, padded), R = self._tree, self._sizes, self.terrain.depth + 1
+        cb = bucket(len(self.cams))
+        main = "tolerance_px" if self.policy == "sse" else "k"
+        maps = [tuple(pad_to(a, (padded[L], 8)) for a in m) for L, m in enumerate(balance_maps(self.terrain))]
+        per = self._per_patch
+        return {"metric": [pad_to(m, (cb, padded[L])) for L, m in enumerate(tree["metric"])],
+                "vis": [pad_to(v, (cb, padded[L])) for L, v in enumerate(tree["vis"])],
+                "parent": [pad_to(p, (padded[L],)) for L, p in enumerate(tree["parent"])], "balance": maps,
+                **self._pairs, **knob_arrays(self.knobs), "cmask": camera_mask(len(self.cams)),
+                "base": np.float32(math.log(self.fixed[main]) if main in self.fixed else 0.0),
+                "scale": np.asarray([self.fixed.get(f"{LEVEL_SCALE}{L}", 0.0) for L in range(R)], np.float32),
+                "size": np.asarray([0.0 if self.policy == "sse" else math.log(s) for s in tree["size"]], np.float32),
+                "hyst": np.float32(self.fixed.get("hysteresis", 0.0)),
+                "unit_cost": np.float32(sum(self.weights.get(f, 0.0) * per[f] for f in per)),
+                **({"pop": self._pop_data} if self.pops is not None else {})}
+
+    @cached_property
     def _pairs(self) -> dict[str, np.ndarray]:
-        """The relaxed subsets of every camera, padded to one length and stacked, in each camera's sorted order of
-        log error: ``logv`` (C, N) the pairs' log errors, ascending (padding last), ``gidx`` (C, N) each pair's
-        node in the levels' nodes laid end to end (level 0 first), ``mask`` (C, N) 0 on the padding."""
+        """The relaxed subsets of every camera, padded and stacked, in each camera's sorted order of log error:
+        ``logv`` (C, N) the pairs' log errors, ascending (padding last), ``gidx`` (C, N) each pair's node in the
+        levels' padded nodes laid end to end (level 0 first), ``mask`` (C, N) 0 on the padding; ``npairs`` the
+        unpadded length (the most pairs of any camera)."""
         subs = [p.subset(self.relaxed_samples) for p in self.probes]
         R = self.terrain.depth + 1
-        n = R * max(max(len(p.rows) for p in subs), 1)
-        sizes = [(self.terrain.roots[0] << L) * (self.terrain.roots[1] << L) for L in range(R)]
-        offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        logv = np.full((len(subs), n), 30.0, np.float32)  # the padding sorts last
-        gidx = np.zeros((len(subs), n), np.int32)
-        mask = np.zeros((len(subs), n), np.float32)
+        v = max(max(len(p.rows) for p in subs), 1)
+        n, cb = R * bucket(v, MIN_PAIRS), bucket(len(subs))
+        offset = np.concatenate([[0], np.cumsum(self._sizes[1])[:-1]]).astype(np.int64)
+        logv = np.full((cb, n), PAD_LOGV, np.float32)
+        gidx = np.zeros((cb, n), np.int32)
+        mask = np.zeros((cb, n), np.float32)
         for c, p in enumerate(subs):
             node = np.stack([node_of(p.rows, p.cols, self.terrain, L, self._inside[L]) + offset[L]
                              for L in range(R)]).reshape(-1)  # resolution-major, as the probe's errors
@@ -192,7 +447,7 @@ class QuadtreeModel:
             logv[c, :len(lv)] = lv
             gidx[c, :len(lv)] = node[perm]
             mask[c, :len(lv)] = 1.0
-        return {"logv": logv, "gidx": gidx, "mask": mask}
+        return {"logv": logv, "gidx": gidx, "mask": mask, "npairs": np.int32(R * v)}
 
     @cached_property
     def _per_patch(self) -> dict[str, float]:
@@ -203,53 +458,21 @@ class QuadtreeModel:
         return {"patches": 1.0, "domain_points": float(pts[0]), "triangles": float(tris[0]), "vertices": 4.0,
                 "draw_calls": 0.0}
 
-    # -- the relaxed model --------------------------------------------------------------------------
-    def values(self, u: jnp.ndarray) -> dict[str, jnp.ndarray]:
-        """The knob values at unit coordinates ``u`` (traceable)."""
-        out = {}
-        for i, k in enumerate(self.knobs):
-            ui = jnp.clip(u[i], 0.0, 1.0)
-            out[k.name] = (jnp.exp(math.log(k.lo) + ui * (math.log(k.hi) - math.log(k.lo))) if k.log
-                           else k.lo + ui * (k.hi - k.lo))
-        return out
-
-    def _thresholds(self, v: Mapping[str, Any]) -> list:
-        """log threshold per level (sse: px; distance: m, the level's node size in)."""
-        main = "tolerance_px" if self.policy == "sse" else "k"
-        base = jnp.log(v[main]) if main in v else math.log(self.fixed[main])
-        out = []
-        for L in range(self.terrain.depth + 1):
-            name = f"{LEVEL_SCALE}{L}"
-            m = v[name] if name in v else self.fixed.get(name, 0.0)
-            size = 0.0 if self.policy == "sse" else math.log(self._tree["size"][L])
-            out.append(base + m + size)
-        return out
-
-    @cached_property
-    def _data(self) -> dict[str, Any]:
-        """The arrays the relaxed model reads, as one pytree (passed to the jitted function, not baked in)."""
-        tree, pairs = self._tree, self._pairs  # numpy: made outside any trace, passed as arguments
-        return {"metric": list(tree["metric"]), "vis": list(tree["vis"]), **pairs,
-                **({"pop": self._pop_data} if self.pops is not None else {})}
-
     @cached_property
     def _pop_data(self) -> dict[str, np.ndarray]:
         """For the cameras after the first, padded and stacked: each kept sample's node per level ``node`` (C-1, R,
         V), the sorted log pops of every (level pair, sample) and (no change, sample) entry ``logv`` (C-1, (P+1) V),
-        each sorted entry's index ``idx`` in that layout and ``mask``."""
+        each sorted entry's index ``idx`` in that layout and ``mask``; ``npairs``: the unpadded length."""
         R = self.terrain.depth + 1
-        idx_all = []
-        for p, pairs in zip(self.probes[1:], self.pops, strict=True):
-            keep = subset(len(p.rows), self.relaxed_samples)
-            idx_all.append((p, pairs, keep))
-        V = max(max((len(k) for _, _, k in idx_all), default=1), 1)
-        P = R * (R - 1) // 2
-        n = len(idx_all)
+        kept = [(p, pairs, subset(len(p.rows), self.relaxed_samples))
+                for p, pairs in zip(self.probes[1:], self.pops, strict=True)]
+        v = max(max((len(k) for _, _, k in kept), default=1), 1)
+        V, P, n = bucket(v, MIN_PAIRS), R * (R - 1) // 2, bucket(len(self.cams)) - 1
         node = np.zeros((n, R, V), np.int32)
-        logv = np.full((n, (P + 1) * V), 30.0, np.float32)
+        logv = np.full((n, (P + 1) * V), PAD_LOGV, np.float32)
         idx = np.zeros((n, (P + 1) * V), np.int32)
         mask = np.zeros((n, (P + 1) * V), np.float32)
-        for c, (p, pairs, keep) in enumerate(idx_all):
+        for c, (p, pairs, keep) in enumerate(kept):
             m = len(keep)
             node[c, :, :m] = np.stack([node_of(p.rows[keep], p.cols[keep], self.terrain, L, self._inside[L])
                                        for L in range(R)])
@@ -260,83 +483,88 @@ class QuadtreeModel:
             logv[c, :len(vals)] = np.log(np.clip(vals[order].astype(np.float64), 1e-6, 1e6))
             idx[c, :len(vals)] = flat[order]
             mask[c, :len(vals)] = 1.0
-        return {"node": node, "logv": logv, "idx": idx, "mask": mask}
+        return {"node": node, "logv": logv, "idx": idx, "mask": mask, "npairs": np.int32((P + 1) * v)}
 
-    @cached_property
-    def _jitted(self):
-        return jax.jit(self._relaxed)
-
-    def relaxed(self, u: jnp.ndarray, temp: float) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """(cost per camera (C,), log p99 px per camera (C,)) at unit coordinates ``u`` and temperature ``temp``
-        (jitted; differentiable in ``u``)."""
-        return self._jitted(u, jnp.asarray(temp, jnp.float32), self._data)
-
-    def _relaxed(self, u: jnp.ndarray, temp: jnp.ndarray, data: dict[str, Any]) -> tuple[jnp.ndarray, jnp.ndarray]:
-        v = self.values(u)
-        thr = self._thresholds(v)
-        h = v["hysteresis"] if "hysteresis" in v else float(self.fixed.get("hysteresis", 0.0))
-        chained = "hysteresis" in v or h > 0  # cameras in path order, each reading the split before
-        depth, parents = self.terrain.depth, self._tree["parent"]
-        sign = 1.0 if self.policy == "sse" else -1.0  # sse splits above the threshold, distance below
-        # the kernel's band: a node not split at the camera before needs threshold * (1 + h) (sse) or is split
-        # below threshold * (1 - h) (distance); one split before, the other way round
-        fresh, held = (jnp.log1p(h), jnp.log1p(-h)) if self.policy == "sse" else (jnp.log1p(-h), jnp.log1p(h))
-        per = self._per_patch
-        unit_cost = sum(self.weights.get(f, 0.0) * per[f] for f in per)
-
-        def camera(prev, cam):
-            metric, vis_c, logv, gidx, mask = cam
-            split = []  # each level's split probability where reached: the policy's, then the balance's
-            for L in range(depth + 1):
-                if L == depth:
-                    split.append(jnp.zeros_like(vis_c[L]))
-                    continue
-                s = jax.nn.sigmoid(sign * (metric[L] - (thr[L] + fresh)) / temp)
-                if chained:
-                    held_s = jax.nn.sigmoid(sign * (metric[L] - (thr[L] + held)) / temp)
-                    s = prev[L] * held_s + (1.0 - prev[L]) * s
-                split.append(s * vis_c[L])
-            force = [jnp.zeros_like(v) for v in vis_c]
-            for _ in range(2):  # the balance reads the tree it changes: two rounds
-                inside, total = tree_probs(split, force, vis_c, parents)
-                force = forces(total, inside, vis_c, self._balance_maps)
-            inside, total = tree_probs(split, force, vis_c, parents)
-            leaves = [r * (1.0 - s) * v for r, s, v in zip(inside, total, vis_c, strict=True)]
-            splits = [r * s for r, s in zip(inside, total, strict=True)]
-            cost = unit_cost * sum(jnp.sum(lf) for lf in leaves)
-            w = jnp.concatenate(leaves)[gidx] * mask
-            return (splits if chained else prev), (cost, soft_quantile(logv, w), leaves)
-
-        # scan over the cameras (the leading axis of every array): the body is traced once
-        xs = (list(data["metric"]), list(data["vis"]), data["logv"], data["gidx"], data["mask"])
-        init = [jnp.zeros_like(data["vis"][L][0]) for L in range(depth + 1)]
-        _, (costs, errs, leaves) = jax.lax.scan(camera, init, xs)
-        if self.pops is None:
-            return costs, errs
-        return costs, jnp.concatenate([errs, _relaxed_pops(leaves, data["pop"], depth)])
+    def prepare(self) -> None:
+        """Build what the relaxed and the hard model read (otherwise built on first use)."""
+        _ = self.data, self._hard_data, self._leaf_map
 
     # -- the hard model -----------------------------------------------------------------------------
-    def hard(self, values: Mapping[str, float]) -> Prediction:
+    def predict(self, values: Mapping[str, float]) -> Prediction:
         """The model at temperature 0: the real selection (balance and edge factors included) per camera, in path
-        order with one hysteresis state; its draws counted exactly (:func:`terrainwarp.kernels.tessellator.
-        count_patches`); each sample's error read off the probe of its leaf's level."""
+        order with one hysteresis state; its draws counted exactly (:class:`CountTable`); each sample's error read
+        off the probe of its leaf's level."""
         cfg = self.config({**self.fixed, **values})
         policy = make_policy(cfg)
         state = LodState() if cfg.hysteresis > 0 else None
-        costs, p99, pops, prev = [], [], [], None
-        for c, (cam, probe) in enumerate(zip(self.cams, self.probes, strict=True)):
-            pl = select(self.terrain, cam, policy, state, device=self.device)
-            pts, tris = count_patches(pl.outer, pl.inner, cfg.spacing, self.device)
-            feats = {"patches": float(len(pl)), "domain_points": float(pts.sum()), "triangles": float(tris.sum()),
+        pls = [select(self.terrain, cam, policy, state, device=self.device) for cam in self.cams]
+        table = self._counts(cfg.spacing)
+        costs = []
+        for pl in pls:
+            pts, tris = table.totals(pl.outer, pl.inner)
+            feats = {"patches": float(len(pl)), "domain_points": float(pts), "triangles": float(tris),
                      "vertices": 4.0 * len(pl), "draw_calls": 1.0}
             costs.append(sum(self.weights.get(f, 0.0) * x for f, x in feats.items()))
-            now = self._levels_of(pl, probe)
-            p99.append(hard_percentile(np.where(now >= 0, probe.err[np.maximum(now, 0), np.arange(len(now))],
-                                                np.nan)))
-            if self.pops is not None and prev is not None:
-                pops.append(hard_percentile(self._pop_of(self._levels_of(prev, probe), now, self.pops[c - 1])))
-            prev = pl
-        return Prediction(np.asarray(costs), np.asarray(p99), None if self.pops is None else np.asarray(pops))
+        nodes, err, ok = self._hard_data
+        now = np.stack([self._levels_of(pl, nodes[c]) for c, pl in enumerate(pls)])
+        C, R, V = err.shape
+        flat = (np.arange(C)[:, None] * R + np.maximum(now, 0)) * V + np.arange(V)[None, :]
+        p99 = hard_percentiles(err.reshape(-1)[flat], ok & (now >= 0))
+        pops = None
+        if self.pops is not None:
+            pops = np.asarray([hard_percentile(self._pop_of(self._levels_of(pls[c - 1], nodes[c])[ok[c]],
+                                                            now[c][ok[c]], self.pops[c - 1]))
+                               for c in range(1, len(pls))])
+        return Prediction(np.asarray(costs), p99, pops)
+
+    def _counts(self, spacing: str) -> CountTable:
+        tables = self.__dict__.setdefault("_count_tables", {})
+        if spacing not in tables:
+            tables[spacing] = CountTable(spacing, self.device)
+        return tables[spacing]
+
+    @cached_property
+    def _hard_data(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per camera, padded to the most kept samples: each kept sample's node at every level in the levels' full
+        grids laid end to end (C, R, V) int64, its error at every level (C, R, V) float32, and which are real
+        (C, V) bool."""
+        t, R = self.terrain, self.terrain.depth + 1
+        offset = np.concatenate([[0], np.cumsum(self._sizes[0])[:-1]]).astype(np.int64)
+        v = max(max(len(p.rows) for p in self.probes), 1)
+        nodes = np.zeros((len(self.probes), R, v), np.int64)
+        err = np.ones((len(self.probes), R, v), np.float32)
+        ok = np.zeros((len(self.probes), v), bool)
+        for c, p in enumerate(self.probes):
+            n = len(p.rows)
+            nodes[c, :, :n] = np.stack([node_of(p.rows, p.cols, t, L, self._inside[L]) + offset[L] for L in range(R)])
+            err[c, :, :n] = p.err
+            ok[c, :n] = True
+        return nodes, err, ok
+
+    @cached_property
+    def _offsets(self) -> np.ndarray:
+        """Where each level's full grid starts with the levels laid end to end."""
+        return np.concatenate([[0], np.cumsum(self._sizes[0])[:-1]]).astype(np.int64)
+
+    @cached_property
+    def _leaf_map(self) -> np.ndarray:
+        """Scratch: each node of the full grids laid end to end, its level where it is a drawn leaf, else -1."""
+        return np.full(int(sum(self._sizes[0])), -1, np.int8)
+
+    def _levels_of(self, pl: PatchList, nodes: np.ndarray) -> np.ndarray:
+        """The level of the drawn leaf of ``pl`` over each sample of ``nodes`` (R, V) (-1 where none covers it)."""
+        t = self.terrain
+        lvl = pl.level.astype(np.int64)
+        s = t.root_cells / 2.0 ** lvl
+        lx = np.rint(pl.origin_cells[:, 0] / s).astype(np.int64)
+        ly = np.rint(pl.origin_cells[:, 1] / s).astype(np.int64)
+        at = self._offsets[lvl] + ly * (t.roots[0] << lvl) + lx
+        lm = self._leaf_map
+        lm[at] = lvl
+        g = lm[nodes]
+        lm[at] = -1
+        levels = np.arange(len(nodes), dtype=np.int8)[:, None]
+        return np.where(g == levels, levels, np.int8(-1)).max(axis=0).astype(np.int64)  # the deepest drawn leaf
 
     def _pop_of(self, before: np.ndarray, now: np.ndarray, pairs: np.ndarray) -> np.ndarray:
         """Each kept sample's pop between its level before and now (0 where the same; NaN where either is not
@@ -350,20 +578,3 @@ class QuadtreeModel:
         which = table[np.maximum(lo, 0), np.maximum(hi, 0)]
         out = np.where(which >= 0, pairs[np.maximum(which, 0), np.arange(len(now))], 0.0)
         return np.where((before >= 0) & (now >= 0), out, np.nan)
-
-    def _levels_of(self, pl, probe: CameraProbe) -> np.ndarray:
-        """Each kept sample's drawn leaf's level (-1 where no drawn leaf covers it)."""
-        t = self.terrain
-        out = np.full(len(probe.rows), -1, np.int64)
-        for L in np.unique(pl.level):
-            L = int(L)
-            nx, nz = t.roots[0] << L, t.roots[1] << L
-            leaf = np.zeros(nx * nz, bool)
-            s = t.root_cells / 2.0 ** L
-            sel = pl.level == L
-            lx = np.rint(pl.origin_cells[sel, 0] / s).astype(np.int64)
-            ly = np.rint(pl.origin_cells[sel, 1] / s).astype(np.int64)
-            leaf[ly * nx + lx] = True
-            hit = leaf[node_of(probe.rows, probe.cols, t, L, self._inside[L])]
-            out[hit] = L
-        return out

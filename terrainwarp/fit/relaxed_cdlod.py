@@ -11,16 +11,18 @@ drawn. **Morph.** A sample drawn at LOD ``j`` morphs toward ``j + 1`` by ``k = c
 (the probes of the two unmorphed LODs), the bound the triangle inequality gives. **Cost**: a whole node draws four
 quadrants of ``2 (g/2)^2`` triangles and ``(g + 1)^2`` vertices in one draw, a parent's quadrant one quadrant and
 ``(g/2 + 1)^2`` vertices in its own draw (the reference's pipeline statistics, :class:`terrainwarp.lod.cdlod.Cdlod`).
-``hard`` selects for real and counts exactly.
+``hard`` selects for real and counts exactly, every camera at once (numpy): a level's nodes each get the LOD
+they are drawn at (or none), and each sample reads its node's.
+
+The relaxed function is pure (:class:`CdlodSpec`, the data padded as :mod:`terrainwarp.fit.relaxed` says).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -32,14 +34,99 @@ from ..lod.quadtree import node_metrics
 from ..scene import LodConfig
 from .knobs import Knob
 from .probe import CameraProbe
-from .relaxed import hard_percentile, soft_quantile, sorted_pairs
+from .relaxed import (
+    MIN_PAIRS,
+    PAD_LOGV,
+    PaddedModel,
+    bucket,
+    camera_mask,
+    hard_percentiles,
+    knob_arrays,
+    pad_to,
+    relaxed_values,
+    soft_quantile,
+    sorted_pairs,
+)
 from .search import Prediction
 
-__all__ = ["CdlodModel"]
+__all__ = ["CdlodModel", "CdlodSpec"]
+
+PARAMS = ("first_range", "ratio", "morph_start_ratio")
+
+
+class CdlodSpec(NamedTuple):
+    """The static part of a :class:`CdlodModel`: the tree's depth, the LOD levels, and per fitted knob its space;
+    ``params``: each of :data:`PARAMS`' index in ``u`` (-1: fixed, read from the data)."""
+
+    kind: str
+    depth: int
+    levels: int
+    pops: bool
+    logs: tuple[bool, ...]
+    params: tuple[int, int, int]
+
+    def relaxed(self, data: Mapping[str, Any], u: jnp.ndarray, temp: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        return cdlod_relaxed(self, data, u, temp)
+
+
+def _ranges(spec: CdlodSpec, d: Mapping[str, Any], u: jnp.ndarray) -> tuple[list, list, list]:
+    """(log range, morph start, 1 / (morph end - morph start)) per LOD, as :func:`cdlod_ranges`, traceable (the
+    coarsest: range +inf, no morph)."""
+    v = relaxed_values(u, d, spec.logs)
+    fr, r, msr = (v[k] if k >= 0 else d["pfix"][i] for i, k in enumerate(spec.params))
+    rng, start, inv = [], [], []
+    total, prev = 0.0, 0.0
+    for i in range(spec.levels):
+        if i == spec.levels - 1:
+            rng.append(jnp.asarray(60.0)), start.append(jnp.asarray(3e38)), inv.append(jnp.asarray(0.0))
+            break
+        total = total + r ** i
+        ri = fr * total
+        si = prev + (ri - prev) * msr
+        ei = ri + (si - ri) * 0.01
+        rng.append(jnp.log(ri)), start.append(si), inv.append(1.0 / jnp.maximum(ei - si, 1e-6))
+        prev = si
+    return rng, start, inv
+
+
+def cdlod_relaxed(spec: CdlodSpec, d: Mapping[str, Any], u: jnp.ndarray,
+                  temp: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(cost per padded camera, log p99 per padded camera) (pure; see the module docstring)."""
+    logr, start, inv = _ranges(spec, d, u)
+    depth, parents, L = spec.depth, d["parent"], spec.levels
+    whole_cost, quad_cost = d["whole_cost"], d["quad_cost"]
+
+    def camera(_, cam):
+        logd, vis, node, logds, smask, logv, pidx, pmask = cam
+        whole, quad = [], []  # per tree level: each node's probability of being drawn whole / as a quadrant
+        reach, cost, split_prev = None, 0.0, None
+        for lvl in range(depth + 1):
+            i = depth - lvl
+            q = jax.nn.sigmoid((logr[i] - logd[lvl]) / temp) if i < L - 1 else jnp.ones_like(logd[lvl])
+            reach = jnp.ones_like(q) if lvl == 0 else reach[parents[lvl]] * split_prev[parents[lvl]]
+            finer = jax.nn.sigmoid((logr[i - 1] - logd[lvl]) / temp) if i > 0 else jnp.zeros_like(q)
+            whole.append(reach * vis[lvl] * q * (1.0 - finer))
+            quad.append(reach * vis[lvl] * (1.0 - q) if lvl > 0 else jnp.zeros_like(q))
+            split_prev = q * finer * vis[lvl]
+            cost = cost + whole_cost * jnp.sum(whole[-1]) + quad_cost * jnp.sum(quad[-1])
+        # LOD i: the samples of level depth - i drawn whole, and those of level depth - i + 1 drawn as a quadrant
+        # of their parent
+        at = [whole[depth - i][node[depth - i]] + (quad[depth - i + 1][node[depth - i + 1]] if i else 0.0)
+              for i in range(L)]
+        ds = jnp.exp(logds)
+        k = [jnp.clip((ds - start[j]) * inv[j], 0.0, 1.0) for j in range(L - 1)]  # a sample at j morphs to j+1
+        pair = [at[j] * (1.0 - k[j] if j < L - 1 else 1.0) + (at[j - 1] * k[j - 1] if j else 0.0)
+                for j in range(L)]
+        wts = (jnp.stack(pair) * smask[None, :]).reshape(-1)
+        return None, (cost, soft_quantile(logv, wts[pidx] * pmask, n=d["npairs"]))
+
+    xs = (list(d["logd"]), list(d["vis"]), d["node"], d["logds"], d["smask"], d["logv"], d["pidx"], d["pmask"])
+    _, (costs, errs) = jax.lax.scan(camera, None, xs)
+    return costs, errs
 
 
 @dataclass(eq=False)
-class CdlodModel:
+class CdlodModel(PaddedModel):
     """CDLOD with one grid over a camera path.
 
     Attributes:
@@ -87,18 +174,26 @@ class CdlodModel:
         return (y * nx + x).astype(np.int32)
 
     @cached_property
-    def _data(self) -> dict[str, Any]:
+    def spec(self) -> CdlodSpec:
+        names = [k.name for k in self.knobs]
+        return CdlodSpec("cdlod", self.scheme.terrain.depth, self.levels, False, tuple(k.log for k in self.knobs),
+                         tuple(names.index(p) if p in names else -1 for p in PARAMS))
+
+    @cached_property
+    def data(self) -> dict[str, Any]:
         """Padded per camera: each kept sample's node per tree level (C, D+1, V), its log eye distance (C, V), the
-        pairs' sorted log errors (C, R*V) and each sorted pair's (LOD, sample) index (C, R*V)."""
+        pairs' sorted log errors (C, R*V) and each sorted pair's (LOD, sample) index (C, R*V); the tree's log
+        distances, visibility and parents per level (the roots padded to a power of two); the knobs, the fixed
+        values (:data:`PARAMS`) and the cost of a whole node and of a quadrant."""
         subs = [p.subset(self.relaxed_samples) for p in self.probes]
-        depth = self.scheme.terrain.depth
-        R, V = self.levels, max(max(len(p.rows) for p in subs), 1)
-        node = np.zeros((len(subs), depth + 1, V), np.int32)
-        logds = np.zeros((len(subs), V), np.float32)
-        smask = np.zeros((len(subs), V), np.float32)
-        logv = np.full((len(subs), R * V), 30.0, np.float32)
-        pidx = np.zeros((len(subs), R * V), np.int32)
-        pmask = np.zeros((len(subs), R * V), np.float32)
+        t, tree = self.scheme.terrain, self._tree
+        depth, R, cb = t.depth, self.levels, bucket(len(subs))
+        v = max(max(len(p.rows) for p in subs), 1)
+        V = bucket(v, MIN_PAIRS)
+        node = np.zeros((cb, depth + 1, V), np.int32)
+        logds, smask = np.zeros((cb, V), np.float32), np.zeros((cb, V), np.float32)
+        logv = np.full((cb, R * V), PAD_LOGV, np.float32)
+        pidx, pmask = np.zeros((cb, R * V), np.int32), np.zeros((cb, R * V), np.float32)
         for c, p in enumerate(subs):
             n = len(p.rows)
             node[c, :, :n] = np.stack([self._node_of(p.rows, p.cols, lvl) for lvl in range(depth + 1)])
@@ -108,132 +203,119 @@ class CdlodModel:
             logv[c, :len(lv)] = lv
             pidx[c, :len(lv)] = (perm // n) * V + perm % n if n else perm
             pmask[c, :len(lv)] = 1.0
-        return {"logd": list(self._tree["logd"]), "vis": list(self._tree["vis"]), "node": node, "logds": logds,
-                "smask": smask, "logv": logv, "pidx": pidx, "pmask": pmask}
+        g, w = float(self.scheme.grid), self.weights
+        size = [bucket(t.roots[0] * t.roots[1]) << (2 * lvl) for lvl in range(depth + 1)]
+        return {"logd": [pad_to(a, (cb, size[i])) for i, a in enumerate(tree["logd"])],
+                "vis": [pad_to(a, (cb, size[i])) for i, a in enumerate(tree["vis"])],
+                "parent": [pad_to(a, (size[i],)) for i, a in enumerate(tree["parent"])],
+                "node": node, "logds": logds, "smask": smask, "logv": logv, "pidx": pidx, "pmask": pmask,
+                "npairs": np.int32(R * v), "cmask": camera_mask(len(subs)), **knob_arrays(self.knobs),
+                "pfix": np.asarray([self.fixed.get(p, 1.0) for p in PARAMS], np.float32),
+                "whole_cost": np.float32(w.get("triangles", 0.0) * 8.0 * (g / 2) ** 2
+                                         + w.get("vertices", 0.0) * (g + 1) ** 2 + w.get("draw_calls", 0.0)),
+                "quad_cost": np.float32(w.get("triangles", 0.0) * 2.0 * (g / 2) ** 2
+                                        + w.get("vertices", 0.0) * (g / 2 + 1) ** 2 + w.get("draw_calls", 0.0))}
 
-    def values(self, u: jnp.ndarray) -> dict[str, Any]:
-        out: dict[str, Any] = dict(self.fixed)
-        for i, k in enumerate(self.knobs):
-            ui = jnp.clip(u[i], 0.0, 1.0)
-            out[k.name] = (jnp.exp(math.log(k.lo) + ui * (math.log(k.hi) - math.log(k.lo))) if k.log
-                           else k.lo + ui * (k.hi - k.lo))
-        return out
+    def prepare(self) -> None:
+        """Build what the relaxed and the hard model read (otherwise built on first use)."""
+        _ = self.data, self._hard_tree, self._hard_samples
 
-    def _ranges(self, v: Mapping[str, Any]) -> tuple[list, list, list]:
-        """(log range, morph start, 1 / (morph end - morph start)) per LOD, as :func:`cdlod_ranges`, traceable (the
-        coarsest: range +inf, no morph)."""
-        fr, r, msr = v["first_range"], v["ratio"], v["morph_start_ratio"]
-        rng, start, inv = [], [], []
-        total, prev = 0.0, 0.0
-        for i in range(self.levels):
-            if i == self.levels - 1:
-                rng.append(jnp.asarray(60.0)), start.append(jnp.asarray(3e38)), inv.append(jnp.asarray(0.0))
+    # -- the hard model -----------------------------------------------------------------------------
+    @cached_property
+    def _hard_tree(self) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+        """Per tree level: every camera's node distances (C, N) float64, visibility (C, N) bool, and the parents."""
+        tree = self._tree
+        return ([np.exp(a.astype(np.float64)) for a in tree["logd"]], [a > 0 for a in tree["vis"]],
+                list(tree["parent"]))
+
+    @cached_property
+    def _hard_samples(self) -> tuple[np.ndarray | None, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per camera, padded to the most kept samples, flat over (camera, sample): each sample's node at the finest
+        tree level as an index into every camera's finest nodes laid end to end (C, V) (None where a sample's nodes
+        are not one ancestor line: then ``nodes`` (C, D+1, V), its node per level, is read instead), its eye
+        distance (C, V) float32, the flat index of its error at LOD 0 in ``err`` (C, V), ``err`` (C, R, V) float32,
+        and which samples are real (C, V) bool."""
+        depth, C, parents = self.scheme.terrain.depth, len(self.probes), self._tree["parent"]
+        v = max(max(len(p.rows) for p in self.probes), 1)
+        nodes = np.zeros((C, depth + 1, v), np.int64)
+        dist, ok = np.zeros((C, v), np.float32), np.zeros((C, v), bool)
+        err = np.ones((C, self.levels, v), np.float32)
+        for c, p in enumerate(self.probes):
+            n = len(p.rows)
+            nodes[c, :, :n] = np.stack([self._node_of(p.rows, p.cols, lvl) for lvl in range(depth + 1)])
+            dist[c, :n], err[c, :, :n], ok[c, :n] = p.dist, p.err, True
+        line = nodes[:, depth]
+        for lvl in range(depth, 0, -1):  # every sample's node at each level is the ancestor of its finest one
+            line = parents[lvl][line]
+            if not np.array_equal(line, nodes[:, lvl - 1]):
                 break
-            total = total + r ** i
-            ri = fr * total
-            si = prev + (ri - prev) * msr
-            ei = ri + (si - ri) * 0.01
-            rng.append(jnp.log(ri)), start.append(si), inv.append(1.0 / jnp.maximum(ei - si, 1e-6))
-            prev = si
-        return rng, start, inv
+        else:
+            n_fine = len(parents[depth])
+            finest = nodes[:, depth] + (np.arange(C) * n_fine)[:, None]
+            base = (np.arange(C)[:, None] * self.levels * v) + np.arange(v)[None, :]
+            return finest, nodes, dist, base, err, ok
+        return None, nodes, dist, (np.arange(C)[:, None] * self.levels * v) + np.arange(v)[None, :], err, ok
 
-    @cached_property
-    def _jitted(self):
-        return jax.jit(self._relaxed)
-
-    def relaxed(self, u: jnp.ndarray, temp: float) -> tuple[jnp.ndarray, jnp.ndarray]:
-        return self._jitted(u, jnp.asarray(temp, jnp.float32), self._data)
-
-    def _relaxed(self, u: jnp.ndarray, temp: jnp.ndarray, data: dict[str, Any]) -> tuple[jnp.ndarray, jnp.ndarray]:
-        v = self.values(u)
-        logr, start, inv = self._ranges(v)
-        depth, parents, L = self.scheme.terrain.depth, self._tree["parent"], self.levels
-        g = float(self.scheme.grid)
-        w = self.weights
-        whole_cost = (w.get("triangles", 0.0) * 8.0 * (g / 2) ** 2 + w.get("vertices", 0.0) * (g + 1) ** 2
-                      + w.get("draw_calls", 0.0))
-        quad_cost = (w.get("triangles", 0.0) * 2.0 * (g / 2) ** 2 + w.get("vertices", 0.0) * (g / 2 + 1) ** 2
-                     + w.get("draw_calls", 0.0))
-
-        def camera(_, cam):
-            logd, vis, node, logds, smask, logv, pidx, pmask = cam
-            whole, quad = [], []  # per tree level: each node's probability of being drawn whole / as a quadrant
-            reach, cost, split_prev = None, 0.0, None
-            for lvl in range(depth + 1):
-                i = depth - lvl
-                q = jax.nn.sigmoid((logr[i] - logd[lvl]) / temp) if i < L - 1 else jnp.ones_like(logd[lvl])
-                reach = jnp.ones_like(q) if lvl == 0 else reach[parents[lvl]] * split_prev[parents[lvl]]
-                finer = jax.nn.sigmoid((logr[i - 1] - logd[lvl]) / temp) if i > 0 else jnp.zeros_like(q)
-                whole.append(reach * vis[lvl] * q * (1.0 - finer))
-                quad.append(reach * vis[lvl] * (1.0 - q) if lvl > 0 else jnp.zeros_like(q))
-                split_prev = q * finer * vis[lvl]
-                cost = cost + whole_cost * jnp.sum(whole[-1]) + quad_cost * jnp.sum(quad[-1])
-            # LOD i: the samples of level depth - i drawn whole, and those of level depth - i + 1 drawn as a quadrant
-            # of their parent
-            at = [whole[depth - i][node[depth - i]] + (quad[depth - i + 1][node[depth - i + 1]] if i else 0.0)
-                  for i in range(L)]
-            ds = jnp.exp(logds)
-            k = [jnp.clip((ds - start[j]) * inv[j], 0.0, 1.0) for j in range(L - 1)]  # a sample at j morphs to j+1
-            pair = [at[j] * (1.0 - k[j] if j < L - 1 else 1.0) + (at[j - 1] * k[j - 1] if j else 0.0)
-                    for j in range(L)]
-            wts = (jnp.stack(pair) * smask[None, :]).reshape(-1)
-            return None, (cost, soft_quantile(logv, wts[pidx] * pmask))
-
-        xs = (list(data["logd"]), list(data["vis"]), data["node"], data["logds"], data["smask"], data["logv"],
-              data["pidx"], data["pmask"])
-        _, (costs, errs) = jax.lax.scan(camera, None, xs)
-        return costs, errs
-
-    @cached_property
-    def _sample_nodes(self) -> list[np.ndarray]:
-        """Per camera, each kept sample's node per tree level (D+1, V)."""
+    def _select(self, rng: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """Every camera's selection for the ranges ``rng`` (per LOD), as :meth:`Cdlod.select` makes it, from the node
+        distances and visibility the model holds: per tree level, the nodes drawn whole and as a parent's quadrant
+        ((C, N) bool each)."""
+        dist, vis_all, parents = self._hard_tree
         depth = self.scheme.terrain.depth
-        return [np.stack([self._node_of(p.rows, p.cols, lvl) for lvl in range(depth + 1)]) for p in self.probes]
-
-    def _select(self, c: int, rng: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """Camera ``c``'s selection for the ranges ``rng`` (per LOD), as :meth:`Cdlod.select` makes it, from the node
-        distances and visibility the model holds: per tree level, the nodes drawn whole and as a parent's quadrant."""
-        tree, depth = self._tree, self.scheme.terrain.depth
         whole, quad = [], []
-        reach = np.ones(len(tree["vis"][0][c]), bool)
+        reach = np.ones(vis_all[0].shape, bool)
+        split = reach
         for lvl in range(depth + 1):
             i = depth - lvl
             if lvl:
-                reach = reach_prev[tree["parent"][lvl]]  # noqa: F821 - the level above's
-            vis = reach & (tree["vis"][lvl][c] > 0)
-            d = np.exp(tree["logd"][lvl][c].astype(np.float64))
-            in_range = d < rng[i]
-            split = vis & in_range & (d < rng[i - 1]) if i > 0 else np.zeros_like(vis)
+                reach = split[:, parents[lvl]]  # the level above's splits
+            vis = reach & vis_all[lvl]
+            in_range = dist[lvl] < rng[i]
+            split = vis & in_range & (dist[lvl] < rng[i - 1]) if i > 0 else np.zeros_like(vis)
             whole.append(vis & in_range & ~split)
             quad.append(vis & ~in_range if lvl else np.zeros_like(vis))
-            reach_prev = split  # noqa: F841
         return whole, quad
 
-    def hard(self, values: Mapping[str, float]) -> Prediction:
+    def _lods(self, whole: list[np.ndarray], quad: list[np.ndarray]) -> np.ndarray:
+        """Each kept sample's LOD (C, V) (-1 where no drawn node covers it): that of the deepest level whose node over
+        it is drawn, whole (LOD depth - level) or as its parent's quadrant (one coarser)."""
+        finest, nodes, _, _, _, _ = self._hard_samples
+        depth, parents = self.scheme.terrain.depth, self._tree["parent"]
+        if finest is not None:  # each finest node takes the LOD of the deepest drawn node above it, read once
+            acc = None
+            for lvl in range(depth + 1):
+                code = np.where(whole[lvl], depth - lvl, np.where(quad[lvl], depth - lvl + 1, -1))
+                acc = code if acc is None else np.where(code >= 0, code, acc[:, parents[lvl]])
+            return acc.reshape(-1)[finest]
+        lod = np.full(nodes[:, 0].shape, -1, np.int64)
+        for lvl in range(depth + 1):
+            code = np.where(whole[lvl], depth - lvl, np.where(quad[lvl], depth - lvl + 1, -1))
+            at = np.take_along_axis(code, nodes[:, lvl, :], axis=1)
+            lod = np.where(at >= 0, at, lod)
+        return lod
+
+    def predict(self, values: Mapping[str, float]) -> Prediction:
         """The selection at temperature 0 (:meth:`_select`, what :meth:`Cdlod.select` draws), its draws counted as
         the mesh counts them; each sample's error at its LOD, blended toward the next by its morph factor."""
         v = {**self.fixed, **values}
         rng, start, end = cdlod_ranges(float(v["first_range"]), float(v["ratio"]), float(v["morph_start_ratio"]),
                                        self.levels)
-        g, depth = int(self.scheme.grid), self.scheme.terrain.depth
-        costs, p99 = [], []
-        for c, (probe, nodes) in enumerate(zip(self.probes, self._sample_nodes, strict=True)):
-            whole, quad = self._select(c, rng)
-            nw, nq = int(sum(w.sum() for w in whole)), int(sum(q.sum() for q in quad))
-            feats = {"triangles": 2.0 * (g // 2) ** 2 * (4 * nw + nq), "vertices": float(nw * (g + 1) ** 2
-                                                                                           + nq * (g // 2 + 1) ** 2),
-                     "draw_calls": float(nw + nq), "patches": 0.0, "domain_points": 0.0}
+        g = int(self.scheme.grid)
+        whole, quad = self._select(rng)
+        nw, nq = sum(w.sum(axis=1) for w in whole), sum(q.sum(axis=1) for q in quad)
+        costs = []
+        for a, b in zip(nw.tolist(), nq.tolist(), strict=True):
+            feats = {"triangles": 2.0 * (g // 2) ** 2 * (4 * a + b), "vertices": float(a * (g + 1) ** 2
+                                                                                      + b * (g // 2 + 1) ** 2),
+                     "draw_calls": float(a + b), "patches": 0.0, "domain_points": 0.0}
             costs.append(sum(self.weights.get(f, 0.0) * x for f, x in feats.items()))
-            lod = np.full(nodes.shape[1], -1, np.int64)
-            for lvl in range(depth + 1):
-                lod[whole[lvl][nodes[lvl]]] = depth - lvl
-                lod[quad[lvl][nodes[lvl]]] = depth - lvl + 1
-            j = np.maximum(lod, 0)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                k = np.where(np.isfinite(start[j]), np.clip((probe.dist - start[j]) / (end[j] - start[j]), 0, 1), 0.0)
-            nxt = np.minimum(j + 1, self.levels - 1)
-            cols = np.arange(len(j))
-            err = (1.0 - k) * probe.err[j, cols] + k * probe.err[nxt, cols]
-            p99.append(hard_percentile(np.where(lod >= 0, err, np.nan)))
-        return Prediction(np.asarray(costs), np.asarray(p99))
+        lod = self._lods(whole, quad)
+        _, _, dist, base, err, ok = self._hard_samples
+        j = np.maximum(lod, 0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            k = np.where(np.isfinite(start[j]), np.clip((dist - start[j]) / (end[j] - start[j]), 0, 1), 0.0)
+        nxt = np.minimum(j + 1, self.levels - 1)
+        flat, v = err.reshape(-1), err.shape[2]
+        e = (1.0 - k) * flat[base + j * v] + k * flat[base + nxt * v]
+        return Prediction(np.asarray(costs), hard_percentiles(e, ok & (lod >= 0)))
 

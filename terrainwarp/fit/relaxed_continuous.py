@@ -9,7 +9,9 @@ log factor between the two rungs around the patch's mean inner factor. Cost: the
 triangles and patch (exact in ``hard``, :func:`terrainwarp.kernels.tessellator.count_patches`; relaxed, ``2 n_u
 n_v`` triangles and ``(n_u + 1)(n_v + 1)`` points, ``n`` the odd segment count's mean, :func:`_segments`). What
 the model leaves out: a patch's outer edges tessellated apart from its inner factor (the probes tessellate the
-whole patch at one factor).
+whole patch at one factor). ``hard`` counts every camera's patches in one launch and reads every sample at
+once (numpy). The relaxed function is pure (:class:`ContinuousSpec`, the data padded as
+:mod:`terrainwarp.fit.relaxed` says; a padded patch costs nothing).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,10 +33,23 @@ from ..lod.quadtree import PatchList, Terrain, select
 from ..scene import MAX_TESS, LodConfig
 from .knobs import Knob
 from .probe import CameraProbe
-from .relaxed import hard_percentile, soft_quantile, sorted_pairs
+from .relaxed import (
+    MIN_PAIRS,
+    PAD_LOGV,
+    PaddedModel,
+    bucket,
+    camera_mask,
+    hard_percentiles,
+    knob_arrays,
+    relaxed_values,
+    soft_quantile,
+    sorted_pairs,
+)
 from .search import Prediction
 
-__all__ = ["ContinuousModel", "factor_ladder"]
+__all__ = ["ContinuousModel", "ContinuousSpec", "factor_ladder", "continuous_patches"]
+
+MIN_PATCHES = 64  # the fewest patches a camera's edges are padded to
 
 
 def factor_ladder(terrain: Terrain, level: int, ratio: float = 1.2) -> np.ndarray:
@@ -50,8 +65,47 @@ def _segments(f):
     return f + 1.0 - jnp.exp(-2.0 * (f - 1.0))
 
 
+class ContinuousSpec(NamedTuple):
+    """The static part of a :class:`ContinuousModel`: the rungs of its factor ladder and its knob's space."""
+
+    kind: str
+    rungs: int
+    pops: bool
+    logs: tuple[bool, ...]
+
+    def relaxed(self, data: Mapping[str, Any], u: jnp.ndarray, temp: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        return continuous_relaxed(self, data, u, temp)
+
+
+def continuous_relaxed(spec: ContinuousSpec, d: Mapping[str, Any], u: jnp.ndarray,
+                       temp: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(cost per padded camera, log p99 per padded camera) at unit coordinate ``u`` (target_px) (pure)."""
+    target = relaxed_values(u, d, spec.logs)[0]
+    t = jnp.maximum(temp, 0.05)
+    soft = lambda x, a, b: a + t * jax.nn.softplus((x - a) / t) - t * jax.nn.softplus((x - b) / t)  # noqa: E731
+    logf, R, w = d["logf"], spec.rungs, d["w"]
+
+    def camera(_, cam):
+        edges, pvalid, patch, smask, logv, pidx, pmask = cam
+        _, inner = continuous_factors(edges, target, xp=jnp, clamp=soft)
+        fu, fv = inner[:, 0], inner[:, 1]
+        nu, nv = _segments(fu), _segments(fv)
+        cost = jnp.sum((w[0] + w[1] * 2.0 * nu * nv + w[2] * (nu + 1.0) * (nv + 1.0) + w[3] * 4.0) * pvalid)
+        f = jnp.log(jnp.maximum(0.5 * (fu + fv), 1.0))[patch]
+        i = jnp.clip(jnp.searchsorted(logf, f) - 1, 0, R - 2)
+        a = jnp.clip((f - logf[i]) / (logf[i + 1] - logf[i]), 0.0, 1.0)
+        V = patch.shape[0]
+        wts = jnp.zeros(R * V).at[i * V + jnp.arange(V)].add((1.0 - a) * smask)
+        wts = wts.at[(i + 1) * V + jnp.arange(V)].add(a * smask)
+        return None, (cost, soft_quantile(logv, wts[pidx] * pmask, n=d["npairs"]))
+
+    xs = (d["edges"], d["pvalid"], d["patch"], d["smask"], d["logv"], d["pidx"], d["pmask"])
+    _, (costs, errs) = jax.lax.scan(camera, None, xs)
+    return costs, errs
+
+
 @dataclass(eq=False)
-class ContinuousModel:
+class ContinuousModel(PaddedModel):
     """The continuous policy at one ``level`` over a camera path.
 
     Attributes:
@@ -93,21 +147,24 @@ class ContinuousModel:
         return lookup[y * nx + x]
 
     @cached_property
-    def _data(self) -> dict[str, Any]:
-        """Per camera, padded and stacked: the edges' projected lengths (C, P, 4) and their mask, each kept sample's
-        patch (C, V), the pairs' sorted log errors (C, R*V) and each sorted pair's (rung, sample) index."""
+    def spec(self) -> ContinuousSpec:
+        return ContinuousSpec("continuous", len(self.factors), False, tuple(k.log for k in self.knobs))
+
+    @cached_property
+    def data(self) -> dict[str, Any]:
+        """Per camera, padded and stacked: the edges' projected lengths (C, P, 4) and which patches are real, each
+        kept sample's patch (C, V), the pairs' sorted log errors (C, R*V) and each sorted pair's (rung, sample)
+        index; the ladder's log factors, the cost weights (patches, triangles, domain points, vertices)."""
         subs = [p.subset(self.relaxed_samples) for p in self.probes]
-        R = len(self.factors)
-        V = max(max(len(p.rows) for p in subs), 1)
-        P = max(max(len(e) for e in self._edges), 1)
-        edges = np.ones((len(subs), P, 4), np.float32)
-        patch = np.zeros((len(subs), V), np.int32)
-        smask = np.zeros((len(subs), V), np.float32)
-        logv = np.full((len(subs), R * V), 30.0, np.float32)
-        pidx = np.zeros((len(subs), R * V), np.int32)
-        pmask = np.zeros((len(subs), R * V), np.float32)
+        R, cb = len(self.factors), bucket(len(subs))
+        v = max(max(len(p.rows) for p in subs), 1)
+        V, P = bucket(v, MIN_PAIRS), bucket(max(max(len(e) for e in self._edges), 1), MIN_PATCHES)
+        edges, pvalid = np.ones((cb, P, 4), np.float32), np.zeros((cb, P), np.float32)
+        patch, smask = np.zeros((cb, V), np.int32), np.zeros((cb, V), np.float32)
+        logv = np.full((cb, R * V), PAD_LOGV, np.float32)
+        pidx, pmask = np.zeros((cb, R * V), np.int32), np.zeros((cb, R * V), np.float32)
         for c, (p, pl, e) in enumerate(zip(subs, self.patches, self._edges, strict=True)):
-            edges[c, :len(e)] = np.minimum(e, 1e6)
+            edges[c, :len(e)], pvalid[c, :len(e)] = np.minimum(e, 1e6), 1.0
             own = self._patch_of(pl, p.rows, p.cols)
             n = len(p.rows)
             patch[c, :n] = np.maximum(own, 0)
@@ -116,65 +173,59 @@ class ContinuousModel:
             logv[c, :len(lv)] = lv
             pidx[c, :len(lv)] = (perm // n) * V + perm % n if n else perm
             pmask[c, :len(lv)] = 1.0
-        return {"edges": edges, "patch": patch, "smask": smask, "logv": logv, "pidx": pidx, "pmask": pmask,
-                "logf": np.log(self.factors).astype(np.float32)}
+        w = self.weights
+        return {"edges": edges, "pvalid": pvalid, "patch": patch, "smask": smask, "logv": logv, "pidx": pidx,
+                "pmask": pmask, "npairs": np.int32(R * v), "logf": np.log(self.factors).astype(np.float32),
+                "w": np.asarray([w.get(f, 0.0) for f in ("patches", "triangles", "domain_points", "vertices")],
+                                np.float32), "cmask": camera_mask(len(subs)), **knob_arrays(self.knobs)}
+
+    def prepare(self) -> None:
+        """Build what the relaxed and the hard model read (otherwise built on first use)."""
+        _ = self.data, self._hard_samples
 
     @cached_property
-    def _jitted(self):
-        return jax.jit(self._relaxed)
+    def _hard_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every camera's edges laid end to end (sum P, 4), each patch's camera (sum P,), and per camera, padded to
+        the most kept samples: each sample's patch in that layout (C, V) int64, its error per rung (C, R, V) and
+        which samples are drawn (C, V) bool."""
+        C, R = len(self.probes), len(self.factors)
+        v = max(max(len(p.rows) for p in self.probes), 1)
+        start = np.concatenate([[0], np.cumsum([len(e) for e in self._edges])]).astype(np.int64)
+        own = np.zeros((C, v), np.int64)
+        err, ok = np.ones((C, R, v), np.float32), np.zeros((C, v), bool)
+        for c, (pl, p) in enumerate(zip(self.patches, self.probes, strict=True)):
+            o = self._patch_of(pl, p.rows, p.cols)
+            n = len(p.rows)
+            own[c, :n], err[c, :, :n], ok[c, :n] = start[c] + np.maximum(o, 0), p.err, o >= 0
+        edges = np.concatenate(self._edges) if self._edges else np.zeros((0, 4))
+        camera = np.repeat(np.arange(C), np.diff(start))
+        return edges, camera, own, err, ok
 
-    def relaxed(self, u: jnp.ndarray, temp: float) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """(cost per camera (C,), log p99 px per camera (C,)) at unit coordinate ``u`` (target_px) and ``temp``."""
-        return self._jitted(u, jnp.asarray(temp, jnp.float32), self._data)
-
-    def _relaxed(self, u: jnp.ndarray, temp: jnp.ndarray, data: dict[str, Any]) -> tuple[jnp.ndarray, jnp.ndarray]:
-        k = self.knobs[0]
-        target = jnp.exp(math.log(k.lo) + jnp.clip(u[0], 0.0, 1.0) * (math.log(k.hi) - math.log(k.lo)))
-        t = jnp.maximum(temp, 0.05)
-        soft = lambda x, a, b: a + t * jax.nn.softplus((x - a) / t) - t * jax.nn.softplus((x - b) / t)  # noqa: E731
-        logf, R = data["logf"], len(self.factors)
-        w = self.weights
-
-        def camera(_, cam):
-            edges, patch, smask, logv, pidx, pmask = cam
-            _, inner = continuous_factors(edges, target, xp=jnp, clamp=soft)
-            fu, fv = inner[:, 0], inner[:, 1]
-            nu, nv = _segments(fu), _segments(fv)
-            cost = jnp.sum(w.get("patches", 0.0) + w.get("triangles", 0.0) * 2.0 * nu * nv
-                           + w.get("domain_points", 0.0) * (nu + 1.0) * (nv + 1.0) + w.get("vertices", 0.0) * 4.0)
-            f = jnp.log(jnp.maximum(0.5 * (fu + fv), 1.0))[patch]
-            i = jnp.clip(jnp.searchsorted(logf, f) - 1, 0, R - 2)
-            a = jnp.clip((f - logf[i]) / (logf[i + 1] - logf[i]), 0.0, 1.0)
-            V = patch.shape[0]
-            wts = jnp.zeros(R * V).at[i * V + jnp.arange(V)].add((1.0 - a) * smask)
-            wts = wts.at[(i + 1) * V + jnp.arange(V)].add(a * smask)
-            return None, (cost, soft_quantile(logv, wts[pidx] * pmask))
-
-        xs = (data["edges"], data["patch"], data["smask"], data["logv"], data["pidx"], data["pmask"])
-        _, (costs, errs) = jax.lax.scan(camera, None, xs)
-        return costs, errs
-
-    def hard(self, values: Mapping[str, float]) -> Prediction:
-        """The real factors of each patch (the policy's rule, float32 as the selection makes them), counted exactly;
-        each sample's error interpolated between the rungs around its patch's mean inner factor."""
+    def predict(self, values: Mapping[str, float]) -> Prediction:
+        """The real factors of each patch (the policy's rule, float32 as the selection makes them), counted exactly
+        (one count launch for every camera); each sample's error interpolated between the rungs around its patch's
+        mean inner factor."""
         cfg = self.config({**self.fixed, **values})
-        costs, p99 = [], []
-        logf = np.log(self.factors)
-        for pl, e, probe in zip(self.patches, self._edges, self.probes, strict=True):
-            outer, inner = continuous_factors(e, cfg.target_px)
-            outer, inner = outer.astype(np.float32), inner.astype(np.float32)
-            pts, tris = count_patches(outer, inner, cfg.spacing, self.device)
-            feats = {"patches": float(len(pl)), "domain_points": float(pts.sum()), "triangles": float(tris.sum()),
+        edges, camera, own, err, ok = self._hard_samples
+        outer, inner = continuous_factors(edges, cfg.target_px)
+        outer, inner = outer.astype(np.float32), inner.astype(np.float32)
+        pts, tris = count_patches(outer, inner, cfg.spacing, self.device)
+        C = len(self.cams)
+        npts = np.bincount(camera, weights=pts, minlength=C)
+        ntri = np.bincount(camera, weights=tris, minlength=C)
+        costs = []
+        for c, pl in enumerate(self.patches):
+            feats = {"patches": float(len(pl)), "domain_points": float(npts[c]), "triangles": float(ntri[c]),
                      "vertices": 4.0 * len(pl), "draw_calls": 1.0}
             costs.append(sum(self.weights.get(f, 0.0) * x for f, x in feats.items()))
-            own = self._patch_of(pl, probe.rows, probe.cols)
-            f = np.log(np.maximum(0.5 * (inner[:, 0] + inner[:, 1]), 1.0))[np.maximum(own, 0)]
-            i = np.clip(np.searchsorted(logf, f) - 1, 0, len(logf) - 2)
-            a = np.clip((f - logf[i]) / (logf[i + 1] - logf[i]), 0.0, 1.0)
-            cols = np.arange(len(f))
-            err = (1.0 - a) * probe.err[i, cols] + a * probe.err[i + 1, cols]
-            p99.append(hard_percentile(np.where(own >= 0, err, np.nan)))
-        return Prediction(np.asarray(costs), np.asarray(p99))
+        logf = np.log(self.factors)
+        fl = np.log(np.maximum(0.5 * (inner[:, 0] + inner[:, 1]), 1.0))
+        f = fl[own] if len(fl) else np.zeros(own.shape, np.float32)  # no patch drawn: every sample invalid
+        i = np.clip(np.searchsorted(logf, f) - 1, 0, len(logf) - 2)
+        a = np.clip((f - logf[i]) / (logf[i + 1] - logf[i]), 0.0, 1.0)
+        e = (1.0 - a) * np.take_along_axis(err, i[:, None, :], axis=1)[:, 0] + a * np.take_along_axis(
+            err, (i + 1)[:, None, :], axis=1)[:, 0]
+        return Prediction(np.asarray(costs), hard_percentiles(e, ok))
 
 
 def continuous_patches(terrain: Terrain, cams: list[Camera], level: int, device: str = "cpu") -> list[PatchList]:

@@ -35,10 +35,11 @@ import numpy as np
 
 from .exact import Evaluation, Exact
 from .knobs import Knob
-from .optimise import Model, Prediction, reduced_gradient
+from .optimise import Model, NonFiniteModel, Prediction, reduced_gradient
+from .timings import part
 
 __all__ = ["Model", "Prediction", "Calibration", "Candidate", "reduced_gradient", "polish", "calibrated_search",
-           "bracket_search", "close_to_bound"]
+           "bracket_search", "close_to_bound", "NonFiniteModel"]
 
 FLOOR = 1e-3  # px: errors below this calibrate as this (a camera whose samples are all on vertices reads 0)
 
@@ -164,10 +165,11 @@ def _line_only(cand: Candidate, target: float) -> None:
     if cand.u is None:
         cand.u = np.array([0.5] * len(knobs))
     start = {k.name: k.from_unit(x) for k, x in zip(knobs, cand.u, strict=True)}
-    cand.values, cand.pred = _main_line(cand.model, start, knobs[0], target, cand.offsets, 10)
-    cand.feasible = cand.pred is not None
-    if cand.pred is None:  # infeasible even at its finest by the model: its finest, to be tried if nothing else is
-        cand.pred = cand.model.hard(cand.values)
+    with part("hard"):
+        cand.values, cand.pred = _main_line(cand.model, start, knobs[0], target, cand.offsets, 10)
+        cand.feasible = cand.pred is not None
+        if cand.pred is None:  # infeasible even at its finest by the model: its finest, tried if nothing else is
+            cand.pred = cand.model.hard(cand.values)
     cand.u = np.array([k.to_unit(cand.values[k.name]) for k in knobs])
 
 
@@ -193,11 +195,12 @@ def _solve(cand: Candidate, target: float, exact: Exact, *, first: bool,
     centre = {k.name: k.from_unit(x) for k, x in zip(knobs, cand.u, strict=True)}
     starts = [{k.name: k.from_unit(x) for k, x in zip(knobs, u, strict=True)}, centre]
     best: tuple[dict[str, float], Prediction | None] = ({}, None)
-    for start in starts:
-        v, p = polish(model, start, target, cand.offsets, center=centre, radius=1.0 if first else cand.radius,
-                      history=exact.history)
-        if p is not None and (best[1] is None or p.mean_cost < best[1].mean_cost):
-            best = (v, p)
+    with part("hard"):
+        for start in starts:
+            v, p = polish(model, start, target, cand.offsets, center=centre, radius=1.0 if first else cand.radius,
+                          history=exact.history)
+            if p is not None and (best[1] is None or p.mean_cost < best[1].mean_cost):
+                best = (v, p)
     if best[1] is None:  # nothing feasible by the model near here: the main knob's line from the last solution
         _line_only(cand, target)
         return
@@ -226,7 +229,8 @@ def _try(exact: Exact, cand: Candidate, budget: float, snap: Callable[[dict], di
 def _calibrate(cand: Candidate, e: Evaluation, setting: dict[str, float]) -> None:
     """Each measured camera's offset: log exact - log hard, both at the setting tried (its snapped values)."""
     values = {k: setting[k] for k in cand.values}
-    hard = cand.model.hard(values)
+    with part("hard"):
+        hard = cand.model.hard(values)
     t = cand.model.knobs[0].to_unit(values[cand.model.knobs[0].name])
     frames = e.frames if e.frames is not None else list(range(len(e.p99_px)))
     before = cand.calib.at(t)
@@ -308,7 +312,8 @@ def _step_finer(cand: Candidate, e: Evaluation, rel_tol: float) -> None:
         move = new > bound
     if move or not cand.feasible:
         cand.values = {**cand.values, main.name: bound}
-        cand.pred = cand.model.hard(cand.values)
+        with part("hard"):
+            cand.pred = cand.model.hard(cand.values)
         cand.feasible = True  # a try worth its frame: the calibration read across a step is not to be trusted
         cand.u = np.array([k.to_unit(cand.values[k.name]) for k in cand.model.knobs])
 

@@ -8,7 +8,8 @@ Stages (each a small function of the frame in progress, :data:`_STAGES`):
 =============  =============================================================================
 stage          what
 =============  =============================================================================
-prepare        LOD scenes without a caller-held Terrain: quadtree pyramids (min/max/error)
+prepare        LOD scenes whose heightmap holds no Terrain of their layout yet: quadtree pyramids
+               (min/max/error), then held by the heightmap for the frames after (see below)
 normal_map     the heightmap's Sobel normal map (cached in the Terrain or the source when one is held)
 curvature      heightmap curvature (three-normal, four directions)
 select         LOD scenes: the visible patches (policy, balance, edge factors, culling); a source: the
@@ -51,6 +52,13 @@ draws, :class:`terrainwarp.mesh.Draws`) and of the rasterizer (:attr:`terrainwar
 counters`), named as OpenGL's ARB_pipeline_statistics_query names them
 (:data:`terrainwarp.kernels.counters.PIPELINE_COUNTERS`); a scene that does not ask counts nothing.
 
+What persists between frames is held by the heightmap (``Heightmap.held``, per device and setting): a LOD scene's
+:class:`terrainwarp.lod.Terrain` (pyramids, the one-launch walk, the normal map), kept for the last
+``TERRAINS_HELD`` layouts (roots, tess) drawn, as the schemes' pyramids (CDLOD, chunked, clipmaps) and a streamed
+heightmap's source are. So a loop of ``render(scene.with_(camera=c))`` prepares once, on its first frame, and its
+``select`` is the prepared one's; ``terrain=`` hands in a Terrain instead (one prepared with another depth, say).
+``heightmap.held.clear()`` lets it all go.
+
 A held selection: ``render(scene, terrain, patches=held)`` skips ``select`` (and ``prepare``) and tessellates
 the given :class:`terrainwarp.lod.PatchList` (its levels and edge factors as they were selected) for
 ``scene.camera``. That is the "held" frame of popping: :func:`pop_stats` measures the pop between the
@@ -62,6 +70,7 @@ from __future__ import annotations
 import functools
 import time
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,6 +100,7 @@ from .sources import MeshSource, StreamedSource, missing_members, scene_source
 
 __all__ = ["render", "Frame", "Report", "StageRecord", "Plan", "plan_for", "stages_for", "MeshSource", "pop_stats"]
 
+TERRAINS_HELD = 4  # quadtree layouts (roots, tess) a heightmap holds prepared, per device: the latest drawn
 STAGE_ORDER = ("prepare", "normal_map", "curvature", "select", "mesh", "raster", "shade", "reference", "error")
 # The one table of what each output needs: the stages that make it, and what those stages must make for it
 # (mesh "attributes": uv, level and patch id; raster "barycentrics": the perspective-correct barycentric image).
@@ -417,6 +427,8 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
             # hysteresis across frames, as for an in-memory LOD scene; the held source keeps no earlier call's state
             source.state = state
     kind = "source" if source is not None else scene.mesh
+    if terrain is None and kind == "lod":
+        terrain = _held_terrain(hm, scene.lod, device)
     if patches is not None:
         if not isinstance(patches, PatchList):
             raise TypeError(f"patches: expected a PatchList, got {type(patches).__name__}")
@@ -485,9 +497,25 @@ def _streamed_source(scene: Scene, terrain: Terrain | None, source: MeshSource |
 # stages: each fills in its part of the run and its record's counters; a stage that measured its own
 # time (a source's selection and meshing share one call) returns it in ms, the others return None
 # ------------------------------------------------------------------------------------------------
+def _held_terrain(hm: Heightmap, lod: Any, device: str, prepared: Terrain | None = None) -> Terrain | None:
+    """The Terrain the heightmap holds for the layout (roots, tess) of ``lod`` on ``device`` (None: none yet); with
+    ``prepared``, held from now on (the least recently drawn of more than TERRAINS_HELD layouts let go)."""
+    held = hm.held.setdefault(("terrains", device), OrderedDict())
+    key = (lod.roots, lod.tess)
+    if prepared is not None:
+        held[key] = prepared
+        while len(held) > TERRAINS_HELD:
+            held.popitem(last=False)
+    t = held.get(key)
+    if t is not None:
+        held.move_to_end(key)
+    return t
+
+
 def _stage_prepare(run: _Run, rec: StageRecord) -> None:
     lod = run.scene.lod
     run.terrain = t = Terrain.prepare(run.hm, roots=lod.roots, tess=lod.tess, device=run.device)
+    _held_terrain(run.hm, lod, run.device, t)
     rec.counters.update(roots=t.roots[0] * t.roots[1], depth=t.depth, tess=t.tess)
 
 
@@ -640,9 +668,9 @@ def render(scene: Scene, terrain: Terrain | None = None, state: LodState | None 
 
     Args:
         scene: what to draw and which outputs to compute.
-        terrain: a :class:`terrainwarp.lod.Terrain` prepared for this heightmap (pyramids, normal map),
-            held by the caller across frames; prepared here (and timed as ``prepare``) when None and
-            the scene needs it.
+        terrain: a :class:`terrainwarp.lod.Terrain` prepared for this heightmap (pyramids, normal map);
+            None: the one the heightmap holds for the scene's layout, prepared here on the first frame that
+            needs it (timed as ``prepare``) and held by the heightmap after (see the module docstring).
         state: a :class:`terrainwarp.lod.LodState` for hysteresis across frames, or None.
         reference: a full-resolution frame of the same heightmap and camera (with ``depth``) to measure
             the error against, so a sweep renders each camera's reference once; None renders it here.

@@ -28,7 +28,10 @@ from terrainwarp.kernels.noise import fbm
 from terrainwarp.rendering import pipeline
 from terrainwarp.rendering.watertight import check_watertight, lod_boundary
 
-FIT_CASES = ["everest", "cam_on_surface", "nan_holes", "grid_1x1"]  # the JAX fit compiles per case (~1.3 s)
+# the fit stage's cases: the degenerate grids (grid_1x4097 read a camera that sees no sample as NaN), flat,
+# spikes, NaN holes; they share the relaxed model's programs (padded sizes), compiled once per machine
+FIT_CASES = ["everest", "cam_on_surface", "nan_holes", "grid_1x1", "grid_2x2", "grid_3x3", "grid_1x4097", "flat",
+             "spikes"]
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ import gl_raster_oracle as gl  # noqa: E402
 import numpy as np
 import pytest
 
-import terrainwarp.kernels.raster as raster
 from terrainwarp.experiments.gl import GLMesh
+from terrainwarp.kernels import pool
 from terrainwarp.kernels.counters import frame_counters, indexed_draw_counters, patch_draw_counters
 from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.kernels.raster import rasterize_clip
@@ -89,15 +89,17 @@ def test_quads_and_blocks_match_one_triangle_at_a_time(device):
     assert f.counters["clipping_output_primitives"] == len(tri)  # nothing to clip
 
 
-def test_a_frame_with_more_overlaps_than_records_is_drawn_again_with_room(device):
-    clip, tri = _triangles(3, 400, spread=0.2)  # every triangle over the middle of a small viewport
-    raster._RECORDS.clear()
-    f = rasterize_clip(clip, tri, 64, 64, counters=True, device=device)
-    assert raster._RECORDS, "the frame should have needed more than the first room"
-    again = rasterize_clip(clip, tri, 64, 64, counters=True, device=device)  # now with room from the start
-    ref = _sequential(clip, tri, 64, 64, device=device)
+def test_a_frame_that_outgrows_the_lists_room_is_binned_again_with_the_same_counters(device):
+    sparse = _triangles(3, 20, spread=0.2)
+    dense = _triangles(3, 400, spread=0.2)  # every triangle over the middle of a small viewport
+    pool.release_buffers()  # no room kept: the first frame is counted, then binned
+    rasterize_clip(*sparse, 64, 64, counters=True, device=device)  # leaves room for 20 triangles' lists
+    f = rasterize_clip(*dense, 64, 64, counters=True, device=device)  # overflows it: binned again, exact room
+    again = rasterize_clip(*dense, 64, 64, counters=True, device=device)  # now in the room from the start
+    ref = _sequential(*dense, 64, 64, device=device)
     assert f.counters == again.counters
     assert f.counters["samples_passed"] == ref["samples_passed"]
+    assert np.array_equal(f.triangle_id, again.triangle_id) and np.array_equal(f.depth, again.depth)
 
 
 @pytest.mark.parametrize("threads", [2, 3, 8])

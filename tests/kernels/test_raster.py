@@ -428,7 +428,7 @@ def test_depth_one_is_not_drawn_as_gl_less_against_a_cleared_buffer(device):
     assert np.array_equal(f.triangle_id, ids)
 
 
-# -- pooled buffers: keys cleared only where drawn, output images reused once dropped --------------------------
+# -- pooled buffers: lists' room kept between frames, output images reused once dropped --------------------
 
 
 def _scenes(w=160, h=120):
@@ -465,7 +465,6 @@ def _same(a, b):
 
 
 def test_pooled_buffers_reused_by_other_draws_give_the_fresh_result():
-    from terrainwarp.kernels import raster
 
     scenes, (w, h) = _scenes()
     fresh = {}
@@ -480,11 +479,11 @@ def test_pooled_buffers_reused_by_other_draws_give_the_fresh_result():
     for prev, name in zip(order, order[1:], strict=False):
         r = _result(rasterize_clip(*scenes[name], w, h))
         assert _same(r, fresh[name]), f"{name} after {prev}"
-    # the key buffers went back clear: every key drawn was in a flagged tile, and the resolve emptied it
-    leases = [raster._take_keys(w * h, "cpu") for _ in range(2)]  # the two kept buffers, as given back
-    assert leases[0].buffer.ptr != leases[1].buffer.ptr
-    for lease in leases:
-        assert (lease.buffer.numpy() == np.uint64(0xFFFFFFFFFFFFFFFF)).all()
+    # the tiles' lists: binned in one pass into the room kept from the frame before (which a denser frame outgrows,
+    # then binned again with exact room) or counted then emitted, the same frame
+    _fresh_pools()
+    assert _same(_result(rasterize_clip(*scenes["terrain"], w, h)), fresh["terrain"])  # counted, then emitted
+    assert _same(_result(rasterize_clip(*scenes["terrain"], w, h)), fresh["terrain"])  # one pass, in the room
 
 
 def test_images_held_by_the_caller_are_never_reused_and_changes_to_dropped_ones_do_not_leak():
@@ -536,3 +535,39 @@ def test_identical_for_any_thread_count_with_pooled_buffers(threads):
         parallel.set_min_items(None)
     for name, a, b in zip(order, *runs, strict=True):
         assert _same(a, b), name
+
+
+def test_the_way_cuda_draws_gives_the_cpus_frames(monkeypatch):
+    """Without the CPU's scratch tiles (as on CUDA: every tile drawn in the images themselves, by one launch index
+    each, its list sorted first, every entry in 4x4 blocks), the same ids, depth, stats and counters: the SIMD rows
+    and the blocks cover, test and count alike (fragments_tested counts the centres each way evaluates)."""
+    from terrainwarp.kernels import parallel, raster
+
+    scenes, (w, h) = _scenes(203, 97)
+    want = {name: rasterize_clip(*scenes[name], w, h, counters=True) for name in scenes}
+    monkeypatch.setattr(raster, "_SCRATCH", False)
+    try:
+        parallel.set_min_items(1)  # tiles drawn by every thread at once
+        for name, (clip, tri) in scenes.items():
+            got = rasterize_clip(clip, tri, w, h, counters=True)
+            a, b = _result(got), _result(want[name])
+            assert got.stats["fragments_tested"] >= got.stats["fragments_inside"]
+            a[3].pop("fragments_tested"), b[3].pop("fragments_tested")
+            assert _same(a, b) and got.counters == want[name].counters, name
+    finally:
+        parallel.set_min_items(None)
+
+
+@pytest.mark.parametrize("scratch", [True, False])
+def test_a_frame_drawn_in_batches_is_the_frame_drawn_at_once(monkeypatch, scratch):
+    """Triangles binned and drawn BATCH at a time (tiles a batch leaves alone untouched, the others going on from
+    the images so far) give the frame and the counters of one batch."""
+    from terrainwarp.kernels import raster
+
+    scenes, (w, h) = _scenes(203, 97)
+    monkeypatch.setattr(raster, "_SCRATCH", scratch)
+    want = {name: rasterize_clip(*scenes[name], w, h, counters=True) for name in ("terrain", "big")}
+    monkeypatch.setattr(raster, "BATCH", 5)
+    for name, f in want.items():
+        got = rasterize_clip(*scenes[name], w, h, counters=True)
+        assert _same(_result(got), _result(f)) and got.counters == f.counters, name

@@ -68,7 +68,7 @@ def test_a_scene_that_asks_for_no_counters_counts_nothing(small, monkeypatch):
         raise AssertionError("counted without being asked")
 
     monkeypatch.setattr(pipeline, "indexed_draw_counters", boom)
-    monkeypatch.setattr(raster, "_counting", boom)
+    monkeypatch.setattr(raster, "raster_counters", boom)
     for name, (kw, src) in _families(hm).items():
         f = render(Scene(hm, camera=cams[0], outputs=("depth", "error"), **kw), source=src)
         assert f.report.counters is None, name

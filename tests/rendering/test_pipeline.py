@@ -216,6 +216,26 @@ def test_lod_frame_is_watertight_and_close_to_the_reference():
         assert "prepare" not in [s.name for s in f.report.stages]  # the caller's terrain was used
 
 
+def test_a_render_loop_without_a_terrain_prepares_once_and_selects_as_a_prepared_one():
+    """The heightmap holds the Terrain of a layout from the first frame that prepares it: the later frames of a
+    plain loop run no prepare stage, select with that same Terrain (its one-launch walk and normal map kept), and
+    make the frames a caller-held Terrain makes."""
+    hm = Heightmap.fbm(65, seed=9, dx=15.0, max_height=300.0)
+    sc = Scene(hm, camera=Camera.default_for(hm, 96, 64), mesh="lod", lod=LodConfig(roots=4, tess=8),
+               outputs=("depth", "patches"))
+    cams = sc.camera_path(3)
+    frames = [render(sc.with_(camera=c)) for c in cams]
+    assert [("prepare" in [s.name for s in f.report.stages]) for f in frames] == [True, False, False]
+    (held,) = hm.held[("terrains", "cpu")].values()
+    mine = Terrain.prepare(hm, roots=4, tess=8)
+    for f, c in zip(frames, cams, strict=True):
+        ref = render(sc.with_(camera=c), terrain=mine)
+        assert digest(f.depth, f.patches.key) == digest(ref.depth, ref.patches.key)
+    assert hm.held[("terrains", "cpu")][(4, 8)] is held  # the same Terrain every frame
+    render(sc.with_(lod=LodConfig(roots=4, tess=16)))  # another layout: held beside it
+    assert set(hm.held[("terrains", "cpu")]) == {(4, 8), (4, 16)}
+
+
 def test_lod_config_with_policy():
     base = LodConfig(roots=4, tess=8, spacing="fractional_even")
     s = base.with_policy("sse", 2.5)
