@@ -12,7 +12,7 @@ ORDER = ["frame", "warmup", "terrain_frame", "raster46", "select", "counters", "
          "yardstick", "error_vs_time_jacksboro", "error_vs_time_fbm4097", "fit", "fit_640x360", "fit_fbm4097",
          "fit_fbm4097_640x360", "fit_knobs", "fit_knobs_cont1080_dem", "popping", "schemes", "gpu_whitepaper",
          "gpu_clipmap", "gpu_fits", "rescale", "stability", "fuzz",
-         "sweep", "bintree", "polytree", "outofcore",
+         "sweep", "bintree", "polytree", "outofcore", "outofcore_cache",
          "diff", "make_test"]
 # a link in a results file is relative to benchmarks/results/; at the root it needs that prefix
 _LINK = re.compile(r"\]\((?!https?:|/|#|benchmarks/)([^)]+)\)")

@@ -36,7 +36,62 @@ from .heightmap import Heightmap, StreamedHeightmap
 from .kernels.checks import check_number, check_pixels, check_viewport
 
 __all__ = ["Camera", "Viewport", "orbit", "flyover", "relative_origin", "camera_from_angles", "read_camera_csv",
-           "CSV_COLUMNS"]
+           "CSV_COLUMNS", "DepthPrecisionWarning", "check_depth_range", "DEPTH_STEPS"]
+
+#: float32 window-depth steps (2^-24 each, near 1.0) that the farthest terrain must keep before the background
+#: depth 1.0: a fragment closer to 1.0 than this is drawn as background (it rounds to 1.0, or ties with it)
+DEPTH_STEPS = 2
+
+
+class DepthPrecisionWarning(UserWarning):
+    """A camera whose ``near`` leaves the far part of the terrain unresolved by float32 depth (the frame loses
+    it to the background); the message gives the smallest safe ``near``."""
+
+
+def _resolved_depth(near: float, far: float) -> float:
+    """The view depth beyond which float32 window depth is within :data:`DEPTH_STEPS` steps of 1.0 (drawn as
+    background): ``1 - d(w) = near (far - w) / (w (far - near))`` equals ``DEPTH_STEPS * 2^-24`` there."""
+    k = DEPTH_STEPS * 2.0**-24
+    return near * far / (near + k * (far - near))
+
+
+def _safe_near(depth: float, far: float) -> float:
+    """The smallest ``near`` that keeps view depth ``depth`` (< far) :data:`DEPTH_STEPS` float32 steps before 1.0,
+    rounded up to two significant digits."""
+    k = DEPTH_STEPS * 2.0**-24
+    n = k * depth * far / (far - depth + k * depth)
+    e = math.floor(math.log10(n)) - 1
+    return math.ceil(n / 10.0**e) * 10.0**e
+
+
+def check_depth_range(camera: Camera, box_min: tuple[float, float, float],
+                      box_max: tuple[float, float, float]) -> str | None:
+    """Whether float32 window depth resolves a terrain inside the box ``box_min``..``box_max`` (world x, y, z)
+    seen by ``camera``: a fragment at view depth w has window depth ``d`` with ``1 - d = near (far - w) /
+    (w (far - near))``; where that falls within :data:`DEPTH_STEPS` float32 steps of 1.0 (the background's
+    depth), the fragment is lost to the background (a ``near`` of 1e-5 m blanks a 30 km terrain's frame).
+
+    The terrain's reach is the farthest view depth of the box's corners, at most half the depth range (the
+    fragments at the far plane itself are lost whatever ``near`` is). Raises ValueError (naming
+    ``camera.near`` and the smallest safe value) when the point the camera looks at, or the nearer of it and
+    the terrain's reach, is lost: the frame would be blank there. Returns a warning's text (the smallest
+    safe value) when only the terrain beyond it is lost, else None."""
+    eye, fwd = np.asarray(camera.position, np.float64), camera.forward
+    corners = np.array([[x, y, z] for x in (box_min[0], box_max[0]) for y in (box_min[1], box_max[1])
+                         for z in (box_min[2], box_max[2])], np.float64)
+    reach = min(float(((corners - eye) @ fwd).max()), 0.5 * camera.far)
+    resolved = _resolved_depth(camera.near, camera.far)
+    if reach <= camera.near or resolved >= reach:
+        return None
+    focus = min(float(np.linalg.norm(np.subtract(camera.target, camera.position))), reach)
+    what = (f"camera.near: {camera.near:g} m is too small for float32 depth (far {camera.far:g} m): fragments "
+            f"farther than {resolved:.4g} m are drawn as background")
+    if resolved < focus:
+        raise ValueError(f"{what}, the point the camera looks at among them ({focus:.4g} m); use near >= "
+                         f"{_safe_near(reach, camera.far):g} m (the smallest that resolves the terrain, "
+                         f"{reach:.4g} m deep)")
+    return (f"{what}, and the terrain reaches {reach:.4g} m; near >= {_safe_near(reach, camera.far):g} m "
+            f"resolves it")
 
 
 def relative_origin(origin_xz: tuple[float, float] | np.ndarray,

@@ -5,33 +5,38 @@ none is given. ``--plugin FILE.py`` (or a module name; before or after the comma
 first, so the LOD schemes it registers (:func:`terrainwarp.schemes.register_scheme`) are names that
 ``report --policies`` and ``fit --policy`` take. Outputs go under ``--out DIR``, written as one set
 (:func:`terrainwarp.io.files.output_set`): renamed into place only when every file is written. Bad arguments,
-paths and scene files, a full disk or any other failure print one line on stderr and exit 2; Ctrl-C prints one
-line and exits 130. Either way ``--out`` is left as it was (the previous run's files whole, nothing new)
-except for a sweep's partial journal, from which a rerun resumes. A run that succeeds says which files in
-``--out`` it did not write (left from an earlier run; never deleted).
+paths and scene files, a full disk or any other failure print one line on stderr and exit 2; Ctrl-C (SIGINT),
+SIGTERM and SIGHUP print one line and exit 128 + the signal (130, 143, 129). Either way ``--out`` is left as it
+was (the previous run's files whole, nothing new) except for a sweep's partial journal, from which a rerun
+resumes; a signal that arrives while the set is being switched waits until it is whole
+(:func:`terrainwarp.io.files.interrupts_deferred`). Before it starts, a command finishes a commit that a killed
+run left half done and removes a killed run's temporaries (:func:`terrainwarp.io.files.recover`). A run that
+succeeds says which files in ``--out`` it did not write (left from an earlier run; never deleted).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
+import signal
 import subprocess
 import sys
 import time
+import tomllib
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
-from .camera import Camera
+from .camera import Camera, DepthPrecisionWarning
 from .experiments.calibrate import FAMILIES as CALIBRATION_FAMILIES
 from .experiments.calibrate import calibrate
 from .experiments.extreme import CASES as EXTREME_CASES
-from .experiments.pareto import Setting, default_settings, run_sweep, summarise, sweep, write_report
-from .experiments.plots import plot_patches
+from .experiments.pareto import Setting, complete, default_settings, run_sweep, summarise, sweep, write_report
+from .experiments.plots import mesh_pieces, plot_patches
 from .experiments.runner import Runner
 from .experiments.stability import EXPLANATIONS, FAIL, run_suite, write_stability_md
 from .experiments.winners import budget_verdicts
@@ -51,11 +56,9 @@ from .fit.baselines import BASELINES, run_baselines
 from .fit.exact import references_for
 from .fit.export import FORMATS
 from .fit.knobs import check_knob_names, main_knob
-from .heightmap import Heightmap
-from .io.files import output_set, write_json, write_text
+from .heightmap import Heightmap, StreamedHeightmap
+from .io.files import dumps_strict, interrupt_handler, output_set, recover, write_json, write_text
 from .kernels.parallel import default_threads
-from .lod.policies import make_policy
-from .lod.quadtree import Terrain, select
 from .measure.cost import Cost, CostModel, cost
 from .rendering.pipeline import render
 from .rendering.reference_tessellator import tessellation_json, write_tessellation_picture
@@ -74,12 +77,12 @@ from .scene import (
 from .schemes import SCHEMES, load_plugin
 from .warmup import warmup
 
-__all__ = ["main", "sweep_evaluator"]
+__all__ = ["main", "sweep_evaluator", "split_timings"]
 
 
 _LOD = LodConfig()  # the defaults of the LOD options
 #: What ``fit`` writes (and convergence.png with --baselines): its help, its "wrote:" line and the README say these
-FIT_FILES = ("fit.json", "fit.png", "fitted.toml", "report.md")
+FIT_FILES = ("fit.json", "fit.png", "fitted.toml", "report.md", "timing.json", "timing.md")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -89,11 +92,15 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _scene(args: argparse.Namespace) -> Scene:
+    """The command's scene: its file (every key applied; a flag that overrides one says so on stderr), or the
+    demo scene."""
     if getattr(args, "scene", None):
         sc = Scene.load(args.scene)
     else:
         sc = Scene(Heightmap.example("jacksboro"), name="demo")
     cam = sc.camera
+    _note_overrides(args, [("--width", getattr(args, "width", None), "camera", "width", cam.width),
+                           ("--height", getattr(args, "height", None), "camera", "height", cam.height)])
     if getattr(args, "width", None) is not None or getattr(args, "height", None) is not None:
         w = cam.width if args.width is None else args.width
         h = cam.height if args.height is None else args.height
@@ -134,6 +141,46 @@ def frame_memory_note(scene: Scene) -> str | None:
             f"{w * h * per_px / 2**30:.1f} GiB of frame buffers")
 
 
+def _file_tables(args: argparse.Namespace) -> dict:
+    """The scene file's tables as written (the keys it sets), {} for the demo scene."""
+    if not getattr(args, "scene", None):
+        return {}
+    try:
+        return tomllib.loads(Path(args.scene).read_text())
+    except (OSError, ValueError):  # Scene.load says what is wrong with the file
+        return {}
+
+
+def _note_overrides(args: argparse.Namespace, flags: list[tuple[str, object, str, str, object]]) -> None:
+    """Say on stderr which flags override a key the scene file sets: ``(flag, value given or None, table, key,
+    the scene's value)``."""
+    tables = None
+    for flag, given, table, key, current in flags:
+        if given is None or given == current:
+            continue
+        tables = _file_tables(args) if tables is None else tables
+        if key in tables.get(table, {}):
+            print(f"terrainwarp: note: {flag} {given} overrides the scene's [{table}] {key} = {current!r}",
+                  file=sys.stderr)
+
+
+def _whole(sc: Scene, command: str) -> Scene:
+    """A streamed scene's heightmap read whole, for a command that measures every frame against the
+    full-resolution grid (a terrain too large for memory is refused, naming its size)."""
+    if not isinstance(sc.heightmap, StreamedHeightmap):
+        return sc
+    hm = sc.heightmap.load()
+    print(f"terrainwarp: note: {command} measures every frame against the full-resolution grid: the streamed "
+          f"heightmap {hm.name} ({hm.shape[0]} x {hm.shape[1]}) is read whole", file=sys.stderr)
+    return sc.with_(heightmap=hm)
+
+
+def _write_scene(sc: Scene, out: Path) -> Path:
+    """``scene.toml`` in ``out``: the scene the command ran (its file's keys, flags applied), which
+    ``terrainwarp render`` takes back."""
+    return sc.save(out / "scene.toml")
+
+
 def _cmd_render(args: argparse.Namespace) -> int:
     sc = _scene(args)
     if "report" not in sc.outputs:
@@ -142,6 +189,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     if note:
         _say(note)
     frame = render(sc)
+    frame.report.info["scene_file"] = sc.to_dict()  # the scene drawn, every key (report.json)
     written = frame.save(args.out)
     print(frame.report.table())
     print("wrote: " + ", ".join(str(p) for p in written))
@@ -185,38 +233,76 @@ def _tess_level(s: str) -> int:
         raise argparse.ArgumentTypeError(str(e).removeprefix("tess: ")) from None
 
 
-def _lod_config(args: argparse.Namespace) -> LodConfig:
-    """The LOD options as a LodConfig, validated by its rules (the policy table's) before any work: the
-    chosen policy's parameter (--tolerance-px, --k or --target-px), the hysteresis, the level, the roots and
-    the tessellation level (a power of two for a quadtree policy)."""
+_LOD_FLAGS = ("policy", *(s.field for s in POLICY_TABLE.values()), "level", "hysteresis", "roots", "tess")
+
+
+def _lod_config(args: argparse.Namespace, scene_lod: LodConfig, notes: bool = True) -> LodConfig:
+    """The scene's ``[lod]`` with the LOD flags given applied over it (each that overrides a key of the file
+    says so), validated by LodConfig's rules before any work: the policy's parameter, the hysteresis, the
+    level, the roots and the tessellation level (a power of two for a quadtree policy)."""
+    given = {k: getattr(args, k) for k in _LOD_FLAGS if getattr(args, k, None) is not None}
+    _note_overrides(args, [] if not notes else [("--" + k.replace("_", "-"), v, "lod", k, getattr(scene_lod, k))
+                                                for k, v in given.items()])
     try:
-        return LodConfig(policy=args.policy, hysteresis=args.hysteresis, level=args.level, roots=args.roots,
-                         tess=args.tess, **{s.field: getattr(args, s.field) for s in POLICY_TABLE.values()})
+        if given.get("policy", scene_lod.policy) != scene_lod.policy:  # another policy: its own knobs
+            keep = {f: getattr(scene_lod, f) for f in ("roots", "tess", "hysteresis", "level", "filter",
+                                                       "level_log_scale")}
+            spacing = POLICY_TABLE[given["policy"]].spacing if given["policy"] in POLICY_TABLE else None
+            scene_lod = LodConfig(policy=given["policy"], **keep, **({"spacing": spacing} if spacing else {}))
+        return replace(scene_lod, **given)
     except (TypeError, ValueError) as e:  # name the option: "lod.tess: ..." -> "--tess: ..."
         name, _, rest = str(e).removeprefix("lod.").partition(":")
-        raise ValueError(f"--{name.replace('_', '-')}:{rest}" if name in vars(args) else str(e)) from None
+        raise ValueError(f"--{name.replace('_', '-')}:{rest}" if name in given else str(e)) from None
+
+
+def _file_lod(args: argparse.Namespace) -> LodConfig:
+    """The scene file's ``[lod]`` table, read before its heightmap (a bad one: the defaults here, and Scene.load
+    names what is wrong)."""
+    try:
+        return LodConfig(**_file_tables(args).get("lod", {}))
+    except (TypeError, ValueError):
+        return LodConfig()
 
 
 def _cmd_lod(args: argparse.Namespace) -> int:
-    cfg = _lod_config(args)
+    _lod_config(args, _file_lod(args), notes=False)  # the flags checked against the file's [lod] before any work
     sc = _scene(args)
-    terrain = Terrain.prepare(sc.heightmap, roots=cfg.roots, tess=cfg.tess)
-    patches = select(terrain, sc.camera, make_policy(cfg))
+    cfg = _lod_config(args, sc.lod)
+    sc = sc.with_(mesh="lod", lod=cfg)
+    frame = render(sc.with_(outputs=("patches", "mesh")))  # quadtree policies, schemes, streamed terrains alike
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    patches = frame.patches if frame.patches is not None else mesh_pieces(frame.mesh)
     patches.to_csv(out / "patches.csv")
-    plot_patches(sc.heightmap, patches, sc.camera, out / "lod.png",
-                 title=f"{args.policy}: {len(patches)} patches, {patches.stats['culled']} culled")
-    print(json.dumps({**patches.stats, "levels": np.bincount(patches.level).tolist() if len(patches) else []}))
-    print(f"wrote: {out / 'lod.png'}, {out / 'patches.csv'}")
+    culled = f", {patches.stats['culled']} culled" if "culled" in patches.stats else ""
+    plot_patches(sc.heightmap, patches, sc.camera, out / "lod.png", title=f"{cfg.policy}: {len(patches)} "
+                 f"{'patches' if frame.patches is not None else 'pieces'}{culled}",
+                 light=(sc.light_azimuth_deg, sc.light_elevation_deg))
+    _write_scene(sc, out)
+    print(dumps_strict({**patches.stats, "levels": np.bincount(patches.level).tolist() if len(patches) else []}))
+    print(f"wrote: {out / 'lod.png'}, {out / 'patches.csv'}, {out / 'scene.toml'}")
     return 0
 
 
+def _path_overrides(args: argparse.Namespace, sc: Scene) -> None:
+    d = sc.path
+    _note_overrides(args, [("--frames", args.frames, "path", "n", d.n),
+                           ("--path", args.path, "path", "clearance", d.clearance),
+                           ("--path", args.path, "path", "preset", d.preset)])
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
-    sc = _scene(args)
+    given = _scene(args)
+    sc = _whole(given, "report")
+    _path_overrides(args, sc)
+    args.budget_px = None
+    _budget_defaults(args, sc, ("cost",), {"cost": "llvmpipe"})
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
     settings = default_settings(sc.heightmap, quick=args.quick)
+    own = Setting(sc.lod.policy, float(sc.lod.value)) if sc.lod.value is not None else None
+    if own is not None and own not in settings and (own.policy in LOD_POLICIES or own.policy in SCHEMES):
+        settings.append(own)  # the scene's own [lod] setting, beside the sweep's
     if args.policies:
         want = set(args.policies.split(","))
         bad = want - {s.policy for s in settings}
@@ -234,20 +320,44 @@ def _cmd_report(args: argparse.Namespace) -> int:
     failed = [r for r in rows if r["error"]]
     for r in failed[:5]:
         print(f"failed: {r['setting']} frame {r['frame']}: {r['error']}", file=sys.stderr)
-    paths = write_report(sc, cams, rows, args.out, path=path, cost_of=ranking)
+    paths = [*write_report(sc, cams, rows, args.out, path=path, cost_of=ranking), _write_scene(given, Path(args.out))]
     print(f"path: {path['text']}")
     print(f"cost: {ranking.label}")
     for r in summarise(rows, ranking):
+        if r["failed"] == r["frames"]:
+            print(f"{r['setting']:>18}  every frame failed ({r['failed']})")
+            continue
         print(f"{r['setting']:>18}  p99 {r['p99_px']:8.3f} px  image p99 {r['image_err_p99_px']:8.3f} px  "
-              f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {int(r['triangles']):>9} tris  "
-              f"{r['frame_ms']:9.2f} CPU ms")
+              f"pop p99 {r['pop_p99_px']:7.3f} px  cost {r['cost']:10.4g}  {r['triangles']:>9.0f} tris  "
+              f"{r['frame_ms']:9.2f} CPU ms" + (f"  ({r['failed']} of {r['frames']} frames failed)" if r["failed"]
+                                                else ""))
     print("winner per budget under each cost model (robust: the same winner with every rate x1/3..x3):")
-    for b, name, v in budget_verdicts(summarise(rows, ranking), rows):
+    whole = complete(summarise(rows, ranking))  # the settings whose every frame rendered
+    names = {r["setting"] for r in whole}
+    for b, name, v in budget_verdicts(whole, [r for r in rows if r["setting"] in names]):
         print(f"  {b:4g} px  {name:>9}  " + ("no setting meets it" if v is None else
               f"{v.winner:>18}  {v.cost:9.4g} ms  bound {v.bound or '-':>6}  robust "
               + ("yes" if v.robust else f"no ({v.flip})")))
     print("wrote: " + ", ".join(str(p) for p in paths))
-    return 0
+    if failed:
+        print(f"terrainwarp: {len(failed)} of {len(rows)} frames failed (frames.csv has their errors); a rerun into "
+              f"{args.out} runs them again", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _budget_defaults(args: argparse.Namespace, sc: Scene, keys: tuple[str, ...], fallback: dict) -> None:
+    """The ``[budget]`` keys a flag leaves out, from the scene (else ``fallback``); a flag that overrides one the
+    file sets says so. Sets ``args.budget_px``, ``args.max_pop_px``, ``args.cost`` (those in ``keys``)."""
+    b = sc.budget
+    given = {"budget_px": args.budget_px, "max_pop_px": getattr(args, "max_pop_px", None), "cost": args.cost}
+    scene = {} if b is None else {"budget_px": b.budget_px, "max_pop_px": b.max_pop_px,
+                                  "cost": b.cost if isinstance(b.cost, str) else ",".join(b.cost)}
+    _note_overrides(args, [("--" + k.replace("_", "-"), given[k], "budget", k, scene.get(k)) for k in keys])
+    for k in keys:
+        v = given[k] if given[k] is not None else scene.get(k, fallback.get(k))
+        if v is None and k == "budget_px":
+            raise ValueError("--budget-px: expected the p99 budget in pixels (or a [budget] budget_px in the scene)")
+        setattr(args, k, v)
 
 
 def _cost_spec(text: str) -> str | list[str]:
@@ -303,10 +413,16 @@ def sweep_evaluator(scene: Scene, cameras: list[Camera], policy: str, workers: i
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
-    sc = _scene(args)
+    given = _scene(args)
+    sc = _whole(given, "fit")
+    _path_overrides(args, sc)
+    _note_overrides(args, [("--policy", args.policy, "lod", "policy", sc.lod.policy)])
+    args.policy = args.policy or sc.lod.policy  # the scene's [lod] policy unless --policy says otherwise
+    _budget_defaults(args, sc, ("budget_px", "max_pop_px", "cost"), {"cost": "triangles"})
     cams = sc.camera_path(args.frames, preset=args.path)
     path = sc.path_info(args.frames, preset=args.path)
-    fit_cost = cost(_cost_spec(args.cost))  # checked before the fit runs
+    spec = _cost_spec(args.cost)
+    fit_cost = cost(spec)  # checked before the fit runs
     check_knob_names(args.policy, sc.heightmap, args.knobs, None if sc.lod.is_scheme else sc.lod)
     say = _sayer(args)
     grid_evaluator = None if args.workers == 0 else sweep_evaluator(sc, cams, args.policy, args.workers,
@@ -317,7 +433,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     refs = _references(sc, cams, say)  # shared by the fit, its curve and the baselines
     res = fit_lod(sc, args.budget_px, policy=args.policy, cameras=cams, knobs=args.knobs,
                   grid_points=args.grid_points, grid_evaluator=grid_evaluator, progress=not args.no_progress,
-                  max_pop_px=args.max_pop_px, cost=fit_cost, references=refs, floor=True)
+                  max_pop_px=args.max_pop_px, cost=spec, references=refs, floor=True)  # (named: fitted.toml's cost)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     curve = []
@@ -325,22 +441,25 @@ def _cmd_fit(args: argparse.Namespace) -> int:
         say(f"fitting {len(args.curve_budgets)} more budget(s) for the cost-against-budget curve")
     for b in args.curve_budgets:
         r = fit_lod(sc, b, policy=args.policy, cameras=cams, knobs=args.knobs, progress=not args.no_progress,
-                    max_pop_px=args.max_pop_px, cost=fit_cost, references=refs)
+                    max_pop_px=args.max_pop_px, cost=spec, references=refs)
         if r.met:
             curve.append((b, r.validated.cost))
     if args.baselines:
         say(f"running the baselines {', '.join(args.baselines)} on the same frames")
     runs = run_baselines(sc, args.policy, args.knobs, cams, refs, args.budget_px, args.baselines,
                          max_pop_px=args.max_pop_px, cost=fit_cost, trials=args.trials)
-    write_json(out / "fit.json", {**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
-                                  "baselines": runs})
+    doc, timing = split_timings({**res.to_dict(), "path": {k: v for k, v in path.items() if k != "waypoints_m"},
+                                 "baselines": runs})
+    write_json(out / "fit.json", doc)
     plot_fit(res, out / "fit.png", sorted([*curve, (args.budget_px, res.validated.cost)]) if curve and res.met
              else None)
-    res.scene.save(out / "fitted.toml")
+    res.scene.with_(heightmap=given.heightmap).save(out / "fitted.toml")  # streamed as the scene file said
     if runs:
         plot_convergence({"fit_lod": res.trace, **{m: r["trace"] for m, r in runs.items()}}, out / "convergence.png",
                          title=f"{args.policy} at {args.budget_px:g} px", cost_label=res.cost)
     write_text(out / "report.md", "\n".join(_fit_report_lines(args, res, path, len(cams), runs)))
+    write_json(out / "timing.json", timing)
+    write_text(out / "timing.md", "\n".join(_fit_timing_lines(args, res, runs)))
     print(f"path: {path['text']}")
     print(res.message)
     print(res.timing_line())
@@ -377,31 +496,65 @@ def _fit_report_lines(args: argparse.Namespace, res: FitResult, path: dict, n_ca
              f"worst frame {max(v.image_p99_px, default=float('nan')):.3g} px"
              + ("" if not v.pop_p99_px else f"; popping: the worst consecutive pair's pop p99 {v.worst_pop:.3g} px, "
                 f"max over pairs of the pop p99 (the previous camera's selection held)") + ".", "",
-             f"| method | value | worst p99 px | {res.cost}/frame | pipeline evaluations | wall s |",
-             "|---|---|---|---|---|---|",
-             f"| fit | {shown} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} | {res.wall_s:.1f} |"]
+             f"| method | value | worst p99 px | {res.cost}/frame | pipeline evaluations |",
+             "|---|---|---|---|---|",
+             f"| fit | {shown} | {v.worst_p99:.3g} | {v.cost:.4g} | {res.evaluations} |"]
     for name, r in (runs or {}).items():
         best = "none met the budget" if r["values"] is None else ", ".join(f"{k} = {x:.4g}"
                                                                            for k, x in r["values"].items())
-        lines.append(f"| {name} | {best} | {r['worst_p99_px']:.3g} | {r['cost']:.4g} | {r['frames']} | "
-                     f"{r['wall_s']:.1f} |")
+        lines.append(f"| {name} | {best} | {r['worst_p99_px']:.3g} | {r['cost']:.4g} | {r['frames']} |")
     if g:
         if g["value"] is None:
-            lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} | "
-                         f"{g['wall_s']:.1f} |")
+            lines.append(f"| grid search ({g['points']} points) | none met the budget | | | {g['evaluations']} |")
         else:
             lines.append(f"| grid search ({g['points']} points) | {g['value']:.4g} | {g['worst_p99_px']:.3g} | "
-                         f"{g['cost']:.4g} | {g['evaluations']} | {g['wall_s']:.1f} |")
+                         f"{g['cost']:.4g} | {g['evaluations']} |")
     lines += ["", res.message, "", f"Pixels are at the fitted viewport: {_knob_words(res.scene, res.budget_px)}"
               + ("" if len(res.viewports) < 2 else f"; the setting is fitted on {len(res.viewports)} viewports: "
                  + ", ".join(vp.text for vp in res.viewports)) + ". Another viewport: terrainwarp export "
               "fitted.toml --as json --viewport WxH@FOV (terrainwarp.fit.rescale).", "",
-              *(_frame_table(v, res.image_floor_p99_px, res.sparse) if v is not None and v.complete else [])]
+              *(_frame_table(v, res.image_floor_p99_px, res.sparse) if v is not None and v.complete else []),
+              "This run's wall times: [timing.md](timing.md).", ""]
     if res.mesh_only_frames:
         lines += [f"Frames only selected and meshed for their triangle count (not in the evaluations): "
                   f"{res.mesh_only_frames}. A try measures its critical cameras worst first and stops at the first "
                   "over the budget; the fitted value is measured on every camera.", ""]
     return lines
+
+
+def _fit_timing_lines(args: argparse.Namespace, res: FitResult, runs: dict | None) -> list[str]:
+    """The fit's timing.md: each method's wall time and the validated frames' CPU ms (they differ run to run;
+    timing.json holds the same numbers)."""
+    lines = ["# This run's timings", "", f"policy {args.policy}, budget {args.budget_px:g} px: wall seconds of this "
+             "simulator, not a GPU's (they differ from run to run and machine to machine).", "",
+             res.timing_line() + ".", "",
+             "| method | wall s |", "|---|---|", f"| fit | {res.wall_s:.1f} (relaxed model {res.model_s:.1f}) |"]
+    lines += [f"| {name} | {r['wall_s']:.1f} |" for name, r in (runs or {}).items()]
+    if res.grid:
+        lines.append(f"| grid search ({res.grid['points']} points) | {res.grid['wall_s']:.1f} |")
+    if res.validated is not None:
+        lines += ["", "Validated frames, CPU ms: " + ", ".join(f"{t:.1f}" for t in res.validated.frame_ms)]
+    return [*lines, ""]
+
+
+def split_timings(doc: object) -> tuple[object, object]:
+    """(``doc`` without its wall times, the wall times): every key ending in ``_s`` or ``_ms`` (seconds and
+    milliseconds measured on this machine), and ``timings`` (a fit's wall time by part), moves to the second, at
+    the same place in the tree; what is left is the same on every run."""
+    if isinstance(doc, dict):
+        kept, moved = {}, {}
+        for k, v in doc.items():
+            if str(k).endswith(("_s", "_ms")) or k == "timings":
+                moved[k] = v
+                continue
+            kept[k], t = split_timings(v)
+            if t not in (None, {}, []):
+                moved[k] = t
+        return kept, moved
+    if isinstance(doc, list) and any(isinstance(v, dict) for v in doc):
+        pairs = [split_timings(v) for v in doc]
+        return [p[0] for p in pairs], ([p[1] for p in pairs] if any(p[1] for p in pairs) else None)
+    return doc, None
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
@@ -412,11 +565,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     doc = {**a.to_dict(), "scene": args.scene, "path": sc.path_info(args.frames)["text"],
            "pixel_knobs": pixel_knobs(sc, a.budget_px)}
+    doc, timing = split_timings(doc)  # the frames' CPU ms: timing.json, so evaluate.json is the same every run
     write_json(out / "evaluate.json", doc)
+    write_json(out / "timing.json", timing)
     write_text(out / "report.md", "\n".join(_evaluate_report_lines(sc, a, doc["path"])))
     print(f"path: {doc['path']}")
     print(a.message)
-    print("wrote: " + ", ".join(str(out / w) for w in ("evaluate.json", "report.md")))
+    print("wrote: " + ", ".join(str(out / w) for w in ("evaluate.json", "timing.json", "report.md")))
     return 0 if a.met else 1
 
 
@@ -613,18 +768,22 @@ def _add_demo_render_lod(sub) -> None:
                         "report.json)", _cmd_render), "out/render")
     lo = _command(sub, "lod", "select LOD patches: top-down picture (lod.png) and table (patches.csv)", _cmd_lod)
     _add_scene(lo, "out/lod")
-    lo.add_argument("--policy", choices=list(LOD_POLICIES), default=_LOD.policy, help="LOD policy")
+    lo.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=None,
+                    help=f"LOD policy or scheme (default: the scene's [lod] policy, else {_LOD.policy})")
     for spec in POLICY_TABLE.values():  # --tolerance-px, --k, --target-px
-        lo.add_argument("--" + spec.field.replace("_", "-"), type=_positive_float, default=getattr(_LOD, spec.field),
-                        help=f"{spec.help} (policy {spec.name})")
-    lo.add_argument("--level", type=_nonnegative_int, default=_LOD.level,
-                    help="continuous: the level of the uniform patch grid")
-    lo.add_argument("--hysteresis", type=float, default=_LOD.hysteresis,
-                    help="band in [0, 1) between the split and merge thresholds")
-    lo.add_argument("--roots", type=_positive_int, default=_LOD.roots, help="root nodes of the quadtree")
-    lo.add_argument("--tess", type=_tess_level, default=_LOD.tess,
+        lo.add_argument("--" + spec.field.replace("_", "-"), type=_positive_float, default=None,
+                        help=f"{spec.help} (policy {spec.name}; default: the scene's, else "
+                             f"{getattr(_LOD, spec.field)})")
+    lo.add_argument("--level", type=_nonnegative_int, default=None,
+                    help=f"continuous: the level of the uniform patch grid (default: the scene's, else {_LOD.level})")
+    lo.add_argument("--hysteresis", type=float, default=None,
+                    help="band in [0, 1) between the split and merge thresholds (default: the scene's, else "
+                         f"{_LOD.hysteresis})")
+    lo.add_argument("--roots", type=_positive_int, default=None,
+                    help=f"root nodes of the quadtree (default: the scene's, else {_LOD.roots})")
+    lo.add_argument("--tess", type=_tess_level, default=None,
                     help=f"tessellation level of every patch: a power of two in 1..{QUADTREE_TESS[-1]} for a "
-                         f"quadtree policy, 1..{MAX_TESS} for continuous")
+                         f"quadtree policy, 1..{MAX_TESS} for continuous (default: the scene's, else {_LOD.tess})")
 
 
 def _add_path(c: argparse.ArgumentParser) -> None:
@@ -660,32 +819,36 @@ def _add_report_fit(sub) -> None:
                     help="run the jobs on this Dask scheduler's cluster (default: a local cluster)")
     rp.add_argument("--workers", type=_nonnegative_int, default=None,
                     help="local worker processes (default: one per core; 0: in this process)")
-    rp.add_argument("--cost", default="llvmpipe", metavar="COST",
+    rp.add_argument("--cost", default=None, metavar="COST",
                     help="what the report ranks by: llvmpipe (the shipped cost model, modelled ms), a GPU profile "
                          "(gpu:gf100, gpu:gcn, gpu:rdna, gpu:mali, gpu:nv40 or gpu:FILE.toml), several of them "
                          "separated by commas (the worst per frame), triangles, a counter name (e.g. "
-                         "fragment_shader_invocations) or a weights file of terrainwarp calibrate")
+                         "fragment_shader_invocations) or a weights file of terrainwarp calibrate (default: the "
+                         "scene's [budget] cost, else llvmpipe)")
     ft = _command(sub, "fit", f"fit LOD thresholds to a screen-space error budget: {', '.join(FIT_FILES)} "
                   "(and convergence.png with --baselines)", _cmd_fit)
     _add_scene(ft, "out/fit")
-    ft.add_argument("--budget-px", type=_positive_float, required=True, help="p99 screen error budget, pixels")
-    ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=_LOD.policy,
-                    help="LOD policy or registered scheme to fit")
+    ft.add_argument("--budget-px", type=_positive_float, default=None,
+                    help="p99 screen error budget, pixels (default: the scene's [budget] budget_px; one is needed)")
+    ft.add_argument("--policy", choices=[*LOD_POLICIES, *SCHEMES], default=None,
+                    help="LOD policy or registered scheme to fit (default: the scene's [lod] policy, else sse)")
     ft.add_argument("--frames", type=_positive_int, default=None, help="cameras on the path (default: the "
                     "scene's [path] n, or 8)")
     _add_path(ft)
     ft.add_argument("--max-pop-px", type=_nonnegative_float, default=None, metavar="PX",
-                    help="also bound the worst consecutive pair's pop p99, pixels (default: no bound)")
+                    help="also bound the worst consecutive pair's pop p99, pixels (default: the scene's [budget] "
+                         "max_pop_px, else no bound)")
     ft.add_argument("--grid-points", type=_nonnegative_int, default=0,
                     help="also run a grid search baseline with N points (0: none)")
     ft.add_argument("--workers", type=_nonnegative_int, default=0,
                     help="grid search on the sweep runner with N worker processes (0: in this process)")
     ft.add_argument("--curve-budgets", type=_positive_float, nargs="*", default=[], metavar="PX",
                     help="also fit these budgets for the cost-against-budget curve")
-    ft.add_argument("--cost", default="triangles", metavar="COST",
+    ft.add_argument("--cost", default=None, metavar="COST",
                     help="what the fit minimises: triangles, a counter name, llvmpipe (the shipped cost model), a "
                          "GPU profile (gpu:gf100, ..., gpu:FILE.toml), several models separated by commas (the worst "
-                         "per frame: one setting for every GPU listed) or a weights file of terrainwarp calibrate")
+                         "per frame: one setting for every GPU listed) or a weights file of terrainwarp calibrate "
+                         "(default: the scene's [budget] cost, else triangles)")
     ft.add_argument("--knobs", type=_knob_list, default=None, metavar="A,B,C|all",
                     help="the knobs to fit together (terrainwarp.fit.knobs; default: the policy's main knob alone)")
     ft.add_argument("--baselines", type=_baseline_list, default=[], metavar="M,N",
@@ -839,11 +1002,56 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     args = parser.parse_args(argv)
     configure_from_env()  # quiet Warp, kept frame memory: what a command run wants (import alone sets nothing)
+    with _signals_interrupt(), _warnings_one_line():
+        return _run(args)
+
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextlib.contextmanager
+def _signals_interrupt():
+    """SIGINT, SIGTERM and SIGHUP raise :class:`terrainwarp.io.files.Interrupted` (a KeyboardInterrupt) for the
+    command's run, held back while an output set is switched; the handlers before are restored after."""
+    before = {}
+    try:
+        for s in _SIGNALS:
+            before[s] = signal.signal(s, interrupt_handler)
+    except ValueError:  # not the main thread: signals stay as they are
+        pass
+    try:
+        yield
+    finally:
+        for s, h in before.items():
+            signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def _warnings_one_line():
+    """terrainwarp's warnings (:class:`terrainwarp.camera.DepthPrecisionWarning`...) as one line each on stderr,
+    ``terrainwarp: warning: ...``, each text once (a path's cameras may repeat it)."""
+    seen: set[str] = set()
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        text = str(message).splitlines()[0] if str(message) else category.__name__
+        if text not in seen:
+            seen.add(text)
+            print(f"terrainwarp: warning: {text}", file=sys.stderr)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", DepthPrecisionWarning)
+        warnings.showwarning = show
+        yield
+
+
+def _run(args: argparse.Namespace) -> int:
     out = _OutDir(args.out) if getattr(args, "out", None) else None
+    oset = None
     try:
         if out is not None:
             out.check()
-        with output_set(args.out) if out is not None else contextlib.nullcontext(), warnings.catch_warnings():
+        with (output_set(args.out) if out is not None else contextlib.nullcontext()) as oset, \
+                warnings.catch_warnings():
             warnings.showwarning = _warning_line
             rc = int(args.func(args) or 0)
     except (ValueError, TypeError, OSError) as e:
@@ -851,12 +1059,17 @@ def main(argv: list[str] | None = None) -> int:
             out.clean_up()
         print(f"terrainwarp: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        if out is not None:
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        whole = oset is not None and oset.committed  # the signal came as the new set was switched: keep it
+        if out is not None and not whole:
             out.clean_up()
-        print("terrainwarp: interrupted" + (f" (a rerun resumes from {out.journals()[0]})" if out is not None and
-                                            out.journals() else ""), file=sys.stderr)
-        return 130
+        by = "" if signum == signal.SIGINT else f" by {signal.Signals(signum).name}"
+        then = " after its files were written" if whole else ""
+        print(f"terrainwarp: interrupted{by}{then}" + (f" (a rerun resumes from {out.journals()[0]})" if out is
+                                                      not None and out.journals() and not whole else ""),
+              file=sys.stderr)
+        return 128 + int(signum)
     if out is not None:
         out.note_stale()
     return rc
@@ -904,6 +1117,13 @@ class _OutDir:
         if not os.access(a, os.W_OK | os.X_OK):
             raise ValueError(f"--out: cannot write in {a} (read-only or no permission)")
         self.anchor = a
+        done = recover(p, self.DEPTH)  # a killed run's commit finished, its temporaries removed
+        if done["committed"]:
+            print(f"terrainwarp: note: finished the commit of an earlier run that was killed while switching its "
+                  f"files in {p}: {', '.join(done['committed'][:5])}", file=sys.stderr)
+        if done["removed"]:
+            print(f"terrainwarp: note: removed {len(done['removed'])} temporary file(s) that a killed run left in "
+                  f"{p}", file=sys.stderr)
         self.before = self._files()
         self.dirs = self._dirs()
 

@@ -120,19 +120,22 @@ class Held:
             the reference frame and the error).
         terrains: by device, the prepared ``Terrain`` of each LOD layout (roots, tess) drawn lately, least
             recently drawn first (``render`` keeps a few), so a plain render loop prepares once.
+        beside_hole: (H, W) bool, the finite samples next to a no-data hole
+            (:func:`terrainwarp.measure.sample_error.beside_hole`), worked out on first use.
     """
 
     schemes: dict[str, dict] = field(default_factory=dict)
     terrains: dict[str, Any] = field(default_factory=dict)
     streamed_sources: dict[tuple, Any] = field(default_factory=dict)
     loaded: Heightmap | None = None
+    beside_hole: np.ndarray | None = None
 
     def clear(self) -> None:
         """Let go of everything held."""
         self.schemes.clear()
         self.terrains.clear()
         self.streamed_sources.clear()
-        self.loaded = None
+        self.loaded = self.beside_hole = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -237,7 +240,8 @@ class Heightmap:
         arr = _read_npy(p) if ext == ".npy" else _read_image(p, channel)
         h, source_dtype = _heights(f"path: {p}", arr, max_height, allow_nan)
         meta = {"source_dtype": str(source_dtype), "source": str(p),
-                **({} if max_height is None else {"max_height": float(max_height)})}
+                **({} if max_height is None else {"max_height": float(max_height)}),
+                **({"channel": channel} if channel else {})}
         if dx is None:  # an image or .npy file carries no spacing: the default is said, once per load
             meta["spacing"] = f"{DEFAULT_SPACING:g} m assumed: {p.name} carries no spacing"
             warnings.warn(f"dx: {p.name} carries no sample spacing; {DEFAULT_SPACING:g} m assumed (pass dx=, in "
@@ -540,6 +544,15 @@ class StreamedHeightmap:
         its cache folder) and an array; for a procedural source, of its coarse overview widened by what the
         overview can miss (see the source's ``height_range``)."""
         return self.source.height_range(self.tiles)
+
+    def known_height_range(self) -> tuple[float, float] | None:
+        """:attr:`height_range` when it costs no scan of the terrain: worked out already, kept in a file's cache,
+        or cheap for the source (an fBm's overview, an array); None for a file whose range is not known yet (its
+        pyramid's build works it out)."""
+        if "height_range" in self.__dict__ or not isinstance(self.source, GeoTiffSource):
+            return self.height_range
+        got = self.source.cache().value("height_range")
+        return (float(got[0]), float(got[1])) if isinstance(got, list) and len(got) == 2 else None
 
     def __repr__(self) -> str:
         return (f"StreamedHeightmap({self.name!r}, shape={self.shape}, dx={self.dx:.4g}, dz={self.dz:.4g}, "

@@ -48,7 +48,8 @@ import tomli_w
 from .camera import Camera, Viewport, flyover, orbit, read_camera_csv
 from .heightmap import EXAMPLES, Heightmap, StreamedHeightmap
 from .io.files import write_text
-from .io.tiles import FbmSource, GeoTiffSource
+from .io.geotiff import TIFF_EXTS, is_gdal_raster
+from .io.tiles import ArraySource, FbmSource, GeoTiffSource
 from .kernels.checks import check_bool, check_choice, check_int, check_number, is_int
 from .kernels.shading import SHADING_MODES
 from .kernels.tessellator import FILTER_CODES, SPACING_CODES
@@ -108,7 +109,17 @@ SCENE_FILE: dict[str, dict[str, SceneKey]] = {
                                               "(left out: its integer values are metres)"),
         "fbm": SceneKey("table", "-", "procedural fBm terrain: the [heightmap.fbm] table"),
         "stream": SceneKey("boolean", "false", "read the terrain tile by tile (a GeoTIFF path, or the fBm "
-                                               "generated window by window) instead of loading it"),
+                                               "generated window by window) instead of loading it; another "
+                                               "path, an example, or a part of a raster is loaded, then read as "
+                                               "tiles"),
+        "channel": SceneKey("integer", "0", "a 'path' heightmap's image channel, or its raster band minus 1"),
+        "allow_nan": SceneKey("boolean", "false", "an image or .npy 'path': NaN heights are no-data holes (a "
+                                                  "GDAL raster's no-data always is)"),
+        "window": SceneKey("array of 2 [start, stop] pairs", "the whole raster", "a GDAL raster 'path': read "
+                           "only file rows [start, stop) and columns [start, stop) ([[r0, r1], [c0, c1]])"),
+        "decimate": SceneKey("integer", "1", "a GDAL raster 'path': one sample per k x k block of the file"),
+        "resampling": SceneKey("string", '"average"', "a GDAL raster 'path' read with decimate > 1: GDAL's "
+                                                      "resampling of each block"),
     },
     "heightmap.fbm": {
         "rows": SceneKey("integer", "257", "samples along z"),
@@ -904,27 +915,48 @@ def _table_of(config: LodConfig | CameraPath | Budget) -> dict[str, Any]:
 
 
 def _heightmap_table(hm: Heightmap | StreamedHeightmap) -> dict[str, Any]:
-    """The ``[heightmap]`` table that makes ``hm`` again: a bundled example, an fBm, or a file (absolute path,
-    with the spacing it was given)."""
+    """The ``[heightmap]`` table that makes ``hm`` again, streamed or not: a bundled example, an fBm, or a file
+    (absolute path, with the spacing it was given, and the part of a raster, the channel and the holes it was
+    read with)."""
     meta = hm.meta or {}
     stream = isinstance(hm, StreamedHeightmap)
-    if meta.get("source") == "fbm" or (stream and isinstance(hm.source, FbmSource)):
-        src = hm.source if stream else None
+    src = hm.source if stream else None
+    streamed = {"stream": True} if stream else {}
+    if "designed" in meta or (stream and not isinstance(src, FbmSource | GeoTiffSource | ArraySource)):
+        raise ValueError(f"heightmap: {hm.name!r} was made in memory (designed, or from your own tile source), so "
+                         f"a scene file cannot name it; save its heights (Heightmap.save) and load that file")
+    if meta.get("source") == "fbm" or isinstance(src, FbmSource):
         keys = ("seed", "max_height", "feature_size", "octaves", "gain", "lacunarity", "ridged")
         fbm = {k: getattr(src, k) if src is not None else meta[k] for k in keys}
-        return {"fbm": {"rows": hm.shape[0], "cols": hm.shape[1], "dx": hm.dx, "dz": hm.dz, **fbm},
-                **({"stream": True} if stream else {})}
-    if stream and isinstance(hm.source, GeoTiffSource):
-        return {"path": str(Path(hm.source.path).resolve()), "dx": hm.dx, "dz": hm.dz, "stream": True}
-    if not stream and hm.name in EXAMPLES and str(meta.get("source", "")).startswith("matplotlib sample data"):
-        return {"example": hm.name}
+        return {"fbm": {"rows": hm.shape[0], "cols": hm.shape[1], "dx": hm.dx, "dz": hm.dz, **fbm}, **streamed}
+    if isinstance(src, GeoTiffSource):
+        return {"path": str(Path(src.path).resolve()), "dx": hm.dx, "dz": hm.dz, "stream": True,
+                **({"channel": src.band - 1} if src.band != 1 else {})}
+    if hm.name in EXAMPLES and str(meta.get("source", "")).startswith("matplotlib sample data"):
+        return {"example": hm.name, **streamed}
     source = meta.get("source")
-    reads_part = any(meta.get(k) not in (None, 1, False) for k in ("window", "bounds", "decimate"))
-    if not stream and isinstance(source, str) and Path(source).is_file() and not reads_part:
-        table = {"path": str(Path(source).resolve()), "dx": hm.dx, "dz": hm.dz}
-        return table | ({"max_height": meta["max_height"]} if "max_height" in meta else {})
+    if isinstance(source, str) and Path(source).is_file():
+        return {"path": str(Path(source).resolve()), "dx": hm.dx, "dz": hm.dz, **_file_keys(meta, hm), **streamed}
     raise ValueError(f"heightmap: {hm.name!r} was not read from a file, an example or fBm settings, so a scene "
-                     f"file cannot name it; save its heights (np.save) and load that file")
+                     f"file cannot name it; save its heights (Heightmap.save) and load that file")
+
+
+def _file_keys(meta: dict, hm: Heightmap | StreamedHeightmap) -> dict[str, Any]:
+    """The ``[heightmap]`` keys besides path and spacing that read a file as ``hm`` was read: a raster's band,
+    window and decimation (a whole raster's window is no key), an image's channel, scale and holes."""
+    if "raster_shape" not in meta:  # an image or .npy (Heightmap.load's own readers)
+        holes = isinstance(hm, Heightmap) and hm.has_nodata
+        return {**({"max_height": meta["max_height"]} if "max_height" in meta else {}),
+                **({"channel": meta["channel"]} if meta.get("channel") else {}),
+                **({"allow_nan": True} if holes else {})}
+    (r0, c0, rows, cols), (hh, ww) = meta["window"], meta["raster_shape"]
+    k = int(meta.get("decimate") or 1)
+    keys: dict[str, Any] = {"channel": int(meta["band"]) - 1} if meta.get("band", 1) != 1 else {}
+    if (r0, c0, rows, cols) != (0, 0, hh, ww):
+        keys["window"] = [[int(r0), int(r0 + rows)], [int(c0), int(c0 + cols)]]
+    if k != 1:
+        keys.update(decimate=k, resampling=meta.get("resampling") or "average")
+    return keys
 
 
 def _camera_from(cam_d: object, hm: Heightmap | StreamedHeightmap) -> Camera | None:
@@ -958,25 +990,53 @@ def _heightmap_from(hm_d: dict, base_dir: Path) -> Heightmap | StreamedHeightmap
             raise ValueError(f"heightmap.{k}: applies to a 'path' heightmap only; an {kinds[0]} takes {where}")
         if k in hm_d:
             check_number(f"heightmap.{k}", hm_d[k], 0.0, lo_open=True)
+    for k in ("channel", "allow_nan", "window", "decimate", "resampling"):
+        if k in hm_d and kinds[0] != "path":
+            raise ValueError(f"heightmap.{k}: applies to a 'path' heightmap only")
     if kinds[0] == "example":
         hm = Heightmap.example(check_choice("heightmap.example", hm_d["example"], EXAMPLES))
         return StreamedHeightmap.of(hm) if stream else hm
     if kinds[0] == "path":
-        if not isinstance(hm_d["path"], str):
-            raise TypeError(f"heightmap.path: expected a file path string, got {hm_d['path']!r}")
-        hp = Path(hm_d["path"])
-        if not hp.is_absolute():
-            hp = base_dir / hp
-        if stream:
-            if hm_d.get("max_height") is not None:
-                raise ValueError("heightmap.max_height: a streamed GeoTIFF's heights come from the file")
-            return Heightmap.open(hp, hm_d.get("dx"), hm_d.get("dz"))
-        return Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"))
+        return _heightmap_file(hm_d, base_dir, stream)
     f = hm_d["fbm"]
     _check_keys("heightmap.fbm", f, set(SCENE_FILE["heightmap.fbm"]))
     f = dict(f)
     rows = f.pop("rows", 257)
     return StreamedHeightmap.fbm(rows, **f) if stream else Heightmap.fbm(rows, **f)
+
+
+def _heightmap_file(hm_d: dict, base_dir: Path, stream: bool) -> Heightmap | StreamedHeightmap:
+    """A ``path`` heightmap: a GDAL raster streamed (:meth:`Heightmap.open`), else loaded (a part of a raster, an
+    image, a .npy), and read as tiles when ``stream``."""
+    if not isinstance(hm_d["path"], str):
+        raise TypeError(f"heightmap.path: expected a file path string, got {hm_d['path']!r}")
+    hp = Path(hm_d["path"])
+    if not hp.is_absolute():
+        hp = base_dir / hp
+    channel = check_int("heightmap.channel", hm_d.get("channel", 0), 0)
+    allow_nan = check_bool("heightmap.allow_nan", hm_d.get("allow_nan", False))
+    raster = {k: hm_d[k] for k in ("window", "decimate", "resampling") if k in hm_d}
+    if "decimate" in raster:
+        check_int("heightmap.decimate", raster["decimate"], 1)
+    if "resampling" in raster and not isinstance(raster["resampling"], str):
+        raise TypeError(f"heightmap.resampling: expected a string, got {raster['resampling']!r}")
+    gdal = hp.is_file() and is_gdal_raster(hp)
+    if raster and hp.is_file() and not gdal:
+        raise ValueError(f"heightmap.{sorted(raster)[0]}: applies to a GDAL raster (a GeoTIFF, .vrt, .hgt...); "
+                         f"{hp.name} is read as an image or array")
+    if stream and (gdal or hp.suffix.lower() in TIFF_EXTS) and not raster:  # read by windows through GDAL
+        if hm_d.get("max_height") is not None:
+            raise ValueError("heightmap.max_height: a streamed GeoTIFF's heights come from the file")
+        return Heightmap.open(hp, hm_d.get("dx"), hm_d.get("dz"), band=channel + 1)
+    try:
+        hm = Heightmap.load(hp, hm_d.get("dx"), hm_d.get("dz"), max_height=hm_d.get("max_height"), channel=channel,
+                            allow_nan=allow_nan, **raster)
+    except (TypeError, ValueError) as e:  # name the scene key: "window: ..." -> "heightmap.window: ..."
+        k = str(e).partition(":")[0]
+        if k in raster:
+            raise type(e)(f"heightmap.{e}") from None
+        raise
+    return StreamedHeightmap.of(hm) if stream else hm
 
 
 def _check_keys(where: str, d: object, allowed: set[str]) -> None:

@@ -259,7 +259,9 @@ def test_fit_with_knobs_and_baselines_writes_the_fitted_scene_and_the_convergenc
     timing = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("fit took ")]
     assert len(timing) == 1 and all(w in timing[0] for w in ("compile", "relaxed model", "hard model", "probes",
                                                               "exact frames", "other"))
-    assert set(doc["timings"]) == {"compile", "relaxed", "hard", "probes", "exact", "other"}
+    # the wall times by part: timing.json (fit.json is the same bytes on every run)
+    timings = json.loads((out / "timing.json").read_text())["timings"]
+    assert set(timings) == {"compile", "relaxed", "hard", "probes", "exact", "other"} and "timings" not in doc
     assert main(["fit", str(scene), "--budget-px", "2", "--knobs", "warp_factor", "--no-progress",
                  "--out", str(tmp_path / "bad")]) == 2
     err = capsys.readouterr().err

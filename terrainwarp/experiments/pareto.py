@@ -68,7 +68,7 @@ from .runner import Job, Runner, SweepResult, pending_jobs
 from .winners import budget_verdicts, verdict_lines
 
 __all__ = ["Setting", "SweepContext", "default_settings", "sweep", "run_sweep", "summarise", "write_report",
-           "with_image_floor", "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table"]
+           "with_image_floor", "TIMING_COLUMNS", "COLUMNS", "image_floor", "pareto", "budget_table", "complete"]
 
 _PEERS = ("martini", "delatin")  # the peer meshers (terrainwarp.lod.peers)
 _FAMILIES = (*_PEERS, "polytree", "bintree")  # mesh families built once per worker, apart from frames
@@ -409,11 +409,17 @@ def summarise(rows: list[dict], cost_of: Cost | None = None) -> list[dict]:
     """One row per setting: worst-frame p99 and max error (primary, and the image error's p99), worst pair's
     pop p99 and max and the popped samples over the path, the mean modelled cost (``cost_ms``), triangles,
     :data:`SUMMARY_COUNTERS` and frame time, and ``cost``: the mean of ``cost_of`` (None: ``cost_ms``) over the
-    frames, the cost the report ranks by."""
+    frames, the cost the report ranks by. Over the frames that did not fail: ``frames`` counts the setting's
+    rows and ``failed`` those with an ``error`` (left out of every figure; a setting whose every frame failed has
+    NaN figures and ``see_through_px`` None). :func:`complete` says which settings every figure covers."""
     cost_of = cost_of if cost_of is not None else Cost("cost_ms", "modelled ms")
     out = []
     for label in dict.fromkeys(r["setting"] for r in rows):
-        rs = [r for r in rows if r["setting"] == label]
+        every = [r for r in rows if r["setting"] == label]
+        rs = [r for r in every if not r.get("error")]
+        if not rs:
+            out.append(_all_failed(every))
+            continue
         popped = [float(r["popped_samples"]) for r in rs if not math.isnan(float(r.get("popped_samples", math.nan)))]
         out.append({"policy": rs[0]["policy"], "param": rs[0]["param"], "setting": label,
                     "p99_px": max(r["p99_px"] for r in rs), "max_px": max(r["max_px"] for r in rs),
@@ -426,14 +432,31 @@ def summarise(rows: list[dict], cost_of: Cost | None = None) -> list[dict]:
                     "mesh_ms": _mean(rs, "mesh_ms"), "see_through_px": int(sum(r["see_through_px"] for r in rs)),
                     "peer_mesh_ms": rs[0]["peer_mesh_ms"], "peer_error_m": rs[0]["peer_error_m"],
                     "psnr_db": float(np.nanmean([r["psnr_db"] for r in rs])) if any(
-                        np.isfinite(r["psnr_db"]) for r in rs) else math.nan})
+                        np.isfinite(r["psnr_db"]) for r in rs) else math.nan,
+                    "frames": len(every), "failed": len(every) - len(rs)})
     return out
+
+
+def _all_failed(every: list[dict]) -> dict:
+    """The summary row of a setting none of whose frames rendered: its counts, every figure NaN."""
+    r0 = every[0]
+    nan = dict.fromkeys(("p99_px", "max_px", "image_err_p99_px", "pop_p99_px", "pop_max_px", "popped_samples",
+                         "mean_px", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS, "frame_ms", "select_ms",
+                         "mesh_ms", "peer_mesh_ms", "peer_error_m", "psnr_db"), math.nan)
+    return {"policy": r0["policy"], "param": r0["param"], "setting": r0["setting"], **nan, "see_through_px": None,
+            "frames": len(every), "failed": len(every)}
+
+
+def complete(summary: list[dict]) -> list[dict]:
+    """The settings of a summary none of whose frames failed: the ones the fronts, the budget table and the
+    plot compare (a worst frame over part of the path would flatter a setting)."""
+    return [r for r in summary if not r.get("failed")]
 
 
 def pareto(summary: list[dict], cost: str = "cost") -> list[dict]:
     """The settings no other setting beats on both p99 error and ``cost`` (a summary column: ``cost``, the
     report's cost, by default)."""
-    pts = sorted(summary, key=lambda r: (r["p99_px"], r[cost], r["setting"]))
+    pts = sorted(complete(summary), key=lambda r: (r["p99_px"], r[cost], r["setting"]))
     front, best = [], math.inf
     for r in pts:
         if r[cost] < best:
@@ -447,6 +470,7 @@ def budget_table(summary: list[dict], budgets=(0.5, 1.0, 2.0, 4.0), cost: str = 
     (primary error) meets it: [budget, policy, setting, p99_px, cost, triangles, image_err_p99_px (the old
     yardstick at that setting), pop_p99_px]."""
     rows = []
+    summary = complete(summary)
     for b in budgets:
         for pol in dict.fromkeys(r["policy"] for r in summary):
             ok = [r for r in summary if r["policy"] == pol and r["p99_px"] <= b]
@@ -468,7 +492,7 @@ def image_floor(summary: list[dict]) -> dict[str, float]:
     p99 over its settings (its finest setting's, as a rule): what the per-pixel error against the
     fixed-diagonal grid cannot go below, whatever the threshold."""
     out: dict[str, float] = {}
-    for r in summary:
+    for r in complete(summary):
         v = r.get("image_err_p99_px", math.nan)
         if r["policy"] != "grid" and not math.isnan(v):
             out[r["policy"]] = min(out.get(r["policy"], math.inf), v)
@@ -515,6 +539,10 @@ def plot_pareto(summary: list[dict], path: str | Path, title: str = "", cost_lab
     """pareto.png: the worst-frame p99 error against the report's cost (``cost``) and against triangles, each
     setting a marker, each policy a line, the Pareto fronts marked. Nothing in it depends on timings: the same
     rows draw the same bytes."""
+    left_out = [r["setting"] for r in summary if r.get("failed")]
+    summary = complete(summary)
+    if left_out:
+        title += f"\n(left out, frames failed: {', '.join(left_out[:6])}{' ...' if len(left_out) > 6 else ''})"
     fig, axes = new_figure(1, 2, figsize=(12, 4.8))
     marks = {"grid": "k*", "sse": "o-", "distance": "s-", "continuous": "^-", "martini": "v--", "delatin": "D--",
              "polytree": "P:", "bintree": "X:", "cdlod": "h-.", "clipmaps": "p-.", "chunked": "d-."}
@@ -580,6 +608,7 @@ def _write_report(scene: Scene, cameras: list[Camera], rows: list[dict], out: Pa
             f"{cameras[0].width}x{cameras[0].height}; LOD: {scene.lod.roots} roots, tess {scene.lod.tess}.", "",
             f"Camera path: {path['text'] if path else 'the cameras given (not a scene path)'}.", ""]
     md = [f"# Error against cost: {hm.name}", "", *head, *_cost_lines(c), "", *_yardstick_lines(summ),
+          *_failed_lines(summ),
           "", "## Settings", "", _md(["setting", "p99_px", "max_px", "image_err_p99_px", "image_err_floor_p99_px",
                                       "pop_p99_px", "pop_max_px",
                                       "popped_samples", "cost", "cost_ms", "triangles", *SUMMARY_COUNTERS,
@@ -650,6 +679,18 @@ def _yardstick_lines(summ: list[dict]) -> list[str]:
     return lines
 
 
+def _failed_lines(summ: list[dict]) -> list[str]:
+    """What failed: the settings with failed frames, left out of the fronts, the budget table and pareto.png."""
+    bad = [r for r in summ if r.get("failed")]
+    if not bad:
+        return []
+    return ["", f"Failed frames: {sum(r['failed'] for r in bad)} of {sum(r['frames'] for r in summ)} (" +
+            ", ".join(f"{r['setting']} {r['failed']} of {r['frames']}" for r in bad) + "). Their rows in frames.csv "
+            "carry the error; these settings' figures cover the frames that rendered, and they are left out of "
+            "the Pareto fronts, the budget table and pareto.png. A rerun into this folder runs the failed frames "
+            "again."]
+
+
 def _jobs_line(rows: list[dict]) -> str:
     """How the sweep's jobs went: failures (with the first error) and retries after a worker died."""
     failed = [r for r in rows if r.get("error")]
@@ -662,6 +703,8 @@ def _jobs_line(rows: list[dict]) -> str:
 
 def _md(cols: list[str], rows: list[dict]) -> str:
     def f(v):
+        if v is None:
+            return "-"
         if isinstance(v, float):
             return "nan" if math.isnan(v) else f"{v:.4g}"
         return str(v)

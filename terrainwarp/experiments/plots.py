@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import Camera
 from ..heightmap import Heightmap, StreamedHeightmap
-from ..io.files import new_figure, save_figure
+from ..io.files import new_figure, save_figure, write_text
 from ..kernels.normals import sobel_normals
 from ..kernels.shading import light_direction
 from ..lod.quadtree import PatchList
+from ..mesh import Mesh
 
-__all__ = ["plot_patches", "patches_figure", "OVERHANG_NOTE"]
+__all__ = ["plot_patches", "patches_figure", "OVERHANG_NOTE", "Pieces", "mesh_pieces"]
 
 #: The legend's word on patches that reach past the heightmap (the quadtree's power-of-two roots cover it):
 #: they are drawn whole, and the tessellator clamps their points beyond the border onto it, so no terrain
@@ -24,8 +26,10 @@ OVERHANG_NOTE = "beyond the heightmap: clamped onto its border by displacement (
 HILLSHADE_MAX = 2048  # samples a side of a streamed heightmap's hillshade (its overview at a power-of-two step)
 
 
-def _hillshade(heightmap: Heightmap | StreamedHeightmap) -> tuple[np.ndarray, tuple[float, float, float, float]]:
-    """(H, W) grey Lambert term in [0, 1] of the pipeline's normal map under its default sun (no-data as 0 m),
+def _hillshade(heightmap: Heightmap | StreamedHeightmap,
+               light: tuple[float, float] = (315.0, 45.0)) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """(H, W) grey Lambert term in [0, 1] of the pipeline's normal map under the sun ``light`` (azimuth, elevation
+    in degrees: a scene's ``light_azimuth_deg``, ``light_elevation_deg``; no-data as 0 m),
     and its extent (x0, x1, z1, z0) in world metres. A streamed heightmap is shaded from its point-sampled
     overview at the smallest power-of-two step with at most ``HILLSHADE_MAX`` samples a side (never read whole)."""
     (x0, z0), _ = heightmap.bounds_xz
@@ -39,18 +43,63 @@ def _hillshade(heightmap: Heightmap | StreamedHeightmap) -> tuple[np.ndarray, tu
         step, h = 1, heightmap.heights
     dx, dz = heightmap.dx * step, heightmap.dz * step
     n = sobel_normals(np.nan_to_num(h), dx, dz, border="clamp")
-    shade = np.clip(n.astype(np.float64) @ np.asarray(light_direction(315.0, 45.0)), 0, 1)
+    shade = np.clip(n.astype(np.float64) @ np.asarray(light_direction(*light)), 0, 1)
     return shade, (x0, x0 + (h.shape[1] - 1) * dx, z0 + (h.shape[0] - 1) * dz, z0)
 
 
-def plot_patches(heightmap: Heightmap | StreamedHeightmap, patches: PatchList, camera: Camera | None, path: str | Path,
-                 title: str = "") -> Path:
+def plot_patches(heightmap: Heightmap | StreamedHeightmap, patches: PatchList | Pieces, camera: Camera | None,
+                 path: str | Path, title: str = "", light: tuple[float, float] = (315.0, 45.0)) -> Path:
     """Write :func:`patches_figure` to ``path`` (PNG)."""
-    return save_figure(patches_figure(heightmap, patches, camera, title), path, dpi=110)
+    return save_figure(patches_figure(heightmap, patches, camera, title, light), path, dpi=110)
 
 
-def patches_figure(heightmap: Heightmap | StreamedHeightmap, patches: PatchList, camera: Camera | None,
-                   title: str = ""):
+@dataclass(frozen=True)
+class Pieces:
+    """The pieces a mesh source drew (a scheme's nodes, chunks or rings: :func:`mesh_pieces`), as a top-down
+    picture and a table take them: ``origin`` and ``size`` (n, 2) world (x, z) metres of each piece's footprint,
+    ``level`` (n,) its LOD level, ``vertices`` and ``triangles`` (n,) what it holds, ``stats`` a summary."""
+
+    origin: np.ndarray
+    size: np.ndarray
+    level: np.ndarray
+    vertices: np.ndarray
+    triangles: np.ndarray
+    stats: dict
+
+    def __len__(self) -> int:
+        return len(self.level)
+
+    def to_csv(self, path: str | Path) -> Path:
+        lines = ["piece,level,origin_x,origin_z,size_x,size_z,vertices,triangles"]
+        lines += [f"{i},{int(lv)},{o[0]:.6f},{o[1]:.6f},{sz[0]:.6f},{sz[1]:.6f},{int(v)},{int(t)}"
+                  for i, (lv, o, sz, v, t) in enumerate(zip(self.level, self.origin, self.size, self.vertices,
+                                                            self.triangles))]
+        return write_text(path, "\n".join(lines) + "\n")
+
+
+def mesh_pieces(mesh: Mesh) -> Pieces:
+    """The pieces of a drawn mesh, one per patch id (a scheme's node, chunk or ring): the (x, z) bounding box
+    of its vertices that triangles use, its level (the largest of its vertices'), its vertex and triangle
+    counts."""
+    tri = np.asarray(mesh.triangles)
+    world = mesh.world_positions()
+    pid = np.asarray(mesh.patch_id).astype(np.int64)
+    used = np.unique(tri.reshape(-1)) if len(tri) else np.zeros(0, np.int64)
+    ids, inv = np.unique(pid[used], return_inverse=True)
+    lo = np.full((len(ids), 2), np.inf)
+    hi = np.full((len(ids), 2), -np.inf)
+    np.minimum.at(lo, inv, world[used][:, [0, 2]])
+    np.maximum.at(hi, inv, world[used][:, [0, 2]])
+    level = np.zeros(len(ids), np.int64)
+    np.maximum.at(level, inv, np.asarray(mesh.level)[used].astype(np.int64))
+    per_tri = np.searchsorted(ids, pid[tri[:, 0]]) if len(tri) else np.zeros(0, np.int64)
+    return Pieces(origin=lo, size=hi - lo, level=level, vertices=np.bincount(inv, minlength=len(ids)),
+                  triangles=np.bincount(per_tri, minlength=len(ids)),
+                  stats={"pieces": int(len(ids)), "vertices": int(mesh.n_vertices), "triangles": int(len(tri))})
+
+
+def patches_figure(heightmap: Heightmap | StreamedHeightmap, patches: PatchList | Pieces, camera: Camera | None,
+                   title: str = "", light: tuple[float, float] = (315.0, 45.0)):
     """Top-down map (north up: -z at the top) of the selected patches coloured by level over a hillshade,
     with the heightmap's outline, the camera and the horizontal footprint of its frustum.
 
@@ -64,7 +113,7 @@ def patches_figure(heightmap: Heightmap | StreamedHeightmap, patches: PatchList,
 
     (x0, z0), (x1, z1) = heightmap.bounds_xz
     fig, ax = new_figure(figsize=(8, 8 * max(0.3, (z1 - z0) / max(x1 - x0, 1e-9))) if x1 > x0 else (8, 8))
-    hs, extent = _hillshade(heightmap)
+    hs, extent = _hillshade(heightmap, light)
     ax.imshow(hs, cmap="gray", extent=extent, origin="upper", vmin=0, vmax=1, interpolation="nearest")
     lv = np.asarray(patches.level)
     cmap = matplotlib.colormaps["viridis"].resampled(max(int(lv.max()) + 1 if len(lv) else 1, 1))

@@ -45,7 +45,7 @@ from ..rendering.pipeline import Frame
 from ..scene import LOD_POLICIES, Scene
 from ..schemes import SCHEMES
 from .baselines import grid_search
-from .exact import Evaluation, Exact, evaluate, references_for
+from .exact import MISSING_TOL, Evaluation, Exact, evaluate, references_for
 from .families import Problem, problem
 from .search import NonFiniteModel, bracket_search, calibrated_search, close_to_bound
 from .timings import PARTS, Clock, Progress, part, running
@@ -377,6 +377,13 @@ def _check(scene: Scene, budget_px: float, policy: str, max_tries: int, grid_poi
                          "StreamedHeightmap.load() (or a part of the terrain that fits)")
 
 
+def _undrawn(ev: Evaluation) -> str:
+    """Why a worst-frame p99 is infinite when a frame left visible samples undrawn (:data:`MISSING_TOL`)."""
+    worst = max(ev.missing, default=0.0)
+    return "" if worst <= MISSING_TOL else (f" (a frame leaves {worst:.2%} of its visible samples undrawn, over the "
+                                            f"{MISSING_TOL:.1%} allowed)")
+
+
 def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: float,
             cost_of: Cost | None) -> FitResult:
     """The fit's result: the cheapest setting measured on every camera that met the constraints, or, when none
@@ -390,12 +397,16 @@ def _result(exact: Exact, prob: Problem, good: Evaluation | None, budget_px: flo
         main = prob.knob(prob.names[0])
         finest = {**prob.start, main.name: main.lo if main.coarser_up is not False else main.hi}
         floor = exact(finest, stop=False, stage="floor")
-        values = dict(floor.values)
-        msg = (f"budget {budget_px:g} px{pop_txt} cannot be met: even the finest setting ({main.name} = "
-               f"{values[main.name]:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px"
-               + ("" if pop is None else f" and a worst pair pop p99 of {floor.worst_pop:.3g} px"))
-        return FitResult(prob.policy, budget_px, exact.meets(floor), values, prob.make(values), floor, exact.frames,
-                         0.0, msg, **common)
+        if exact.meets(floor):  # a setting that meets the budget is never reported impossible: the answer
+            good = floor
+        else:
+            values = dict(floor.values)
+            msg = (f"budget {budget_px:g} px{pop_txt} cannot be met: even the finest setting ({main.name} = "
+                   f"{values[main.name]:g}) has a worst-frame p99 error of {floor.worst_p99:.3g} px"
+                   + _undrawn(floor)
+                   + ("" if pop is None else f" and a worst pair pop p99 of {floor.worst_pop:.3g} px"))
+            return FitResult(prob.policy, budget_px, False, values, prob.make(values), floor, exact.frames,
+                             0.0, msg, **common)
     values = dict(good.values)
     shown = ", ".join(f"{k} = {values[k]:.4g}" for k in prob.names)
     msg = (f"met: worst-frame p99 {good.worst_p99:.3g} px <= {budget_px:g} px"

@@ -67,8 +67,8 @@ _VERTICAL_UNITS = {
     "us survey foot": 1200.0 / 3937.0, "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0,
     "us survey feet": 1200.0 / 3937.0,
 }
-_RESAMPLING = ("nearest", "average", "bilinear", "cubic", "cubic_spline", "lanczos", "mode", "min", "max",
-               "med", "rms")
+# GDAL's resamplings that a read can use (min, max and med are warp-only: GDAL refuses them in a read)
+_RESAMPLING = ("nearest", "average", "bilinear", "cubic", "cubic_spline", "lanczos", "mode", "rms")
 _SAVE_DTYPES = ("int8", "uint8", "int16", "uint16", "int32", "uint32", "float32", "float64")
 # Relative tolerance under which a transform's rotation/shear terms count as zero (float noise in files).
 _SHEAR_RTOL = 1e-12
@@ -356,7 +356,9 @@ def _described(part: _Part, h64: np.ndarray, p: Path, file_meta: dict, b: int, k
 
 
 # -- the whole raster read by windows (a streamed heightmap) -----------------------------------------
-BLOCK_CACHE_MB = 32  # GDAL's block cache while reading windows (its default is 5% of the machine's memory)
+# GDAL's block cache while reading windows (its default is 5% of the machine's memory): the caller keeps the decoded
+# tiles (the tile cache), so GDAL's needs only the blocks that neighbouring tiles share along their edges
+BLOCK_CACHE_MB = 8
 
 
 class RasterHeader(NamedTuple):

@@ -39,7 +39,7 @@ import numpy as np
 from ..kernels import noise
 from ..kernels.checks import check_bool, check_int, check_number, is_number
 from . import geotiff
-from .cache import CacheFolder
+from .cache import CacheFolder, CorruptTile, TiledArray, content_digest
 
 __all__ = ["TILE", "DEFAULT_CACHE_MB", "TileSource", "ArraySource", "FbmSource", "GeoTiffSource", "TileCache",
            "cache_mb_from_env", "cache_dir_for"]
@@ -176,9 +176,9 @@ class FbmSource(TileSource):
         self.seed, self.octaves, self.gain, self.lacunarity, self.ridged = (
             int(seed), int(octaves), float(gain), float(lacunarity), bool(ridged))
         self.name = f"fbm{rows}x{cols}s{seed}"
-        self.meta = {"source": "fbm", "seed": self.seed, "feature_size": self.feature_size,
-                     "octaves": self.octaves, "gain": gain, "lacunarity": lacunarity, "ridged": ridged,
-                     "streamed": True}
+        self.meta = {"source": "fbm", "seed": self.seed, "max_height": self.max_height,
+                     "feature_size": self.feature_size, "octaves": self.octaves, "gain": gain,
+                     "lacunarity": lacunarity, "ridged": ridged, "streamed": True}
 
     def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
         a = noise.fbm(int(rows), int(cols), seed=self.seed, base_frequency=1.0 / self.feature_size,
@@ -250,13 +250,16 @@ class GeoTiffSource(TileSource):
         self.dx, self.dz = self.header.dx, self.header.dz
         self.name = self.path.stem
         self.meta = dict(self.header.meta, streamed=True)
-        self.levels: dict[int, np.ndarray] = {}  # step -> memory-mapped point-sampled overview (the cache's)
+        self.levels: dict[int, TiledArray] = {}  # step -> the cache's point-sampled overview, checked tile by tile
         self._local = threading.local()
 
     def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
-        if step > 1 and step in self.levels:
-            lv = self.levels[step]
-            return np.ascontiguousarray(lv[r0:r0 + rows, c0:c0 + cols], dtype=np.float32)
+        lv = self.levels.get(step) if step > 1 else None
+        if lv is not None:
+            try:
+                return lv.window(r0, c0, rows, cols)
+            except CorruptTile:  # read from the file from now on (the overview is rebuilt on the next open)
+                self.levels.pop(step, None)
         s = int(step)
         full = geotiff.read_oriented(self.header, self._dataset(), r0 * s, c0 * s, (rows - 1) * s + 1,
                                      (cols - 1) * s + 1)
@@ -280,14 +283,11 @@ class GeoTiffSource(TileSource):
         return ds
 
     def fingerprint(self) -> str:
-        """Path, size, modification time, band, and a hash of the first and last 64 KiB."""
-        st = self.path.stat()
-        h = hashlib.sha256()
-        with self.path.open("rb") as f:
-            h.update(f.read(65536))
-            f.seek(max(0, st.st_size - 65536))
-            h.update(f.read(65536))
-        return f"file:{self.path.resolve()}:{st.st_size}:{st.st_mtime_ns}:band{self.band}:{h.hexdigest()[:24]}"
+        """Path, band and the SHA-256 of the file's whole content (:func:`terrainwarp.io.cache.content_digest`:
+        worked out once, kept beside the cache with the file's size, times and inode, and again whenever one of
+        them changes), so any edit of the file is seen."""
+        digest = content_digest(self.path, cache_dir_for(self.path))
+        return f"file:{self.path.resolve()}:band{self.band}:sha256:{digest}"
 
     def cache(self) -> CacheFolder:
         """The file's cache folder (:func:`cache_dir_for`), keyed on :meth:`fingerprint`: its pyramids and
@@ -295,12 +295,13 @@ class GeoTiffSource(TileSource):
         return CacheFolder(cache_dir_for(self.path), self.fingerprint())
 
     def height_range(self, tiles: TileCache) -> tuple[float, float]:
-        """Scanned once, then kept in the file's cache folder (the manifest's ``height_range``)."""
+        """Kept in the file's cache folder (the manifest's ``height_range``): worked out by the pyramid's build,
+        or, asked first, by a scan of every tile (through a cache of its own: the frames' tiles stay theirs)."""
         cache = self.cache()
         got = cache.value("height_range")
         if isinstance(got, list) and len(got) == 2 and all(isinstance(v, float) for v in got):
             return (got[0], got[1])
-        lo, hi = _scan_range(self, tiles)
+        lo, hi = _scan_range(self, TileCache(self, 16))  # its own small cache: a scan reads every tile once
         with contextlib.suppress(OSError):  # a read-only place: scanned again next time
             with cache.building() as b:
                 b.set_value("height_range", [lo, hi])

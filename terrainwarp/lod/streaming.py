@@ -8,11 +8,16 @@ in memory, in one of two ways:
   window of samples at a time, never the grid), by the same kernel as the in-memory pyramids, so every
   value is bit for bit the in-memory one. For a file the result is kept in a cache beside it
   (``<file>.twcache/``, or ``~/.cache/terrainwarp/tiles/`` when that folder is read-only), reused across
-  runs and rebuilt when the file changes (size, modification time and a hash of its first and last
-  64 KiB). The same pass writes the point-sampled overviews (steps 2, 4, ...) that far patches read. The
-  cache checks itself (:mod:`terrainwarp.io.cache`): a file is used only if its size and checksum equal
-  the manifest's; a missing, truncated or corrupt one is rebuilt (or the error names it), and threads and
-  processes that open a new file at once build its cache once, under a lock, the others waiting.
+  runs and rebuilt when the file's content changes (a SHA-256 of the whole file, worked out again whenever
+  its size, modification time, change time or inode differ: :func:`terrainwarp.io.cache.content_digest`).
+  The same pass writes the point-sampled overviews (steps 2, 4, ...) that far patches read, tile by tile
+  (a root row's strip and one row of tiles per step in memory, written with ``pwrite``: the build's memory
+  is a few tiles and the pyramid's node arrays, whatever the raster's size), and the file's height range.
+  The cache checks itself (:mod:`terrainwarp.io.cache`): the node arrays (12 bytes a node: about 1% of the
+  raster) when opened, the overviews tile by tile as each is read; a missing, truncated or corrupt file is
+  rebuilt (or the error names it; an overview tile that fails its check mid-frame is read from the file
+  instead, and its overview rebuilt on the next open), and threads and processes that open a new file at
+  once build its cache once, under a lock, the others waiting.
 * **on demand** (procedural sources, whose overviews have a known :meth:`detail_bound`): the nodes a
   selection visits are worked out in blocks of ``BLOCK`` x ``BLOCK`` nodes from the overview whose step
   is 1/8 of the node's vertex spacing (each node seen through an (8T + 1)^2 window), and widened by the
@@ -34,8 +39,8 @@ from collections.abc import Callable
 import numpy as np
 
 from ..heightmap import StreamedHeightmap
-from ..io.cache import CacheError, CacheFolder
-from ..io.tiles import GeoTiffSource, TileCache
+from ..io.cache import CacheError, CacheFolder, TiledWriter
+from ..io.tiles import TILE, GeoTiffSource, TileCache
 from ..kernels.pyramid import node_stats
 
 __all__ = ["StreamedPyramid", "overview_windows", "root_pyramid", "BLOCK", "MAX_BLOCKS"]
@@ -44,6 +49,7 @@ BLOCK = 4  # nodes per side of an on-demand stats block
 MAX_BLOCKS = 65536  # on-demand blocks kept (3 x 4 x 4 float32 each: 12 MiB in all)
 FINEST = 8  # the finest step a node is measured at: 1/8 of its vertex spacing (1 at the finest levels)
 WINDOW_MARGIN = 2  # overview samples around a window's patches (bilinear footprint and central differences)
+BUILD_CACHE_MB = 16  # the pyramid build's own tile cache (a root row's edge tiles; each tile read once)
 
 
 class StreamedPyramid:
@@ -172,7 +178,7 @@ class StreamedPyramid:
     def _exact(self, progress: Callable[[int], None] | None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         src = self.hm.source
         if not isinstance(src, GeoTiffSource):
-            return self._build(progress, {})
+            return self._build(progress, {})[0]
         cache = src.cache()
         names = [self._stats_name(lv) for lv in range(self.depth + 1)]
         steps = self._overview_steps()
@@ -185,14 +191,15 @@ class StreamedPyramid:
             with cache.building() as b:  # one builder; the others wait here, then find the files built
                 todo = b.todo(wanted)
                 if todo:
-                    overviews = {st: np.lib.format.open_memmap(b.path(_overview_name(st)), mode="w+",
-                                                              dtype=np.float32, shape=src.level_shape(st))
-                                 for st in steps if _overview_name(st) in todo}
-                    levels = self._build(progress, overviews)
+                    writers = {st: b.tiled(_overview_name(st), src.level_shape(st), TILE) for st in steps
+                               if _overview_name(st) in todo}
+                    levels, heights = self._build(progress, writers)
                     for name, arrs in zip(names, levels, strict=True):
                         if name in todo:
                             with open(b.path(name), "wb") as f:
                                 np.save(f, np.stack(arrs))
+                    if heights is not None:  # the file's height range, from the same pass
+                        b.set_value("height_range", list(heights))
                     self.counters["cache"] = "built" if set(todo) == set(wanted) else "repaired"
                 else:
                     self.counters["cache"] = "reused"
@@ -206,49 +213,62 @@ class StreamedPyramid:
 
     def _load(self, cache: CacheFolder, names: list[str], steps: list[int]) -> list:
         """The layout's pyramid memory-mapped from the checked files, and the overviews handed to the source
-        (memory-mapped: pages are read when tiles touch them)."""
+        (:class:`terrainwarp.io.cache.TiledArray`: read tile by tile, each tile checked as read)."""
         try:
             levels = [tuple(np.load(cache.path / n, mmap_mode="r")) for n in names]
+            body = cache.manifest()
             for st in steps:
-                self.hm.source.levels[st] = np.load(cache.path / _overview_name(st), mmap_mode="r")
+                self.hm.source.levels[st] = cache.tiled(_overview_name(st), body)
         except (OSError, ValueError) as e:  # checked just now: changed on disk since (by something else)
             raise CacheError(f"{cache.path}: a pyramid cache file changed on disk while it was opened: {e}") from None
         return levels
 
-    def _build(self, progress: Callable[[int], None] | None,
-               overviews: dict[int, np.ndarray]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def _build(self, progress: Callable[[int], None] | None, writers: dict[int, TiledWriter]
+               ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], tuple[float, float] | None]:
         """Every root's window through the in-memory kernel (:func:`root_pyramid`), here or on the workers of
-        ``map``, then placed; each root's values are the same wherever it ran. The point-sampled overviews in
-        ``overviews`` (step -> an array of the overview's shape) are filled in the same pass."""
+        ``map``, a root row at a time, then placed; each root's values are the same wherever it ran. The
+        point-sampled overviews of ``writers`` (step -> :class:`terrainwarp.io.cache.TiledWriter`) are written in
+        the same pass, a row of tiles as soon as its rows are in (memory: a root row's strip and a row of tiles
+        per step). Returns the node arrays and the finite heights' (min, max) (None: no finite height)."""
         nx, nz = self.roots
         s0 = self.root_cells
         whole = s0 != int(s0)  # fractional roots: node origins are not integer shifts; one window, the grid
         levels = [tuple(np.zeros((nz << lv, nx << lv), np.float32) for _ in range(3)) for lv in range(self.depth + 1)]
-        ranges = [(0, 0, nz, nx)] if whole else [(y, x, 1, 1) for y in range(nz) for x in range(nx)]
-        spec = (self.hm.source, s0, self.depth, self.tess, tuple(overviews))
-        if self.map is not None:
-            parts = self.map(root_pyramid, ranges, spec)
-            bad = [p for p in parts if isinstance(p, Exception)]
-            if bad:
-                raise ValueError(f"heightmap: a root's pyramid failed on a worker: {bad[0]}")
-        else:  # a cache of its own: each tile is read once (roots share only their edges), frames' stay theirs
-            tiles = TileCache(self.hm.source, 64)
-            parts = (root_pyramid(spec, r, tiles=tiles) for r in ranges)
-        for (y, x, _, _), part in zip(ranges, parts, strict=True):
-            if part is not None:
-                stats, subs = part
-                for lv, arrs in enumerate(stats):
-                    a, b = y << lv, x << lv
-                    for dst, src in zip(levels[lv], arrs, strict=True):
-                        dst[a:a + src.shape[0], b:b + src.shape[1]] = src
-                r0, c0 = int(y * s0), int(x * s0)
-                for step, sub in subs.items():
-                    overviews[step][r0 // step:r0 // step + sub.shape[0], c0 // step:c0 // step + sub.shape[1]] = sub
-            if progress is not None:
-                progress(1)
-        for arr in overviews.values():
-            arr.flush()
-        return levels
+        rows = [[(0, 0, nz, nx)]] if whole else [[(y, x, 1, 1) for x in range(nx)] for y in range(nz)]
+        spec = (self.hm.source, s0, self.depth, self.tess, tuple(writers))
+        bands = {st: _TileRows(w) for st, w in writers.items()}
+        lo, hi = np.inf, -np.inf
+        # its own tile cache, of about a row of roots' tiles (roots share the tiles along their edges)
+        tiles = TileCache(self.hm.source, BUILD_CACHE_MB)
+        for ranges in rows:
+            if self.map is not None:
+                parts = self.map(root_pyramid, ranges, spec)
+                bad = [p for p in parts if isinstance(p, Exception)]
+                if bad:
+                    raise ValueError(f"heightmap: a root's pyramid failed on a worker: {bad[0]}")
+            else:  # one root at a time: each root's window and overviews dropped once placed
+                parts = (root_pyramid(spec, r, tiles=tiles) for r in ranges)
+            strips = {st: None for st in writers}
+            for (y, x, _, _), part in zip(ranges, parts, strict=True):
+                if part is not None:
+                    stats, subs, (plo, phi) = part
+                    lo, hi = min(lo, plo), max(hi, phi)
+                    for lv, arrs in enumerate(stats):
+                        a, b = y << lv, x << lv
+                        for dst, src in zip(levels[lv], arrs, strict=True):
+                            dst[a:a + src.shape[0], b:b + src.shape[1]] = src
+                    for st, sub in subs.items():
+                        if strips[st] is None:
+                            strips[st] = np.full((sub.shape[0], writers[st].shape[1]), np.nan, np.float32)
+                        c0 = int(x * s0) // st
+                        strips[st][:, c0:c0 + sub.shape[1]] = sub
+                if progress is not None:
+                    progress(1)
+            for st, strip in strips.items():
+                if strip is not None:
+                    bands[st].add(int(ranges[0][0] * s0) // st, strip)
+            del parts, strips
+        return levels, (None if not np.isfinite(lo) else (float(lo), float(hi)))
 
     def _overview_steps(self) -> list[int]:
         """The point-sampled overviews a file's cache holds: steps 2, 4, ... dividing S_0, down to 2 samples a
@@ -270,13 +290,13 @@ def _overview_name(step: int) -> str:
     return f"overview_{step}.npy"
 
 
-def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *,
-                 tiles: TileCache | None = None) -> tuple[list, dict[int, np.ndarray]] | None:
-    """The pyramid of roots ``item`` = (y, x, rows of roots, columns of roots) from its window of samples, and
-    its point-sampled overviews at the steps in ``spec``, or None when the roots lie outside the grid. A
-    root's nodes read only samples inside the root's closed extent, and with an integer S_0 the window's
-    coordinates are the grid's shifted by an integer: every value is bit for bit the whole grid's. Runs
-    anywhere (a Dask worker reads its own tiles)."""
+def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *, tiles: TileCache | None = None
+                 ) -> tuple[list, dict[int, np.ndarray], tuple[float, float]] | None:
+    """The pyramid of roots ``item`` = (y, x, rows of roots, columns of roots) from its window of samples, its
+    point-sampled overviews at the steps in ``spec`` and its finite heights' (min, max) (+-inf: none), or None
+    when the roots lie outside the grid. A root's nodes read only samples inside the root's closed extent, and
+    with an integer S_0 the window's coordinates are the grid's shifted by an integer: every value is bit for
+    bit the whole grid's. Runs anywhere (a Dask worker reads its own tiles)."""
     source, s0, depth, tess, steps = spec
     y, x, ny_, nx_ = item
     hh, ww = source.shape
@@ -288,7 +308,35 @@ def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *,
     win = (tiles if tiles is not None else TileCache(source, 64)).window(1, r0, c0, rows, cols)
     stats = node_stats(win, (nx_, ny_), s0, depth, tess)
     subs = {st: np.ascontiguousarray(win[::st, ::st]) for st in steps if r0 % st == 0 and c0 % st == 0}
-    return stats, subs
+    finite = win[np.isfinite(win)]
+    return stats, subs, ((float(finite.min()), float(finite.max())) if finite.size else (np.inf, -np.inf))
+
+
+class _TileRows:
+    """An overview's rows arriving in order, a strip at a time (a strip's first row may repeat the last one
+    in); each row of tiles is written (:class:`terrainwarp.io.cache.TiledWriter`) as soon as its ``tile + 1``
+    rows are in, and the strips below the next row of tiles are dropped."""
+
+    def __init__(self, writer: TiledWriter):
+        self.w, self.t = writer, writer.tile
+        self.strips: list[tuple[int, np.ndarray]] = []  # (first overview row, rows), in order
+        self.next = 0  # the next row of tiles to write
+
+    def add(self, r0: int, strip: np.ndarray) -> None:
+        self.strips.append((r0, strip))
+        last = r0 + len(strip) - 1
+        rows, t = self.w.shape[0], self.t
+        while self.next < self.w.grid[0] and (last >= self.next * t + t or last == rows - 1):
+            a, b = self.next * t, min(self.next * t + t, rows - 1) + 1
+            band = np.empty((b - a, self.w.shape[1]), np.float32)
+            for s0, s in self.strips:  # later strips overwrite a shared row with the same values
+                lo, hi = max(a, s0), min(b, s0 + len(s))
+                if lo < hi:
+                    band[lo - a:hi - a] = s[lo - s0:hi - s0]
+            for tj in range(self.w.grid[1]):
+                self.w.write(self.next, tj, band[:, tj * t:tj * t + t + 1])
+            self.next += 1
+            self.strips = [(s0, s) for s0, s in self.strips if s0 + len(s) > self.next * t]
 
 
 def overview_windows(hm: StreamedHeightmap, origin_cells: np.ndarray, size_cells: np.ndarray,

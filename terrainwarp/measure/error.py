@@ -113,8 +113,9 @@ class FrameError:
         p99_px, max_px, mean_px: the primary error (:func:`terrainwarp.measure.sample_error.sample_error`):
             per visible heightmap sample, the pixel distance between the sample and the drawn surface at
             its (x, z); every family's full-detail mesh scores 0.
-        samples_visible, samples_outside, samples_hidden, samples_missing, samples_no_data: what the
-            primary error counted (:class:`terrainwarp.measure.sample_error.SampleError`).
+        samples_visible, samples_outside, samples_hidden, samples_missing, samples_no_data,
+            samples_beside_hole: what the primary error counted
+            (:class:`terrainwarp.measure.sample_error.SampleError`; beside a no-data hole: measured by no family).
         image_err_p99_px, image_err_max_px, image_err_mean_px: the per-pixel reprojection error against
             the fixed-diagonal full-resolution grid (:func:`frame_error`). Secondary: it carries a
             triangulation floor (p99 0.69-0.94 px at 10% clearance, 2.4-5.7 px at 2%, on the bundled DEM
@@ -149,6 +150,7 @@ class FrameError:
     max_depth_diff: float
     psnr_db: float | None = None
     ssim: float | None = None
+    samples_beside_hole: int = 0
     error_map: np.ndarray | None = field(default=None, repr=False)
     image_error_map: np.ndarray | None = field(default=None, repr=False)
     see_through_mask: np.ndarray | None = field(default=None, repr=False)
@@ -159,6 +161,7 @@ class FrameError:
         return cls(p99_px=samples.p99_px, max_px=samples.max_px, mean_px=samples.mean_px,
                    samples_visible=samples.visible, samples_outside=samples.outside, samples_hidden=samples.hidden,
                    samples_missing=samples.missing, samples_no_data=samples.no_data,
+                   samples_beside_hole=samples.beside_hole,
                    image_err_p99_px=image.p99_px, image_err_max_px=image.max_px, image_err_mean_px=image.mean_px,
                    approx_max_px=image.approx_max_px, approx_p99_px=image.approx_p99_px, covered=image.covered,
                    mismatched=image.mismatched, silhouette=image.silhouette, see_through_px=image.see_through_px,

@@ -47,8 +47,16 @@ grid of side / 2^k, with heights from the three nearest samples.)
    A sample behind a hill is farther than the hill by far more than this; the tolerance only decides
    samples on the visible surface itself.
 3. Excluded and counted: ``no_data`` (NaN heights), ``outside`` (viewport, near, far), ``hidden`` (depth
-   test), and ``missing``: visible samples with no drawn surface above or below them (culled patches, holes).
-   Where P' lies behind the eye the error is +inf.
+   test), ``beside_hole`` and ``missing``: visible samples with no drawn surface above or below them (culled
+   patches, holes a setting made larger). Where P' lies behind the eye the error is +inf.
+
+**Beside a no-data hole.** A finite sample within one cell of a NaN sample (a corner of a cell that touches
+the hole: :func:`beside_hole`) is measured by no family: whether a mesh draws it depends on its diagonals
+(no triangle may touch the hole, so a cell with one NaN corner keeps one triangle or none) and on its
+vertices' filter (a bilinear fetch at or beside the sample reads the hole, so a tessellated vertex there is a
+hole too). Every family's full-detail mesh draws every sample farther from the hole (a fully finite cell
+around it), so counting only those as missing holds every family to the same terrain; the ones beside the
+hole are counted apart (``beside_hole``) and are neither measured nor missing.
 
 **Popping.** For cameras t -> t+1, the LOD selected at t (held) and the LOD selected at t+1, both drawn for
 camera t+1: per visible sample (visibility as above, from camera t+1's full-detail depth buffer), the pixel
@@ -71,10 +79,12 @@ from ..kernels import sample_error as _k
 from ..kernels.pool import pooled
 from ..mesh import Mesh
 
-__all__ = ["SampleError", "PopStats", "surface_heights", "sample_error", "popping", "STATES", "percentile"]
+__all__ = ["SampleError", "PopStats", "surface_heights", "sample_error", "popping", "STATES", "percentile",
+           "beside_hole"]
 
+BESIDE_HOLE = 5  # a sample next to a no-data hole: measured by no family (set on the host after the kernel)
 STATES = {"visible": _k.VISIBLE, "no_data": _k.NO_DATA, "outside": _k.OUTSIDE, "hidden": _k.HIDDEN,
-          "missing": _k.MISSING}
+          "missing": _k.MISSING, "beside_hole": BESIDE_HOLE}
 
 
 @dataclass(frozen=True)
@@ -90,6 +100,8 @@ class SampleError:
         hidden: samples in view that fail the depth test against the full-detail frame.
         missing: samples that would be visible but have no drawn surface above or below them.
         no_data: samples whose height is NaN.
+        beside_hole: samples in view within one cell of a no-data sample (:func:`beside_hole`): measured by no
+            family, neither visible nor missing.
         error_map: (rows, cols) float32 per-sample error, NaN where not measured; only with ``keep_map``.
     """
 
@@ -101,12 +113,13 @@ class SampleError:
     hidden: int
     missing: int
     no_data: int
+    beside_hole: int = 0
     error_map: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def row(self) -> dict[str, float | int]:
         """The numbers (no map), for tables."""
         return {k: getattr(self, k) for k in ("p99_px", "max_px", "mean_px", "visible", "outside", "hidden",
-                                              "missing", "no_data")}
+                                              "missing", "no_data", "beside_hole")}
 
 
 @dataclass(frozen=True)
@@ -118,7 +131,8 @@ class PopStats:
         popped: visible samples that move by more than ``threshold_px``.
         popped_pixels: distinct image pixels those samples fall in (the pixel of the sample itself).
         threshold_px: the threshold used.
-        visible, outside, hidden, missing, no_data: as :class:`SampleError` (``missing``: either surface).
+        visible, outside, hidden, missing, no_data, beside_hole: as :class:`SampleError` (``missing``: either
+            surface).
         pop_map: (rows, cols) float32 per-sample displacement, NaN where not measured; only with ``keep_map``.
     """
 
@@ -133,13 +147,14 @@ class PopStats:
     hidden: int
     missing: int
     no_data: int
+    beside_hole: int = 0
     pop_map: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def row(self) -> dict[str, float | int]:
         """The numbers (no map), for tables."""
         return {k: getattr(self, k) for k in ("p99_px", "max_px", "mean_px", "popped", "popped_pixels",
                                               "threshold_px", "visible", "outside", "hidden", "missing",
-                                              "no_data")}
+                                              "no_data", "beside_hole")}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -193,11 +208,35 @@ def surface_heights(heightmap: Heightmap, mesh: Mesh, *, device: str = "cpu") ->
 # ------------------------------------------------------------------------------------------------
 # the measures
 # ------------------------------------------------------------------------------------------------
+def beside_hole(heightmap: Heightmap) -> np.ndarray | None:
+    """(rows, cols) bool: the finite samples within one cell of a no-data (NaN) sample (a corner of a cell that
+    touches the hole), which no family is held to draw (the module docstring); None for a heightmap without
+    holes. Worked out once per heightmap (kept in ``heightmap.held``)."""
+    if not heightmap.has_nodata:
+        return None
+    got = heightmap.held.beside_hole
+    if got is None:
+        nan = np.isnan(heightmap.heights)
+        near = np.zeros((nan.shape[0] + 2, nan.shape[1] + 2), bool)
+        for a in range(3):  # the 3 x 3 neighbourhood: every corner of the four cells around a sample
+            for b in range(3):
+                near[a:a + nan.shape[0], b:b + nan.shape[1]] |= nan
+        got = heightmap.held.beside_hole = near[1:-1, 1:-1] & ~nan
+    return got
+
+
 def _measure(heightmap: Heightmap, camera: Camera, ya: np.ndarray | None, yb: np.ndarray, depth: np.ndarray,
              device: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     mvp = camera.proj_matrix() @ camera.view_matrix(relative=True)
-    return _k.sample_displacement(heightmap.heights, ya, yb, depth, relative_origin(heightmap.origin, camera.position),
-                                  (heightmap.dx, heightmap.dz), mvp, camera.near, camera.far, device=device)
+    err, state, pix = _k.sample_displacement(heightmap.heights, ya, yb, depth,
+                                             relative_origin(heightmap.origin, camera.position),
+                                             (heightmap.dx, heightmap.dz), mvp, camera.near, camera.far, device=device)
+    beside = beside_hole(heightmap)
+    if beside is not None:  # in view and not hidden, beside a hole: measured by no family
+        m = beside & ((state == _k.VISIBLE) | (state == _k.MISSING))
+        state[m] = BESIDE_HOLE
+        err[m] = np.nan
+    return err, state, pix
 
 
 def percentile(a: np.ndarray, q: float) -> float:
@@ -276,4 +315,4 @@ def popping(heightmap: Heightmap, camera: Camera, held: Mesh, current: Mesh, ref
     return PopStats(p99_px=s["p99_px"], max_px=s["max_px"], mean_px=s["mean_px"], popped=int(moved.sum()),
                     popped_pixels=int(np.unique(pix[moved]).size), threshold_px=float(threshold_px),
                     visible=s["visible"], outside=s["outside"], hidden=s["hidden"], missing=s["missing"],
-                    no_data=s["no_data"], pop_map=_as_map(err) if keep_map else None)
+                    no_data=s["no_data"], beside_hole=s["beside_hole"], pop_map=_as_map(err) if keep_map else None)

@@ -78,7 +78,7 @@ from typing import Any
 
 import numpy as np
 
-from ..camera import Camera, relative_origin
+from ..camera import Camera, DepthPrecisionWarning, check_depth_range, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
 from ..io.display import depth_picture, html_table, id_picture, png_bytes
 from ..io.files import atomic_path, output_set, write_image, write_json
@@ -408,6 +408,7 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
     if not isinstance(scene, Scene):
         raise TypeError(f"scene: expected a Scene, got {type(scene).__name__}")
     hm, cam = scene.heightmap, scene.camera
+    _check_near(scene)
     if terrain is not None:
         if not isinstance(terrain, Terrain):
             raise TypeError(f"terrain: expected a Terrain, got {type(terrain).__name__}")
@@ -450,6 +451,27 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         report.info["held_patches"] = len(patches)
     return _Run(scene, Frame(scene=scene, report=report, patches=patches), plan, device, terrain, state,
                 reference, source)
+
+
+def _check_near(scene: Scene) -> None:
+    """Refuse a camera whose ``near`` blanks the terrain it looks at in float32 depth, warn
+    (:class:`terrainwarp.camera.DepthPrecisionWarning`) when it loses the far terrain
+    (:func:`terrainwarp.camera.check_depth_range`)."""
+    hm, cam = scene.heightmap, scene.camera
+    (x0, z0), (x1, z1) = hm.bounds_xz
+    known = hm.known_height_range() if isinstance(hm, StreamedHeightmap) else hm.height_range
+    lo, hi = known if known is not None else (cam.position[1], cam.position[1])  # a file's: its build's, later
+    text = _depth_range_text(cam.position, cam.target, cam.up, cam.near, cam.far, (x0, lo, z0), (x1, hi, z1))
+    if text is not None:
+        warnings.warn(text, DepthPrecisionWarning, stacklevel=3)
+
+
+@functools.lru_cache(maxsize=1024)
+def _depth_range_text(position: tuple, target: tuple, up: tuple, near: float, far: float, box_min: tuple,
+                      box_max: tuple) -> str | None:
+    """:func:`terrainwarp.camera.check_depth_range`, once per camera and terrain box (a path renders many frames
+    per camera)."""
+    return check_depth_range(Camera(position=position, target=target, up=up, near=near, far=far), box_min, box_max)
 
 
 def _streamed_source(scene: Scene, terrain: Terrain | None, source: MeshSource | None, patches: PatchList | None,

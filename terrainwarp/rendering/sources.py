@@ -253,8 +253,9 @@ class StreamedSource(SourceBase):
         if any(np.isnan(w[3]).any() for w in stack):  # no-data holes: drop triangles touching them
             pos, tri = drop_nonfinite_triangles(pos, tri, device=self.device)
             nrm[~np.isfinite(nrm).all(axis=1)] = (0.0, 1.0, 0.0)
-        w1, h1 = np.float32(max(hm.shape[1] - 1, 1)), np.float32(max(hm.shape[0] - 1, 1))
-        uv = np.stack([t.uv[:, 0] / w1, t.uv[:, 1] / h1], axis=1).astype(np.float32)
+        uv = t.uv  # in cells, for the windows; the mesh's in [0, 1], divided in place (no frame-sized copies)
+        uv[:, 0] /= np.float32(max(hm.shape[1] - 1, 1))
+        uv[:, 1] /= np.float32(max(hm.shape[0] - 1, 1))
         if self.full_resolution:  # the in-memory frame's normals: the grid's Sobel map, fetched at uv
             grid = stack[0][3]
             nmap = self.cached(("normal_map", self.device),

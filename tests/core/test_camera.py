@@ -101,3 +101,38 @@ def test_default_camera_sees_the_whole_terrain():
 def test_default_camera_for_a_single_sample():
     c = Camera.default_for(Heightmap.from_array(np.array([[5.0]]), 2.0))
     assert c.far > c.near and np.isfinite(c.position).all()
+
+
+# -- issue 43 (finding 9): a near that float32 depth cannot resolve is refused or warned about ------------------
+def test_a_near_that_blanks_the_frame_is_refused_with_the_smallest_safe_value():
+    import re
+    import warnings
+
+    from terrainwarp import Heightmap, Scene, render
+    from terrainwarp.camera import DepthPrecisionWarning
+
+    hm = Heightmap.example()
+    cam = Camera.default_for(hm, 96, 64)
+    covered = int((render(Scene(hm, camera=cam, outputs=("depth",))).depth < 1).sum())
+    for near in (1e-5, 1e-4):  # a blank frame (0 pixels covered) while its error said p99 1e-6 px
+        with pytest.raises(ValueError, match=r"camera.near: .* too small for float32 depth") as e:
+            render(Scene(hm, camera=cam.with_(near=near), outputs=("depth",)))
+    safe = float(re.search(r"use near >= ([0-9.e+-]+) m", str(e.value)).group(1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DepthPrecisionWarning)
+        f = render(Scene(hm, camera=cam.with_(near=safe), outputs=("depth",)))  # neither refused nor warned
+    assert int((f.depth < 1).sum()) == covered
+    with pytest.warns(DepthPrecisionWarning, match=f"near >= {safe:g} m resolves it"):  # the far terrain at risk
+        render(Scene(hm, camera=cam.with_(near=0.7 * safe), outputs=("depth",)))
+
+
+def test_the_cli_refuses_a_blank_near_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    p = tmp_path / "near.toml"
+    p.write_text('[heightmap]\nexample = "jacksboro"\n[camera]\nwidth = 48\nheight = 32\nnear = 1e-5\n')
+    r = subprocess.run([sys.executable, "-m", "terrainwarp.cli", "render", str(p), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1
+    assert r.stderr.startswith("terrainwarp: error: camera.near: 1e-05 m is too small") and "use near >=" in r.stderr

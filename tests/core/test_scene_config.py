@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -152,3 +153,66 @@ def test_saving_names_the_heightmap_a_scene_file_cannot_name(tmp_path):
 def test_scheme_knobs_and_level_scales_are_checked_in_the_scene_file(lod, err, match):
     with pytest.raises(err, match=match):
         Scene.from_dict({"heightmap": FBM, "lod": lod})
+
+
+# ------------------------------------------------------------------------------------------------
+# issue 43 (finding 2): every source kind saves to a scene file and loads back to the same heights
+# ------------------------------------------------------------------------------------------------
+def _sources(tmp: Path) -> dict:
+    """A heightmap of every kind a scene file can name, by label, each with how it was made."""
+    from terrainwarp.heightmap import StreamedHeightmap
+    from terrainwarp.io.geotiff import write_tiled
+
+    fbm = Heightmap.fbm(97, 65, seed=2, dx=12.0, max_height=300.0)
+    holes = fbm.heights.copy()
+    holes[10:20, 30:45] = np.nan
+    tif = write_tiled(tmp / "dem.tif", fbm.shape, lambda r0, c0, a, b: holes[r0:r0 + a, c0:c0 + b], dx=12.0)
+    np.save(tmp / "holes.npy", holes)
+    png = tmp / "dem.png"
+    Heightmap.from_array(np.round(fbm.heights).astype(np.uint16), 3.0).save(png)
+    return {
+        "example": lambda: Heightmap.example("topobathy"),
+        "example streamed": lambda: StreamedHeightmap.of(Heightmap.example("topobathy")),
+        "fbm": lambda: fbm,
+        "fbm streamed": lambda: StreamedHeightmap.fbm(97, 65, seed=2, dx=12.0, max_height=300.0),
+        "png scaled": lambda: Heightmap.load(png, dx=3.0, max_height=50.0),
+        "npy with holes": lambda: Heightmap.load(tmp / "holes.npy", dx=2.0, allow_nan=True),
+        "geotiff": lambda: Heightmap.load(tif),
+        "geotiff window": lambda: Heightmap.load(tif, window=((8, 72), (4, 50))),
+        "geotiff decimated": lambda: Heightmap.load(tif, decimate=3, resampling="mode"),
+        "geotiff streamed": lambda: Heightmap.open(tif, dx=5.0),
+        "geotiff window streamed": lambda: StreamedHeightmap.of(Heightmap.load(tif, window=((8, 72), (4, 50)))),
+    }
+
+
+def _grid(hm) -> np.ndarray:
+    from terrainwarp.heightmap import StreamedHeightmap
+
+    return hm.load().heights if isinstance(hm, StreamedHeightmap) else hm.heights
+
+
+def test_every_source_kind_saves_and_loads_back_to_the_same_heights(tmp_path):
+    for label, make in _sources(tmp_path).items():
+        hm = make()
+        back = Scene.load(Scene(hm, name=label).save(tmp_path / "s.toml")).heightmap
+        assert type(back) is type(hm), label
+        assert back.shape == hm.shape and (back.dx, back.dz) == (hm.dx, hm.dz), label
+        assert np.array_equal(_grid(back), _grid(hm), equal_nan=True), label
+        text = (tmp_path / "s.toml").read_text()
+        # a whole raster has no window key (decimating 97 x 65 by 3 reads whole blocks: 96 x 63 of it)
+        assert ("window" in text) == ("window" in label or "decimated" in label), label
+        assert ("stream = true" in text) == ("streamed" in label), label
+
+
+def test_designed_heightmaps_are_refused_not_saved_as_their_source(tmp_path):
+    hm = Heightmap.example("topobathy").designed(height_scale=2.0)  # meta still names the example
+    with pytest.raises(ValueError, match="heightmap: 'topobathy-designed' was made in memory"):
+        Scene(hm).save(tmp_path / "x.toml")
+
+
+def test_a_scene_file_refuses_raster_keys_that_would_not_apply(tmp_path):
+    np.save(tmp_path / "h.npy", np.ones((9, 9), np.float32))
+    with pytest.raises(ValueError, match=r"heightmap.window: applies to a GDAL raster"):
+        Scene.from_dict({"heightmap": {"path": "h.npy", "window": [[0, 4], [0, 4]]}}, base_dir=tmp_path)
+    with pytest.raises(ValueError, match=r"heightmap.decimate: applies to a 'path' heightmap only"):
+        Scene.from_dict({"heightmap": {"example": "jacksboro", "decimate": 2}})

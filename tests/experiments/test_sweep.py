@@ -171,8 +171,9 @@ def test_resume_redoes_nothing_finished(tmp_path):
     res = r.run(_jobs(16, str(log2)), _square, out=out, fingerprint="abc", columns=["i", "value", "half"],
                 progress=False)
     redone = {int(x) for x in log2.read_text().split()}
-    assert not (redone & saved) and redone | saved == set(range(16))
-    assert res.n_resumed == 4 and res.n_run == 12 and out.exists() and not partial.exists()
+    assert redone & saved == saved & {5} and redone | saved == set(range(16))  # the failed job 5 runs again
+    assert res.n_resumed == len(saved - {5}) and res.n_run == 16 - res.n_resumed and out.exists()
+    assert partial.exists()  # kept beside the table: job 5 failed again, and a rerun runs it alone
     fresh = Runner(workers=0).run(_jobs(16), _square, progress=False)  # uninterrupted, in-process
     assert rows_to_csv(res.rows) == rows_to_csv(fresh.rows)
     assert res.rows[5]["error"] == "ValueError: job 5 is bad"
@@ -205,7 +206,7 @@ def test_report_cli_uses_the_runner_and_leaves_no_partial_file(tmp_path, capsys)
     assert main(["report", "--out", str(tmp_path), "--frames", "1", "--quick", "--policies", "grid,sse",
                  "--width", "48", "--height", "32", "--workers", "2", "--no-progress", "--no-images"]) == 0
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["frames.csv", "pareto.png", "report.md", "timing.md"]
+    assert names == ["frames.csv", "pareto.png", "report.md", "scene.toml", "timing.md"]
     rows = list(csv.DictReader(io.StringIO((tmp_path / "frames.csv").read_text())))
     assert len(rows) == 3 and all(r["error"] == "" and r["retries"] == "0" for r in rows)
     assert "Jobs (setting, frame): 3, failed 0, retried after a worker died 0." in (tmp_path / "timing.md").read_text()
@@ -232,3 +233,111 @@ def test_an_interrupted_report_sweep_resumes(small, tmp_path, monkeypatch):
     full = run_sweep(sc, cams, SETTINGS, workers=2, progress=False)
     assert _table(res.rows) == _table(full.rows)
     assert out.read_text() == rows_to_csv(res.rows)
+
+
+# ------------------------------------------------------------------------------------------------
+# issue 43: sweeps that finish (failed rows retried on a rerun, lost workers' jobs resubmitted)
+# ------------------------------------------------------------------------------------------------
+def _fails_while(i: int, marker: str, log: str) -> dict:
+    """Jobs 2 and 5 raise while ``marker`` exists; every run is logged."""
+    with open(log, "a") as f:
+        f.write(f"{i}\n")
+    if i in (2, 5) and os.path.exists(marker):
+        raise RuntimeError(f"job {i} is flaky")
+    return {"value": i * i}
+
+
+def test_a_rerun_retries_the_failed_rows_alone(tmp_path):
+    r = Runner(workers=0)
+    out, marker, cols = tmp_path / "t.csv", tmp_path / "fail", ["i", "value"]
+    marker.touch()
+    log1, log2 = tmp_path / "1.log", tmp_path / "2.log"
+    first = r.run(_jobs(8, str(marker), str(log1)), _fails_while, out=out, fingerprint="f", columns=cols,
+                  progress=False)
+    assert first.n_failed == 2 and [row["error"] != "" for row in first.rows].count(True) == 2
+    assert out.exists() and out.with_name("t.csv.partial").exists()  # kept: the failed jobs are to run again
+    marker.unlink()
+    again = r.run(_jobs(8, str(marker), str(log2)), _fails_while, out=out, fingerprint="f", columns=cols,
+                  progress=False)
+    assert sorted(int(x) for x in log2.read_text().split()) == [2, 5]  # the failed rows alone, never counted done
+    assert again.n_resumed == 6 and again.n_run == 2 and again.n_failed == 0
+    assert [row["value"] for row in again.rows] == [i * i for i in range(8)]
+    assert not out.with_name("t.csv.partial").exists()
+
+
+def _worker_pids(r: Runner) -> set[int]:
+    return set(r.client.run(os.getpid).values())
+
+
+def _kill_when(journal: Path, rows: int, pids: set[int], killed: list) -> None:
+    """SIGKILL the worker processes ``pids`` once ``journal`` holds ``rows`` rows (a header and a magic line)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 120:
+        if journal.exists() and journal.read_text().count("\n") >= rows + 2:
+            for pid in pids:
+                os.kill(pid, signal.SIGKILL)
+            killed.extend(pids)
+            return
+        time.sleep(0.01)
+
+
+def test_the_only_worker_killed_mid_sweep_still_gives_the_reference_rows(small, tmp_path):
+    import threading
+
+    sc, cams = small
+    reference = run_sweep(sc, cams, SETTINGS, workers=0, progress=False)
+    r = Runner(workers=1)
+    before, killed = _worker_pids(r), []
+    out = tmp_path / "frames.csv"
+    t = threading.Thread(target=_kill_when, args=(out.with_name("frames.csv.partial"), 2, before, killed))
+    t.start()
+    try:
+        res = run_sweep(sc, cams, SETTINGS, runner=r, progress=False, out=out)
+    finally:
+        t.join()
+    assert killed == list(before)  # the only worker really died mid-run (2 of 18 rows in)
+    assert _worker_pids(r).isdisjoint(before)  # and its nanny started another
+    assert res.n_failed == 0 and res.n_retried >= 1
+    assert _table(res.rows) == _table(reference.rows)
+
+
+def test_losing_every_worker_restarts_the_local_cluster():
+    r = Runner(workers=1, worker_wait_s=2)
+    seen = []
+
+    def scale_to_nothing(row):  # the cluster loses its only worker, and no nanny brings one back
+        seen.append(row)
+        if len(seen) == 2:
+            r.client.cluster.scale(0)
+
+    res = r.run(_jobs(8), _square, progress=False, on_row=scale_to_nothing)
+    assert r.restarts == 1 and r.n_workers == 1
+    assert [row["value"] for row in res.rows if row["i"] != 5] == [i * i for i in range(8) if i != 5]
+    assert res.rows[5]["error"] == "ValueError: job 5 is bad"
+
+
+def test_losing_every_worker_of_a_remote_scheduler_is_one_clear_error(tmp_path):
+    from distributed import LocalCluster
+
+    from terrainwarp.experiments.runner import WorkersLostError
+
+    with LocalCluster(n_workers=1, processes=False, protocol="tcp://", dashboard_address=":0") as cluster:
+        r = Runner(scheduler=cluster.scheduler_address, worker_wait_s=1)
+        seen = []
+
+        def scale_to_nothing(row):
+            seen.append(row)
+            if len(seen) == 1:
+                cluster.scale(0)
+
+        with pytest.raises(WorkersLostError, match="workers: every Dask worker was lost and none came back within 1 s"):
+            r.run(_jobs(40, None), _slow_square, out=tmp_path / "t.csv", fingerprint="x", columns=["i", "value"],
+                  progress=False, on_row=scale_to_nothing)
+        r.close()
+    journal = (tmp_path / "t.csv.partial").read_text()
+    assert journal.count("\n") >= 3  # the rows done are kept: a rerun resumes from them
+
+
+def _slow_square(i: int, _unused: object) -> dict:
+    time.sleep(0.05)
+    return {"value": i * i}

@@ -5,6 +5,7 @@ it; threads and processes opening a new file at once build its cache once and al
 from __future__ import annotations
 
 import errno
+import json
 import multiprocessing
 import shutil
 import threading
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xxhash
 
 import terrainwarp as tw
 from terrainwarp.io.cache import CacheError, CacheFolder, file_digest
@@ -85,6 +87,12 @@ def test_a_damaged_cache_file_is_rebuilt_and_the_frame_is_the_clean_one(clean, t
         f.unlink()
     hm = tw.Heightmap.open(p)
     t = tw.lod.Terrain.prepare(hm, roots=8, tess=16)
+    if damage == "flip" and name.startswith("overview"):
+        # an overview is checked tile by tile as read, not whole on open: the frame reads the corrupt tiles'
+        # samples from the file instead (the same values) and the overview goes, to be rebuilt by the next open
+        assert t.provider.counters["cache"] == "reused"
+        assert _frame(p) == clean[1] and not f.exists()
+        t = tw.lod.Terrain.prepare(tw.Heightmap.open(p), roots=8, tess=16)
     assert t.provider.counters["cache"] == "repaired"
     assert file_digest(f) == want_digest  # rebuilt bit for bit
     assert _frame(p) == clean[1]
@@ -102,14 +110,14 @@ def test_a_corrupt_manifest_rebuilds_the_cache(clean, tmp_path):
 
 def test_a_damaged_file_that_cannot_be_rebuilt_is_named(clean, tmp_path, monkeypatch):
     p = _copy(clean, tmp_path)
-    f = p.with_name(p.name + ".twcache") / "overview_8.npy"
+    (f,) = p.with_name(p.name + ".twcache").glob("stats_*_L1.npy")
     _flip_bits(f)
 
     def read_only(self):
         raise OSError(errno.EROFS, "Read-only file system", str(self.path))
 
     monkeypatch.setattr(CacheFolder, "building", read_only)
-    with pytest.raises(CacheError, match=r"overview_8\.npy: its checksum does not match the manifest's \(corrupt\), "
+    with pytest.raises(CacheError, match=f"{f.name}: its checksum does not match the manifest's \\(corrupt\\), "
                                          r"and the pyramid cache cannot be \(re\)built there: Read-only file system"):
         tw.lod.Terrain.prepare(tw.Heightmap.open(p), roots=8, tess=16)
 
@@ -186,7 +194,78 @@ def test_the_cache_is_unchanged_by_reuse_and_its_digests_are_those_of_the_files(
                          tw.Heightmap.open(clean[0]).source.fingerprint())
     body = folder.manifest()
     assert body is not None and len(body["files"]) >= 6 and body["values"]["height_range"]
+    tiled = 0
     for name, entry in body["files"].items():
         f = folder.path / name
-        assert f.stat().st_size == entry["bytes"] and file_digest(f) == entry["xxh3"], name
+        assert f.stat().st_size == entry["bytes"], name
+        if "tiles" in entry:  # an overview: a digest per tile, in a digest file checked whole
+            tiles = folder.tiled(name, body)
+            assert all(xxhash.xxh3_64_intdigest(tiles.read_tile(i, j).tobytes()) == tiles.digests[i, j]
+                       for i in range(tiles.grid[0]) for j in range(tiles.grid[1])), name
+            tiled += 1
+        else:
+            assert file_digest(f) == entry["xxh3"], name
+    assert tiled >= 2
     assert not np.isnan(body["values"]["height_range"]).any()
+
+
+# -- issue 43 (finding 3): the cache sees every edit of its file ------------------------------------------------
+def _plain_tif(path: Path, h: np.ndarray) -> Path:
+    """An uncompressed, untiled GeoTIFF (an in-place edit of its middle keeps its size)."""
+    import rasterio
+    from affine import Affine
+
+    with rasterio.open(path, "w", driver="GTiff", height=h.shape[0], width=h.shape[1], count=1, dtype="float32",
+                       crs="EPSG:3857", transform=Affine(10.0, 0.0, 0.0, 0.0, -10.0, 0.0)) as ds:
+        ds.write(h, 1)
+    return path
+
+
+def test_an_in_place_edit_that_keeps_size_and_mtime_is_seen(tmp_path):
+    import os
+
+    import rasterio
+
+    h = FbmSource(257, seed=3, dx=10.0, max_height=500.0).read(1, 0, 0, 257, 257)
+    p = _plain_tif(tmp_path / "dem.tif", h)
+    cam = tw.Camera(position=(1200.0, 900.0, 2900.0), target=(1280.0, 200.0, 1280.0), width=96, height=64)
+    scene = lambda hm: tw.Scene(hm, camera=cam, mesh="lod", outputs=("image", "depth"),  # noqa: E731
+                                lod=tw.LodConfig(roots=4, tess=16))
+    before = tw.render(scene(tw.Heightmap.open(p)))
+    st = p.stat()
+    with rasterio.open(p, "r+") as ds:  # the middle of the raster, in place: the same size
+        ds.write(np.full((64, 64), 1200.0, np.float32), 1, window=rasterio.windows.Window(96, 96, 64, 64))
+    os.utime(p, ns=(st.st_atime_ns, st.st_mtime_ns))  # and the modification time set back
+    assert (p.stat().st_size, p.stat().st_mtime_ns) == (st.st_size, st.st_mtime_ns)
+    hm = tw.Heightmap.open(p)
+    assert hm.height_range == (float(h.min()), 1200.0)  # it stayed at the old range before
+    after = tw.render(scene(hm))
+    mem = tw.render(scene(tw.Heightmap.load(p)))
+    assert digest(after.image, after.depth) != digest(before.image, before.depth)
+    assert hm.held and next(iter(v for k, v in hm.held.items() if k[0] == "streamed_source")).terrain.provider \
+        .counters["cache"] == "built"  # the stale cache was not used
+    assert after.mesh.n_triangles == mem.mesh.n_triangles
+
+
+def test_the_content_digest_is_worked_out_once_and_again_when_the_file_changes(tmp_path, monkeypatch):
+    import hashlib
+    import os
+
+    import terrainwarp.io.cache as cache
+
+    p = _plain_tif(tmp_path / "dem.tif", FbmSource(65, seed=1).read(1, 0, 0, 65, 65))
+    first = tw.Heightmap.open(p).source.fingerprint()
+    record = p.with_name(p.name + ".twcache") / "source.json"
+    assert json.loads(record.read_text())["sha256"] == hashlib.sha256(p.read_bytes()).hexdigest()
+    cache._CONTENT.clear()  # a new process: the record beside the cache answers, the file is not read again
+
+    def no_hashing(*a, **k):
+        raise AssertionError("hashed the file again")
+
+    monkeypatch.setattr(cache.hashlib, "sha256", no_hashing)
+    assert tw.Heightmap.open(p).source.fingerprint() == first
+    os.utime(p)  # a touch: the times differ, so the content is hashed again (and found the same)
+    with pytest.raises(AssertionError, match="hashed the file again"):
+        tw.Heightmap.open(p).source.fingerprint()
+    monkeypatch.undo()
+    assert tw.Heightmap.open(p).source.fingerprint() == first
