@@ -8,11 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import digest
+from fit_scenes import fit_scene
 
 from terrainwarp import Camera, Heightmap, LodConfig, Scene
 from terrainwarp.cli import sweep_evaluator
 from terrainwarp.fit import apply, evaluate, evaluations_from_rows, fit_lod, knobs, values_of
-from terrainwarp.fit.exact import Exact, references_for
+from terrainwarp.fit.exact import Exact
 from terrainwarp.fit.families import problem, relaxed_model
 from terrainwarp.kernels.parallel import set_threads
 from terrainwarp.lod import Terrain
@@ -22,10 +23,7 @@ from terrainwarp.scene import QUADTREE_TESS
 
 @pytest.fixture(scope="module")
 def scene():
-    hm = Heightmap.fbm(129, seed=4, dx=20.0, max_height=600.0, feature_size=48.0)
-    sc = Scene(hm, camera=Camera.default_for(hm, 128, 96), lod=LodConfig(roots=4, tess=8))
-    cams = sc.camera_path(3)
-    return sc, cams, references_for(sc, cams)
+    return fit_scene()
 
 
 # -- knobs ---------------------------------------------------------------------------------------------------

@@ -5,20 +5,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from fit_scenes import fit_scene
 
-from terrainwarp import Camera, Heightmap, LodConfig, Scene
 from terrainwarp.fit import fit_lod
-from terrainwarp.fit.exact import references_for
 from terrainwarp.measure.gpu import shipped_profile
 from terrainwarp.rendering.pipeline import render
 
 
 @pytest.fixture(scope="module")
 def scene():
-    hm = Heightmap.fbm(129, seed=4, dx=20.0, max_height=600.0, feature_size=48.0)
-    sc = Scene(hm, camera=Camera.default_for(hm, 128, 96), lod=LodConfig(roots=4, tess=8))
-    cams = sc.camera_path(3)
-    return sc, cams, references_for(sc, cams)
+    return fit_scene()
 
 
 def test_a_fit_for_several_gpus_minimises_each_frames_worst_modelled_ms(scene):

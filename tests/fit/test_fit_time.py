@@ -16,10 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from fit_scenes import fit_scene
 
-from terrainwarp import Camera, Heightmap, LodConfig, Scene
 from terrainwarp.fit import fit_lod, jaxrt, optimise, search
-from terrainwarp.fit.exact import references_for
 from terrainwarp.fit.knobs import Knob
 from terrainwarp.fit.relaxed import bucket, camera_mask, soft_quantile
 from terrainwarp.fit.timings import PARTS, Clock, Progress
@@ -27,10 +26,7 @@ from terrainwarp.fit.timings import PARTS, Clock, Progress
 
 @pytest.fixture(scope="module")
 def scene():
-    hm = Heightmap.fbm(65, seed=4, dx=20.0, max_height=400.0, feature_size=32.0)
-    sc = Scene(hm, camera=Camera.default_for(hm, 96, 64), lod=LodConfig(roots=4, tess=8))
-    cams = sc.camera_path(3)
-    return sc, cams, references_for(sc, cams)
+    return fit_scene(65, max_height=400.0, feature_size=32.0, size=(96, 64))
 
 
 def test_timings_add_up_to_the_wall_time(scene):
