@@ -242,8 +242,7 @@ def test_an_in_place_edit_that_keeps_size_and_mtime_is_seen(tmp_path):
     after = tw.render(scene(hm))
     mem = tw.render(scene(tw.Heightmap.load(p)))
     assert digest(after.image, after.depth) != digest(before.image, before.depth)
-    assert hm.held and next(iter(v for k, v in hm.held.items() if k[0] == "streamed_source")).terrain.provider \
-        .counters["cache"] == "built"  # the stale cache was not used
+    assert next(iter(hm.held.streamed_sources.values())).terrain.provider.counters["cache"] == "built"  # not stale
     assert after.mesh.n_triangles == mem.mesh.n_triangles
 
 
