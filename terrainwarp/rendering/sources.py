@@ -248,7 +248,7 @@ class StreamedSource(SourceBase):
             return Mesh(positions=t.positions, eye=camera.position, triangles=t.triangles, uv=t.uv, level=t.level,
                         patch_id=t.patch_id, normals=np.zeros_like(t.positions), counters=t.counters), windows
         pos, nrm, _ = stack_displace(t.uv, t.positions, stack, [hm.source.level_shape(1 << w[0]) for w in stack],
-                                     float(camera.position[1]), hm.dx, hm.dz, device=self.device)
+                                     hm.shape, float(camera.position[1]), hm.dx, hm.dz, device=self.device)
         tri = t.triangles
         if any(np.isnan(w[3]).any() for w in stack):  # no-data holes: drop triangles touching them
             pos, tri = drop_nonfinite_triangles(pos, tri, device=self.device)
