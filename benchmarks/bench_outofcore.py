@@ -202,7 +202,7 @@ def cache_case(name: str) -> dict:
         out[f"frame{k}_s"], out[f"frame{k}_rss_mib"] = time.perf_counter() - t1, rss_mib()
         del f
     if isinstance(hm, tw.heightmap.StreamedHeightmap):
-        src = next(v for k, v in hm.held.items() if k[0] == "streamed_source")
+        src = next(iter(hm.held.streamed_sources.values()))
         out["cache"] = src.terrain.provider.counters["cache"]
     return out
 

@@ -107,6 +107,7 @@ def _stack_kernel(
     eye_y: float,
     dx: float,
     dz: float,
+    keep_win: int,
     # outputs
     pos: wp.array(dtype=wp.vec3),
     nrm: wp.array(dtype=wp.vec3),
@@ -147,12 +148,14 @@ def _stack_kernel(
     p = pos[k]
     pos[k] = wp.vec3(p[0], h - eye_y, p[2])
     nrm[k] = wp.normalize(wp.vec3(-hx / (2.0 * dx * s), 1.0, -hz / (2.0 * dz * s)))
-    win[k] = shift[w]
+    if keep_win != 0:
+        win[k] = shift[w]
 
 
 def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tuple[int, int, int, np.ndarray]],
                    full_shapes: list[tuple[int, int]], grid_shape: tuple[int, int], eye_y: float, dx: float,
-                   dz: float, device: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   dz: float, device: str = "cpu", *, data: np.ndarray | None = None,
+                   shifts: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Heights, normals and the overview each point read, from a stack of windows.
 
     Args:
@@ -164,19 +167,26 @@ def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tup
             included: :meth:`terrainwarp.io.tiles.TileSource.level_shape`).
         grid_shape: (H, W) of the full-resolution grid.
         eye_y: the eye's world height (float32 camera-relative, as the tessellator's).
+        data: every window's heights back to back, flat float32 (the windows' arrays its views, in order), read in
+            place; None: the windows' heights are copied into one such array here.
+        shifts: also return each point's window (False: None, and nothing is written for it).
 
     Returns:
-        (positions (N, 3), normals (N, 3), shift (N,) int32 of the window read).
+        (positions (N, 3), normals (N, 3), shift (N,) int32 of the window read, or None).
     """
     n = len(grid_uv)
     pos = view(positions, wp.vec3, device)  # written in place on the CPU
     nrm = wp.empty(max(n, 1), dtype=wp.vec3, device=device)
-    win = wp.empty(max(n, 1), dtype=wp.int32, device=device)
+    win = wp.empty(max(n, 1) if shifts else 1, dtype=wp.int32, device=device)
     if n == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int32)
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int32) if shifts else None
     sizes = [int(w[3].size) for w in windows]
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-    data = np.concatenate([np.ascontiguousarray(w[3], np.float32).reshape(-1) for w in windows])
+    if data is None:
+        data = np.concatenate([np.ascontiguousarray(w[3], np.float32).reshape(-1) for w in windows])
+    elif data.dtype != np.float32 or data.ndim != 1 or data.size != sum(sizes):
+        raise ValueError(f"data: expected the windows' {sum(sizes)} heights as flat float32, got {data.dtype} "
+                         f"{data.shape}")
     table = np.array([(w[2], w[1], w[3].shape[1], w[3].shape[0]) for w in windows], np.int32)
     full = np.array([(fc, fr) for fr, fc in full_shapes], np.int32)
     launch(_stack_kernel, n, inputs=[
@@ -184,6 +194,6 @@ def stack_displace(grid_uv: np.ndarray, positions: np.ndarray, windows: list[tup
         wp.array(np.array([w[0] for w in windows], np.int32), dtype=wp.int32, device=device),
         wp.array(starts, dtype=wp.int64, device=device), wp.array(full, dtype=wp.vec2i, device=device),
         wp.array(np.array([1.0 / (1 << w[0]) for w in windows], np.float32), dtype=wp.float32, device=device),
-        len(windows), wp.vec2i(int(grid_shape[1]) - 1, int(grid_shape[0]) - 1), float(eye_y), float(dx), float(dz)],
-        outputs=[pos, nrm, win], device=device)
-    return pos.numpy()[:n].reshape(-1, 3), nrm.numpy()[:n].reshape(-1, 3), win.numpy()[:n]
+        len(windows), wp.vec2i(int(grid_shape[1]) - 1, int(grid_shape[0]) - 1), float(eye_y), float(dx), float(dz),
+        int(shifts)], outputs=[pos, nrm, win], device=device)
+    return pos.numpy()[:n].reshape(-1, 3), nrm.numpy()[:n].reshape(-1, 3), win.numpy()[:n] if shifts else None

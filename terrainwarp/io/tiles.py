@@ -427,15 +427,19 @@ class TileCache:
             self.counters["bytes_read"] += t.nbytes
         return t
 
-    def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+    def window(self, step: int, r0: int, c0: int, rows: int, cols: int, out: np.ndarray | None = None) -> np.ndarray:
         """(rows, cols) float32 of the step-``step`` overview from sample (r0, c0), assembled from tiles
-        (the window must lie inside the overview)."""
+        (the window must lie inside the overview), into ``out`` when given (a writable (rows, cols) float32 array:
+        a frame's windows assembled in one buffer)."""
         step = check_int("step", step, 1)  # 1: full resolution; 2, 4, ...: overviews
         lr, lc = self.source.level_shape(step)
         if r0 < 0 or c0 < 0 or rows < 1 or cols < 1 or r0 + rows > lr or c0 + cols > lc:
             raise ValueError(f"window: rows {r0}..{r0 + rows - 1}, cols {c0}..{c0 + cols - 1} outside the step-"
                              f"{step} overview ({lr} x {lc}) of {self.source.where()}")
-        out = np.empty((rows, cols), np.float32)
+        if out is None:
+            out = np.empty((rows, cols), np.float32)
+        elif out.shape != (rows, cols) or out.dtype != np.float32 or not out.flags.writeable:
+            raise ValueError(f"out: expected a writable ({rows}, {cols}) float32 array, got {out.dtype} {out.shape}")
         last_r, last_c = r0 + rows - 1, c0 + cols - 1
         # tiles share their last row and column with the next: a window ending on a tile boundary (as
         # power-of-two node windows do) needs no tile past it

@@ -44,6 +44,11 @@ def test_cache_window_assembles_tiles_and_keeps_to_its_cap():
     assert fresh.snapshot()["hits"] == 1
     with pytest.raises(ValueError, match="window: rows"):
         fresh.window(1, 0, 0, h.shape[0] + 1, 3)
+    buf = np.zeros(40, np.float32)  # a window assembled into a caller's buffer (a frame's one flat stack)
+    assert fresh.window(2, 3, 4, 5, 8, out=buf[:40].reshape(5, 8)).base is buf
+    assert np.array_equal(buf.reshape(5, 8), h[6:15:2, 8:23:2])
+    with pytest.raises(ValueError, match="out"):
+        fresh.window(1, 0, 0, 5, 8, out=np.zeros((5, 8), np.float64))
 
 
 def test_cache_cap_from_the_environment(monkeypatch):

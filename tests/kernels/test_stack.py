@@ -5,6 +5,7 @@ it ends on the grid's clamped last sample), at window edges and the grid's."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import warp as wp
 
 from terrainwarp.kernels.parallel import launch
@@ -123,3 +124,21 @@ def test_vertices_on_the_grids_last_row_and_column_read_its_last_samples_from_ev
     want = full[uv[:, 1].astype(int), uv[:, 0].astype(int)]
     assert 3 in win and 1 in win  # the clamped edges of both coarse overviews were read
     np.testing.assert_array_equal(pos[:, 1], want)
+
+
+def test_windows_assembled_in_one_buffer_are_read_in_place_and_the_shifts_are_optional():
+    """A frame assembles its windows straight into one flat buffer (``data``): the same bits as the copied stack,
+    and with ``shifts=False`` no per-point window is written or returned."""
+    _, windows, shapes = _stack(np.random.default_rng(6))
+    data = np.concatenate([w[3].reshape(-1) for w in windows])
+    at, views = 0, []
+    for sh, r0, c0, h in windows:
+        views.append((sh, r0, c0, data[at:at + h.size].reshape(h.shape)))
+        at += h.size
+    uv = np.random.default_rng(7).uniform(0.0, 236.0, (5000, 2)).astype(np.float32)
+    pos0 = np.zeros((len(uv), 3), np.float32)
+    a = stack_displace(uv, pos0.copy(), windows, shapes, (H, W), 1.0, 10.0, 10.0)
+    b = stack_displace(uv, pos0.copy(), views, shapes, (H, W), 1.0, 10.0, 10.0, data=data, shifts=False)
+    assert b[2] is None and np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    with pytest.raises(ValueError, match="data"):
+        stack_displace(uv, pos0.copy(), views, shapes, (H, W), 1.0, 10.0, 10.0, data=data[:-1])

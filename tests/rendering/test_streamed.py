@@ -167,3 +167,17 @@ def test_streamed_scenes_refuse_what_they_cannot_draw(fbm_tif):
         st.sample([0.0], [0.0], method="bicubic")
     with pytest.raises(TypeError, match="source"):
         StreamedHeightmap(np.zeros((4, 4), np.float32))
+
+
+def test_a_streamed_mesh_carries_level_and_patch_id_only_for_what_reads_them():
+    """A hillshaded image reads neither (the tessellator writes neither: 8 bytes a vertex less); the mesh output
+    and the level shading do, and the image is the same either way."""
+    st = StreamedHeightmap.of(Heightmap.example())
+    cam = Scene(st).camera_path(2)[0].with_(width=160, height=120)
+    plain = render(Scene(st, camera=cam, mesh="lod", outputs=("image",)))
+    full = render(Scene(st, camera=cam, mesh="lod", outputs=("image", "mesh")))
+    level = render(Scene(st, camera=cam, mesh="lod", outputs=("image",), shading="level"))
+    assert plain.mesh.level is None and plain.mesh.patch_id is None
+    assert full.mesh.level is not None and len(full.mesh.patch_id) == full.mesh.n_vertices
+    assert level.mesh.level is not None
+    assert np.array_equal(plain.image, full.image) and not np.array_equal(plain.image, level.image)
