@@ -48,6 +48,7 @@ from tqdm import tqdm
 import terrainwarp as tw
 from terrainwarp.io.geotiff import write_tiled
 from terrainwarp.io.tiles import FbmSource
+from terrainwarp.kernels.device import start as start_warp
 
 N_FRAMES = 8
 FBM = dict(seed=1, max_height=2000.0, dx=10.0)
@@ -75,6 +76,14 @@ def rss_mib() -> float:
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def rss_now_mib() -> float:
+    """This process's resident memory now (VmRSS), MiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
 
 
 def run_path(hm, width: int, height: int) -> dict:
@@ -192,7 +201,9 @@ def cache_case(name: str) -> dict:
     width, height = (int(v) for v in view.split("x"))
     t0 = time.perf_counter()
     hm = tw.Heightmap.open(arg) if kind == "cache-stream" else tw.Heightmap.load(arg)
-    out = {"open_s": time.perf_counter() - t0, "open_rss_mib": rss_mib()}
+    out = {"open_s": time.perf_counter() - t0, "open_rss_mib": rss_mib(), "open_now_mib": rss_now_mib()}
+    start_warp()  # Warp's runtime (warp.so, LLVM), which the first frame would start: measured apart
+    out["warp_now_mib"] = rss_now_mib()
     terrain = None
     for k, cam in enumerate(path(hm, width, height)[:2]):
         t1 = time.perf_counter()
@@ -200,10 +211,24 @@ def cache_case(name: str) -> dict:
             terrain = tw.lod.Terrain.prepare(hm, roots=16, tess=16)
         f = tw.render(tw.Scene(hm, camera=cam, mesh="lod", outputs=("image", "depth")), terrain=terrain)
         out[f"frame{k}_s"], out[f"frame{k}_rss_mib"] = time.perf_counter() - t1, rss_mib()
+        out["parts_mib"] = frame_parts(f, hm)
         del f
     if isinstance(hm, tw.heightmap.StreamedHeightmap):
-        src = next(v for k, v in hm.held.items() if k[0] == "streamed_source")
+        src = next(iter(hm.held.streamed_sources.values()))
         out["cache"] = src.terrain.provider.counters["cache"]
+    return out
+
+
+def frame_parts(f, hm) -> dict:
+    """MiB of what a frame holds: its mesh's arrays (vertices and triangles), its images (the visibility pass's
+    ids, depth and barycentrics, the shaded image), and a streamed heightmap's tile cache."""
+    mib = lambda *a: sum(x.nbytes for x in a if x is not None) / 2**20  # noqa: E731
+    m = f.mesh
+    out = {"vertices": m.n_vertices, "triangles": m.n_triangles,
+           "mesh": mib(m.positions, m.triangles, m.uv, m.normals, m.level, m.patch_id),
+           "images": mib(f.triangle_id, f.depth, f.barycentrics, f.image)}
+    if isinstance(hm, tw.heightmap.StreamedHeightmap):
+        out["tiles"] = hm.counters()["resident_bytes"] / 2**20
     return out
 
 
@@ -237,7 +262,7 @@ def fingerprint_costs(tif: Path) -> dict:
 
 def cache_study(views: tuple[str, ...] = ("960x540", "1920x1080")) -> None:
     folder = Path(tempfile.mkdtemp(prefix="tw-cache-"))
-    rows = []
+    rows, parts = [], {}
     try:
         tif, write_s = write_tif(folder, 8193)
         with open(tif, "rb") as f:  # the file in the page cache for every case alike (not held here)
@@ -252,20 +277,33 @@ def cache_study(views: tuple[str, ...] = ("960x540", "1920x1080")) -> None:
             first_s = first["open_s"] + first["frame0_s"] if first_s is None else first_s
             peak = lambda r: max(r["frame0_rss_mib"], r["frame1_rss_mib"])  # noqa: E731
             rows += [[view, label, r.get("cache", "-"), round(r["open_s"] + r["frame0_s"], 1), round(r["frame1_s"], 2),
-                      round(peak(r)), f"{peak(r) / peak(mem):.3f}x"]
+                      round(r["open_now_mib"]), round(r["warp_now_mib"] - r["open_now_mib"]),
+                      "-" if r["open_rss_mib"] >= peak(r) else round(peak(r) - r["warp_now_mib"]), round(peak(r)),
+                      f"{peak(r) / peak(mem):.3f}x"]
                      for label, r in (("streamed, first open (builds the cache)", first),
                                       ("streamed, cache reused", later), ("in memory (Heightmap.load)", mem))]
+            parts[view] = later["parts_mib"]
         fp = fingerprint_costs(tif)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     mb = fp["bytes"] / 2**20
     body = (f"An 8193^2 float32 fBm GeoTIFF ({mb:.0f} MiB on disk: 256^2 deflate tiles, GDAL overviews 2-16, "
             f"written in {write_s:.0f} s), the first two cameras of the benchmark's path; each case in its own "
-            "process (the file in the page cache for all of them; every process starts at about 232 MiB, Python, "
-            "numpy, rasterio and Warp's LLVM). The target: every streamed render's peak RSS below 0.25x the "
-            "in-memory one's.\n\n"
+            "process (the file in the page cache for all of them). Memory columns: the process's resident MiB once "
+            "the heightmap is open (Python, numpy, rasterio; for the in-memory case the grid too, after the load's "
+            "own peak), what starting Warp's runtime adds (warp.so and LLVM, which every process that renders "
+            "maps), the rest of the peak above that (the frames, and the cache's build on a first open; '-' where "
+            "the peak was the load's), and the peak (VmHWM). The target: every streamed render's peak RSS below "
+            "0.25x the in-memory one's.\n\n"
             + md_table(["viewport", "render", "pyramid cache", "open + first frame s", "second frame s",
-                        "peak RSS MiB", "peak RSS / in memory"], rows) + "\n\n"
+                        "after open MiB", "+ Warp MiB", "+ frames MiB", "peak RSS MiB", "peak RSS / in memory"],
+                       rows) + "\n\n"
+            "What a streamed frame holds (the second frame, cache reused): "
+            + "; ".join(f"at {v}, {p['vertices'] / 1e6:.2f} M vertices and {p['triangles'] / 1e6:.2f} M triangles in "
+                        f"a {p['mesh']:.0f} MiB mesh, {p['images']:.0f} MiB of images (ids, depth, barycentrics, "
+                        f"colour), {p['tiles']:.1f} MiB of tiles" for v, p in parts.items())
+            + "; the rest of the frames' part is the rasterizer's own (clip coordinates, the binned triangle "
+            "lists) and the overview windows.\n\n"
             f"Content fingerprint (SHA-256 of the whole file, kept beside the cache in source.json with the file's "
             f"size, mtime, ctime, inode and device): first open {fp['hash_s']:.2f} s "
             f"({fp['hash_s'] / fp['read_s']:.2f}x one plain read of the file, {fp['read_s']:.2f} s; "

@@ -41,6 +41,8 @@ __all__ = ["Camera", "Viewport", "orbit", "flyover", "relative_origin", "camera_
 #: float32 window-depth steps (2^-24 each, near 1.0) that the farthest terrain must keep before the background
 #: depth 1.0: a fragment closer to 1.0 than this is drawn as background (it rounds to 1.0, or ties with it)
 DEPTH_STEPS = 2
+#: ground samples along a flyover path that crosses a no-data hole, among which the hole's rims are found
+HOLE_SAMPLES = 4096
 
 
 class DepthPrecisionWarning(UserWarning):
@@ -346,7 +348,9 @@ def flyover(heightmap: Heightmap, waypoints_xz: object, clearance: float, n: int
     the terrain beneath it (deaconu2021, "Navigation": only x and z are tracked, y follows the height
     function), looking ``look_ahead`` metres further along the path and slightly down. A camera whose
     look-ahead point lies past the terrain's border (the end of a path at the edge) looks toward the terrain's
-    centre instead, so that no camera looks off the terrain.
+    centre instead, so that no camera looks off the terrain. Over a no-data hole the ground is the height along
+    the path between the hole's rims (:func:`_ground`), and a target over a hole is ``0.25 clearance`` below the
+    eye.
     """
     w = np.asarray(waypoints_xz, dtype=np.float64)
     if w.ndim != 2 or w.shape[1] != 2 or w.shape[0] < 2:
@@ -379,15 +383,52 @@ def flyover(heightmap: Heightmap, waypoints_xz: object, clearance: float, n: int
             t = at(s) + (at(s) - at(s - ahead))
         tgts.append(_on_terrain(at(s), t, heightmap.bounds_xz, ahead))
     tgts = np.array(tgts)
-    he = heightmap.sample(eyes[:, 0], eyes[:, 1])
+    he = _ground(heightmap, eyes, w, cum, ss)
     ht = heightmap.sample(tgts[:, 0], tgts[:, 1])
     cams = []
     for k in range(len(ss)):
         y = float(he[k]) + clearance
-        ty = min(float(ht[k]), y - 0.25 * clearance)
+        ty = min(float(ht[k]), y - 0.25 * clearance) if math.isfinite(ht[k]) else y - 0.25 * clearance
         cams.append(Camera(position=(eyes[k, 0], y, eyes[k, 1]), target=(tgts[k, 0], ty, tgts[k, 1]),
                            fov_y_deg=fov_y_deg, width=width, height=height, near=near, far=far))
     return cams
+
+
+def _ground(heightmap: Heightmap, xz: np.ndarray, w: np.ndarray, cum: np.ndarray, ss: np.ndarray) -> np.ndarray:
+    """Ground heights (float64) under the path's points ``xz`` at arc lengths ``ss`` (polyline ``w``, cumulative
+    lengths ``cum``): the heightmap's bilinear heights; where one is no-data (over a hole or beside one), the
+    height interpolated along the path, by arc length, between the nearest finite ground on either side (the
+    path sampled about every sample spacing, at most :data:`HOLE_SAMPLES` points; past the last finite ground,
+    its height). A path with no finite ground at all takes, for each point, the highest finite height on the
+    nearest ring around it that has one (:func:`_around`)."""
+    h = np.asarray(heightmap.sample(xz[:, 0], xz[:, 1]), np.float64)
+    bad = ~np.isfinite(h)
+    if not bad.any():
+        return h
+    total = float(cum[-1])
+    m = int(min(HOLE_SAMPLES, math.ceil(total / min(heightmap.dx, heightmap.dz)))) + 1
+    sd = np.linspace(0.0, total, max(m, 2))
+    hd = np.asarray(heightmap.sample(np.interp(sd, cum, w[:, 0]), np.interp(sd, cum, w[:, 1])), np.float64)
+    ok = np.isfinite(hd)
+    if ok.any():
+        h[bad] = np.interp(ss[bad], sd[ok], hd[ok])
+    else:
+        h[bad] = [_around(heightmap, float(x), float(z)) for x, z in xz[bad]]
+    return h
+
+
+def _around(heightmap: Heightmap, x: float, z: float) -> float:
+    """The highest finite height among 16 points on a ring around (x, z), on the smallest ring of radius one
+    sample spacing times a power of two that has one (up to the terrain's diagonal); else the highest height."""
+    (x0, z0), (x1, z1) = heightmap.bounds_xz
+    r, reach = min(heightmap.dx, heightmap.dz), 2.0 * math.hypot(x1 - x0, z1 - z0) + max(heightmap.dx, heightmap.dz)
+    a = np.linspace(0.0, 2.0 * math.pi, 16, endpoint=False)
+    while r <= reach:
+        h = np.asarray(heightmap.sample(x + r * np.cos(a), z + r * np.sin(a)), np.float64)
+        if np.isfinite(h).any():
+            return float(np.nanmax(h))
+        r *= 2.0
+    return float(heightmap.height_range[1])
 
 
 # -- cameras from angles and from files -------------------------------------------------------------

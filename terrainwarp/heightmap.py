@@ -562,10 +562,11 @@ class StreamedHeightmap:
         """The tile cache's counters: tiles_read, bytes_read, hits, evicted, resident_bytes, peak_bytes."""
         return self.tiles.snapshot()
 
-    def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
-        """(rows, cols) float32 of the step-``step`` point-sampled overview from its sample (r0, c0)."""
+    def window(self, step: int, r0: int, c0: int, rows: int, cols: int, out: np.ndarray | None = None) -> np.ndarray:
+        """(rows, cols) float32 of the step-``step`` point-sampled overview from its sample (r0, c0), written into
+        ``out`` when given (a writable (rows, cols) float32 array)."""
         args = [check_int(n, v) for n, v in (("step", step), ("r0", r0), ("c0", c0), ("rows", rows), ("cols", cols))]
-        return self.tiles.window(*args)
+        return self.tiles.window(*args, out=out)
 
     def load(self) -> Heightmap:
         """The whole grid as an in-memory :class:`Heightmap` (refused when it would not fit)."""

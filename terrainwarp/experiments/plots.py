@@ -32,7 +32,7 @@ def _hillshade(heightmap: Heightmap | StreamedHeightmap,
     in degrees: a scene's ``light_azimuth_deg``, ``light_elevation_deg``; no-data as 0 m),
     and its extent (x0, x1, z1, z0) in world metres. A streamed heightmap is shaded from its point-sampled
     overview at the smallest power-of-two step with at most ``HILLSHADE_MAX`` samples a side (never read whole)."""
-    (x0, z0), _ = heightmap.bounds_xz
+    (x0, z0), (x1, z1) = heightmap.bounds_xz
     if isinstance(heightmap, StreamedHeightmap):
         step = 1
         while max(heightmap.source.level_shape(step)) > HILLSHADE_MAX:
@@ -44,7 +44,7 @@ def _hillshade(heightmap: Heightmap | StreamedHeightmap,
     dx, dz = heightmap.dx * step, heightmap.dz * step
     n = sobel_normals(np.nan_to_num(h), dx, dz, border="clamp")
     shade = np.clip(n.astype(np.float64) @ np.asarray(light_direction(*light)), 0, 1)
-    return shade, (x0, x0 + (h.shape[1] - 1) * dx, z0 + (h.shape[0] - 1) * dz, z0)
+    return shade, (x0, x1, z1, z0)  # an overview's last row and column are the grid's (clamped)
 
 
 def plot_patches(heightmap: Heightmap | StreamedHeightmap, patches: PatchList | Pieces, camera: Camera | None,

@@ -47,7 +47,7 @@ __all__ = ["CacheFolder", "CacheError", "CorruptTile", "TiledArray", "TiledWrite
            "MANIFEST", "MANIFEST_VERSION", "SOURCE_RECORD"]
 
 MANIFEST = "manifest.json"
-MANIFEST_VERSION = 3
+MANIFEST_VERSION = 4  # 4: overviews end on the grid's clamped last row and column
 SOURCE_RECORD = "source.json"  # the source file's content digest and the stat it was worked out for
 _SEQ = itertools.count()
 _CHUNK = 16 << 20  # bytes hashed at a time (the file is read, not mapped: a truncation cannot fault)

@@ -391,6 +391,7 @@ NULL_REASONS: dict[tuple[str, str], str] = {
     ("psnr_db", "inf"): "inf: the images are identical (PSNR is infinite)",
     ("_px", "inf"): "inf: unbounded (visible heightmap samples were left undrawn, or a point lay behind the eye)",
     ("cost", "inf"): "inf: no setting was measured to meet the budget",
+    ("r2_heldout", "nan"): "nan: undefined (the held-out frames' times do not vary, or no frame was held out)",
     ("", "inf"): "inf: infinite",
     ("", "-inf"): "-inf: minus infinity",
     ("", "nan"): "nan: not measured or undefined (e.g. popping of a path's first frame, an empty mean)",

@@ -5,13 +5,17 @@ A streamed heightmap (:class:`terrainwarp.heightmap.StreamedHeightmap`) never ho
 a window that ends on a multiple of ``TILE`` needs no further tile), at a ``step`` of 1 (full resolution)
 or a power of two (an overview), and keeps the tiles it read in a :class:`TileCache` with a memory cap.
 
-Overviews are point-sampled: sample ``(i, j)`` of the step-``s`` overview is sample ``(i * s, j * s)`` of
-the grid, bit for bit. A vertex that falls on a grid point reads the same height from every overview
-that holds the point (so a frame drawn from overviews keeps the heightmap's values where it has them;
-an averaging overview would move every height). GDAL's own overviews of a GeoTIFF are area-sampled
-(a cell of a 2x overview is centred between grid points), so a :class:`GeoTiffSource` takes its
-overviews from the pyramid cache built beside the file (:mod:`terrainwarp.lod.streaming`), which
-writes them in the same pass as the min/max and error pyramids.
+Overviews are point-sampled: sample ``(i, j)`` of the step-``s`` overview is sample ``(min(i s, H - 1),
+min(j s, W - 1))`` of the (H, W) grid, bit for bit: the grid's points ``0, s, 2 s, ...``, then, where ``H - 1``
+(``W - 1``) is not a multiple of ``s``, the grid's last row (column) as the overview's last. So every overview
+holds the grid's edge, where the tessellator clamps a patch that reaches past the grid: a vertex there reads
+the grid's last sample, as in memory (:mod:`terrainwarp.kernels.stack` reads the overview's last, shorter cell
+by its true width). A vertex that falls on a grid point reads the same height from every overview that holds
+the point (so a frame drawn from overviews keeps the heightmap's values where it has them; an averaging
+overview would move every height). GDAL's own overviews of a GeoTIFF are area-sampled (a cell of a 2x overview
+is centred between grid points), so a :class:`GeoTiffSource` takes its overviews from the pyramid cache built
+beside the file (:mod:`terrainwarp.lod.streaming`), which writes them in the same pass as the min/max and error
+pyramids.
 
 Sources:
 
@@ -83,7 +87,8 @@ def cache_dir_for(path: Path) -> Path:
 # sources
 # ------------------------------------------------------------------------------------------------
 class TileSource:
-    """A grid of heights read by windows. Subclasses set the attributes and implement :meth:`read`.
+    """A grid of heights read by windows. Subclasses set the attributes and implement :meth:`lattice`;
+    :meth:`read` assembles an overview's window from it.
 
     Attributes:
         shape: (rows, cols) of the full-resolution grid.
@@ -100,12 +105,29 @@ class TileSource:
     path: Path | None = None
 
     def level_shape(self, step: int) -> tuple[int, int]:
-        """(rows, cols) of the step-``step`` overview: samples ``0, step, 2 step, ...`` inside the grid."""
-        return ((self.shape[0] - 1) // step + 1, (self.shape[1] - 1) // step + 1)
+        """(rows, cols) of the step-``step`` overview: samples ``0, step, 2 step, ...`` inside the grid, and the
+        grid's last row (column) after them where it is not one of those."""
+        return (_level_len(self.shape[0], step), _level_len(self.shape[1], step))
 
     def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
         """(rows, cols) float32 heights of the step-``step`` overview from its sample (r0, c0) (inside it),
-        NaN at no-data. Uncached: :class:`TileCache` calls this once per tile."""
+        NaN at no-data: sample (i, j) is the grid's (min(i step, H - 1), min(j step, W - 1)), read through
+        :meth:`lattice` (a window holding the clamped last row or column is up to four lattice reads).
+        Uncached: :class:`TileCache` calls this once per tile."""
+        s = int(step)
+        kr, kc = _on_lattice(self.shape[0], s, r0, rows), _on_lattice(self.shape[1], s, c0, cols)
+        if kr == rows and kc == cols:
+            return self.lattice(r0 * s, c0 * s, rows, cols, s)
+        out = np.empty((rows, cols), np.float32)
+        for a, b, n, g0 in ((0, kr, kr, r0 * s), (kr, rows, rows - kr, self.shape[0] - 1)):
+            for c, d, m, h0 in ((0, kc, kc, c0 * s), (kc, cols, cols - kc, self.shape[1] - 1)):
+                if n and m:
+                    out[a:b, c:d] = self.lattice(g0, h0, n, m, s)
+        return out
+
+    def lattice(self, row0: int, col0: int, rows: int, cols: int, step: int) -> np.ndarray:
+        """(rows, cols) float32 grid samples (row0 + i step, col0 + j step), all inside the grid, NaN at
+        no-data (the sources' one read)."""
         raise NotImplementedError
 
     def detail_bound(self, step: int) -> float:
@@ -138,9 +160,9 @@ class ArraySource(TileSource):
         self.dx, self.dz, self.origin, self.name = float(dx), float(dz), tuple(origin), name
         self.meta = dict(meta or {})
 
-    def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+    def lattice(self, row0: int, col0: int, rows: int, cols: int, step: int) -> np.ndarray:
         s = int(step)
-        return np.ascontiguousarray(self.h[r0 * s:(r0 + rows - 1) * s + 1:s, c0 * s:(c0 + cols - 1) * s + 1:s])
+        return np.ascontiguousarray(self.h[row0:row0 + (rows - 1) * s + 1:s, col0:col0 + (cols - 1) * s + 1:s])
 
     def fingerprint(self) -> str:
         return "array:" + hashlib.sha256(np.ascontiguousarray(self.h).tobytes()).hexdigest()[:16]
@@ -180,10 +202,10 @@ class FbmSource(TileSource):
                      "feature_size": self.feature_size, "octaves": self.octaves, "gain": gain,
                      "lacunarity": lacunarity, "ridged": ridged, "streamed": True}
 
-    def read(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+    def lattice(self, row0: int, col0: int, rows: int, cols: int, step: int) -> np.ndarray:
         a = noise.fbm(int(rows), int(cols), seed=self.seed, base_frequency=1.0 / self.feature_size,
                       octaves=self.octaves, lacunarity=self.lacunarity, gain=self.gain, ridged=self.ridged,
-                      row0=int(r0) * int(step), col0=int(c0) * int(step), step=int(step))
+                      row0=int(row0), col0=int(col0), step=int(step))
         return ((a + np.float32(1.0)) * np.float32(0.5 * self.max_height)).astype(np.float32)  # as Heightmap.fbm
 
     def detail_bound(self, step: int) -> float:
@@ -260,9 +282,11 @@ class GeoTiffSource(TileSource):
                 return lv.window(r0, c0, rows, cols)
             except CorruptTile:  # read from the file from now on (the overview is rebuilt on the next open)
                 self.levels.pop(step, None)
+        return super().read(step, r0, c0, rows, cols)
+
+    def lattice(self, row0: int, col0: int, rows: int, cols: int, step: int) -> np.ndarray:
         s = int(step)
-        full = geotiff.read_oriented(self.header, self._dataset(), r0 * s, c0 * s, (rows - 1) * s + 1,
-                                     (cols - 1) * s + 1)
+        full = geotiff.read_oriented(self.header, self._dataset(), row0, col0, (rows - 1) * s + 1, (cols - 1) * s + 1)
         return np.ascontiguousarray(full[::s, ::s])
 
     def __getstate__(self) -> dict:  # to a Dask worker: the path and header, not the open datasets
@@ -306,6 +330,18 @@ class GeoTiffSource(TileSource):
             with cache.building() as b:
                 b.set_value("height_range", [lo, hi])
         return lo, hi
+
+
+def _level_len(n: int, step: int) -> int:
+    """Samples along an axis of ``n`` in the step-``step`` overview: ``0, step, ...`` up to ``n - 1``, and
+    ``n - 1`` itself when it is not a multiple of ``step``."""
+    return -(-(int(n) - 1) // int(step)) + 1
+
+
+def _on_lattice(n: int, step: int, i0: int, count: int) -> int:
+    """How many of overview samples ``i0 .. i0 + count - 1`` (an axis of ``n``) lie on the lattice ``i step``
+    (the rest, at most the one last sample, is the grid's clamped last sample ``n - 1``)."""
+    return max(0, min(int(count), (int(n) - 1) // int(step) - int(i0) + 1))
 
 
 def _scan_range(src: TileSource, tiles: TileCache) -> tuple[float, float]:
@@ -370,8 +406,9 @@ class TileCache:
         lr, lc = self.source.level_shape(step)
         r0, c0 = ti * TILE, tj * TILE
         rows, cols = min(TILE + 1, lr - r0), min(TILE + 1, lc - c0)  # one shared row and column with the next
-        what = f"tile (step {step}, row {ti}, col {tj}: samples {r0 * step}..{(r0 + rows - 1) * step} x " \
-               f"{c0 * step}..{(c0 + cols - 1) * step}) of {self.source.where()}"
+        hh, ww = self.source.shape
+        what = f"tile (step {step}, row {ti}, col {tj}: samples {r0 * step}..{min((r0 + rows - 1) * step, hh - 1)} " \
+               f"x {c0 * step}..{min((c0 + cols - 1) * step, ww - 1)}) of {self.source.where()}"
         if rows < 1 or cols < 1:
             raise ValueError(f"{what}: outside the {lr} x {lc} grid")
         try:
@@ -390,15 +427,19 @@ class TileCache:
             self.counters["bytes_read"] += t.nbytes
         return t
 
-    def window(self, step: int, r0: int, c0: int, rows: int, cols: int) -> np.ndarray:
+    def window(self, step: int, r0: int, c0: int, rows: int, cols: int, out: np.ndarray | None = None) -> np.ndarray:
         """(rows, cols) float32 of the step-``step`` overview from sample (r0, c0), assembled from tiles
-        (the window must lie inside the overview)."""
+        (the window must lie inside the overview), into ``out`` when given (a writable (rows, cols) float32 array:
+        a frame's windows assembled in one buffer)."""
         step = check_int("step", step, 1)  # 1: full resolution; 2, 4, ...: overviews
         lr, lc = self.source.level_shape(step)
         if r0 < 0 or c0 < 0 or rows < 1 or cols < 1 or r0 + rows > lr or c0 + cols > lc:
             raise ValueError(f"window: rows {r0}..{r0 + rows - 1}, cols {c0}..{c0 + cols - 1} outside the step-"
                              f"{step} overview ({lr} x {lc}) of {self.source.where()}")
-        out = np.empty((rows, cols), np.float32)
+        if out is None:
+            out = np.empty((rows, cols), np.float32)
+        elif out.shape != (rows, cols) or out.dtype != np.float32 or not out.flags.writeable:
+            raise ValueError(f"out: expected a writable ({rows}, {cols}) float32 array, got {out.dtype} {out.shape}")
         last_r, last_c = r0 + rows - 1, c0 + cols - 1
         # tiles share their last row and column with the next: a window ending on a tile boundary (as
         # power-of-two node windows do) needs no tile past it

@@ -293,7 +293,8 @@ def _overview_name(step: int) -> str:
 def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *, tiles: TileCache | None = None
                  ) -> tuple[list, dict[int, np.ndarray], tuple[float, float]] | None:
     """The pyramid of roots ``item`` = (y, x, rows of roots, columns of roots) from its window of samples, its
-    point-sampled overviews at the steps in ``spec`` and its finite heights' (min, max) (+-inf: none), or None
+    point-sampled overviews at the steps in ``spec`` (with the grid's clamped last row and column where the roots
+    hold them) and its finite heights' (min, max) (+-inf: none), or None
     when the roots lie outside the grid. A root's nodes read only samples inside the root's closed extent, and
     with an integer S_0 the window's coordinates are the grid's shifted by an integer: every value is bit for
     bit the whole grid's. Runs anywhere (a Dask worker reads its own tiles)."""
@@ -307,9 +308,19 @@ def root_pyramid(spec: tuple, item: tuple[int, int, int, int], *, tiles: TileCac
     cols = min(int(math.ceil(nx_ * s0)) + 1, ww - c0)
     win = (tiles if tiles is not None else TileCache(source, 64)).window(1, r0, c0, rows, cols)
     stats = node_stats(win, (nx_, ny_), s0, depth, tess)
-    subs = {st: np.ascontiguousarray(win[::st, ::st]) for st in steps if r0 % st == 0 and c0 % st == 0}
+    last_r, last_c = r0 + rows == hh, c0 + cols == ww  # the window holds the grid's last row / column
+    subs = {st: np.ascontiguousarray(win[np.ix_(_overview_rows(rows, st, last_r), _overview_rows(cols, st, last_c))])
+            for st in steps if r0 % st == 0 and c0 % st == 0}
     finite = win[np.isfinite(win)]
     return stats, subs, ((float(finite.min()), float(finite.max())) if finite.size else (np.inf, -np.inf))
+
+
+def _overview_rows(n: int, step: int, last: bool) -> np.ndarray:
+    """The rows (columns) of a window of ``n`` starting on a multiple of ``step`` that its step-``step`` overview
+    samples: ``0, step, ...``, and the window's last one when it is the grid's last and not among them (the
+    overview's clamped edge: :meth:`terrainwarp.io.tiles.TileSource.read`)."""
+    idx = np.arange(0, n, step)
+    return np.append(idx, n - 1) if last and (n - 1) % step else idx
 
 
 class _TileRows:

@@ -18,7 +18,9 @@ A cost is one of (:func:`cost`):
 
 A weights file is JSON: ``{"name", "driver", "features", "weights" (ms per unit of each feature),
 "intercept_ms", "r2_heldout", "frames", "families", "command", "sha256"}``; ``sha256`` is the hash of the rest
-(sorted keys), checked on load, so a damaged or hand-edited file is refused by name.
+(sorted keys), checked on load, so a damaged or hand-edited file is refused by name. The JSON is strict
+(:func:`terrainwarp.io.files.strict_json`): an ``r2_heldout`` that is undefined (NaN: the held-out frames' times
+do not vary) is ``null`` with an ``r2_heldout_reason``, and loads back as NaN.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from ..io.files import dumps_strict, strict_json
 from ..kernels.checks import check_number
 from ..kernels.counters import PIPELINE_COUNTERS
 from .gpu import GpuProfile, shipped_profile
@@ -89,10 +92,12 @@ class CostModel:
         return float(self.intercept_ms + math.fsum(w * float(counters[k]) for k, w in self.weights.items()))
 
     def to_json(self) -> str:
-        d = asdict(self)
+        """The weights file's text: strict JSON (a NaN ``r2_heldout`` is ``null`` and ``r2_heldout_reason``), its
+        ``sha256`` the hash of the rest as written."""
+        d = strict_json(asdict(self))
         d["features"] = list(self.weights)
         d["sha256"] = _digest(d)
-        return json.dumps(d, indent=2, sort_keys=True) + "\n"
+        return dumps_strict(d, indent=2, sort_keys=True) + "\n"
 
     @classmethod
     def from_json(cls, text: str, where: str = "weights") -> CostModel:
@@ -106,6 +111,10 @@ class CostModel:
         if _digest(d) != want:
             raise ValueError(f"{where}: checksum mismatch: the file was changed after terrainwarp calibrate wrote it")
         d.pop("features", None)
+        for k in ("r2_heldout",):  # strict JSON's null (a reason beside it) is the NaN it stands for
+            if d.get(k, 0.0) is None:
+                d[k] = math.nan
+                d.pop(f"{k}_reason", None)
         unknown = sorted(set(d) - {f.name for f in cls.__dataclass_fields__.values()})
         if unknown:
             raise ValueError(f"{where}: unknown key(s) {unknown}")

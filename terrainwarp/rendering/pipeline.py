@@ -428,6 +428,8 @@ def _start(scene: Scene, terrain: Terrain | None, state: LodState | None, refere
         if isinstance(source, StreamedSource) and (held or state is not None):
             # hysteresis across frames, as for an in-memory LOD scene; the held source keeps no earlier call's state
             source.state = state
+        if isinstance(source, StreamedSource) and held:  # level and patch id only for what reads them
+            source.attributes = bool({"mesh", "patches"} & set(scene.outputs)) or scene.shading in ("level", "patch")
     kind = "source" if source is not None else scene.mesh
     if terrain is None and kind == "lod":
         terrain = _held_terrain(hm, scene.lod, device)
@@ -610,7 +612,7 @@ def _stage_raster(run: _Run, rec: StageRecord) -> None:
 def _stage_shade(run: _Run, rec: StageRecord) -> None:
     scene, frame, mesh = run.scene, run.frame, run.frame.mesh
     normals = mesh.normals if mesh.normals is not None else _source_normals(run.hm, mesh, run.nmap, run.device)
-    world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32)
+    world_y = (mesh.positions[:, 1] + mesh.eye[1]).astype(np.float32, copy=False)
     rgb, pix_n, counters = shade(frame.triangle_id, frame.barycentrics, mesh.triangles, normals, world_y,
                                  mode=scene.shading, level=mesh.level, patch_id=mesh.patch_id, uv=mesh.uv,
                                  azimuth_deg=scene.light_azimuth_deg, elevation_deg=scene.light_elevation_deg,

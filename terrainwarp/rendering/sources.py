@@ -181,7 +181,9 @@ class StreamedSource(SourceBase):
     tile, and the normals are its Sobel map's, as in memory: the frame is bit for bit the in-memory one.
 
     ``last`` holds the latest frame's counters: tiles read, bytes read and cache hits (for that frame),
-    the windows and their samples, the tile cache's resident bytes, the pyramid blocks built.
+    the windows and their samples, the tile cache's resident bytes, the pyramid blocks built. ``attributes``:
+    the meshes carry level and patch id (uv they always carry); ``render`` sets it for the source a heightmap
+    holds to what the scene reads (the mesh or patches outputs, the level and patch shadings).
     """
 
     heightmap: StreamedHeightmap
@@ -193,6 +195,7 @@ class StreamedSource(SourceBase):
     build_ms: float = 0.0
     last: dict = field(default_factory=dict)
     provides_normals: bool = True  # the mesh carries vertex normals: no heightmap normal map is made
+    attributes: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.heightmap, StreamedHeightmap):
@@ -236,21 +239,28 @@ class StreamedSource(SourceBase):
             overview_windows(hm, patches.origin_cells, patches.size_cells, factor)
         if self.full_resolution and windows:  # the whole grid, read from the tiles once and kept
             stack = [(0, 0, 0, self.cached(("grid",), lambda: hm.window(1, 0, 0, *hm.shape)))]
-        else:
-            stack = [(sh, r0, c0, hm.window(1 << sh, r0, c0, rows, cols)) for sh, r0, c0, rows, cols in windows]
+            data = stack[0][3].reshape(-1)
+        else:  # every window assembled from the tiles straight into one flat buffer, the kernel's
+            data = np.empty(sum(w[3] * w[4] for w in windows), np.float32)
+            stack, at = [], 0
+            for sh, r0, c0, rows, cols in windows:
+                part = data[at:at + rows * cols].reshape(rows, cols)
+                stack.append((sh, r0, c0, hm.window(1 << sh, r0, c0, rows, cols, out=part)))
+                at += rows * cols
         stand_in = wp.array(ptr=self._zero.ptr, dtype=wp.float32, shape=hm.shape, strides=(0, 0),
                             device=self.device, copy=False)  # the grid's shape, no heights: displaced below
         t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
                                 "inner": patches.inner, "level": patches.level}, stand_in, hm.dx, hm.dz,
                                camera.position, spacing=self.lod.spacing, origin=hm.origin, device=self.device,
-                               need=("uv", "level", "patch_id"), uv_cells=True)
+                               need=("uv", "level", "patch_id") if self.attributes else ("uv",), uv_cells=True)
         if not stack:
             return Mesh(positions=t.positions, eye=camera.position, triangles=t.triangles, uv=t.uv, level=t.level,
                         patch_id=t.patch_id, normals=np.zeros_like(t.positions), counters=t.counters), windows
         pos, nrm, _ = stack_displace(t.uv, t.positions, stack, [hm.source.level_shape(1 << w[0]) for w in stack],
-                                     float(camera.position[1]), hm.dx, hm.dz, device=self.device)
+                                     hm.shape, float(camera.position[1]), hm.dx, hm.dz, device=self.device, data=data,
+                                     shifts=False)
         tri = t.triangles
-        if any(np.isnan(w[3]).any() for w in stack):  # no-data holes: drop triangles touching them
+        if np.isnan(data.min()):  # no-data holes (min is NaN when any is): drop triangles touching them
             pos, tri = drop_nonfinite_triangles(pos, tri, device=self.device)
             nrm[~np.isfinite(nrm).all(axis=1)] = (0.0, 1.0, 0.0)
         uv = t.uv  # in cells, for the windows; the mesh's in [0, 1], divided in place (no frame-sized copies)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from terrainwarp import Camera, Heightmap, Scene, render
-from terrainwarp.camera import Viewport, camera_from_angles, read_camera_csv
+from terrainwarp.camera import Viewport, camera_from_angles, flyover, read_camera_csv
 from terrainwarp.scene import Budget, CameraPath
 
 
@@ -147,3 +147,30 @@ def test_the_generated_flyover_looks_at_the_terrain_from_every_camera(hm):
     for n in (2, 5, 8):
         for c in Scene(hm).camera_path(n):
             assert x0 <= c.target[0] <= x1 and z0 <= c.target[2] <= z1, c
+
+
+def test_a_flyover_over_a_no_data_hole_takes_the_ground_between_its_rims():
+    """A 17 x 17-sample hole (columns and rows 24..40) under a path along row 32: the cameras over it (and beside
+    it, where the bilinear footprint touches it) stand ``clearance`` above the ground interpolated along the path
+    between the last finite ground before it (x = 220 m) and the first after it (x = 410 m); the others as
+    before; a target over the hole is a quarter clearance below its eye; a path wholly over the hole stands on the
+    ring of finite ground around it."""
+    h = Heightmap.fbm(65, seed=3, dx=10.0, max_height=300.0).heights.copy()
+    h[24:41, 24:41] = np.nan
+    holed = Heightmap.from_array(h, dx=10.0, dz=10.0, allow_nan=True)
+    cams = flyover(holed, [(20.0, 320.0), (620.0, 320.0)], 25.0, 13, look_ahead=60.0)
+    xs = np.array([c.position[0] for c in cams])
+    assert xs.tolist() == [20.0 + 50.0 * k for k in range(13)]
+    over = (xs > 220.0) & (xs < 410.0)
+    assert over.sum() == 3  # x = 270, 320, 370
+    ys = np.array([c.position[1] for c in cams])
+    assert ys[over] - 25.0 == pytest.approx(np.interp(xs[over], [220.0, 410.0], [h[32, 22], h[32, 41]]), abs=1e-4)
+    assert np.array_equal(ys[~over], holed.sample(xs[~over], np.full((~over).sum(), 320.0)).astype(np.float64) + 25.0)
+    for c in cams:
+        assert all(math.isfinite(v) for v in (*c.position, *c.target))
+        if not math.isfinite(float(holed.sample([c.target[0]], [c.target[2]])[0])):
+            assert c.target[1] == pytest.approx(c.position[1] - 0.25 * 25.0)
+    inside = flyover(holed, [(300.0, 300.0), (340.0, 340.0)], 25.0, 3)
+    lo, hi = holed.height_range
+    for c in inside:
+        assert lo <= c.position[1] - 25.0 <= hi and all(math.isfinite(v) for v in (*c.position, *c.target))

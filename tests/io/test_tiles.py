@@ -14,13 +14,18 @@ from terrainwarp.kernels.sampling import sample_grid
 
 
 def test_fbm_windows_at_any_step_are_the_whole_grids_samples():
+    """Sample (i, j) of the step-s overview is the grid's (min(i s, H - 1), min(j s, W - 1)): 599 and 699 are
+    multiples of no step above 1, so each overview ends on the grid's last row and column (clamped)."""
     whole = Heightmap.fbm(600, 700, seed=7).heights
-    src = FbmSource(600, 700, seed=7)
+    src, arr = FbmSource(600, 700, seed=7), ArraySource(whole)
     for step in (1, 2, 4, 16):
         lr, lc = src.level_shape(step)
-        assert (lr, lc) == ((600 - 1) // step + 1, (700 - 1) // step + 1)
-        got = src.read(step, 3, 5, lr - 3, lc - 5)
-        assert np.array_equal(got, whole[3 * step::step, 5 * step::step])
+        assert (lr, lc) == (-(-599 // step) + 1, -(-699 // step) + 1) == arr.level_shape(step)
+        rows, cols = np.minimum(np.arange(3, lr) * step, 599), np.minimum(np.arange(5, lc) * step, 699)
+        want = whole[np.ix_(rows, cols)]
+        assert np.array_equal(src.read(step, 3, 5, lr - 3, lc - 5), want)
+        assert np.array_equal(arr.read(step, 3, 5, lr - 3, lc - 5), want)
+        assert np.array_equal(src.read(step, lr - 1, lc - 1, 1, 1), whole[-1:, -1:])  # the corner alone
 
 
 def test_cache_window_assembles_tiles_and_keeps_to_its_cap():
@@ -39,6 +44,11 @@ def test_cache_window_assembles_tiles_and_keeps_to_its_cap():
     assert fresh.snapshot()["hits"] == 1
     with pytest.raises(ValueError, match="window: rows"):
         fresh.window(1, 0, 0, h.shape[0] + 1, 3)
+    buf = np.zeros(40, np.float32)  # a window assembled into a caller's buffer (a frame's one flat stack)
+    assert fresh.window(2, 3, 4, 5, 8, out=buf[:40].reshape(5, 8)).base is buf
+    assert np.array_equal(buf.reshape(5, 8), h[6:15:2, 8:23:2])
+    with pytest.raises(ValueError, match="out"):
+        fresh.window(1, 0, 0, 5, 8, out=np.zeros((5, 8), np.float64))
 
 
 def test_cache_cap_from_the_environment(monkeypatch):

@@ -1,7 +1,7 @@
 """Frames of a streamed heightmap: read at full resolution they are the in-memory frames bit for bit; read
-from overviews their geometry and error are the in-memory ones on these terrains (but for the patches that reach
-past a grid's last sample, on a grid whose size is not a multiple of the overview's step plus one); a terrain far
-larger than memory renders with only the tiles its frame needs."""
+from overviews their geometry and error are the in-memory ones on these terrains (the DEM's 344 x 403 samples
+included, where patches reach past the grid's last sample and the overviews end on its clamped last row and
+column); a terrain far larger than memory renders with only the tiles its frame needs."""
 
 from __future__ import annotations
 
@@ -35,38 +35,52 @@ def _same(a, b) -> bool:
 
 def _frames(hm, st, cams, src_full):
     for cam in cams:
-        a = render(Scene(hm, camera=cam, mesh="lod", outputs=(*OUTS, "mesh", "patches")))
+        a = render(Scene(hm, camera=cam, mesh="lod", outputs=OUTS))
         b = render(Scene(st, camera=cam, mesh="lod", outputs=OUTS), source=src_full)
-        c = render(Scene(st, camera=cam, mesh="lod", outputs=(*OUTS, "mesh", "patches")))
+        c = render(Scene(st, camera=cam, mesh="lod", outputs=(*OUTS, "patches")))
         yield a, b, c
 
 
-def _overhang(f, shape) -> np.ndarray:
-    """(H, W) pixels ``f`` draws with a patch that reaches past the grid's last sample: there the in-memory frame
-    clamps to the last row/column and an overview of step s to its last multiple of s (the DEM has 344 x 403
-    samples), so the streamed frame read from overviews differs there (up to 53 m at the grid's edge)."""
+def _overhangs(f, shape) -> bool:
+    """Whether a patch of ``f`` reaches past the grid's last sample (H - 1, W - 1)."""
     pl = f.patches
-    far = (pl.origin_cells + pl.size_cells[:, None] > np.array([shape[1] - 1, shape[0] - 1])).any(axis=1)
-    tid = f.triangle_id
-    out = np.zeros(tid.shape, bool)
-    m = tid >= 0
-    out[m] = far[f.mesh.patch_id[f.mesh.triangles[tid[m], 0]]]
-    return out
+    return bool((pl.origin_cells + pl.size_cells[:, None] > np.array([shape[1] - 1, shape[0] - 1])).any())
 
 
 def test_dem_streamed_at_full_resolution_is_the_in_memory_frame():
+    """Also from overviews: the DEM's 343 and 402 cells are multiples of no step above 1, and the path's end
+    camera draws patches past its south edge (the overview of step s ends on the grid's last row, not on its
+    last multiple of s: 53 m apart there)."""
     hm = Heightmap.example()
     st = StreamedHeightmap.of(hm)
     cams = Scene(hm).camera_path(2)
     assert cams == Scene(st).camera_path(2)  # the path samples the ground through the tiles, bit for bit
+    over = []
     for a, b, c in _frames(hm, st, cams, StreamedSource(st, LodConfig(), full_resolution=True)):
         assert _same(a, b)
-        edge = _overhang(a, hm.shape) | _overhang(c, hm.shape)
-        assert np.array_equal(a.depth[~edge], c.depth[~edge], equal_nan=True)
-        if not edge.any():
-            assert a.error.row() == c.error.row()
-        else:  # the path's end camera looks back over the DEM's south edge
-            assert c.error.p99_px == pytest.approx(a.error.p99_px, rel=0.01)
+        assert np.array_equal(a.depth, c.depth, equal_nan=True) and a.error.row() == c.error.row()
+        over.append(_overhangs(c, hm.shape))
+    assert any(over)  # the grid's edge was drawn from an overview
+
+
+def test_the_dem_as_a_geotiff_draws_its_edge_from_the_cached_overviews_as_in_memory(tmp_path):
+    """The pyramid cache's overviews of a 344 x 403 file end on the grid's clamped last row and column, and the
+    frames drawn from them (patches past the south edge included) are the in-memory ones."""
+    dem = Heightmap.example()
+    p = write_tiled(tmp_path / "dem.tif", dem.shape, lambda r0, c0, n, m: dem.heights[r0:r0 + n, c0:c0 + m],
+                    dx=dem.dx, dz=dem.dz, overviews=())
+    hm, st = Heightmap.load(p), Heightmap.open(p)
+    over = []
+    for cam in Scene(hm).camera_path(2):
+        a = render(Scene(hm, camera=cam, mesh="lod", outputs=OUTS))
+        c = render(Scene(st, camera=cam, mesh="lod", outputs=(*OUTS, "patches")))
+        assert np.array_equal(a.depth, c.depth, equal_nan=True) and a.error.row() == c.error.row()
+        over.append(_overhangs(c, hm.shape))
+    assert any(over) and st.source.levels  # drawn from the cache's overviews, over the edge
+    for step, ov in st.source.levels.items():
+        rows = np.minimum(np.arange(-(-343 // step) + 1) * step, 343)
+        cols = np.minimum(np.arange(-(-402 // step) + 1) * step, 402)
+        assert np.array_equal(np.asarray(ov), hm.heights[np.ix_(rows, cols)]), step
 
 
 def test_geotiff_streamed_equals_in_memory_and_overviews_keep_the_error(fbm_tif):
@@ -153,3 +167,17 @@ def test_streamed_scenes_refuse_what_they_cannot_draw(fbm_tif):
         st.sample([0.0], [0.0], method="bicubic")
     with pytest.raises(TypeError, match="source"):
         StreamedHeightmap(np.zeros((4, 4), np.float32))
+
+
+def test_a_streamed_mesh_carries_level_and_patch_id_only_for_what_reads_them():
+    """A hillshaded image reads neither (the tessellator writes neither: 8 bytes a vertex less); the mesh output
+    and the level shading do, and the image is the same either way."""
+    st = StreamedHeightmap.of(Heightmap.example())
+    cam = Scene(st).camera_path(2)[0].with_(width=160, height=120)
+    plain = render(Scene(st, camera=cam, mesh="lod", outputs=("image",)))
+    full = render(Scene(st, camera=cam, mesh="lod", outputs=("image", "mesh")))
+    level = render(Scene(st, camera=cam, mesh="lod", outputs=("image",), shading="level"))
+    assert plain.mesh.level is None and plain.mesh.patch_id is None
+    assert full.mesh.level is not None and len(full.mesh.patch_id) == full.mesh.n_vertices
+    assert level.mesh.level is not None
+    assert np.array_equal(plain.image, full.image) and not np.array_equal(plain.image, level.image)
