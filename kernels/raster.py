@@ -73,7 +73,7 @@ from .counters import (
     raster_counters,
     raster_stats,
 )
-from .parallel import atomic_add_i32, launch, launch_one, max_parts
+from .parallel import atomic_add_i32, chunks, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import filled_array, pooled_array, pooled_rows_array, take
 
@@ -627,35 +627,32 @@ for (int k = 0; k < 8; ++k) acc[k] = k == 6 ? j0 : 0;
 #if !defined(__CUDA_ARCH__)
 if (simd != 0) {
 #pragma clang fp contract(off)
-typedef int32_t v8 __attribute__((vector_size(32)));
-typedef uint32_t v8u __attribute__((vector_size(32)));
-typedef float v8f __attribute__((vector_size(32)));
+typedef int32_t v8 __attribute__((vector_size(32))); typedef uint32_t v8u __attribute__((vector_size(32)));
+typedef float v8f __attribute__((vector_size(32))); typedef bool b8 __attribute__((ext_vector_type(8)));
 typedef int32_t v8_ld __attribute__((vector_size(32), aligned(4)));  // loads and stores at any pixel
 typedef uint32_t v8u_ld __attribute__((vector_size(32), aligned(4)));
-#if defined(__AVX__)
-#define RZ_SIGNS(v) ((uint32_t)__builtin_ia32_movmskps256((v8f)(v)))
-#else
-#define RZ_SIGNS(v) ((uint32_t)__builtin_reduce_or(((v) >> 31) & (v8){1, 2, 4, 8, 16, 32, 64, 128}))
-#endif
+auto signs = [](v8 v) { return (uint32_t)__builtin_bit_cast(uint8_t, __builtin_convertvector(v < 0, b8)); };
+// a record's pixel box: its first centre at or after the least coordinate, its last at or before the largest
+auto lo = [](const int64_t* v) { return wp::max(0, (int)((wp::min(v[0], wp::min(v[1], v[2])) + 127) >> 8)); };
+auto hi = [](const int64_t* v) { return (int)((wp::max(v[0], wp::max(v[1], v[2])) - 128) >> 8); };
 const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 int32_t* __restrict ids = (int32_t*)buf_id.data;
 uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
 int64_t j = j0;
 for (; j < j1 && entries.data[j].t >= 0; ++j) {
     const auto& r = entries.data[j];
-    // the vertices a (x[0]), b, c, and the pixel box: first centre at or after the least coordinate, last at or
-    // before the largest
+    // a record: the vertices a (x[0]), b, c; a mask entry: the 4x4 centres from its box's first one (rx, ry)
+    const bool rec = r.xy[3] != 0;
     const int64_t x[3] = {r.xy[0], r.xy[0] + (int16_t)(r.xy[2] & 0xFFFF), r.xy[0] + (int16_t)(r.xy[3] & 0xFFFF)};
     const int64_t y[3] = {r.xy[1], r.xy[1] + (r.xy[2] >> 16), r.xy[1] + (r.xy[3] >> 16)};
-    const int rx = wp::max(0, (int)((wp::min(x[0], wp::min(x[1], x[2])) + 127) >> 8));
-    const int ry = wp::max(0, (int)((wp::min(y[0], wp::min(y[1], y[2])) + 127) >> 8));
-    const int x0 = wp::max(rx, tx0), x1 = wp::min((int)((wp::max(x[0], wp::max(x[1], x[2])) - 128) >> 8), tx1);
-    const int y0 = wp::max(ry, ty0), y1 = wp::min((int)((wp::max(y[0], wp::max(y[1], y[2])) - 128) >> 8), ty1);
+    const int rx = rec ? lo(x) : r.xy[0] & 0xFFFF, ry = rec ? lo(y) : r.xy[0] >> 16;
+    const int x0 = wp::max(rx, tx0), x1 = wp::min(rec ? hi(x) : rx + 3, tx1);
+    const int y0 = wp::max(ry, ty0), y1 = wp::min(rec ? hi(y) : ry + 3, ty1);
     if (x0 > x1 || y0 > y1) continue;
     // edge k from vertex k + 1 to k + 2 at the first centre of the rows, and per pixel down a row: a record's
     // triangle spans under SMALL_PX pixels, so over 16 centres of a row its edge functions fit in int32
     v8 ra[2][3], dy[3];
-    for (int k = 0; k < 3; ++k) {
+    for (int k = 0; k < 3 && rec; ++k) {
         const int64_t px = x[(k + 1) % 3], py = y[(k + 1) % 3], dx = x[(k + 2) % 3] - px, ey = y[(k + 2) % 3] - py;
         const int64_t e = dx * ((int64_t)y0 * 256 + 128 - py) - ey * ((int64_t)x0 * 256 + 128 - px)
                           + ((ey < 0 || (ey == 0 && dx > 0)) ? 0 : -1);
@@ -668,11 +665,11 @@ for (; j < j1 && entries.data[j].t >= 0; ++j) {
     const uint32_t cols = (uint32_t)((1u << (x1 - x0 + 1)) - 1u);
     const int nch = x1 - x0 >= 8 ? 2 : 1;  // a row in chunks of 8 centres: two when it is wider
     uint32_t qrow = 0, brow = 0;
-    acc[0] += (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1);
+    acc[0] += rec ? (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1) : 0;  // a mask entry's were tested as it was binned
     for (int yy = y0; yy <= y1; ++yy) {
-        uint32_t mc[2] = {0, 0};
-        for (int c = 0; c < nch; ++c) {
-            mc[c] = ~RZ_SIGNS(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
+        uint32_t mc[2] = {rec ? 0u : ((uint32_t)r.xy[1] >> (4 * (yy - ry) + x0 - rx)) & cols, 0};  // a mask's row
+        for (int c = 0; c < nch && rec; ++c) {
+            mc[c] = ~signs(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
             for (int k = 0; k < 3; ++k) ra[c][k] += dy[k];
         }
         const uint32_t m = mc[0] | (mc[1] << 8);
@@ -698,16 +695,15 @@ for (; j < j1 && entries.data[j].t >= 0; ++j) {
             const v8 first = oid < 0;
             // GL_LESS (depth bits order as depths) at a covered centre
             const v8 win = ((((lane - lane + (int32_t)mc[c]) >> lane) & 1) != 0) & (d < 1.0f) & (first | (bits < od));
-            const uint32_t wm = RZ_SIGNS(win);
+            const uint32_t wm = signs(win);
             if (wm != 0) {
                 *(v8_ld*)pi = win ? (v8)(lane - lane + r.t) : oid;
                 *(v8u_ld*)pd = win ? bits : od;
-                acc[2] += __builtin_popcount(wm), acc[3] += __builtin_popcount(wm & RZ_SIGNS(first));
+                acc[2] += __builtin_popcount(wm), acc[3] += __builtin_popcount(wm & signs(first));
             }
         }
     }
 }
-#undef RZ_SIGNS
 acc[6] = j;
 }
 #endif
@@ -716,10 +712,11 @@ return acc;
 def _draw_records(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
                   ty1: int, width: int, height: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
                   buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records, over the tile's pixels
-    (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32 lanes): mask,
-    depths, tests, writes. The same pixels, depths and counts as :func:`_cover`; returns them, the entry it stopped
-    at in slot 6 (``j0`` without ``simd`` and on CUDA, where :func:`_cover` draws records)."""
+    """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records or mask entries, over the
+    tile's pixels (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32
+    lanes): mask (a record's from its edge functions, a mask entry's its own), depths, tests, writes. The same
+    pixels, depths and counts as :func:`_cover` (a mask entry's centres tested counted as it was binned); returns
+    them, the entry it stopped at in slot 6 (``j0`` without ``simd`` and on CUDA)."""
     ...
 
 
@@ -887,12 +884,25 @@ def _vertex_kernel(
     offset: int,
     pos: wp.array(dtype=wp.vec3),
     mvp: wp.mat44,
+    transform: int,
+    width: int,
+    height: int,
+    gb: wp.vec2,
     # outputs
     out_clip: wp.array(dtype=wp.vec4),
+    out_win: wp.array(dtype=wp.vec4),
 ):
+    """Per vertex: its clip coordinates (with ``transform`` ``mvp @ (p, 1)``, written to ``out_clip``; else read from
+    it) and its window position (:func:`_window`) in ``out_win``, whose w is 1 for a vertex inside every clip plane
+    (:func:`_inside`), else 0."""
     k = wp.tid() + offset
-    p = pos[k]
-    out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+    c = out_clip[k]
+    if transform != 0:
+        p = pos[k]
+        c = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+        out_clip[k] = c
+    f = _window(c, 0.5 * float(width), 0.5 * float(height))
+    out_win[k] = wp.vec4(f[0], f[1], f[2], wp.where(_inside(c, gb), 1.0, 0.0))
 
 
 @wp.func
@@ -937,28 +947,116 @@ def _tally(tally: wp.array2d(dtype=wp.int64), part: int, column: int, v: int, on
         wp.atomic_add(tally, part, column, wp.int64(v))
 
 
-@wp.kernel(enable_backward=False)
-def _bin_kernel(
-    offset: int,
-    part: int,
-    base: int,
-    clip: wp.array(dtype=wp.vec4),
-    tris: wp.array2d(dtype=wp.int32),
-    width: int,
-    height: int,
-    cull_back: int,
-    gb: wp.vec2,
-    tallying: int,
-    # outputs
-    out_bins: Bins,
-    out_tally: wp.array2d(dtype=wp.int64),
-):
-    """Per triangle ``t = base + i`` of a batch: set up, and binned (:func:`_bin`) into the tiles it will be drawn
-    in: a small unclipped one as its record (:func:`_small_entry`), the others (clipped, large) to be set up again
-    there (:func:`_prepared`). With ``tallying``, tallies (row ``part``) the clipper's output, the triangles
-    rasterized, the centres of tiny boxes tested here and, for large triangles, the DEPTH_TILE cells they may
-    cover."""
-    t = base + wp.tid() + offset
+@wp.func_native("""
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = k == 7 ? t0 : 0;
+#if !defined(__CUDA_ARCH__)
+if (simd != 0) {
+#pragma clang fp contract(off)
+typedef int32_t vi __attribute__((vector_size(64))); typedef float vf __attribute__((vector_size(64)));
+typedef bool vb __attribute__((ext_vector_type(16)));
+auto mn = [](auto a, auto b) { return a < b ? a : b; };  // lane by lane (NaN: b)
+auto mx = [](auto a, auto b) { return a > b ? a : b; };
+auto bits = [](vi c) { return (uint32_t)__builtin_bit_cast(uint16_t, __builtin_convertvector(c, vb)); };
+int32_t* count = (int32_t*)bins.count.data, * start = (int32_t*)bins.start.data, * room = (int32_t*)bins.room.data;
+auto* entries = bins.entries.data;
+const vi lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}, zero = lane - lane, one = zero + 1;
+const vf big = __builtin_convertvector(zero, vf) + 1e9f;
+for (int t = t0; t < t1; t += 16) {
+    const int n = wp::min(16, t1 - t);
+    float g[4][3][16];  // the vertices' window positions and inside flags by component, vertex, lane
+    vf f[4][3];
+    for (int i = 0; i < 48; ++i) {  // lanes past the last triangle read the first one's
+        const auto& w = win.data[*wp::address(tris, t + (i < 3 * n ? i / 3 : 0), i % 3)];
+        for (int c = 0; c < 4; ++c) g[c][i % 3][i / 3] = w[c];
+    }
+    __builtin_memcpy(f, g, sizeof g);
+    vi X[3], Y[3], ok = lane < n;
+    for (int k = 0; k < 3; ++k) {  // fixed point as lrintf (others limited first: their conversion is undefined)
+        ok &= (f[3][k] != 0.0f) & (f[0][k] >= -1e6f) & (f[0][k] <= 1e6f) & (f[1][k] >= -1e6f) & (f[1][k] <= 1e6f);
+        X[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[0][k] * 256.0f, -big), big)), vi);
+        Y[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[1][k] * 256.0f, -big), big)), vi);
+    }
+    const vi xmin = mn(X[0], mn(X[1], X[2])), xmax = mx(X[0], mx(X[1], X[2]));
+    const vi ymin = mn(Y[0], mn(Y[1], Y[2])), ymax = mx(Y[0], mx(Y[1], Y[2]));
+    const uint32_t bad = ~bits(ok & (xmax - xmin < 15 * 256) & (ymax - ymin < 15 * 256)) & ((1u << n) - 1u);
+    const int stop = bad != 0 ? __builtin_ctz(bad) : n;  // the first to be clipped or large: the Warp path's
+    for (int k = 0; k < 3; ++k) X[k] = lane < stop ? X[k] : zero, Y[k] = lane < stop ? Y[k] : zero;  // no overflow
+    const vi area = (X[1] - X[0]) * (Y[2] - Y[0]) - (X[2] - X[0]) * (Y[1] - Y[0]), sw = area < 0;
+    vi px[3], py[3];  // counter-clockwise (b and c swapped where the area is negative): fixed point, window x, y, z
+    vf q[3][3];
+    for (int k = 0; k < 3; ++k) {
+        const int o = k == 0 ? 0 : 3 - k;
+        px[k] = sw ? X[o] : X[k], py[k] = sw ? Y[o] : Y[k];
+        for (int c = 0; c < 3; ++c) q[c][k] = sw ? f[c][o] : f[c][k];
+    }
+    const vi x0 = mx(zero, (xmin + 127) >> 8), x1 = mn(zero + (width - 1), (xmax - 128) >> 8);
+    const vi y0 = mx(zero, (ymin + 127) >> 8), y1 = mn(zero + (height - 1), (ymax - 128) >> 8);
+    const vi valid = (lane < stop) & (area != 0) & ~(sw & (cull_back != 0 ? -1 : 0)) & (x0 <= x1) & (y0 <= y1);
+    const vi rec = (x1 - x0 > 3) | (y1 - y0 > 3);
+    const vi bw = mn(mx(x1 - x0 + 1, zero), zero + 4), bh = mn(mx(y1 - y0 + 1, zero), zero + 4);
+    const vi box = valid & ~rec & (((one << bw) - 1) * (0x1111 & ((one << (4 * bh)) - 1)));
+    vi e[3], ex[3], ey[3], mask = zero;  // edge k from vertex k + 1 to k + 2 at the box's first centre
+    for (int k = 0; k < 3; ++k) {
+        const int a = (k + 1) % 3, b = (k + 2) % 3;
+        const vi dx = px[b] - px[a], dy = py[b] - py[a];
+        e[k] = dx * (y0 * 256 + 128 - py[a]) - dy * (x0 * 256 + 128 - px[a]) + ~((dy < 0) | ((dy == 0) & (dx > 0)));
+        ex[k] = -dy * 256, ey[k] = dx * 256;
+    }
+    for (int i = 0; i < 16; ++i)
+        mask |= (((e[0] + (i & 3) * ex[0] + (i >> 2) * ey[0]) | (e[1] + (i & 3) * ex[1] + (i >> 2) * ey[1])
+                  | (e[2] + (i & 3) * ex[2] + (i >> 2) * ey[2])) >= 0) & (zero + (1 << i));
+    mask &= box;
+    acc[0] += stop, acc[1] -= __builtin_reduce_add(valid), acc[2] += __builtin_reduce_add(box != 0 ? bw * bh : zero);
+    // the depth plane through the unsnapped vertices, at the box's first centre
+    const vf dx01 = q[0][0] - q[0][1], dy01 = q[1][0] - q[1][1], dx20 = q[0][2] - q[0][0], dy20 = q[1][2] - q[1][0];
+    const vf ooa = 1.0f / (dx01 * dy20 - dx20 * dy01), dz01 = q[2][0] - q[2][1], dz20 = q[2][2] - q[2][0];
+    const vf dzdx = (dz01 * dy20 - dz20 * dy01) * ooa, dzdy = (dx01 * dz20 - dx20 * dz01) * ooa;
+    const vf z00 = q[2][0] - (dzdx * (q[0][0] - (__builtin_convertvector(x0, vf) + 0.5f))
+                              + dzdy * (q[1][0] - (__builtin_convertvector(y0, vf) + 0.5f)));
+    // a record (box over 4x4) or a mask entry, into the lists of its box's tiles; its fields stored by lane and
+    // read back from memory (a lane taken out of a register is a store of the whole register each time)
+    const vi field[12] = {rec ? px[0] : x0 | y0 << 16, rec ? py[0] : mask,
+                          rec ? ((px[1] - px[0]) & 0xFFFF) | (py[1] - py[0]) << 16 : zero,
+                          rec ? ((px[2] - px[0]) & 0xFFFF) | (py[2] - py[0]) << 16 : zero, (vi)z00, (vi)dzdx, (vi)dzdy,
+                          t + lane, x0 >> 6, x1 >> 6, y0 >> 6, y1 >> 6};
+    int32_t o[12][16];  // by field and lane
+    __builtin_memcpy(o, field, sizeof o);
+    for (uint32_t km = bits((rec & valid) | (mask != 0)); km != 0; km &= km - 1u) {
+        const int l = __builtin_ctz(km);
+        const int32_t r[8] = {o[0][l], o[1][l], o[2][l], o[3][l], o[4][l], o[5][l], o[6][l], o[7][l]};  // a Record
+        for (int ty = o[10][l]; ty <= o[11][l]; ++ty)
+            for (int tx = o[8][l]; tx <= o[9][l]; ++tx) {
+                const int64_t cell = ((int64_t)ty * bins.tiles_x + tx) * bins.nparts + part;
+                const int32_t slot = count[cell]++;  // one launch chunk per part
+                if (bins.emit != 0 && slot < room[cell]) __builtin_memcpy(&entries[start[cell] + slot], r, 32);
+                else if (bins.emit != 0) bins.overflow.data[0] = 1;
+            }
+    }
+    acc[7] = t + stop;  // where it stopped
+    if (stop < n) break;
+}
+}
+#endif
+return acc;
+""")
+def _bin_lanes(simd: int, t0: int, t1: int, tris: wp.array2d(dtype=wp.int32), win: wp.array(dtype=wp.vec4),
+               width: int, height: int, cull_back: int, part: int, bins: Bins) -> vec8l:
+    """With ``simd`` (the CPU), triangles ``t0``.. of chunk ``part`` binned 16 at a time in SIMD lanes while each is
+    unclipped and small (window positions ``win``; :func:`_bin_one`'s counts and depth): a box of at most 4x4 centres
+    with one covered as a mask entry (:class:`Record`), a larger one as a record. Returns (clipper output, rasterized,
+    mask entries' centres tested, 0, 0, 0, 0, where it stopped: at one to clip or large, else ``t1``; else ``t0``)."""
+    ...
+
+
+@wp.func
+def _bin_one(t: int, part: int, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32), width: int,
+             height: int, cull_back: int, gb: wp.vec2, tallying: int, out_bins: Bins,
+             out_tally: wp.array2d(dtype=wp.int64)):
+    """Triangle ``t`` set up and binned (:func:`_bin`) into the tiles it will be drawn in: a small unclipped one as its
+    record (:func:`_small_entry`), the others (clipped, large) to be set up again there (:func:`_prepared`). With
+    ``tallying``, tallies (row ``part``) the clipper's output, the triangles rasterized, the centres of tiny boxes
+    tested here and, for large triangles, the DEPTH_TILE cells they may cover."""
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
     c2 = clip[tris[t, 2]]
@@ -991,6 +1089,48 @@ def _bin_kernel(
         again = Record()
         again.t = -1 - t
         _bin(again, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
+
+
+
+@wp.kernel(enable_backward=False)
+def _bin_kernel(
+    offset: int,
+    part: int,
+    base: int,
+    span: int,
+    last: int,
+    simd: int,
+    clip: wp.array(dtype=wp.vec4),
+    win: wp.array(dtype=wp.vec4),
+    tris: wp.array2d(dtype=wp.int32),
+    width: int,
+    height: int,
+    cull_back: int,
+    gb: wp.vec2,
+    tallying: int,
+    # outputs
+    out_bins: Bins,
+    out_tally: wp.array2d(dtype=wp.int64),
+):
+    """Triangles ``base + i * span`` .. (below ``last``) of launch index i (on the CPU one index per chunk, on CUDA
+    ``span`` 1), in order: runs of unclipped small ones by :func:`_bin_small` (with ``simd``, :func:`_bin_lanes`),
+    each other one by :func:`_bin_one`;
+    with ``tallying`` their tallies added into row ``part``."""
+    lo = base + (wp.tid() + offset) * span
+    hi = wp.min(lo + span, last)
+    acc = vec8l()
+    t = lo
+    while t < hi:
+        c = _bin_lanes(simd, t, hi, tris, win, width, height, cull_back, part, out_bins)
+        t = int(c[7])
+        acc = acc + c
+        if t < hi:
+            _bin_one(t, part, clip, tris, width, height, cull_back, gb, tallying, out_bins, out_tally)
+            t += 1
+    if tallying != 0 and acc[0] > wp.int64(0):
+        wp.atomic_add(out_tally, part, T_CLIPPED, acc[0])
+        wp.atomic_add(out_tally, part, T_RASTERIZED, acc[1])
+        wp.atomic_add(out_tally, part, T_TESTED, acc[2])
 
 
 @wp.func
@@ -1129,7 +1269,7 @@ def _tile_kernel(
             _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
         if acc[3] > wp.int64(0):
             out_dirty[tile] = 1
-        if acc[0] > wp.int64(0):
+        if acc[0] + acc[1] > wp.int64(0):  # centres tested (a mask entry's were as it was binned) or covered
             wp.atomic_add(out_tally, part, T_TESTED, acc[0])
             wp.atomic_add(out_tally, part, T_INSIDE, acc[1])
             wp.atomic_add(out_tally, part, T_PASSED, acc[2])
@@ -1330,7 +1470,7 @@ class _Work:
     pass); a frame that needs more is binned again with exact room, and leaves its counts for the next."""
 
     def __init__(self, device: str, width: int, height: int, nparts: int, scratch: bool) -> None:
-        self.device, self.cpu = device, wp.get_device(device).is_cpu
+        self.device, self.cpu, self.simd = device, wp.get_device(device).is_cpu, int(scratch)
         self.tiles_x = _tiles_x(width)
         self.ntiles = self.tiles_x * _tiles_x(height)
         self.nparts, ncells = nparts, self.tiles_x * _tiles_x(height) * nparts
@@ -1370,18 +1510,19 @@ class _Work:
         return b
 
     def bin_batch(self, base: int, mb: int, args: list) -> Bins:
-        """Bin a batch (:func:`_bin_kernel`): one pass when this batch's room holds it, else counting then binning
-        again with exact room."""
+        """Bin a batch (:func:`_bin_kernel`, on the CPU one launch index per chunk of the triangles, on CUDA one per
+        triangle): one pass when this batch's room holds it, else counting then binning again with exact room."""
         if base:
             self.clear(2)  # the queue and the lists' counts, for this batch
+        ranges = chunks(mb, 1, _MIN_TRIANGLES) if self.cpu else [(0, 1)] * mb
+        head = [base, ranges[0][1] - ranges[0][0] if ranges else 1, base + mb, self.simd]
         bins = self.bins(self.count, self.room.get(base))
-        launch(_bin_kernel, mb, [base, *args, 1], [bins, self.tally], self.device, parts=True,
-               min_items=_MIN_TRIANGLES)
+        launch(_bin_kernel, len(ranges), [*head, *args, 1], [bins, self.tally], self.device, parts=True, min_items=1)
         counts = self.count.numpy() if self.cpu else self.count.numpy().copy()
         if not bins.emit or int(self.overflow.numpy()[0]):
             bins = self.bins(self.cursor, self._room(counts, False))
-            launch(_bin_kernel, mb, [base, *args, 0], [bins, self.tally], self.device, parts=True,
-                   min_items=_MIN_TRIANGLES)
+            launch(_bin_kernel, len(ranges), [*head, *args, 0], [bins, self.tally], self.device, parts=True,
+                   min_items=1)
         self.room[base] = self._room(counts, True)
         return bins
 
@@ -1397,9 +1538,11 @@ class _Work:
 _WORK_KEPT = 2  # per kind: a call, and another on another thread
 
 
-def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool, device: str):
-    """Bin and draw the triangles, BATCH at a time. -> (ids, depth (device arrays, every pixel written), the tile
-    flags (int32, window order), the tallies summed (TALLIES,) int64)."""
+def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool,
+          device: str):
+    """Bin and draw the triangles (vertices' clip coordinates ``clip``, window positions ``win``), BATCH at a time.
+    -> (ids, depth (device arrays, every pixel written), the tile flags (int32, window order), the tallies summed
+    (TALLIES,) int64)."""
     npx = width * height
     out_id = pooled_array(npx, wp.int32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
     out_depth = pooled_array(npx, wp.float32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
@@ -1409,11 +1552,11 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
                  lambda: _Work(device, width, height, nparts, scratch), keep=_WORK_KEPT)
     work = lease.buffer
     work.clear()
-    gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
+    gb = _guard_band(width, height)
     cb = int(bool(cull_back))
     buf_id, buf_depth = (work.buf_id, work.buf_depth) if scratch else (out_id, out_depth)
     for base in range(0, max(m, 1), BATCH):
-        bins = work.bin_batch(base, max(min(BATCH, m - base), 0), [clip, tri_wp, width, height, cb, gb])
+        bins = work.bin_batch(base, max(min(BATCH, m - base), 0), [clip, win, tri_wp, width, height, cb, gb])
         launch(_tile_kernel, work.workers, [int(scratch), work.queue, work.ntiles, int(base == 0), clip, tri_wp, bins,
                                             width, height, cb, gb],
                [buf_id, buf_depth, out_id, out_depth, work.dirty, work.tally], device, parts=True, min_items=1)
@@ -1422,11 +1565,15 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
     return out_id, out_depth, tiles, tally
 
 
-def _rasterize_clip(clip: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool, device: str,
-                    counters: bool = False) -> Fragments:
+def _guard_band(width: int, height: int) -> wp.vec2:
+    return wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
+
+
+def _rasterize_clip(clip: wp.array, win: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool,
+                    device: str, counters: bool = False) -> Fragments:
     m = int(tri.shape[0])
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    out_id, out_depth, tiles, tally = _draw(clip, tri_wp, m, width, height, cull_back, device)
+    out_id, out_depth, tiles, tally = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
     ids = out_id.numpy().reshape(height, width)
     depth = out_depth.numpy().reshape(height, width)
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
@@ -1469,27 +1616,39 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
     tri = check_triangles("triangles", triangles, len(pos))
     width, height = check_viewport(width, height)
     counters = check_bool("counters", counters)
-    clip = _transform(pos, view, proj, device)
-    return _rasterize_clip(clip, tri, width, height, cull_back, device, counters)
+    clip, win = _transform(pos, view, proj, device, width, height)
+    return _rasterize_clip(clip, win, tri, width, height, cull_back, device, counters)
 
 
-def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.array:
+def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: int = 1,
+               height: int = 1) -> tuple[wp.array, wp.array]:
+    """The vertices' clip coordinates and window positions (:func:`_vertex_kernel`)."""
     pos32 = np.ascontiguousarray(pos, dtype=np.float32)
     if not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
-    if len(pos32):
-        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device), wp.mat44(*mvp.reshape(-1).tolist())],
-               [clip], device, min_items=_MIN_VERTICES)
-    return clip
+    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp)
+
+
+def _vertices(clip: wp.array, n: int, width: int, height: int, device: str, pos: wp.array | None = None,
+              mvp: np.ndarray | None = None) -> wp.array:
+    """The window positions of ``n`` vertices (:func:`_vertex_kernel`; with ``pos`` and ``mvp`` their clip
+    coordinates too, into ``clip``)."""
+    win = pooled_rows_array(max(n, 1), wp.vec4, device)
+    if n:
+        mat = wp.mat44(*mvp.reshape(-1).tolist()) if mvp is not None else wp.mat44()
+        launch(_vertex_kernel, n, [pos if pos is not None else wp.empty(1, dtype=wp.vec3, device=device), mat,
+                                   int(pos is not None), width, height, _guard_band(width, height)], [clip, win],
+               device, min_items=_MIN_VERTICES)
+    return win
 
 
 def clip_coordinates(positions: object, view: object, proj: object, *, device: str = "cpu") -> np.ndarray:
     """The clip-space vertices :func:`rasterize` computes: (n, 4) float32 ``(proj @ view) @ (p, 1)``,
     with the product of the matrices rounded to float32 first, as a vertex shader's uniform would be."""
     pos = _points("positions", positions, 3)
-    return _transform(pos, view, proj, device).numpy()[: len(pos)].reshape(-1, 4)
+    return _transform(pos, view, proj, device)[0].numpy()[: len(pos)].reshape(-1, 4)
 
 
 def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, cull_back: bool = False,
@@ -1513,4 +1672,5 @@ def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, 
     if not np.all(np.isfinite(c32)):
         raise ValueError("clip: expected finite coordinates")
     clip_wp = wp.array(c32 if len(c32) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
-    return _rasterize_clip(clip_wp, tri, width, height, cull_back, device, counters)
+    win = _vertices(clip_wp, len(c32), width, height, device)
+    return _rasterize_clip(clip_wp, win, tri, width, height, cull_back, device, counters)
