@@ -88,7 +88,9 @@ TILE = 64  # screen tile edge in pixels: one thread draws a tile
 DEPTH_TILE = 16  # the screen cells in which a large triangle's depth plane is anchored again
 SMALL_PX = 16  # a triangle whose pixel box spans fewer pixels than this each way is small
 BATCH = 1 << 22  # triangles binned and drawn at a time (bounds the lists' memory)
-PITCH = TILE + 16  # pixels per row of a CPU thread's scratch tile: a row's 16 lanes from any pixel of the tile
+MARGIN = 4  # pixels of a CPU thread's scratch tile left of and below the tile (a mask entry's 4x4 from any pixel)
+PITCH = MARGIN + TILE + 16  # pixels per row of a scratch tile: a row's 16 lanes from any pixel of the tile
+SCRATCH_ROWS = MARGIN + TILE + MARGIN
 # the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
 _MIN_TRIANGLES = 2048
 _MIN_VERTICES = 1 << 16  # a vertex costs ~2 ns: fewer per thread are not worth the hand-off
@@ -639,20 +641,17 @@ const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 int32_t* __restrict ids = (int32_t*)buf_id.data;
 uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
 int64_t j = j0;
-for (; j < j1 && entries.data[j].t >= 0; ++j) {
-    const auto& r = entries.data[j];
-    // a record: the vertices a (x[0]), b, c; a mask entry: the 4x4 centres from its box's first one (rx, ry)
-    const bool rec = r.xy[3] != 0;
+for (; j < j1 && entries.data[j].t >= 0 && entries.data[j].xy[3] != 0; ++j) {
+    const auto& r = entries.data[j];  // a record: the vertices a (x[0]), b, c
     const int64_t x[3] = {r.xy[0], r.xy[0] + (int16_t)(r.xy[2] & 0xFFFF), r.xy[0] + (int16_t)(r.xy[3] & 0xFFFF)};
     const int64_t y[3] = {r.xy[1], r.xy[1] + (r.xy[2] >> 16), r.xy[1] + (r.xy[3] >> 16)};
-    const int rx = rec ? lo(x) : r.xy[0] & 0xFFFF, ry = rec ? lo(y) : r.xy[0] >> 16;
-    const int x0 = wp::max(rx, tx0), x1 = wp::min(rec ? hi(x) : rx + 3, tx1);
-    const int y0 = wp::max(ry, ty0), y1 = wp::min(rec ? hi(y) : ry + 3, ty1);
+    const int rx = lo(x), ry = lo(y), x0 = wp::max(rx, tx0), x1 = wp::min(hi(x), tx1);
+    const int y0 = wp::max(ry, ty0), y1 = wp::min(hi(y), ty1);
     if (x0 > x1 || y0 > y1) continue;
     // edge k from vertex k + 1 to k + 2 at the first centre of the rows, and per pixel down a row: a record's
     // triangle spans under SMALL_PX pixels, so over 16 centres of a row its edge functions fit in int32
     v8 ra[2][3], dy[3];
-    for (int k = 0; k < 3 && rec; ++k) {
+    for (int k = 0; k < 3; ++k) {
         const int64_t px = x[(k + 1) % 3], py = y[(k + 1) % 3], dx = x[(k + 2) % 3] - px, ey = y[(k + 2) % 3] - py;
         const int64_t e = dx * ((int64_t)y0 * 256 + 128 - py) - ey * ((int64_t)x0 * 256 + 128 - px)
                           + ((ey < 0 || (ey == 0 && dx > 0)) ? 0 : -1);
@@ -665,10 +664,10 @@ for (; j < j1 && entries.data[j].t >= 0; ++j) {
     const uint32_t cols = (uint32_t)((1u << (x1 - x0 + 1)) - 1u);
     const int nch = x1 - x0 >= 8 ? 2 : 1;  // a row in chunks of 8 centres: two when it is wider
     uint32_t qrow = 0, brow = 0;
-    acc[0] += rec ? (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1) : 0;  // a mask entry's were tested as it was binned
+    acc[0] += (int64_t)(x1 - x0 + 1) * (y1 - y0 + 1);
     for (int yy = y0; yy <= y1; ++yy) {
-        uint32_t mc[2] = {rec ? 0u : ((uint32_t)r.xy[1] >> (4 * (yy - ry) + x0 - rx)) & cols, 0};  // a mask's row
-        for (int c = 0; c < nch && rec; ++c) {
+        uint32_t mc[2] = {0, 0};
+        for (int c = 0; c < nch; ++c) {
             mc[c] = ~signs(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
             for (int k = 0; k < 3; ++k) ra[c][k] += dy[k];
         }
@@ -712,11 +711,72 @@ return acc;
 def _draw_records(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
                   ty1: int, width: int, height: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
                   buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records or mask entries, over the
-    tile's pixels (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32
-    lanes): mask (a record's from its edge functions, a mask entry's its own), depths, tests, writes. The same
-    pixels, depths and counts as :func:`_cover` (a mask entry's centres tested counted as it was binned); returns
-    them, the entry it stopped at in slot 6 (``j0`` without ``simd`` and on CUDA)."""
+    """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records, over the tile's pixels
+    (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32 lanes): mask,
+    depths, tests, writes. The same pixels, depths and counts as :func:`_cover`; returns them, the entry it stopped
+    at in slot 6 (``j0`` without ``simd`` and on CUDA)."""
+    ...
+
+
+@wp.func_native("""
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = k == 6 ? j0 : 0;
+#if !defined(__CUDA_ARCH__)
+if (simd != 0) {
+#pragma clang fp contract(off)
+typedef int32_t v16 __attribute__((vector_size(64))); typedef uint32_t v16u __attribute__((vector_size(64)));
+typedef float v16f __attribute__((vector_size(64))); typedef bool b16 __attribute__((ext_vector_type(16)));
+auto bits = [](v16 c) { return (uint32_t)__builtin_bit_cast(uint16_t, __builtin_convertvector(c, b16)); };
+const v16 lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+const v16f col = __builtin_convertvector(lane & 3, v16f), row = __builtin_convertvector(lane >> 2, v16f);
+int32_t* __restrict ids = (int32_t*)buf_id.data;
+int32_t* __restrict dep = (int32_t*)buf_depth.data;
+int64_t j = j0;
+for (; j < j1 && entries.data[j].t >= 0 && entries.data[j].xy[3] == 0; ++j) {
+    const auto& r = entries.data[j];
+    const int rx = r.xy[0] & 0xFFFF, ry = r.xy[0] >> 16;
+    // its centres in this tile; of those, 2x2 quads (the mask in 6-bit rows from an even pixel) and 4x4 blocks
+    // (the mask's part in each block) with a covered one
+    const uint32_t cols = (0xFu << wp::max(0, tx0 - rx)) & (0xFu >> wp::max(0, rx + 3 - tx1));
+    const uint32_t m = (uint32_t)r.xy[1] & (cols & 0xFu) * 0x1111u & (0xFFFFu << 4 * wp::max(0, ty0 - ry))
+                       & (0xFFFFu >> 4 * wp::max(0, ry + 3 - ty1));
+    const uint32_t m6 = ((m & 0xFu) | (m & 0xF0u) << 2 | (m & 0xF00u) << 4 | (m & 0xF000u) << 6)
+                        << ((rx & 1) + 6 * (ry & 1));
+    const uint32_t cl = ((1u << (4 - (rx & 3))) - 1u) * 0x1111u, rb = (1u << (4 * (4 - (ry & 3)))) - 1u;
+    acc[1] += __builtin_popcount(m), acc[4] += __builtin_popcount((m6 | m6 >> 1 | m6 >> 6 | m6 >> 7) & 0x15015015u);
+    acc[5] += ((m & cl & rb) != 0) + ((m & ~cl & rb) != 0) + ((m & cl & ~rb) != 0) + ((m & ~cl & ~rb) != 0);
+    // the anchor's depth stepped to the row, then to each centre (as a record's), clamped as wp::clamp
+    const v16f d0 = (r.plane[0] + r.plane[2] * row) + r.plane[1] * col;
+    const v16f d1 = d0 > 0.0f ? d0 : 0.0f;
+    const v16f d = d1 <= 1.0f ? d1 : 1.0f;
+    // the 4x4 pixels from (rx, ry) in the buffer (its margin holds those past the tile), tested and written
+    const int64_t p = (int64_t)bb + (int64_t)(ry - ty0) * stride + (rx - tx0);
+    int32_t oi[16], od[16];
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(oi + 4 * k, ids + p + k * stride, 16);
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(od + 4 * k, dep + p + k * stride, 16);
+    v16 vi, vd;
+    __builtin_memcpy(&vi, oi, 64), __builtin_memcpy(&vd, od, 64);
+    const v16 first = vi < 0;
+    const v16 win = ((((v16u)(lane - lane) + m) >> (v16u)lane & 1) != 0) & (d < 1.0f) & (first | ((v16u)d < (v16u)vd));
+    vi = win ? lane - lane + r.t : vi, vd = win ? (v16)d : vd;
+    __builtin_memcpy(oi, &vi, 64), __builtin_memcpy(od, &vd, 64);
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(ids + p + k * stride, oi + 4 * k, 16);
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(dep + p + k * stride, od + 4 * k, 16);
+    acc[2] += __builtin_popcount(bits(win)), acc[3] += __builtin_popcount(bits(win & first));
+}
+acc[6] = j;
+}
+#endif
+return acc;
+""")
+def _draw_masks(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
+                ty1: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """With ``simd`` (a CPU scratch tile, with a margin of MARGIN pixels around it), list entries from ``j0`` while
+    they are mask entries (:func:`_bin_lanes`), over the tile's pixels (tx0..tx1, ty0..ty1; buffer origin (tx0,
+    ty0)), each as one 16-lane SIMD block of its 4x4 centres: mask, depths, tests, writes. The same pixels, depths
+    and counts as :func:`_draw_records` would give; returns them (0 centres tested: they were counted as it was
+    binned), the entry it stopped at in slot 6 (``j0`` without ``simd`` and on CUDA)."""
     ...
 
 
@@ -1178,16 +1238,21 @@ def _draw_entry(r: Record, tile: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: 
 def _draw_list(simd: int, s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
                entries: wp.array(dtype=Record), width: int, height: int, cull_back: int, gb: wp.vec2, bb: int,
                stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """A tile's list entries[s:e], in order: with ``simd`` runs of records row by row (:func:`_draw_records`), every
-    other entry (without, every entry) by :func:`_draw_entry`."""
+    """A tile's list entries[s:e], in order: with ``simd`` runs of mask entries (:func:`_draw_masks`) and of records
+    (:func:`_draw_records`), every other entry (without, every entry) by :func:`_draw_entry`."""
     acc = vec8l()
     j = s
     while j < e:
+        j0 = j
+        c = _draw_masks(simd, entries, j, e, r[0], r[1], r[2], r[3], bb, stride, buf_id, buf_depth)
+        j = int(c[6])
+        c[6] = wp.int64(0)
+        acc = acc + c
         c = _draw_records(simd, entries, j, e, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id, buf_depth)
         j = int(c[6])
         c[6] = wp.int64(0)
         acc = acc + c
-        if j < e:
+        if j == j0:  # an entry to set up again (or, without simd, any entry)
             acc = acc + _draw_entry(entries[j], r, clip, tris, width, height, cull_back, gb, bb, stride, buf_id,
                                     buf_depth)
             j += 1
@@ -1250,7 +1315,7 @@ def _tile_kernel(
         bb = ib
         stride = -width
         if scratch != 0:
-            bb = slot * TILE * PITCH
+            bb = (slot * SCRATCH_ROWS + MARGIN) * PITCH + MARGIN
             stride = PITCH
             if first == 0:
                 _copy(ib, -width, bb, PITCH, w, h, out_id, out_depth, out_buf_id, out_buf_depth)
@@ -1480,7 +1545,7 @@ class _Work:
         self.cleared = [self.dirty, self.tally, self.queue, self.count, self.cursor, self.overflow]
         self.views = [a.numpy() for a in self.cleared] if self.cpu else None  # the CPU clears them in numpy
         self.workers = min(nparts, self.ntiles) if scratch else self.ntiles
-        n = self.workers * TILE * PITCH if scratch else 1
+        n = self.workers * SCRATCH_ROWS * PITCH if scratch else 1
         self.buf_id, self.buf_depth = zeros(n), zeros(n, dt=wp.float32)
         self.room: dict[int, tuple[np.ndarray, np.ndarray, wp.array, wp.array]] = {}
         self.entries = wp.empty(1, dtype=Record, device=device)
