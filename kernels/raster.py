@@ -808,47 +808,45 @@ def _lo16(v: int) -> int:
 
 
 @wp.func_native("""
-for (int y = 0; y < h; ++y) {
-    const int64_t p = (int64_t)bb + (int64_t)y * stride;
-    int32_t* __restrict ids = (int32_t*)buf_id.data + p;
-    uint32_t* __restrict dep = (uint32_t*)buf_depth.data + p;
-    for (int x = 0; x < w; ++x) ids[x] = -1;
-    for (int x = 0; x < w; ++x) dep[x] = 0x3F800000u;
-}
-""")
-def _fill(bb: int, stride: int, w: int, h: int, buf_id: wp.array(dtype=wp.int32),
-          buf_depth: wp.array(dtype=wp.float32)):
-    """The background (id -1, depth 1.0) over ``h`` rows of ``w`` pixels of a buffer."""
-    ...
-
-
-@wp.func_native("""
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+typedef int32_t v4 __attribute__((vector_size(16)));
+// a row of n values from s (or all c) to d: non-temporal stores, 16 bytes at a time where d is aligned
+auto row = [](int32_t* d, const int32_t* s, int32_t c, int n) {
+    int x = 0;
+    for (; x < n && (reinterpret_cast<unsigned long long>(d + x) & 15) != 0; ++x)
+        __builtin_nontemporal_store(s ? s[x] : c, d + x);
+    for (; x + 4 <= n; x += 4) {
+        v4 v = (v4){c, c, c, c};
+        if (s) __builtin_memcpy(&v, s + x, 16);
+        __builtin_nontemporal_store(v, (v4*)(d + x));
+    }
+    for (; x < n; ++x) __builtin_nontemporal_store(s ? s[x] : c, d + x);
+};
+#endif
 for (int y = 0; y < h; ++y) {
     const int64_t p = (int64_t)sb + (int64_t)y * sstride, q = (int64_t)db + (int64_t)y * dstride;
-    const int32_t* __restrict si = (const int32_t*)src_id.data + p;
-    const uint32_t* __restrict sd = (const uint32_t*)src_depth.data + p;
-    int32_t* __restrict di = (int32_t*)dst_id.data + q;
-    uint32_t* __restrict dd = (uint32_t*)dst_depth.data + q;
-#if defined(__CUDA_ARCH__)
-    for (int x = 0; x < w; ++x) di[x] = si[x];
-    for (int x = 0; x < w; ++x) dd[x] = sd[x];
-#elif defined(__x86_64__)
-    for (int x = 0; x < w; ++x) __builtin_nontemporal_store(si[x], di + x);  // the images are not read here again
-    for (int x = 0; x < w; ++x) __builtin_nontemporal_store(sd[x], dd + x);
-#else
-    __builtin_memcpy(di, si, sizeof(int32_t) * w);
-    __builtin_memcpy(dd, sd, sizeof(uint32_t) * w);
+    const int32_t* si = src ? (const int32_t*)src_id.data + p : nullptr;
+    const int32_t* sd = src ? (const int32_t*)src_depth.data + p : nullptr;
+    int32_t* di = (int32_t*)dst_id.data + q;
+    int32_t* dd = (int32_t*)dst_depth.data + q;
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+    if (nt) {  // the images: written once here and not read again by the pass
+        row(di, si, -1, w), row(dd, sd, 0x3F800000, w);
+        continue;
+    }
 #endif
+    for (int x = 0; x < w; ++x) di[x] = si ? si[x] : -1;
+    for (int x = 0; x < w; ++x) dd[x] = sd ? sd[x] : 0x3F800000;
 }
 #if defined(__x86_64__) && !defined(__CUDA_ARCH__)
-__builtin_ia32_sfence();  // the non-temporal stores visible before anything later
+if (nt) __builtin_ia32_sfence();  // the non-temporal stores visible before anything later
 #endif
 """)
-def _copy(sb: int, sstride: int, db: int, dstride: int, w: int, h: int, src_id: wp.array(dtype=wp.int32),
-          src_depth: wp.array(dtype=wp.float32), dst_id: wp.array(dtype=wp.int32),
+def _copy(src: int, sb: int, sstride: int, db: int, dstride: int, w: int, h: int, nt: int,
+          src_id: wp.array(dtype=wp.int32), src_depth: wp.array(dtype=wp.float32), dst_id: wp.array(dtype=wp.int32),
           dst_depth: wp.array(dtype=wp.float32)):
-    """``h`` rows of ``w`` pixels (ids and depth) from one buffer to another (non-temporal stores on the CPU: the
-    frame's images are written once and not read again by the pass; a fence after them)."""
+    """``h`` rows of ``w`` pixels (ids and depth) from one buffer to another, or with ``src`` 0 the background (id
+    -1, depth 1.0); with ``nt`` (on the CPU, into the images) in non-temporal stores, a fence after them."""
     ...
 
 
@@ -939,6 +937,26 @@ def _bin(entry: Record, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.b
 # ------------------------------------------------------------------------------------------------
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float x = c[0], y = c[1], z = c[2], w = c[3];
+const int code = (x > w) | (x < -w) << 1 | (y > w) << 2 | (y < -w) << 3 | (z > w) << 4 | (z < -w) << 5;
+const bool inside = wp::abs(x) <= gb[0] * w && wp::abs(y) <= gb[1] * w && wp::abs(z) <= w;
+#else
+typedef float v4f __attribute__((vector_size(16))); typedef int32_t v4i __attribute__((vector_size(16)));
+const v4f v = {c[0], c[1], c[2], 0.0f}, w = {c[3], c[3], c[3], 0.0f}, lim = {gb[0] * c[3], gb[1] * c[3], c[3], 0.0f};
+const v4i above = {1, 4, 16, 0}, below = {2, 8, 32, 0};
+const int code = __builtin_reduce_or(((v > w) & above) | ((v < -w) & below));
+const bool inside = __builtin_reduce_and(__builtin_elementwise_abs(v) <= lim) != 0;
+#endif
+return (float)(code | (inside ? 0 : 64));
+""")
+def _outcode(c: wp.vec4, gb: wp.vec2) -> float:
+    """A clip-space vertex's outcode: 1, 2, 4, 8, 16, 32 for x > w, x < -w, y > w, y < -w, z > w, z < -w
+    (:func:`_rejected`'s tests), 64 when it is not :func:`_inside` (as a float)."""
+    ...
+
+
 @wp.kernel(enable_backward=False)
 def _vertex_kernel(
     offset: int,
@@ -953,16 +971,17 @@ def _vertex_kernel(
     out_win: wp.array(dtype=wp.vec4),
 ):
     """Per vertex: its clip coordinates (with ``transform`` ``mvp @ (p, 1)``, written to ``out_clip``; else read from
-    it) and its window position (:func:`_window`) in ``out_win``, whose w is 1 for a vertex inside every clip plane
-    (:func:`_inside`), else 0."""
+    it) and its window position (:func:`_window`) in ``out_win``, whose w holds its :func:`_outcode`."""
     k = wp.tid() + offset
-    c = out_clip[k]
+    c = wp.vec4()
     if transform != 0:
         p = pos[k]
         c = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
         out_clip[k] = c
+    else:
+        c = out_clip[k]
     f = _window(c, 0.5 * float(width), 0.5 * float(height))
-    out_win[k] = wp.vec4(f[0], f[1], f[2], wp.where(_inside(c, gb), 1.0, 0.0))
+    out_win[k] = wp.vec4(f[0], f[1], f[2], _outcode(c, gb))
 
 
 @wp.func
@@ -1009,7 +1028,7 @@ def _tally(tally: wp.array2d(dtype=wp.int64), part: int, column: int, v: int, on
 
 @wp.func_native("""
 wp::vec_t<8, wp::int64> acc;
-for (int k = 0; k < 8; ++k) acc[k] = k == 7 ? t0 : 0;
+for (int k = 0; k < 8; ++k) acc[k] = k == 7 ? t0 : k == 5 ? 1 : 0;
 #if !defined(__CUDA_ARCH__)
 if (simd != 0) {
 #pragma clang fp contract(off)
@@ -1018,94 +1037,104 @@ typedef bool vb __attribute__((ext_vector_type(16)));
 auto mn = [](auto a, auto b) { return a < b ? a : b; };  // lane by lane (NaN: b)
 auto mx = [](auto a, auto b) { return a > b ? a : b; };
 auto bits = [](vi c) { return (uint32_t)__builtin_bit_cast(uint16_t, __builtin_convertvector(c, vb)); };
-int32_t* count = (int32_t*)bins.count.data, * start = (int32_t*)bins.start.data, * room = (int32_t*)bins.room.data;
-auto* entries = bins.entries.data;
 const vi lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}, zero = lane - lane, one = zero + 1;
 const vf big = __builtin_convertvector(zero, vf) + 1e9f;
-for (int t = t0; t < t1; t += 16) {
-    const int n = wp::min(16, t1 - t);
-    float g[4][3][16];  // the vertices' window positions and inside flags by component, vertex, lane
-    vf f[4][3];
-    for (int i = 0; i < 48; ++i) {  // lanes past the last triangle read the first one's
-        const auto& w = win.data[*wp::address(tris, t + (i < 3 * n ? i / 3 : 0), i % 3)];
-        for (int c = 0; c < 4; ++c) g[c][i % 3][i / 3] = w[c];
-    }
-    __builtin_memcpy(f, g, sizeof g);
-    vi X[3], Y[3], ok = lane < n;
-    for (int k = 0; k < 3; ++k) {  // fixed point as lrintf (others limited first: their conversion is undefined)
-        ok &= (f[3][k] != 0.0f) & (f[0][k] >= -1e6f) & (f[0][k] <= 1e6f) & (f[1][k] >= -1e6f) & (f[1][k] <= 1e6f);
-        X[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[0][k] * 256.0f, -big), big)), vi);
-        Y[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[1][k] * 256.0f, -big), big)), vi);
-    }
-    const vi xmin = mn(X[0], mn(X[1], X[2])), xmax = mx(X[0], mx(X[1], X[2]));
-    const vi ymin = mn(Y[0], mn(Y[1], Y[2])), ymax = mx(Y[0], mx(Y[1], Y[2]));
-    const uint32_t bad = ~bits(ok & (xmax - xmin < 15 * 256) & (ymax - ymin < 15 * 256)) & ((1u << n) - 1u);
-    const int stop = bad != 0 ? __builtin_ctz(bad) : n;  // the first to be clipped or large: the Warp path's
-    for (int k = 0; k < 3; ++k) X[k] = lane < stop ? X[k] : zero, Y[k] = lane < stop ? Y[k] : zero;  // no overflow
-    const vi area = (X[1] - X[0]) * (Y[2] - Y[0]) - (X[2] - X[0]) * (Y[1] - Y[0]), sw = area < 0;
-    vi px[3], py[3];  // counter-clockwise (b and c swapped where the area is negative): fixed point, window x, y, z
-    vf q[3][3];
-    for (int k = 0; k < 3; ++k) {
-        const int o = k == 0 ? 0 : 3 - k;
-        px[k] = sw ? X[o] : X[k], py[k] = sw ? Y[o] : Y[k];
-        for (int c = 0; c < 3; ++c) q[c][k] = sw ? f[c][o] : f[c][k];
-    }
-    const vi x0 = mx(zero, (xmin + 127) >> 8), x1 = mn(zero + (width - 1), (xmax - 128) >> 8);
-    const vi y0 = mx(zero, (ymin + 127) >> 8), y1 = mn(zero + (height - 1), (ymax - 128) >> 8);
-    const vi valid = (lane < stop) & (area != 0) & ~(sw & (cull_back != 0 ? -1 : 0)) & (x0 <= x1) & (y0 <= y1);
-    const vi rec = (x1 - x0 > 3) | (y1 - y0 > 3);
-    const vi bw = mn(mx(x1 - x0 + 1, zero), zero + 4), bh = mn(mx(y1 - y0 + 1, zero), zero + 4);
-    const vi box = valid & ~rec & (((one << bw) - 1) * (0x1111 & ((one << (4 * bh)) - 1)));
-    vi e[3], ex[3], ey[3], mask = zero;  // edge k from vertex k + 1 to k + 2 at the box's first centre
-    for (int k = 0; k < 3; ++k) {
-        const int a = (k + 1) % 3, b = (k + 2) % 3;
-        const vi dx = px[b] - px[a], dy = py[b] - py[a];
-        e[k] = dx * (y0 * 256 + 128 - py[a]) - dy * (x0 * 256 + 128 - px[a]) + ~((dy < 0) | ((dy == 0) & (dx > 0)));
-        ex[k] = -dy * 256, ey[k] = dx * 256;
-    }
-    for (int i = 0; i < 16; ++i)
-        mask |= (((e[0] + (i & 3) * ex[0] + (i >> 2) * ey[0]) | (e[1] + (i & 3) * ex[1] + (i >> 2) * ey[1])
-                  | (e[2] + (i & 3) * ex[2] + (i >> 2) * ey[2])) >= 0) & (zero + (1 << i));
-    mask &= box;
-    acc[0] += stop, acc[1] -= __builtin_reduce_add(valid), acc[2] += __builtin_reduce_add(box != 0 ? bw * bh : zero);
-    // the depth plane through the unsnapped vertices, at the box's first centre
-    const vf dx01 = q[0][0] - q[0][1], dy01 = q[1][0] - q[1][1], dx20 = q[0][2] - q[0][0], dy20 = q[1][2] - q[1][0];
-    const vf ooa = 1.0f / (dx01 * dy20 - dx20 * dy01), dz01 = q[2][0] - q[2][1], dz20 = q[2][2] - q[2][0];
-    const vf dzdx = (dz01 * dy20 - dz20 * dy01) * ooa, dzdy = (dx01 * dz20 - dx20 * dz01) * ooa;
-    const vf z00 = q[2][0] - (dzdx * (q[0][0] - (__builtin_convertvector(x0, vf) + 0.5f))
-                              + dzdy * (q[1][0] - (__builtin_convertvector(y0, vf) + 0.5f)));
-    // a record (box over 4x4) or a mask entry, into the lists of its box's tiles; its fields stored by lane and
-    // read back from memory (a lane taken out of a register is a store of the whole register each time)
-    const vi field[12] = {rec ? px[0] : x0 | y0 << 16, rec ? py[0] : mask,
-                          rec ? ((px[1] - px[0]) & 0xFFFF) | (py[1] - py[0]) << 16 : zero,
-                          rec ? ((px[2] - px[0]) & 0xFFFF) | (py[2] - py[0]) << 16 : zero, (vi)z00, (vi)dzdx, (vi)dzdy,
-                          t + lane, x0 >> 6, x1 >> 6, y0 >> 6, y1 >> 6};
-    int32_t o[12][16];  // by field and lane
-    __builtin_memcpy(o, field, sizeof o);
-    for (uint32_t km = bits((rec & valid) | (mask != 0)); km != 0; km &= km - 1u) {
-        const int l = __builtin_ctz(km);
-        const int32_t r[8] = {o[0][l], o[1][l], o[2][l], o[3][l], o[4][l], o[5][l], o[6][l], o[7][l]};  // a Record
-        for (int ty = o[10][l]; ty <= o[11][l]; ++ty)
-            for (int tx = o[8][l]; tx <= o[9][l]; ++tx) {
-                const int64_t cell = ((int64_t)ty * bins.tiles_x + tx) * bins.nparts + part;
-                const int32_t slot = count[cell]++;  // one launch chunk per part
-                if (bins.emit != 0 && slot < room[cell]) __builtin_memcpy(&entries[start[cell] + slot], r, 32);
-                else if (bins.emit != 0) bins.overflow.data[0] = 1;
-            }
-    }
-    acc[7] = t + stop;  // where it stopped
-    if (stop < n) break;
+const int n = wp::min(16, t1 - t0);
+float g[4][3][16];  // the vertices' window positions and outcodes by component, vertex, lane
+for (int i = 0; i < 48; ++i) {  // lanes past the last triangle read the first one's
+    const auto& w = win.data[*wp::address(tris, t0 + (i < 3 * n ? i / 3 : 0), i % 3)];
+    for (int c = 0; c < 4; ++c) g[c][i % 3][i / 3] = w[c];
 }
+vf f[4][3];
+__builtin_memcpy(f, g, sizeof g);
+vi X[3], Y[3], ok = lane < n, codes = ok;  // codes: the outcodes' common bits (a plane all three lie beyond)
+for (int k = 0; k < 3; ++k) {  // fixed point as lrintf (others limited first: their conversion is undefined)
+    const vi code = __builtin_convertvector(f[3][k], vi);
+    codes &= code, ok &= (code == 0) & (f[0][k] >= -1e6f) & (f[0][k] <= 1e6f) & (f[1][k] >= -1e6f) & (f[1][k] <= 1e6f);
+    X[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[0][k] * 256.0f, -big), big)), vi);
+    Y[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[1][k] * 256.0f, -big), big)), vi);
+}
+const vi xmin = mn(X[0], mn(X[1], X[2])), xmax = mx(X[0], mx(X[1], X[2]));
+const vi ymin = mn(Y[0], mn(Y[1], Y[2])), ymax = mx(Y[0], mx(Y[1], Y[2]));
+ok &= (xmax - xmin < 15 * 256) & (ymax - ymin < 15 * 256);
+const uint32_t bad = ~bits(ok | ((codes & 63) != 0)) & ((1u << n) - 1u);  // rejected: nothing to draw or count
+const int stop = bad != 0 ? __builtin_ctz(bad) : n;  // the first to be clipped or large: the Warp path's
+const vi live = ok & (lane < stop);  // no overflow in the others
+for (int k = 0; k < 3; ++k) X[k] = live ? X[k] : zero, Y[k] = live ? Y[k] : zero;
+const vi area = (X[1] - X[0]) * (Y[2] - Y[0]) - (X[2] - X[0]) * (Y[1] - Y[0]), sw = area < 0;
+vi px[3], py[3];  // counter-clockwise (b and c swapped where the area is negative): fixed point, window x, y, z
+vf q[3][3];
+for (int k = 0; k < 3; ++k) {
+    const int o = k == 0 ? 0 : 3 - k;
+    px[k] = sw ? X[o] : X[k], py[k] = sw ? Y[o] : Y[k];
+    for (int c = 0; c < 3; ++c) q[c][k] = sw ? f[c][o] : f[c][k];
+}
+const vi x0 = mx(zero, (xmin + 127) >> 8), x1 = mn(zero + (width - 1), (xmax - 128) >> 8);
+const vi y0 = mx(zero, (ymin + 127) >> 8), y1 = mn(zero + (height - 1), (ymax - 128) >> 8);
+const vi valid = live & (area != 0) & ~(sw & (cull_back != 0 ? -1 : 0)) & (x0 <= x1) & (y0 <= y1);
+const vi rec = (x1 - x0 > 3) | (y1 - y0 > 3);
+const vi bw = mn(mx(x1 - x0 + 1, zero), zero + 4), bh = mn(mx(y1 - y0 + 1, zero), zero + 4);
+const vi box = valid & ~rec & (((one << bw) - 1) * (0x1111 & ((one << (4 * bh)) - 1)));
+vi e[3], ex[3], ey[3], mask = zero;  // edge k from vertex k + 1 to k + 2 at the box's first centre
+for (int k = 0; k < 3; ++k) {
+    const int a = (k + 1) % 3, b = (k + 2) % 3;
+    const vi dx = px[b] - px[a], dy = py[b] - py[a];
+    e[k] = dx * (y0 * 256 + 128 - py[a]) - dy * (x0 * 256 + 128 - px[a]) + ~((dy < 0) | ((dy == 0) & (dx > 0)));
+    ex[k] = -dy * 256, ey[k] = dx * 256;
+}
+for (int i = 0; i < 16; ++i)
+    mask |= (((e[0] + (i & 3) * ex[0] + (i >> 2) * ey[0]) | (e[1] + (i & 3) * ex[1] + (i >> 2) * ey[1])
+              | (e[2] + (i & 3) * ex[2] + (i >> 2) * ey[2])) >= 0) & (zero + (1 << i));
+mask &= box;
+acc[0] = -__builtin_reduce_add(live), acc[1] = -__builtin_reduce_add(valid);
+acc[2] = __builtin_reduce_add(box != 0 ? bw * bh : zero), acc[5] = stop < n, acc[7] = t0 + stop;
+// the depth plane through the unsnapped vertices, at the box's first centre
+const vf dx01 = q[0][0] - q[0][1], dy01 = q[1][0] - q[1][1], dx20 = q[0][2] - q[0][0], dy20 = q[1][2] - q[1][0];
+const vf ooa = 1.0f / (dx01 * dy20 - dx20 * dy01), dz01 = q[2][0] - q[2][1], dz20 = q[2][2] - q[2][0];
+const vf dzdx = (dz01 * dy20 - dz20 * dy01) * ooa, dzdy = (dx01 * dz20 - dx20 * dz01) * ooa;
+const vf z00 = q[2][0] - (dzdx * (q[0][0] - (__builtin_convertvector(x0, vf) + 0.5f))
+                          + dzdy * (q[1][0] - (__builtin_convertvector(y0, vf) + 0.5f)));
+// a record (box over 4x4) or a mask entry per lane, and its box's tiles, by field (see _emit_lanes)
+const vi field[12] = {rec ? px[0] : x0 | y0 << 16, rec ? py[0] : mask,
+                      rec ? ((px[1] - px[0]) & 0xFFFF) | (py[1] - py[0]) << 16 : zero,
+                      rec ? ((px[2] - px[0]) & 0xFFFF) | (py[2] - py[0]) << 16 : zero, (vi)z00, (vi)dzdx, (vi)dzdy,
+                      t0 + lane, x0 >> 6, x1 >> 6, y0 >> 6, y1 >> 6};
+__builtin_memcpy(stage.data + 192 * part, field, sizeof field);
+acc[6] = bits((rec & valid) | (mask != 0));
 }
 #endif
 return acc;
 """)
 def _bin_lanes(simd: int, t0: int, t1: int, tris: wp.array2d(dtype=wp.int32), win: wp.array(dtype=wp.vec4),
-               width: int, height: int, cull_back: int, part: int, bins: Bins) -> vec8l:
-    """With ``simd`` (the CPU), triangles ``t0``.. of chunk ``part`` binned 16 at a time in SIMD lanes while each is
-    unclipped and small (window positions ``win``; :func:`_bin_one`'s counts and depth): a box of at most 4x4 centres
-    with one covered as a mask entry (:class:`Record`), a larger one as a record. Returns (clipper output, rasterized,
-    mask entries' centres tested, 0, 0, 0, 0, where it stopped: at one to clip or large, else ``t1``; else ``t0``)."""
+               width: int, height: int, cull_back: int, part: int, stage: wp.array(dtype=wp.int32)) -> vec8l:
+    """With ``simd`` (the CPU), triangles ``t0``.. (16 at most) of chunk ``part`` set up in SIMD lanes up to the
+    first to be clipped or large (window positions and outcodes ``win``; :func:`_bin_one`'s rules, counts and
+    depth): each that is drawn a mask entry (:class:`Record`) when its box holds at most 4x4 centres and covers
+    one, else a record, into row ``part`` of ``stage`` (12 fields of 16 lanes). Returns (clipper output,
+    rasterized, mask entries' centres tested, 0, 0, 1 when it stopped at one to clip or large, the lanes to bin,
+    the triangle after the last set up); without ``simd`` and on CUDA (0, 0, 0, 0, 0, 1, 0, ``t0``)."""
+    ...
+
+
+@wp.func_native("""
+int32_t* count = (int32_t*)bins.count.data;
+const int32_t* o = stage.data + 192 * part;  // field f of lane l at o[16 f + l]
+for (uint32_t km = (uint32_t)keep; km != 0; km &= km - 1u) {
+    const int l = __builtin_ctz(km);
+    const int32_t r[8] = {o[l], o[16 + l], o[32 + l], o[48 + l], o[64 + l], o[80 + l], o[96 + l], o[112 + l]};
+    for (int ty = o[160 + l]; ty <= o[176 + l]; ++ty)
+        for (int tx = o[128 + l]; tx <= o[144 + l]; ++tx) {
+            const int64_t cell = ((int64_t)ty * bins.tiles_x + tx) * bins.nparts + part;
+            const int32_t slot = count[cell]++;  // one launch chunk per part
+            if (bins.emit != 0 && slot < bins.room.data[cell])
+                __builtin_memcpy(&bins.entries.data[bins.start.data[cell] + slot], r, 32);
+            else if (bins.emit != 0) bins.overflow.data[0] = 1;
+        }
+}
+""")
+def _emit_lanes(keep: int, part: int, stage: wp.array(dtype=wp.int32), bins: Bins):
+    """The lanes ``keep`` (bits) of row ``part`` of ``stage`` (:func:`_bin_lanes`), in order, into the lists of
+    their tiles (:class:`Bins`; on the CPU: one launch chunk per part)."""
     ...
 
 
@@ -1169,22 +1198,25 @@ def _bin_kernel(
     gb: wp.vec2,
     tallying: int,
     # outputs
+    out_stage: wp.array(dtype=wp.int32),
     out_bins: Bins,
     out_tally: wp.array2d(dtype=wp.int64),
 ):
     """Triangles ``base + i * span`` .. (below ``last``) of launch index i (on the CPU one index per chunk, on CUDA
-    ``span`` 1), in order: runs of unclipped small ones by :func:`_bin_small` (with ``simd``, :func:`_bin_lanes`),
-    each other one by :func:`_bin_one`;
-    with ``tallying`` their tallies added into row ``part``."""
+    ``span`` 1), in order: with ``simd`` runs of unclipped small ones 16 at a time (:func:`_bin_lanes`,
+    :func:`_emit_lanes`), each other one (without ``simd``, each one) by :func:`_bin_one`; with ``tallying`` their
+    tallies added into row ``part``."""
     lo = base + (wp.tid() + offset) * span
     hi = wp.min(lo + span, last)
-    acc = vec8l()
+    acc = wp.vec3l()
     t = lo
     while t < hi:
-        c = _bin_lanes(simd, t, hi, tris, win, width, height, cull_back, part, out_bins)
+        c = _bin_lanes(simd, t, hi, tris, win, width, height, cull_back, part, out_stage)
+        if c[6] != wp.int64(0):
+            _emit_lanes(int(c[6]), part, out_stage, out_bins)
         t = int(c[7])
-        acc = acc + c
-        if t < hi:
+        acc = acc + wp.vec3l(c[0], c[1], c[2])
+        if c[5] != wp.int64(0):
             _bin_one(t, part, clip, tris, width, height, cull_back, gb, tallying, out_bins, out_tally)
             t += 1
     if tallying != 0 and acc[0] > wp.int64(0):
@@ -1318,9 +1350,13 @@ def _tile_kernel(
             bb = (slot * SCRATCH_ROWS + MARGIN) * PITCH + MARGIN
             stride = PITCH
             if first == 0:
-                _copy(ib, -width, bb, PITCH, w, h, out_id, out_depth, out_buf_id, out_buf_depth)
+                _copy(1, ib, -width, bb, PITCH, w, h, 0, out_id, out_depth, out_buf_id, out_buf_depth)
+            elif _listed(bins, tile) == 0:  # nothing to draw: the background straight into the images
+                _copy(0, 0, 0, ib, -width, w, h, 1, out_id, out_depth, out_id, out_depth)
+                tile = atomic_add_i32(queue, 0, 1)
+                continue
         if first != 0:
-            _fill(bb, stride, w, h, out_buf_id, out_buf_depth)
+            _copy(0, 0, 0, bb, stride, w, h, 0, out_buf_id, out_buf_depth, out_buf_id, out_buf_depth)
         acc = vec8l()
         for p in range(bins.nparts):  # the chunks' lists in order: submission order
             cell = tile * bins.nparts + p
@@ -1331,7 +1367,7 @@ def _tile_kernel(
             acc = acc + _draw_list(scratch, s, e, r, clip, tris, bins.entries, width, height, cull_back, gb, bb, stride,
                                    out_buf_id, out_buf_depth)
         if scratch != 0:
-            _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
+            _copy(1, bb, PITCH, ib, -width, w, h, 1, out_buf_id, out_buf_depth, out_id, out_depth)
         if acc[3] > wp.int64(0):
             out_dirty[tile] = 1
         if acc[0] + acc[1] > wp.int64(0):  # centres tested (a mask entry's were as it was binned) or covered
@@ -1540,7 +1576,7 @@ class _Work:
         self.ntiles = self.tiles_x * _tiles_x(height)
         self.nparts, ncells = nparts, self.tiles_x * _tiles_x(height) * nparts
         zeros = lambda *shape, dt=wp.int32: wp.zeros(shape, dtype=dt, device=device)  # noqa: E731
-        self.dirty, self.queue, self.overflow = zeros(self.ntiles), zeros(1), zeros(1)
+        self.dirty, self.queue, self.overflow, self.stage = zeros(self.ntiles), zeros(1), zeros(1), zeros(nparts * 192)
         self.count, self.cursor, self.tally = zeros(ncells), zeros(ncells), zeros(nparts, TALLIES, dt=wp.int64)
         self.cleared = [self.dirty, self.tally, self.queue, self.count, self.cursor, self.overflow]
         self.views = [a.numpy() for a in self.cleared] if self.cpu else None  # the CPU clears them in numpy
@@ -1582,12 +1618,13 @@ class _Work:
         ranges = chunks(mb, 1, _MIN_TRIANGLES) if self.cpu else [(0, 1)] * mb
         head = [base, ranges[0][1] - ranges[0][0] if ranges else 1, base + mb, self.simd]
         bins = self.bins(self.count, self.room.get(base))
-        launch(_bin_kernel, len(ranges), [*head, *args, 1], [bins, self.tally], self.device, parts=True, min_items=1)
+        launch(_bin_kernel, len(ranges), [*head, *args, 1], [self.stage, bins, self.tally], self.device, parts=True,
+               min_items=1)
         counts = self.count.numpy() if self.cpu else self.count.numpy().copy()
         if not bins.emit or int(self.overflow.numpy()[0]):
             bins = self.bins(self.cursor, self._room(counts, False))
-            launch(_bin_kernel, len(ranges), [*head, *args, 0], [bins, self.tally], self.device, parts=True,
-                   min_items=1)
+            launch(_bin_kernel, len(ranges), [*head, *args, 0], [self.stage, bins, self.tally], self.device,
+                   parts=True, min_items=1)
         self.room[base] = self._room(counts, True)
         return bins
 
@@ -1661,7 +1698,8 @@ def _points(name: str, a: object, k: int) -> np.ndarray:
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
-              *, cull_back: bool = False, counters: bool = False, device: str = "cpu") -> Fragments:
+              *, cull_back: bool = False, counters: bool = False, checked: bool = False,
+              device: str = "cpu") -> Fragments:
     """Rasterize a triangle mesh with any matrices (no assumption about which axis is up).
 
     Args:
@@ -1673,23 +1711,29 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         cull_back: drop clockwise (back-facing) triangles, as ``glEnable(GL_CULL_FACE)``.
         counters: also return the draw's pipeline statistics (:attr:`Fragments.counters`); the images are the
             same either way.
+        checked: the caller vouches that ``triangles`` is a C-contiguous (m, 3) int32 array of indices into
+            ``positions`` and that ``positions`` is float32 and finite, as the meshes :func:`terrainwarp.render`
+            makes itself are: their values are not scanned again (shapes and dtypes still are). A mesh that
+            breaks this gives undefined results.
 
     Returns:
         :class:`Fragments`. Deterministic: bit-identical on every run and for any thread count.
     """
     pos = _points("positions", positions, 3)
-    tri = check_triangles("triangles", triangles, len(pos))
+    checked = check_bool("checked", checked)
+    tri = check_triangles("triangles", triangles, None if checked else len(pos), scan=not checked)
     width, height = check_viewport(width, height)
     counters = check_bool("counters", counters)
-    clip, win = _transform(pos, view, proj, device, width, height)
+    clip, win = _transform(pos, view, proj, device, width, height, finite=checked)
     return _rasterize_clip(clip, win, tri, width, height, cull_back, device, counters)
 
 
-def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: int = 1,
-               height: int = 1) -> tuple[wp.array, wp.array]:
-    """The vertices' clip coordinates and window positions (:func:`_vertex_kernel`)."""
+def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: int = 1, height: int = 1,
+               finite: bool = False) -> tuple[wp.array, wp.array]:
+    """The vertices' clip coordinates and window positions (:func:`_vertex_kernel`); ``finite``: the positions
+    are known to be finite."""
     pos32 = np.ascontiguousarray(pos, dtype=np.float32)
-    if not np.all(np.isfinite(pos32)):
+    if not finite and not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
