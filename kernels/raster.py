@@ -1583,7 +1583,7 @@ class _Work:
         self.workers = min(nparts, self.ntiles) if scratch else self.ntiles
         n = self.workers * SCRATCH_ROWS * PITCH if scratch else 1
         self.buf_id, self.buf_depth = zeros(n), zeros(n, dt=wp.float32)
-        self.room: dict[int, tuple[np.ndarray, np.ndarray, wp.array, wp.array]] = {}
+        self.room: dict[int, tuple] = {}  # per batch: the room the next frame bins into, and the other kept
         self.entries = wp.empty(1, dtype=Record, device=device)
 
     def clear(self, first: int = 0) -> None:
@@ -1595,18 +1595,19 @@ class _Work:
                 self.cleared[k].zero_()
 
     def bins(self, counting: wp.array, room: tuple | None) -> Bins:
-        """Lists counted into ``counting`` with ``room`` = (start, room, their device arrays) per cell, or counted
-        only (None)."""
-        b = Bins()
-        b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, int(room is not None), \
-            counting, self.overflow
-        b.start = b.room = counting
-        b.entries = self.entries
-        if room is not None:
-            start, slots, b.start, b.room = room
-            need = int(start[-1] + slots[-1])
-            if self.entries.shape[0] < need:  # grown by half again: a slowly denser flyover does not grow it each frame
-                self.entries = wp.empty(need + need // 2, dtype=Record, device=self.device)
+        """Lists counted into ``counting`` with ``room`` (:meth:`_room`: the lists' start and room per cell, their
+        device arrays and their Bins), or counted only (None)."""
+        if room is None:
+            b = Bins()
+            b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, 0, counting, self.overflow
+            b.start = b.room = counting
+            b.entries = self.entries
+            return b
+        start, slots, b = room[0], room[1], room[4]
+        need = int(start[-1] + slots[-1])
+        if self.entries.shape[0] < need:  # grown by half again: a slowly denser flyover does not grow it each frame
+            self.entries = wp.empty(need + need // 2, dtype=Record, device=self.device)
+        if b.entries.ptr != self.entries.ptr:
             b.entries = self.entries
         return b
 
@@ -1617,24 +1618,36 @@ class _Work:
             self.clear(2)  # the queue and the lists' counts, for this batch
         ranges = chunks(mb, 1, _MIN_TRIANGLES) if self.cpu else [(0, 1)] * mb
         head = [base, ranges[0][1] - ranges[0][0] if ranges else 1, base + mb, self.simd]
-        bins = self.bins(self.count, self.room.get(base))
+        rooms = self.room.get(base, (None, None))
+        bins = self.bins(self.count, rooms[0])
         launch(_bin_kernel, len(ranges), [*head, *args, 1], [self.stage, bins, self.tally], self.device, parts=True,
                min_items=1)
-        counts = self.count.numpy() if self.cpu else self.count.numpy().copy()
-        if not bins.emit or int(self.overflow.numpy()[0]):
-            bins = self.bins(self.cursor, self._room(counts, False))
+        counts = self.views[3] if self.cpu else self.count.numpy()
+        if not bins.emit or int(self.views[5][0] if self.cpu else self.overflow.numpy()[0]):
+            bins = self.bins(self.cursor, self._room(counts, False, self.cursor))
             launch(_bin_kernel, len(ranges), [*head, *args, 0], [self.stage, bins, self.tally], self.device,
                    parts=True, min_items=1)
-        self.room[base] = self._room(counts, True)
+        # the next frame's room, in the other of this batch's two on the CPU (the lists drawn now use this one)
+        self.room[base] = (self._room(counts, True, self.count, rooms[1] if self.cpu else None), rooms[0])
         return bins
 
-    def _room(self, counts: np.ndarray, spare: bool) -> tuple:
-        """(start, room) of lists holding ``counts`` (exactly, or with a quarter more and 8 spare per cell), with
-        their device arrays."""
+    def _room(self, counts: np.ndarray, spare: bool, counting: wp.array, reuse: tuple | None = None) -> tuple:
+        """(start, room, their device arrays, their Bins counting into ``counting``) of lists holding ``counts``
+        (exactly, or with a quarter more and 8 spare per cell); written into ``reuse``'s arrays when given (the
+        CPU's device arrays are views of the numpy ones)."""
         slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
+        if reuse is not None:
+            reuse[1][:] = slots
+            reuse[0][0] = 0
+            np.cumsum(slots[:-1], out=reuse[0][1:])
+            return reuse
         start = np.zeros(len(slots), np.int32)
         np.cumsum(slots[:-1], out=start[1:])
-        return start, slots, as_warp(start, wp.int32, self.device), as_warp(slots, wp.int32, self.device)
+        b = Bins()
+        b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, 1, counting, self.overflow
+        b.start, b.room = as_warp(start, wp.int32, self.device), as_warp(slots, wp.int32, self.device)
+        b.entries = self.entries
+        return start, slots, b.start, b.room, b
 
 
 _WORK_KEPT = 2  # per kind: a call, and another on another thread
