@@ -29,21 +29,29 @@ tests/kernels/test_raster.py, with the same clip-space vertices):
 
 How it runs (binning, then one thread per screen tile):
 
-* **bin** (:func:`_bin_kernel`, one thread per triangle): clipping and setup. A small unclipped triangle (most
-  terrain triangles) becomes a 32-byte :class:`Record` (its fixed-point vertices and depth plane) unless its
-  box holds at most 4 pixel centres and it covers none; every other drawn triangle is set up again where drawn.
-  Each goes into the list of every ``TILE`` x ``TILE`` screen tile its pixel box meets (a large one only those its
-  edges do not exclude), one list per tile and launch chunk (:class:`Bins`). A chunk's triangles are consecutive
-  and its thread writes them in order, so a tile's lists, chunk after chunk, are in submission order (on CUDA the
-  tile sorts its list). The lists are written as they are counted when the room kept from the last frame of the
-  same kind holds them; otherwise the counts give exact room and the batch is binned again.
+* **vertices** (:func:`_vertex_kernel`): clip coordinates, and per vertex its window position and outcode.
+* **bin** (:func:`_bin_kernel`; on the CPU one launch index per chunk of the triangles, on CUDA one per triangle):
+  clipping and setup. On the CPU the triangles that lie inside every clip plane and span under ``SMALL_PX`` - 1
+  pixels (most terrain triangles) are set up 16 at a time in SIMD lanes (:func:`_bin_lanes`, from the vertices'
+  window positions; all three beyond one clip plane: dropped there too): a box of at most 4x4 pixel centres
+  becomes a *mask entry* (its 16-bit coverage mask, counted here) when it covers a centre, and is dropped when it
+  covers none; a larger box becomes a *record* (its fixed-point vertices); both carry their depth plane
+  (:class:`Record`, 32 bytes). Every other triangle (on CUDA, every triangle) goes through :func:`_bin_one`: a
+  small unclipped one as a record (or dropped: a box of at most 4 centres covering none), any other drawn one as
+  an entry set up again where drawn. Each entry goes into the list of every ``TILE`` x ``TILE`` screen tile its
+  pixel box meets (a large one only those its edges do not exclude), one list per tile and launch chunk
+  (:class:`Bins`). A chunk's triangles are consecutive and its thread writes them in order, so a tile's lists,
+  chunk after chunk, are in submission order (on CUDA the tile sorts its list). The lists are written as they are
+  counted when the room kept from the last frame of the same kind holds them; otherwise the counts give exact room
+  and the batch is binned again.
 * **draw** (:func:`_tile_kernel`): each tile is drawn by one thread (CPU threads take tiles from a shared counter)
   in a scratch tile that fits the cache, which starts as the background and is copied into the images at the
-  end: records row by row, 8 pixel centres at a time in SIMD (edge functions, coverage mask, depth, test and
-  write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted whole by their corners, else given a
-  16-bit mask (:func:`_cover`); CUDA draws every entry in 4x4 blocks, in the images themselves. The depth test and
-  the writes need no atomics, and the pipeline statistics are counted on the way (samples passed as the test
-  passes in submission order, quads and blocks from the masks).
+  end (a tile with nothing to draw gets the background straight in the images): mask entries as one 16-lane SIMD
+  block each (:func:`_draw_masks`), records row by row, 8 pixel centres at a time in SIMD (edge functions,
+  coverage mask, depth, test and write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted
+  whole by their corners, else given a 16-bit mask (:func:`_cover`); CUDA draws every entry in 4x4 blocks, in the
+  images themselves. The depth test and the writes need no atomics, and the pipeline statistics are counted on
+  the way (samples passed as the test passes in submission order, quads and blocks from the masks).
   Frames of more than ``BATCH`` triangles go through bin and draw in batches, in order.
 
 The barycentrics of :class:`Fragments` are computed on first access from the clip-space vertices: with
@@ -105,9 +113,12 @@ vec8l = wp.types.vector(length=8, dtype=wp.int64)
 
 @wp.struct
 class Record:
-    """A small unclipped triangle in a tile's list (32 bytes): its CCW fixed-point vertices (``xy``: a, then b - a
-    and c - a as int16 pairs), its depth plane (``plane``: the depth at the first centre of its pixel box, dz/dx,
-    dz/dy) and its index ``t``. ``t`` < 0: triangle ``-1 - t``, set up again where drawn (nothing else is set)."""
+    """A small unclipped triangle in a tile's list (32 bytes): its depth plane (``plane``: the depth at the first
+    centre of its pixel box, dz/dx, dz/dy), its index ``t`` and in ``xy`` either its CCW fixed-point vertices (a
+    record: a, then b - a and c - a as int16 pairs; ``xy[3]`` is not 0, c differing from a) or (a mask entry,
+    ``xy[3]`` 0) the first centre of its box (x | y << 16) and the coverage of the 4x4 centres from it (``xy[1]``,
+    bit 4 j + i for centre (x + i, y + j)). ``t`` < 0: triangle ``-1 - t``, set up again where drawn (nothing else
+    is set)."""
 
     xy: wp.vec4i
     plane: wp.vec3
