@@ -1128,6 +1128,7 @@ def _bin_lanes(simd: int, t0: int, t1: int, tris: wp.array2d(dtype=wp.int32), wi
 
 
 @wp.func_native("""
+#if !defined(__CUDA_ARCH__)
 int32_t* count = (int32_t*)bins.count.data;
 const int32_t* o = stage.data + 192 * part;  // field f of lane l at o[16 f + l]
 for (uint32_t km = (uint32_t)keep; km != 0; km &= km - 1u) {
@@ -1142,10 +1143,11 @@ for (uint32_t km = (uint32_t)keep; km != 0; km &= km - 1u) {
             else if (bins.emit != 0) bins.overflow.data[0] = 1;
         }
 }
+#endif
 """)
 def _emit_lanes(keep: int, part: int, stage: wp.array(dtype=wp.int32), bins: Bins):
     """The lanes ``keep`` (bits) of row ``part`` of ``stage`` (:func:`_bin_lanes`), in order, into the lists of
-    their tiles (:class:`Bins`; on the CPU: one launch chunk per part)."""
+    their tiles (:class:`Bins`; one launch chunk per part). CPU only (on CUDA ``keep`` is 0)."""
     ...
 
 
