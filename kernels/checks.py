@@ -139,19 +139,22 @@ def check_triangle_shape(name: str, shape: tuple[int, ...], dtype: object) -> No
         raise TypeError(f"{name}: expected integer vertex indices, got dtype {np.dtype(dtype)}")
 
 
-def check_triangles(name: str, triangles: object, n_vertices: int | None = None) -> np.ndarray:
+def check_triangles(name: str, triangles: object, n_vertices: int | None = None, scan: bool = True) -> np.ndarray:
     """``triangles`` as a C-contiguous ``(m, 3)`` int32 array of vertex indices, each in ``[0, n_vertices)``
-    (``n_vertices`` None: only ``>= 0`` and below 2**31).
+    (``n_vertices`` None: only ``>= 0`` and below 2**31; ``scan`` False: the shape and dtype only, the values
+    vouched for by the caller).
 
     Raises:
         ValueError: not ``(m, 3)``, or an index out of range. TypeError: a non-integer dtype.
     """
     tri = np.asarray(triangles)
     check_triangle_shape(name, tri.shape, tri.dtype)
-    if tri.size:
-        lo, hi = int(tri.min()), int(tri.max())
+    if tri.size and scan:
         top = np.iinfo(np.int32).max + 1 if n_vertices is None else int(n_vertices)
-        if lo < 0 or hi >= top:
+        # one pass: a negative index read as unsigned is at least 2**(bits - 1), past any valid one
+        u = tri.view(f"u{tri.dtype.itemsize}") if tri.dtype.kind == "i" else tri
+        if int(u.max()) >= top:
+            lo, hi = int(tri.min()), int(tri.max())
             raise ValueError(f"{name}: expected indices in [0, {top}), got [{lo}, {hi}]")
     return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)
 

@@ -29,21 +29,29 @@ tests/kernels/test_raster.py, with the same clip-space vertices):
 
 How it runs (binning, then one thread per screen tile):
 
-* **bin** (:func:`_bin_kernel`, one thread per triangle): clipping and setup. A small unclipped triangle (most
-  terrain triangles) becomes a 32-byte :class:`Record` (its fixed-point vertices and depth plane) unless its
-  box holds at most 4 pixel centres and it covers none; every other drawn triangle is set up again where drawn.
-  Each goes into the list of every ``TILE`` x ``TILE`` screen tile its pixel box meets (a large one only those its
-  edges do not exclude), one list per tile and launch chunk (:class:`Bins`). A chunk's triangles are consecutive
-  and its thread writes them in order, so a tile's lists, chunk after chunk, are in submission order (on CUDA the
-  tile sorts its list). The lists are written as they are counted when the room kept from the last frame of the
-  same kind holds them; otherwise the counts give exact room and the batch is binned again.
+* **vertices** (:func:`_vertex_kernel`): clip coordinates, and per vertex its window position and outcode.
+* **bin** (:func:`_bin_kernel`; on the CPU one launch index per chunk of the triangles, on CUDA one per triangle):
+  clipping and setup. On the CPU the triangles that lie inside every clip plane and span under ``SMALL_PX`` - 1
+  pixels (most terrain triangles) are set up 16 at a time in SIMD lanes (:func:`_bin_lanes`, from the vertices'
+  window positions; all three beyond one clip plane: dropped there too): a box of at most 4x4 pixel centres
+  becomes a *mask entry* (its 16-bit coverage mask, counted here) when it covers a centre, and is dropped when it
+  covers none; a larger box becomes a *record* (its fixed-point vertices); both carry their depth plane
+  (:class:`Record`, 32 bytes). Every other triangle (on CUDA, every triangle) goes through :func:`_bin_one`: a
+  small unclipped one as a record (or dropped: a box of at most 4 centres covering none), any other drawn one as
+  an entry set up again where drawn. Each entry goes into the list of every ``TILE`` x ``TILE`` screen tile its
+  pixel box meets (a large one only those its edges do not exclude), one list per tile and launch chunk
+  (:class:`Bins`). A chunk's triangles are consecutive and its thread writes them in order, so a tile's lists,
+  chunk after chunk, are in submission order (on CUDA the tile sorts its list). The lists are written as they are
+  counted when the room kept from the last frame of the same kind holds them; otherwise the counts give exact room
+  and the batch is binned again.
 * **draw** (:func:`_tile_kernel`): each tile is drawn by one thread (CPU threads take tiles from a shared counter)
   in a scratch tile that fits the cache, which starts as the background and is copied into the images at the
-  end: records row by row, 8 pixel centres at a time in SIMD (edge functions, coverage mask, depth, test and
-  write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted whole by their corners, else given a
-  16-bit mask (:func:`_cover`); CUDA draws every entry in 4x4 blocks, in the images themselves. The depth test and
-  the writes need no atomics, and the pipeline statistics are counted on the way (samples passed as the test
-  passes in submission order, quads and blocks from the masks).
+  end (a tile with nothing to draw gets the background straight in the images): mask entries as one 16-lane SIMD
+  block each (:func:`_draw_masks`), records row by row, 8 pixel centres at a time in SIMD (edge functions,
+  coverage mask, depth, test and write, :func:`_draw_records`), the others in 4x4 blocks rejected or accepted
+  whole by their corners, else given a 16-bit mask (:func:`_cover`); CUDA draws every entry in 4x4 blocks, in the
+  images themselves. The depth test and the writes need no atomics, and the pipeline statistics are counted on
+  the way (samples passed as the test passes in submission order, quads and blocks from the masks).
   Frames of more than ``BATCH`` triangles go through bin and draw in batches, in order.
 
 The barycentrics of :class:`Fragments` are computed on first access from the clip-space vertices: with
@@ -73,7 +81,7 @@ from .counters import (
     raster_counters,
     raster_stats,
 )
-from .parallel import atomic_add_i32, launch, launch_one, max_parts
+from .parallel import atomic_add_i32, chunks, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import filled_array, pooled_array, pooled_rows_array, take
 
@@ -88,7 +96,9 @@ TILE = 64  # screen tile edge in pixels: one thread draws a tile
 DEPTH_TILE = 16  # the screen cells in which a large triangle's depth plane is anchored again
 SMALL_PX = 16  # a triangle whose pixel box spans fewer pixels than this each way is small
 BATCH = 1 << 22  # triangles binned and drawn at a time (bounds the lists' memory)
-PITCH = TILE + 16  # pixels per row of a CPU thread's scratch tile: a row's 16 lanes from any pixel of the tile
+MARGIN = 4  # pixels of a CPU thread's scratch tile left of and below the tile (a mask entry's 4x4 from any pixel)
+PITCH = MARGIN + TILE + 16  # pixels per row of a scratch tile: a row's 16 lanes from any pixel of the tile
+SCRATCH_ROWS = MARGIN + TILE + MARGIN
 # the fewest items worth a CPU thread of their own, per launch (see parallel.launch)
 _MIN_TRIANGLES = 2048
 _MIN_VERTICES = 1 << 16  # a vertex costs ~2 ns: fewer per thread are not worth the hand-off
@@ -103,9 +113,12 @@ vec8l = wp.types.vector(length=8, dtype=wp.int64)
 
 @wp.struct
 class Record:
-    """A small unclipped triangle in a tile's list (32 bytes): its CCW fixed-point vertices (``xy``: a, then b - a
-    and c - a as int16 pairs), its depth plane (``plane``: the depth at the first centre of its pixel box, dz/dx,
-    dz/dy) and its index ``t``. ``t`` < 0: triangle ``-1 - t``, set up again where drawn (nothing else is set)."""
+    """A small unclipped triangle in a tile's list (32 bytes): its depth plane (``plane``: the depth at the first
+    centre of its pixel box, dz/dx, dz/dy), its index ``t`` and in ``xy`` either its CCW fixed-point vertices (a
+    record: a, then b - a and c - a as int16 pairs; ``xy[3]`` is not 0, c differing from a) or (a mask entry,
+    ``xy[3]`` 0) the first centre of its box (x | y << 16) and the coverage of the 4x4 centres from it (``xy[1]``,
+    bit 4 j + i for centre (x + i, y + j)). ``t`` < 0: triangle ``-1 - t``, set up again where drawn (nothing else
+    is set)."""
 
     xy: wp.vec4i
     plane: wp.vec3
@@ -627,30 +640,24 @@ for (int k = 0; k < 8; ++k) acc[k] = k == 6 ? j0 : 0;
 #if !defined(__CUDA_ARCH__)
 if (simd != 0) {
 #pragma clang fp contract(off)
-typedef int32_t v8 __attribute__((vector_size(32)));
-typedef uint32_t v8u __attribute__((vector_size(32)));
-typedef float v8f __attribute__((vector_size(32)));
+typedef int32_t v8 __attribute__((vector_size(32))); typedef uint32_t v8u __attribute__((vector_size(32)));
+typedef float v8f __attribute__((vector_size(32))); typedef bool b8 __attribute__((ext_vector_type(8)));
 typedef int32_t v8_ld __attribute__((vector_size(32), aligned(4)));  // loads and stores at any pixel
 typedef uint32_t v8u_ld __attribute__((vector_size(32), aligned(4)));
-#if defined(__AVX__)
-#define RZ_SIGNS(v) ((uint32_t)__builtin_ia32_movmskps256((v8f)(v)))
-#else
-#define RZ_SIGNS(v) ((uint32_t)__builtin_reduce_or(((v) >> 31) & (v8){1, 2, 4, 8, 16, 32, 64, 128}))
-#endif
+auto signs = [](v8 v) { return (uint32_t)__builtin_bit_cast(uint8_t, __builtin_convertvector(v < 0, b8)); };
+// a record's pixel box: its first centre at or after the least coordinate, its last at or before the largest
+auto lo = [](const int64_t* v) { return wp::max(0, (int)((wp::min(v[0], wp::min(v[1], v[2])) + 127) >> 8)); };
+auto hi = [](const int64_t* v) { return (int)((wp::max(v[0], wp::max(v[1], v[2])) - 128) >> 8); };
 const v8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
 int32_t* __restrict ids = (int32_t*)buf_id.data;
 uint32_t* __restrict dep = (uint32_t*)buf_depth.data;
 int64_t j = j0;
-for (; j < j1 && entries.data[j].t >= 0; ++j) {
-    const auto& r = entries.data[j];
-    // the vertices a (x[0]), b, c, and the pixel box: first centre at or after the least coordinate, last at or
-    // before the largest
+for (; j < j1 && entries.data[j].t >= 0 && entries.data[j].xy[3] != 0; ++j) {
+    const auto& r = entries.data[j];  // a record: the vertices a (x[0]), b, c
     const int64_t x[3] = {r.xy[0], r.xy[0] + (int16_t)(r.xy[2] & 0xFFFF), r.xy[0] + (int16_t)(r.xy[3] & 0xFFFF)};
     const int64_t y[3] = {r.xy[1], r.xy[1] + (r.xy[2] >> 16), r.xy[1] + (r.xy[3] >> 16)};
-    const int rx = wp::max(0, (int)((wp::min(x[0], wp::min(x[1], x[2])) + 127) >> 8));
-    const int ry = wp::max(0, (int)((wp::min(y[0], wp::min(y[1], y[2])) + 127) >> 8));
-    const int x0 = wp::max(rx, tx0), x1 = wp::min((int)((wp::max(x[0], wp::max(x[1], x[2])) - 128) >> 8), tx1);
-    const int y0 = wp::max(ry, ty0), y1 = wp::min((int)((wp::max(y[0], wp::max(y[1], y[2])) - 128) >> 8), ty1);
+    const int rx = lo(x), ry = lo(y), x0 = wp::max(rx, tx0), x1 = wp::min(hi(x), tx1);
+    const int y0 = wp::max(ry, ty0), y1 = wp::min(hi(y), ty1);
     if (x0 > x1 || y0 > y1) continue;
     // edge k from vertex k + 1 to k + 2 at the first centre of the rows, and per pixel down a row: a record's
     // triangle spans under SMALL_PX pixels, so over 16 centres of a row its edge functions fit in int32
@@ -672,7 +679,7 @@ for (; j < j1 && entries.data[j].t >= 0; ++j) {
     for (int yy = y0; yy <= y1; ++yy) {
         uint32_t mc[2] = {0, 0};
         for (int c = 0; c < nch; ++c) {
-            mc[c] = ~RZ_SIGNS(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
+            mc[c] = ~signs(ra[c][0] | ra[c][1] | ra[c][2]) & (cols >> (8 * c)) & 0xFFu;
             for (int k = 0; k < 3; ++k) ra[c][k] += dy[k];
         }
         const uint32_t m = mc[0] | (mc[1] << 8);
@@ -698,16 +705,15 @@ for (; j < j1 && entries.data[j].t >= 0; ++j) {
             const v8 first = oid < 0;
             // GL_LESS (depth bits order as depths) at a covered centre
             const v8 win = ((((lane - lane + (int32_t)mc[c]) >> lane) & 1) != 0) & (d < 1.0f) & (first | (bits < od));
-            const uint32_t wm = RZ_SIGNS(win);
+            const uint32_t wm = signs(win);
             if (wm != 0) {
                 *(v8_ld*)pi = win ? (v8)(lane - lane + r.t) : oid;
                 *(v8u_ld*)pd = win ? bits : od;
-                acc[2] += __builtin_popcount(wm), acc[3] += __builtin_popcount(wm & RZ_SIGNS(first));
+                acc[2] += __builtin_popcount(wm), acc[3] += __builtin_popcount(wm & signs(first));
             }
         }
     }
 }
-#undef RZ_SIGNS
 acc[6] = j;
 }
 #endif
@@ -719,7 +725,69 @@ def _draw_records(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, 
     """With ``simd`` (a CPU scratch tile), list entries from ``j0`` while they are records, over the tile's pixels
     (tx0..tx1, ty0..ty1; buffer origin (tx0, ty0)), row by row in chunks of 8 centres (SIMD, int32 lanes): mask,
     depths, tests, writes. The same pixels, depths and counts as :func:`_cover`; returns them, the entry it stopped
-    at in slot 6 (``j0`` without ``simd`` and on CUDA, where :func:`_cover` draws records)."""
+    at in slot 6 (``j0`` without ``simd`` and on CUDA)."""
+    ...
+
+
+@wp.func_native("""
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = k == 6 ? j0 : 0;
+#if !defined(__CUDA_ARCH__)
+if (simd != 0) {
+#pragma clang fp contract(off)
+typedef int32_t v16 __attribute__((vector_size(64))); typedef uint32_t v16u __attribute__((vector_size(64)));
+typedef float v16f __attribute__((vector_size(64))); typedef bool b16 __attribute__((ext_vector_type(16)));
+auto bits = [](v16 c) { return (uint32_t)__builtin_bit_cast(uint16_t, __builtin_convertvector(c, b16)); };
+const v16 lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+const v16f col = __builtin_convertvector(lane & 3, v16f), row = __builtin_convertvector(lane >> 2, v16f);
+int32_t* __restrict ids = (int32_t*)buf_id.data;
+int32_t* __restrict dep = (int32_t*)buf_depth.data;
+int64_t j = j0;
+for (; j < j1 && entries.data[j].t >= 0 && entries.data[j].xy[3] == 0; ++j) {
+    const auto& r = entries.data[j];
+    const int rx = r.xy[0] & 0xFFFF, ry = r.xy[0] >> 16;
+    // its centres in this tile; of those, 2x2 quads (the mask in 6-bit rows from an even pixel) and 4x4 blocks
+    // (the mask's part in each block) with a covered one
+    const uint32_t cols = (0xFu << wp::max(0, tx0 - rx)) & (0xFu >> wp::max(0, rx + 3 - tx1));
+    const uint32_t m = (uint32_t)r.xy[1] & (cols & 0xFu) * 0x1111u & (0xFFFFu << 4 * wp::max(0, ty0 - ry))
+                       & (0xFFFFu >> 4 * wp::max(0, ry + 3 - ty1));
+    const uint32_t m6 = ((m & 0xFu) | (m & 0xF0u) << 2 | (m & 0xF00u) << 4 | (m & 0xF000u) << 6)
+                        << ((rx & 1) + 6 * (ry & 1));
+    const uint32_t cl = ((1u << (4 - (rx & 3))) - 1u) * 0x1111u, rb = (1u << (4 * (4 - (ry & 3)))) - 1u;
+    acc[1] += __builtin_popcount(m), acc[4] += __builtin_popcount((m6 | m6 >> 1 | m6 >> 6 | m6 >> 7) & 0x15015015u);
+    acc[5] += ((m & cl & rb) != 0) + ((m & ~cl & rb) != 0) + ((m & cl & ~rb) != 0) + ((m & ~cl & ~rb) != 0);
+    // the anchor's depth stepped to the row, then to each centre (as a record's), clamped as wp::clamp
+    const v16f d0 = (r.plane[0] + r.plane[2] * row) + r.plane[1] * col;
+    const v16f d1 = d0 > 0.0f ? d0 : 0.0f;
+    const v16f d = d1 <= 1.0f ? d1 : 1.0f;
+    // the 4x4 pixels from (rx, ry) in the buffer (its margin holds those past the tile), tested and written
+    const int64_t p = (int64_t)bb + (int64_t)(ry - ty0) * stride + (rx - tx0);
+    int32_t oi[16], od[16];
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(oi + 4 * k, ids + p + k * stride, 16);
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(od + 4 * k, dep + p + k * stride, 16);
+    v16 vi, vd;
+    __builtin_memcpy(&vi, oi, 64), __builtin_memcpy(&vd, od, 64);
+    const v16 first = vi < 0;
+    const v16 win = ((((v16u)(lane - lane) + m) >> (v16u)lane & 1) != 0) & (d < 1.0f) & (first | ((v16u)d < (v16u)vd));
+    vi = win ? lane - lane + r.t : vi, vd = win ? (v16)d : vd;
+    __builtin_memcpy(oi, &vi, 64), __builtin_memcpy(od, &vd, 64);
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(ids + p + k * stride, oi + 4 * k, 16);
+    for (int k = 0; k < 4; ++k) __builtin_memcpy(dep + p + k * stride, od + 4 * k, 16);
+    acc[2] += __builtin_popcount(bits(win)), acc[3] += __builtin_popcount(bits(win & first));
+}
+acc[6] = j;
+}
+#endif
+return acc;
+""")
+def _draw_masks(simd: int, entries: wp.array(dtype=Record), j0: int, j1: int, tx0: int, tx1: int, ty0: int,
+                ty1: int, bb: int, stride: int, buf_id: wp.array(dtype=wp.int32),
+                buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
+    """With ``simd`` (a CPU scratch tile, with a margin of MARGIN pixels around it), list entries from ``j0`` while
+    they are mask entries (:func:`_bin_lanes`), over the tile's pixels (tx0..tx1, ty0..ty1; buffer origin (tx0,
+    ty0)), each as one 16-lane SIMD block of its 4x4 centres: mask, depths, tests, writes. The same pixels, depths
+    and counts as :func:`_draw_records` would give; returns them (0 centres tested: they were counted as it was
+    binned), the entry it stopped at in slot 6 (``j0`` without ``simd`` and on CUDA)."""
     ...
 
 
@@ -751,47 +819,45 @@ def _lo16(v: int) -> int:
 
 
 @wp.func_native("""
-for (int y = 0; y < h; ++y) {
-    const int64_t p = (int64_t)bb + (int64_t)y * stride;
-    int32_t* __restrict ids = (int32_t*)buf_id.data + p;
-    uint32_t* __restrict dep = (uint32_t*)buf_depth.data + p;
-    for (int x = 0; x < w; ++x) ids[x] = -1;
-    for (int x = 0; x < w; ++x) dep[x] = 0x3F800000u;
-}
-""")
-def _fill(bb: int, stride: int, w: int, h: int, buf_id: wp.array(dtype=wp.int32),
-          buf_depth: wp.array(dtype=wp.float32)):
-    """The background (id -1, depth 1.0) over ``h`` rows of ``w`` pixels of a buffer."""
-    ...
-
-
-@wp.func_native("""
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+typedef int32_t v4 __attribute__((vector_size(16)));
+// a row of n values from s (or all c) to d: non-temporal stores, 16 bytes at a time where d is aligned
+auto row = [](int32_t* d, const int32_t* s, int32_t c, int n) {
+    int x = 0;
+    for (; x < n && (reinterpret_cast<unsigned long long>(d + x) & 15) != 0; ++x)
+        __builtin_nontemporal_store(s ? s[x] : c, d + x);
+    for (; x + 4 <= n; x += 4) {
+        v4 v = (v4){c, c, c, c};
+        if (s) __builtin_memcpy(&v, s + x, 16);
+        __builtin_nontemporal_store(v, (v4*)(d + x));
+    }
+    for (; x < n; ++x) __builtin_nontemporal_store(s ? s[x] : c, d + x);
+};
+#endif
 for (int y = 0; y < h; ++y) {
     const int64_t p = (int64_t)sb + (int64_t)y * sstride, q = (int64_t)db + (int64_t)y * dstride;
-    const int32_t* __restrict si = (const int32_t*)src_id.data + p;
-    const uint32_t* __restrict sd = (const uint32_t*)src_depth.data + p;
-    int32_t* __restrict di = (int32_t*)dst_id.data + q;
-    uint32_t* __restrict dd = (uint32_t*)dst_depth.data + q;
-#if defined(__CUDA_ARCH__)
-    for (int x = 0; x < w; ++x) di[x] = si[x];
-    for (int x = 0; x < w; ++x) dd[x] = sd[x];
-#elif defined(__x86_64__)
-    for (int x = 0; x < w; ++x) __builtin_nontemporal_store(si[x], di + x);  // the images are not read here again
-    for (int x = 0; x < w; ++x) __builtin_nontemporal_store(sd[x], dd + x);
-#else
-    __builtin_memcpy(di, si, sizeof(int32_t) * w);
-    __builtin_memcpy(dd, sd, sizeof(uint32_t) * w);
+    const int32_t* si = src ? (const int32_t*)src_id.data + p : nullptr;
+    const int32_t* sd = src ? (const int32_t*)src_depth.data + p : nullptr;
+    int32_t* di = (int32_t*)dst_id.data + q;
+    int32_t* dd = (int32_t*)dst_depth.data + q;
+#if defined(__x86_64__) && !defined(__CUDA_ARCH__)
+    if (nt) {  // the images: written once here and not read again by the pass
+        row(di, si, -1, w), row(dd, sd, 0x3F800000, w);
+        continue;
+    }
 #endif
+    for (int x = 0; x < w; ++x) di[x] = si ? si[x] : -1;
+    for (int x = 0; x < w; ++x) dd[x] = sd ? sd[x] : 0x3F800000;
 }
 #if defined(__x86_64__) && !defined(__CUDA_ARCH__)
-__builtin_ia32_sfence();  // the non-temporal stores visible before anything later
+if (nt) __builtin_ia32_sfence();  // the non-temporal stores visible before anything later
 #endif
 """)
-def _copy(sb: int, sstride: int, db: int, dstride: int, w: int, h: int, src_id: wp.array(dtype=wp.int32),
-          src_depth: wp.array(dtype=wp.float32), dst_id: wp.array(dtype=wp.int32),
+def _copy(src: int, sb: int, sstride: int, db: int, dstride: int, w: int, h: int, nt: int,
+          src_id: wp.array(dtype=wp.int32), src_depth: wp.array(dtype=wp.float32), dst_id: wp.array(dtype=wp.int32),
           dst_depth: wp.array(dtype=wp.float32)):
-    """``h`` rows of ``w`` pixels (ids and depth) from one buffer to another (non-temporal stores on the CPU: the
-    frame's images are written once and not read again by the pass; a fence after them)."""
+    """``h`` rows of ``w`` pixels (ids and depth) from one buffer to another, or with ``src`` 0 the background (id
+    -1, depth 1.0); with ``nt`` (on the CPU, into the images) in non-temporal stores, a fence after them."""
     ...
 
 
@@ -882,17 +948,51 @@ def _bin(entry: Record, n: int, xs: vec9l, ys: vec9l, box: wp.vec4i, large: wp.b
 # ------------------------------------------------------------------------------------------------
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+const float x = c[0], y = c[1], z = c[2], w = c[3];
+const int code = (x > w) | (x < -w) << 1 | (y > w) << 2 | (y < -w) << 3 | (z > w) << 4 | (z < -w) << 5;
+const bool inside = wp::abs(x) <= gb[0] * w && wp::abs(y) <= gb[1] * w && wp::abs(z) <= w;
+#else
+typedef float v4f __attribute__((vector_size(16))); typedef int32_t v4i __attribute__((vector_size(16)));
+const v4f v = {c[0], c[1], c[2], 0.0f}, w = {c[3], c[3], c[3], 0.0f}, lim = {gb[0] * c[3], gb[1] * c[3], c[3], 0.0f};
+const v4i above = {1, 4, 16, 0}, below = {2, 8, 32, 0};
+const int code = __builtin_reduce_or(((v > w) & above) | ((v < -w) & below));
+const bool inside = __builtin_reduce_and(__builtin_elementwise_abs(v) <= lim) != 0;
+#endif
+return (float)(code | (inside ? 0 : 64));
+""")
+def _outcode(c: wp.vec4, gb: wp.vec2) -> float:
+    """A clip-space vertex's outcode: 1, 2, 4, 8, 16, 32 for x > w, x < -w, y > w, y < -w, z > w, z < -w
+    (:func:`_rejected`'s tests), 64 when it is not :func:`_inside` (as a float)."""
+    ...
+
+
 @wp.kernel(enable_backward=False)
 def _vertex_kernel(
     offset: int,
     pos: wp.array(dtype=wp.vec3),
     mvp: wp.mat44,
+    transform: int,
+    width: int,
+    height: int,
+    gb: wp.vec2,
     # outputs
     out_clip: wp.array(dtype=wp.vec4),
+    out_win: wp.array(dtype=wp.vec4),
 ):
+    """Per vertex: its clip coordinates (with ``transform`` ``mvp @ (p, 1)``, written to ``out_clip``; else read from
+    it) and its window position (:func:`_window`) in ``out_win``, whose w holds its :func:`_outcode`."""
     k = wp.tid() + offset
-    p = pos[k]
-    out_clip[k] = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+    c = wp.vec4()
+    if transform != 0:
+        p = pos[k]
+        c = mvp * wp.vec4(p[0], p[1], p[2], 1.0)
+        out_clip[k] = c
+    else:
+        c = out_clip[k]
+    f = _window(c, 0.5 * float(width), 0.5 * float(height))
+    out_win[k] = wp.vec4(f[0], f[1], f[2], _outcode(c, gb))
 
 
 @wp.func
@@ -937,28 +1037,128 @@ def _tally(tally: wp.array2d(dtype=wp.int64), part: int, column: int, v: int, on
         wp.atomic_add(tally, part, column, wp.int64(v))
 
 
-@wp.kernel(enable_backward=False)
-def _bin_kernel(
-    offset: int,
-    part: int,
-    base: int,
-    clip: wp.array(dtype=wp.vec4),
-    tris: wp.array2d(dtype=wp.int32),
-    width: int,
-    height: int,
-    cull_back: int,
-    gb: wp.vec2,
-    tallying: int,
-    # outputs
-    out_bins: Bins,
-    out_tally: wp.array2d(dtype=wp.int64),
-):
-    """Per triangle ``t = base + i`` of a batch: set up, and binned (:func:`_bin`) into the tiles it will be drawn
-    in: a small unclipped one as its record (:func:`_small_entry`), the others (clipped, large) to be set up again
-    there (:func:`_prepared`). With ``tallying``, tallies (row ``part``) the clipper's output, the triangles
-    rasterized, the centres of tiny boxes tested here and, for large triangles, the DEPTH_TILE cells they may
-    cover."""
-    t = base + wp.tid() + offset
+@wp.func_native("""
+wp::vec_t<8, wp::int64> acc;
+for (int k = 0; k < 8; ++k) acc[k] = k == 7 ? t0 : k == 5 ? 1 : 0;
+#if !defined(__CUDA_ARCH__)
+if (simd != 0) {
+#pragma clang fp contract(off)
+typedef int32_t vi __attribute__((vector_size(64))); typedef float vf __attribute__((vector_size(64)));
+typedef bool vb __attribute__((ext_vector_type(16)));
+auto mn = [](auto a, auto b) { return a < b ? a : b; };  // lane by lane (NaN: b)
+auto mx = [](auto a, auto b) { return a > b ? a : b; };
+auto bits = [](vi c) { return (uint32_t)__builtin_bit_cast(uint16_t, __builtin_convertvector(c, vb)); };
+const vi lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}, zero = lane - lane, one = zero + 1;
+const vf big = __builtin_convertvector(zero, vf) + 1e9f;
+const int n = wp::min(16, t1 - t0);
+float g[4][3][16];  // the vertices' window positions and outcodes by component, vertex, lane
+for (int i = 0; i < 48; ++i) {  // lanes past the last triangle read the first one's
+    const auto& w = win.data[*wp::address(tris, t0 + (i < 3 * n ? i / 3 : 0), i % 3)];
+    for (int c = 0; c < 4; ++c) g[c][i % 3][i / 3] = w[c];
+}
+vf f[4][3];
+__builtin_memcpy(f, g, sizeof g);
+vi X[3], Y[3], ok = lane < n, codes = ok;  // codes: the outcodes' common bits (a plane all three lie beyond)
+for (int k = 0; k < 3; ++k) {  // fixed point as lrintf (others limited first: their conversion is undefined)
+    const vi code = __builtin_convertvector(f[3][k], vi);
+    codes &= code, ok &= (code == 0) & (f[0][k] >= -1e6f) & (f[0][k] <= 1e6f) & (f[1][k] >= -1e6f) & (f[1][k] <= 1e6f);
+    X[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[0][k] * 256.0f, -big), big)), vi);
+    Y[k] = __builtin_convertvector(__builtin_elementwise_roundeven(mn(mx(f[1][k] * 256.0f, -big), big)), vi);
+}
+const vi xmin = mn(X[0], mn(X[1], X[2])), xmax = mx(X[0], mx(X[1], X[2]));
+const vi ymin = mn(Y[0], mn(Y[1], Y[2])), ymax = mx(Y[0], mx(Y[1], Y[2]));
+ok &= (xmax - xmin < 15 * 256) & (ymax - ymin < 15 * 256);
+const uint32_t bad = ~bits(ok | ((codes & 63) != 0)) & ((1u << n) - 1u);  // rejected: nothing to draw or count
+const int stop = bad != 0 ? __builtin_ctz(bad) : n;  // the first to be clipped or large: the Warp path's
+const vi live = ok & (lane < stop);  // no overflow in the others
+for (int k = 0; k < 3; ++k) X[k] = live ? X[k] : zero, Y[k] = live ? Y[k] : zero;
+const vi area = (X[1] - X[0]) * (Y[2] - Y[0]) - (X[2] - X[0]) * (Y[1] - Y[0]), sw = area < 0;
+vi px[3], py[3];  // counter-clockwise (b and c swapped where the area is negative): fixed point, window x, y, z
+vf q[3][3];
+for (int k = 0; k < 3; ++k) {
+    const int o = k == 0 ? 0 : 3 - k;
+    px[k] = sw ? X[o] : X[k], py[k] = sw ? Y[o] : Y[k];
+    for (int c = 0; c < 3; ++c) q[c][k] = sw ? f[c][o] : f[c][k];
+}
+const vi x0 = mx(zero, (xmin + 127) >> 8), x1 = mn(zero + (width - 1), (xmax - 128) >> 8);
+const vi y0 = mx(zero, (ymin + 127) >> 8), y1 = mn(zero + (height - 1), (ymax - 128) >> 8);
+const vi valid = live & (area != 0) & ~(sw & (cull_back != 0 ? -1 : 0)) & (x0 <= x1) & (y0 <= y1);
+const vi rec = (x1 - x0 > 3) | (y1 - y0 > 3);
+const vi bw = mn(mx(x1 - x0 + 1, zero), zero + 4), bh = mn(mx(y1 - y0 + 1, zero), zero + 4);
+const vi box = valid & ~rec & (((one << bw) - 1) * (0x1111 & ((one << (4 * bh)) - 1)));
+vi e[3], ex[3], ey[3], mask = zero;  // edge k from vertex k + 1 to k + 2 at the box's first centre
+for (int k = 0; k < 3; ++k) {
+    const int a = (k + 1) % 3, b = (k + 2) % 3;
+    const vi dx = px[b] - px[a], dy = py[b] - py[a];
+    e[k] = dx * (y0 * 256 + 128 - py[a]) - dy * (x0 * 256 + 128 - px[a]) + ~((dy < 0) | ((dy == 0) & (dx > 0)));
+    ex[k] = -dy * 256, ey[k] = dx * 256;
+}
+for (int i = 0; i < 16; ++i)
+    mask |= (((e[0] + (i & 3) * ex[0] + (i >> 2) * ey[0]) | (e[1] + (i & 3) * ex[1] + (i >> 2) * ey[1])
+              | (e[2] + (i & 3) * ex[2] + (i >> 2) * ey[2])) >= 0) & (zero + (1 << i));
+mask &= box;
+acc[0] = -__builtin_reduce_add(live), acc[1] = -__builtin_reduce_add(valid);
+acc[2] = __builtin_reduce_add(box != 0 ? bw * bh : zero), acc[5] = stop < n, acc[7] = t0 + stop;
+// the depth plane through the unsnapped vertices, at the box's first centre
+const vf dx01 = q[0][0] - q[0][1], dy01 = q[1][0] - q[1][1], dx20 = q[0][2] - q[0][0], dy20 = q[1][2] - q[1][0];
+const vf ooa = 1.0f / (dx01 * dy20 - dx20 * dy01), dz01 = q[2][0] - q[2][1], dz20 = q[2][2] - q[2][0];
+const vf dzdx = (dz01 * dy20 - dz20 * dy01) * ooa, dzdy = (dx01 * dz20 - dx20 * dz01) * ooa;
+const vf z00 = q[2][0] - (dzdx * (q[0][0] - (__builtin_convertvector(x0, vf) + 0.5f))
+                          + dzdy * (q[1][0] - (__builtin_convertvector(y0, vf) + 0.5f)));
+// a record (box over 4x4) or a mask entry per lane, and its box's tiles, by field (see _emit_lanes)
+const vi field[12] = {rec ? px[0] : x0 | y0 << 16, rec ? py[0] : mask,
+                      rec ? ((px[1] - px[0]) & 0xFFFF) | (py[1] - py[0]) << 16 : zero,
+                      rec ? ((px[2] - px[0]) & 0xFFFF) | (py[2] - py[0]) << 16 : zero, (vi)z00, (vi)dzdx, (vi)dzdy,
+                      t0 + lane, x0 >> 6, x1 >> 6, y0 >> 6, y1 >> 6};
+__builtin_memcpy(stage.data + 192 * part, field, sizeof field);
+acc[6] = bits((rec & valid) | (mask != 0));
+}
+#endif
+return acc;
+""")
+def _bin_lanes(simd: int, t0: int, t1: int, tris: wp.array2d(dtype=wp.int32), win: wp.array(dtype=wp.vec4),
+               width: int, height: int, cull_back: int, part: int, stage: wp.array(dtype=wp.int32)) -> vec8l:
+    """With ``simd`` (the CPU), triangles ``t0``.. (16 at most) of chunk ``part`` set up in SIMD lanes up to the
+    first to be clipped or large (window positions and outcodes ``win``; :func:`_bin_one`'s rules, counts and
+    depth): each that is drawn a mask entry (:class:`Record`) when its box holds at most 4x4 centres and covers
+    one, else a record, into row ``part`` of ``stage`` (12 fields of 16 lanes). Returns (clipper output,
+    rasterized, mask entries' centres tested, 0, 0, 1 when it stopped at one to clip or large, the lanes to bin,
+    the triangle after the last set up); without ``simd`` and on CUDA (0, 0, 0, 0, 0, 1, 0, ``t0``)."""
+    ...
+
+
+@wp.func_native("""
+#if !defined(__CUDA_ARCH__)
+int32_t* count = (int32_t*)bins.count.data;
+const int32_t* o = stage.data + 192 * part;  // field f of lane l at o[16 f + l]
+for (uint32_t km = (uint32_t)keep; km != 0; km &= km - 1u) {
+    const int l = __builtin_ctz(km);
+    const int32_t r[8] = {o[l], o[16 + l], o[32 + l], o[48 + l], o[64 + l], o[80 + l], o[96 + l], o[112 + l]};
+    for (int ty = o[160 + l]; ty <= o[176 + l]; ++ty)
+        for (int tx = o[128 + l]; tx <= o[144 + l]; ++tx) {
+            const int64_t cell = ((int64_t)ty * bins.tiles_x + tx) * bins.nparts + part;
+            const int32_t slot = count[cell]++;  // one launch chunk per part
+            if (bins.emit != 0 && slot < bins.room.data[cell])
+                __builtin_memcpy(&bins.entries.data[bins.start.data[cell] + slot], r, 32);
+            else if (bins.emit != 0) bins.overflow.data[0] = 1;
+        }
+}
+#endif
+""")
+def _emit_lanes(keep: int, part: int, stage: wp.array(dtype=wp.int32), bins: Bins):
+    """The lanes ``keep`` (bits) of row ``part`` of ``stage`` (:func:`_bin_lanes`), in order, into the lists of
+    their tiles (:class:`Bins`; one launch chunk per part). CPU only (on CUDA ``keep`` is 0)."""
+    ...
+
+
+@wp.func
+def _bin_one(t: int, part: int, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32), width: int,
+             height: int, cull_back: int, gb: wp.vec2, tallying: int, out_bins: Bins,
+             out_tally: wp.array2d(dtype=wp.int64)):
+    """Triangle ``t`` set up and binned (:func:`_bin`) into the tiles it will be drawn in: a small unclipped one as its
+    record (:func:`_small_entry`), the others (clipped, large) to be set up again there (:func:`_prepared`). With
+    ``tallying``, tallies (row ``part``) the clipper's output, the triangles rasterized, the centres of tiny boxes
+    tested here and, for large triangles, the DEPTH_TILE cells they may cover."""
     c0 = clip[tris[t, 0]]
     c1 = clip[tris[t, 1]]
     c2 = clip[tris[t, 2]]
@@ -991,6 +1191,51 @@ def _bin_kernel(
         again = Record()
         again.t = -1 - t
         _bin(again, n, xs, ys, box, mode == 2, cull_back, width, height, part, out_bins)
+
+
+
+@wp.kernel(enable_backward=False)
+def _bin_kernel(
+    offset: int,
+    part: int,
+    base: int,
+    span: int,
+    last: int,
+    simd: int,
+    clip: wp.array(dtype=wp.vec4),
+    win: wp.array(dtype=wp.vec4),
+    tris: wp.array2d(dtype=wp.int32),
+    width: int,
+    height: int,
+    cull_back: int,
+    gb: wp.vec2,
+    tallying: int,
+    # outputs
+    out_stage: wp.array(dtype=wp.int32),
+    out_bins: Bins,
+    out_tally: wp.array2d(dtype=wp.int64),
+):
+    """Triangles ``base + i * span`` .. (below ``last``) of launch index i (on the CPU one index per chunk, on CUDA
+    ``span`` 1), in order: with ``simd`` runs of unclipped small ones 16 at a time (:func:`_bin_lanes`,
+    :func:`_emit_lanes`), each other one (without ``simd``, each one) by :func:`_bin_one`; with ``tallying`` their
+    tallies added into row ``part``."""
+    lo = base + (wp.tid() + offset) * span
+    hi = wp.min(lo + span, last)
+    acc = wp.vec3l()
+    t = lo
+    while t < hi:
+        c = _bin_lanes(simd, t, hi, tris, win, width, height, cull_back, part, out_stage)
+        if c[6] != wp.int64(0):
+            _emit_lanes(int(c[6]), part, out_stage, out_bins)
+        t = int(c[7])
+        acc = acc + wp.vec3l(c[0], c[1], c[2])
+        if c[5] != wp.int64(0):
+            _bin_one(t, part, clip, tris, width, height, cull_back, gb, tallying, out_bins, out_tally)
+            t += 1
+    if tallying != 0 and acc[0] > wp.int64(0):
+        wp.atomic_add(out_tally, part, T_CLIPPED, acc[0])
+        wp.atomic_add(out_tally, part, T_RASTERIZED, acc[1])
+        wp.atomic_add(out_tally, part, T_TESTED, acc[2])
 
 
 @wp.func
@@ -1038,16 +1283,21 @@ def _draw_entry(r: Record, tile: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: 
 def _draw_list(simd: int, s: int, e: int, r: wp.vec4i, clip: wp.array(dtype=wp.vec4), tris: wp.array2d(dtype=wp.int32),
                entries: wp.array(dtype=Record), width: int, height: int, cull_back: int, gb: wp.vec2, bb: int,
                stride: int, buf_id: wp.array(dtype=wp.int32), buf_depth: wp.array(dtype=wp.float32)) -> vec8l:
-    """A tile's list entries[s:e], in order: with ``simd`` runs of records row by row (:func:`_draw_records`), every
-    other entry (without, every entry) by :func:`_draw_entry`."""
+    """A tile's list entries[s:e], in order: with ``simd`` runs of mask entries (:func:`_draw_masks`) and of records
+    (:func:`_draw_records`), every other entry (without, every entry) by :func:`_draw_entry`."""
     acc = vec8l()
     j = s
     while j < e:
+        j0 = j
+        c = _draw_masks(simd, entries, j, e, r[0], r[1], r[2], r[3], bb, stride, buf_id, buf_depth)
+        j = int(c[6])
+        c[6] = wp.int64(0)
+        acc = acc + c
         c = _draw_records(simd, entries, j, e, r[0], r[1], r[2], r[3], width, height, bb, stride, buf_id, buf_depth)
         j = int(c[6])
         c[6] = wp.int64(0)
         acc = acc + c
-        if j < e:
+        if j == j0:  # an entry to set up again (or, without simd, any entry)
             acc = acc + _draw_entry(entries[j], r, clip, tris, width, height, cull_back, gb, bb, stride, buf_id,
                                     buf_depth)
             j += 1
@@ -1110,12 +1360,16 @@ def _tile_kernel(
         bb = ib
         stride = -width
         if scratch != 0:
-            bb = slot * TILE * PITCH
+            bb = (slot * SCRATCH_ROWS + MARGIN) * PITCH + MARGIN
             stride = PITCH
             if first == 0:
-                _copy(ib, -width, bb, PITCH, w, h, out_id, out_depth, out_buf_id, out_buf_depth)
+                _copy(1, ib, -width, bb, PITCH, w, h, 0, out_id, out_depth, out_buf_id, out_buf_depth)
+            elif _listed(bins, tile) == 0:  # nothing to draw: the background straight into the images
+                _copy(0, 0, 0, ib, -width, w, h, 1, out_id, out_depth, out_id, out_depth)
+                tile = atomic_add_i32(queue, 0, 1)
+                continue
         if first != 0:
-            _fill(bb, stride, w, h, out_buf_id, out_buf_depth)
+            _copy(0, 0, 0, bb, stride, w, h, 0, out_buf_id, out_buf_depth, out_buf_id, out_buf_depth)
         acc = vec8l()
         for p in range(bins.nparts):  # the chunks' lists in order: submission order
             cell = tile * bins.nparts + p
@@ -1126,10 +1380,10 @@ def _tile_kernel(
             acc = acc + _draw_list(scratch, s, e, r, clip, tris, bins.entries, width, height, cull_back, gb, bb, stride,
                                    out_buf_id, out_buf_depth)
         if scratch != 0:
-            _copy(bb, PITCH, ib, -width, w, h, out_buf_id, out_buf_depth, out_id, out_depth)
+            _copy(1, bb, PITCH, ib, -width, w, h, 1, out_buf_id, out_buf_depth, out_id, out_depth)
         if acc[3] > wp.int64(0):
             out_dirty[tile] = 1
-        if acc[0] > wp.int64(0):
+        if acc[0] + acc[1] > wp.int64(0):  # centres tested (a mask entry's were as it was binned) or covered
             wp.atomic_add(out_tally, part, T_TESTED, acc[0])
             wp.atomic_add(out_tally, part, T_INSIDE, acc[1])
             wp.atomic_add(out_tally, part, T_PASSED, acc[2])
@@ -1330,19 +1584,19 @@ class _Work:
     pass); a frame that needs more is binned again with exact room, and leaves its counts for the next."""
 
     def __init__(self, device: str, width: int, height: int, nparts: int, scratch: bool) -> None:
-        self.device, self.cpu = device, wp.get_device(device).is_cpu
+        self.device, self.cpu, self.simd = device, wp.get_device(device).is_cpu, int(scratch)
         self.tiles_x = _tiles_x(width)
         self.ntiles = self.tiles_x * _tiles_x(height)
         self.nparts, ncells = nparts, self.tiles_x * _tiles_x(height) * nparts
         zeros = lambda *shape, dt=wp.int32: wp.zeros(shape, dtype=dt, device=device)  # noqa: E731
-        self.dirty, self.queue, self.overflow = zeros(self.ntiles), zeros(1), zeros(1)
+        self.dirty, self.queue, self.overflow, self.stage = zeros(self.ntiles), zeros(1), zeros(1), zeros(nparts * 192)
         self.count, self.cursor, self.tally = zeros(ncells), zeros(ncells), zeros(nparts, TALLIES, dt=wp.int64)
         self.cleared = [self.dirty, self.tally, self.queue, self.count, self.cursor, self.overflow]
         self.views = [a.numpy() for a in self.cleared] if self.cpu else None  # the CPU clears them in numpy
         self.workers = min(nparts, self.ntiles) if scratch else self.ntiles
-        n = self.workers * TILE * PITCH if scratch else 1
+        n = self.workers * SCRATCH_ROWS * PITCH if scratch else 1
         self.buf_id, self.buf_depth = zeros(n), zeros(n, dt=wp.float32)
-        self.room: dict[int, tuple[np.ndarray, np.ndarray, wp.array, wp.array]] = {}
+        self.room: dict[int, tuple] = {}  # per batch: the room the next frame bins into, and the other kept
         self.entries = wp.empty(1, dtype=Record, device=device)
 
     def clear(self, first: int = 0) -> None:
@@ -1354,52 +1608,69 @@ class _Work:
                 self.cleared[k].zero_()
 
     def bins(self, counting: wp.array, room: tuple | None) -> Bins:
-        """Lists counted into ``counting`` with ``room`` = (start, room, their device arrays) per cell, or counted
-        only (None)."""
-        b = Bins()
-        b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, int(room is not None), \
-            counting, self.overflow
-        b.start = b.room = counting
-        b.entries = self.entries
-        if room is not None:
-            start, slots, b.start, b.room = room
-            need = int(start[-1] + slots[-1])
-            if self.entries.shape[0] < need:  # grown by half again: a slowly denser flyover does not grow it each frame
-                self.entries = wp.empty(need + need // 2, dtype=Record, device=self.device)
+        """Lists counted into ``counting`` with ``room`` (:meth:`_room`: the lists' start and room per cell, their
+        device arrays and their Bins), or counted only (None)."""
+        if room is None:
+            b = Bins()
+            b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, 0, counting, self.overflow
+            b.start = b.room = counting
+            b.entries = self.entries
+            return b
+        start, slots, b = room[0], room[1], room[4]
+        need = int(start[-1] + slots[-1])
+        if self.entries.shape[0] < need:  # grown by half again: a slowly denser flyover does not grow it each frame
+            self.entries = wp.empty(need + need // 2, dtype=Record, device=self.device)
+        if b.entries.ptr != self.entries.ptr:
             b.entries = self.entries
         return b
 
     def bin_batch(self, base: int, mb: int, args: list) -> Bins:
-        """Bin a batch (:func:`_bin_kernel`): one pass when this batch's room holds it, else counting then binning
-        again with exact room."""
+        """Bin a batch (:func:`_bin_kernel`, on the CPU one launch index per chunk of the triangles, on CUDA one per
+        triangle): one pass when this batch's room holds it, else counting then binning again with exact room."""
         if base:
             self.clear(2)  # the queue and the lists' counts, for this batch
-        bins = self.bins(self.count, self.room.get(base))
-        launch(_bin_kernel, mb, [base, *args, 1], [bins, self.tally], self.device, parts=True,
-               min_items=_MIN_TRIANGLES)
-        counts = self.count.numpy() if self.cpu else self.count.numpy().copy()
-        if not bins.emit or int(self.overflow.numpy()[0]):
-            bins = self.bins(self.cursor, self._room(counts, False))
-            launch(_bin_kernel, mb, [base, *args, 0], [bins, self.tally], self.device, parts=True,
-                   min_items=_MIN_TRIANGLES)
-        self.room[base] = self._room(counts, True)
+        ranges = chunks(mb, 1, _MIN_TRIANGLES) if self.cpu else [(0, 1)] * mb
+        head = [base, ranges[0][1] - ranges[0][0] if ranges else 1, base + mb, self.simd]
+        rooms = self.room.get(base, (None, None))
+        bins = self.bins(self.count, rooms[0])
+        launch(_bin_kernel, len(ranges), [*head, *args, 1], [self.stage, bins, self.tally], self.device, parts=True,
+               min_items=1)
+        counts = self.views[3] if self.cpu else self.count.numpy()
+        if not bins.emit or int(self.views[5][0] if self.cpu else self.overflow.numpy()[0]):
+            bins = self.bins(self.cursor, self._room(counts, False, self.cursor))
+            launch(_bin_kernel, len(ranges), [*head, *args, 0], [self.stage, bins, self.tally], self.device,
+                   parts=True, min_items=1)
+        # the next frame's room, in the other of this batch's two on the CPU (the lists drawn now use this one)
+        self.room[base] = (self._room(counts, True, self.count, rooms[1] if self.cpu else None), rooms[0])
         return bins
 
-    def _room(self, counts: np.ndarray, spare: bool) -> tuple:
-        """(start, room) of lists holding ``counts`` (exactly, or with a quarter more and 8 spare per cell), with
-        their device arrays."""
+    def _room(self, counts: np.ndarray, spare: bool, counting: wp.array, reuse: tuple | None = None) -> tuple:
+        """(start, room, their device arrays, their Bins counting into ``counting``) of lists holding ``counts``
+        (exactly, or with a quarter more and 8 spare per cell); written into ``reuse``'s arrays when given (the
+        CPU's device arrays are views of the numpy ones)."""
         slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
+        if reuse is not None:
+            reuse[1][:] = slots
+            reuse[0][0] = 0
+            np.cumsum(slots[:-1], out=reuse[0][1:])
+            return reuse
         start = np.zeros(len(slots), np.int32)
         np.cumsum(slots[:-1], out=start[1:])
-        return start, slots, as_warp(start, wp.int32, self.device), as_warp(slots, wp.int32, self.device)
+        b = Bins()
+        b.tiles_x, b.nparts, b.emit, b.count, b.overflow = self.tiles_x, self.nparts, 1, counting, self.overflow
+        b.start, b.room = as_warp(start, wp.int32, self.device), as_warp(slots, wp.int32, self.device)
+        b.entries = self.entries
+        return start, slots, b.start, b.room, b
 
 
 _WORK_KEPT = 2  # per kind: a call, and another on another thread
 
 
-def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool, device: str):
-    """Bin and draw the triangles, BATCH at a time. -> (ids, depth (device arrays, every pixel written), the tile
-    flags (int32, window order), the tallies summed (TALLIES,) int64)."""
+def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool,
+          device: str):
+    """Bin and draw the triangles (vertices' clip coordinates ``clip``, window positions ``win``), BATCH at a time.
+    -> (ids, depth (device arrays, every pixel written), the tile flags (int32, window order), the tallies summed
+    (TALLIES,) int64)."""
     npx = width * height
     out_id = pooled_array(npx, wp.int32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
     out_depth = pooled_array(npx, wp.float32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
@@ -1409,11 +1680,11 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
                  lambda: _Work(device, width, height, nparts, scratch), keep=_WORK_KEPT)
     work = lease.buffer
     work.clear()
-    gb = wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
+    gb = _guard_band(width, height)
     cb = int(bool(cull_back))
     buf_id, buf_depth = (work.buf_id, work.buf_depth) if scratch else (out_id, out_depth)
     for base in range(0, max(m, 1), BATCH):
-        bins = work.bin_batch(base, max(min(BATCH, m - base), 0), [clip, tri_wp, width, height, cb, gb])
+        bins = work.bin_batch(base, max(min(BATCH, m - base), 0), [clip, win, tri_wp, width, height, cb, gb])
         launch(_tile_kernel, work.workers, [int(scratch), work.queue, work.ntiles, int(base == 0), clip, tri_wp, bins,
                                             width, height, cb, gb],
                [buf_id, buf_depth, out_id, out_depth, work.dirty, work.tally], device, parts=True, min_items=1)
@@ -1422,11 +1693,15 @@ def _draw(clip: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cul
     return out_id, out_depth, tiles, tally
 
 
-def _rasterize_clip(clip: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool, device: str,
-                    counters: bool = False) -> Fragments:
+def _guard_band(width: int, height: int) -> wp.vec2:
+    return wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
+
+
+def _rasterize_clip(clip: wp.array, win: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool,
+                    device: str, counters: bool = False) -> Fragments:
     m = int(tri.shape[0])
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    out_id, out_depth, tiles, tally = _draw(clip, tri_wp, m, width, height, cull_back, device)
+    out_id, out_depth, tiles, tally = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
     ids = out_id.numpy().reshape(height, width)
     depth = out_depth.numpy().reshape(height, width)
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
@@ -1449,7 +1724,8 @@ def _points(name: str, a: object, k: int) -> np.ndarray:
 
 
 def rasterize(positions: object, triangles: object, view: object, proj: object, width: int, height: int,
-              *, cull_back: bool = False, counters: bool = False, device: str = "cpu") -> Fragments:
+              *, cull_back: bool = False, counters: bool = False, checked: bool = False,
+              device: str = "cpu") -> Fragments:
     """Rasterize a triangle mesh with any matrices (no assumption about which axis is up).
 
     Args:
@@ -1461,35 +1737,53 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
         cull_back: drop clockwise (back-facing) triangles, as ``glEnable(GL_CULL_FACE)``.
         counters: also return the draw's pipeline statistics (:attr:`Fragments.counters`); the images are the
             same either way.
+        checked: the caller vouches that ``triangles`` is a C-contiguous (m, 3) int32 array of indices into
+            ``positions`` and that ``positions`` is float32 and finite, as the meshes :func:`terrainwarp.render`
+            makes itself are: their values are not scanned again (shapes and dtypes still are). A mesh that
+            breaks this gives undefined results.
 
     Returns:
         :class:`Fragments`. Deterministic: bit-identical on every run and for any thread count.
     """
     pos = _points("positions", positions, 3)
-    tri = check_triangles("triangles", triangles, len(pos))
+    checked = check_bool("checked", checked)
+    tri = check_triangles("triangles", triangles, None if checked else len(pos), scan=not checked)
     width, height = check_viewport(width, height)
     counters = check_bool("counters", counters)
-    clip = _transform(pos, view, proj, device)
-    return _rasterize_clip(clip, tri, width, height, cull_back, device, counters)
+    clip, win = _transform(pos, view, proj, device, width, height, finite=checked)
+    return _rasterize_clip(clip, win, tri, width, height, cull_back, device, counters)
 
 
-def _transform(pos: np.ndarray, view: object, proj: object, device: str) -> wp.array:
+def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: int = 1, height: int = 1,
+               finite: bool = False) -> tuple[wp.array, wp.array]:
+    """The vertices' clip coordinates and window positions (:func:`_vertex_kernel`); ``finite``: the positions
+    are known to be finite."""
     pos32 = np.ascontiguousarray(pos, dtype=np.float32)
-    if not np.all(np.isfinite(pos32)):
+    if not finite and not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
     clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
-    if len(pos32):
-        launch(_vertex_kernel, len(pos32), [as_warp(pos32, wp.vec3, device), wp.mat44(*mvp.reshape(-1).tolist())],
-               [clip], device, min_items=_MIN_VERTICES)
-    return clip
+    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp)
+
+
+def _vertices(clip: wp.array, n: int, width: int, height: int, device: str, pos: wp.array | None = None,
+              mvp: np.ndarray | None = None) -> wp.array:
+    """The window positions of ``n`` vertices (:func:`_vertex_kernel`; with ``pos`` and ``mvp`` their clip
+    coordinates too, into ``clip``)."""
+    win = pooled_rows_array(max(n, 1), wp.vec4, device)
+    if n:
+        mat = wp.mat44(*mvp.reshape(-1).tolist()) if mvp is not None else wp.mat44()
+        launch(_vertex_kernel, n, [pos if pos is not None else wp.empty(1, dtype=wp.vec3, device=device), mat,
+                                   int(pos is not None), width, height, _guard_band(width, height)], [clip, win],
+               device, min_items=_MIN_VERTICES)
+    return win
 
 
 def clip_coordinates(positions: object, view: object, proj: object, *, device: str = "cpu") -> np.ndarray:
     """The clip-space vertices :func:`rasterize` computes: (n, 4) float32 ``(proj @ view) @ (p, 1)``,
     with the product of the matrices rounded to float32 first, as a vertex shader's uniform would be."""
     pos = _points("positions", positions, 3)
-    return _transform(pos, view, proj, device).numpy()[: len(pos)].reshape(-1, 4)
+    return _transform(pos, view, proj, device)[0].numpy()[: len(pos)].reshape(-1, 4)
 
 
 def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, cull_back: bool = False,
@@ -1513,4 +1807,5 @@ def rasterize_clip(clip: object, triangles: object, width: int, height: int, *, 
     if not np.all(np.isfinite(c32)):
         raise ValueError("clip: expected finite coordinates")
     clip_wp = wp.array(c32 if len(c32) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
-    return _rasterize_clip(clip_wp, tri, width, height, cull_back, device, counters)
+    win = _vertices(clip_wp, len(c32), width, height, device)
+    return _rasterize_clip(clip_wp, win, tri, width, height, cull_back, device, counters)

@@ -598,7 +598,8 @@ def _draw_counters(mesh: Mesh, device: str) -> dict[str, int]:
 def _stage_raster(run: _Run, rec: StageRecord) -> None:
     frame, cam, mesh = run.frame, run.cam, run.frame.mesh
     frags = rasterize(mesh.positions, mesh.triangles, cam.view_matrix(relative=True), cam.proj_matrix(),
-                      cam.width, cam.height, cull_back=run.scene.cull_back, counters=run.counting, device=run.device)
+                      cam.width, cam.height, cull_back=run.scene.cull_back, counters=run.counting,
+                      checked=run.kind in ("lod", "grid"), device=run.device)  # meshes made here are valid
     rec.counters.update(frags.stats)
     run.raster_counters = frags.counters
     # the perspective-correct barycentric image (computed on first access) is part of the visibility pass

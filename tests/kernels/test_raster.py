@@ -310,6 +310,18 @@ def test_bad_input_is_rejected_with_the_argument_named():
         rasterize_clip(np.zeros((3, 3), np.float32), tri, 8, 8)
     with pytest.raises(ValueError, match="positions"):
         rasterize(np.full((3, 3), np.nan, np.float32), tri, I4, I4, 8, 8)
+    with pytest.raises(TypeError, match="checked"):
+        rasterize(pos, tri, I4, I4, 8, 8, checked=1)
+    with pytest.raises(TypeError, match="triangles"):  # a mesh vouched for still has its dtype checked
+        rasterize(pos, tri.astype(np.float32), I4, I4, 8, 8, checked=True)
+
+
+def test_a_mesh_vouched_for_is_drawn_as_a_checked_one():
+    """``checked=True`` (the meshes render makes) skips the scans of the indices and positions, nothing else."""
+    pos, tri, cam = terrain_frame(rows=40, width=96, height=64)
+    args = (pos, tri, cam.view_matrix(relative=True), cam.proj_matrix(), cam.width, cam.height)
+    a, b = rasterize(*args, counters=True), rasterize(*args, counters=True, checked=True)
+    assert frame_hash(a) == frame_hash(b) and a.stats == b.stats and a.counters == b.counters
 
 
 def test_one_pixel_viewport(device):
@@ -556,6 +568,36 @@ def test_the_way_cuda_draws_gives_the_cpus_frames(monkeypatch):
             assert _same(a, b) and got.counters == want[name].counters, name
     finally:
         parallel.set_min_items(None)
+
+
+@pytest.mark.parametrize("cull_back", [False, True])
+def test_the_cpus_simd_binning_gives_the_per_triangle_paths_frames(monkeypatch, cull_back):
+    """Triangles in no order that meet every case of the CPU's 16-lane binning (boxes with no centre, tiny boxes
+    with and without a covered centre, boxes up to 4x4 and larger, zero-area, clockwise, all beyond one clip plane,
+    clipped, behind the camera, large) give the ids, depth, barycentrics, stats and counters of the per-triangle
+    binning CUDA runs (the drawing way without scratch tiles, which bins one triangle at a time)."""
+    from terrainwarp.kernels import raster
+
+    w, h, n = 150, 110, 3000
+    rng = np.random.default_rng(11)
+    centre = rng.uniform([-25, -25], [w + 25, h + 25], (n, 1, 2))
+    size = rng.choice([0.2, 0.6, 1.5, 3.0, 8.0, 40.0], (n, 1, 1))  # sub-pixel up to large
+    xy = (centre + rng.normal(0.0, 1.0, (n, 3, 2)) * size).reshape(-1, 2)
+    xy[1::3][::29] = xy[0::3][::29]  # zero-area: two vertices at one point
+    xy[: 3 * n // 2] = np.round(xy[: 3 * n // 2] * 2.0) / 2.0  # half of them on half pixels: edges through centres
+    clip = window_to_clip(xy, w, h, rng.uniform(-1.15, 1.15, len(xy)))
+    clip *= rng.uniform(0.5, 2.0, (len(clip), 1))  # the same window positions at other w
+    clip[2::3][::53] *= -1.0  # a vertex behind the camera
+    tri = np.arange(3 * n, dtype=np.int32).reshape(-1, 3)
+    simd = rasterize_clip(clip, tri, w, h, cull_back=cull_back, counters=True)
+    monkeypatch.setattr(raster, "_SCRATCH", False)
+    one = rasterize_clip(clip, tri, w, h, cull_back=cull_back, counters=True)
+    a, b = _result(simd), _result(one)
+    a[3].pop("fragments_tested"), b[3].pop("fragments_tested")  # the centres each way evaluates
+    assert _same(a, b) and simd.counters == one.counters
+    assert simd.stats["pixels_written"] == one.stats["pixels_written"]
+    s = simd.stats  # large triangles binned, others rejected or dropped, pixels drawn over
+    assert s["triangles_binned"] > 0 and s["triangles_rasterized"] < n and s["pixels_written"] > s["pixels_covered"]
 
 
 @pytest.mark.parametrize("scratch", [True, False])
