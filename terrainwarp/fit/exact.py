@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..kernels.parallel import threads
+from ..kernels.parallel import started, threads
 from ..lod.quadtree import LodState, Terrain
 from ..measure.cost import Cost
 from ..rendering.pipeline import Frame, pop_stats, render
@@ -240,6 +240,7 @@ def _ahead(draw: Callable[[int, bool], Frame], jobs: list[tuple[int, bool]]) -> 
     whichever thread draws it (the kernels' outputs do not depend on the threads)."""
     if threads() < 2 or len(jobs) < 1:
         return {}
+    started()  # Warp's runtime up before the threads launch kernels side by side
     pool = _FRAMES.get("pool")
     if pool is None or _FRAMES.get("pid") != os.getpid():
         pool = _FRAMES["pool"] = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="terrainwarp-frame")
