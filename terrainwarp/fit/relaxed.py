@@ -67,6 +67,7 @@ from .relaxed_tree import balance_maps, forces, inside_counts, node_of, subset, 
 from .search import Prediction
 
 __all__ = ["soft_quantile", "sorted_pairs", "QuadtreeModel", "QuadtreeSpec", "hard_percentile", "hard_percentiles",
+           "HARD_SAMPLES", "hard_probes",
            "bucket", "knob_arrays", "relaxed_values", "PaddedModel", "CountTable", "relaxed_call", "pad_to",
            "camera_mask"]
 
@@ -75,6 +76,10 @@ LOG_FLOOR = math.log(FLOOR_PX)  # the log error of a camera that sees no sample
 PAD_LOGV = 30.0  # the padding's log error: it sorts after every real pair (errors are clipped to 1e6 px)
 MIN_PAIRS = 256  # the fewest samples a camera's relaxed pairs are padded to
 HARD_MEMO = 4096  # the hard predictions a model keeps
+#: the most kept samples of a camera the hard model reads (a deterministic subset beyond,
+#: :meth:`terrainwarp.fit.probe.CameraProbe.subset`): its p99 then costs the same on any terrain. No camera of the
+#: bundled DEM's paths keeps more (at most 29,924 at 960x540); on a 4097^2 fBm one keeps up to 2^20
+HARD_SAMPLES = 1 << 16
 
 
 # ------------------------------------------------------------------------------------------------
@@ -129,6 +134,12 @@ def soft_quantile(logv: jnp.ndarray, w: jnp.ndarray, q: float = Q, n: Any = None
     dens = jax.lax.stop_gradient(jnp.maximum((cws[hi] - cws[lo]) / jnp.maximum(cws[-1], 1e-30), 1e-6) / span)
     frac = cw[k] / total
     return jnp.where(cws[-1] > 0, q0 - (frac - jax.lax.stop_gradient(frac)) / dens, LOG_FLOOR)
+
+
+def hard_probes(probes: Sequence[CameraProbe], n: int = HARD_SAMPLES) -> list[tuple[CameraProbe, np.ndarray]]:
+    """Each camera's probe as the hard model reads it: at most ``n`` of its kept samples (the deterministic subset
+    of :meth:`CameraProbe.subset`), with their indices among the kept ones."""
+    return [(p.subset(n), subset(len(p.rows), n)) for p in probes]
 
 
 def hard_percentile(values: np.ndarray, q: float = 99.0) -> float:
@@ -347,6 +358,7 @@ class QuadtreeModel(PaddedModel):
         config: knob values (fitted and fixed) -> the configuration they draw (:func:`terrainwarp.fit.apply`).
         weights: the cost's weights on :data:`FEATURES` (:func:`cost_weights`).
         relaxed_samples: the pairs the relaxed percentile reads per camera (a deterministic subset).
+        hard_samples: the samples the hard model reads per camera (:data:`HARD_SAMPLES`).
         pops: with them, the model also predicts each consecutive pair's pop p99 (the selection of the camera
             before held, drawn for the camera): the relaxed model weighs each pair of levels by the probability
             that the sample is drawn at one then at the other; the hard one reads each sample's two levels.
@@ -362,7 +374,8 @@ class QuadtreeModel(PaddedModel):
     weights: Mapping[str, float]
     relaxed_samples: int = 1 << 13
     device: str = "cpu"
-    pops: list[np.ndarray] | None = None  # :func:`terrainwarp.fit.probe.pop_pairs`: the pop constraint's probes
+    pops: list[np.ndarray] | None = None
+    hard_samples: int = HARD_SAMPLES  # :func:`terrainwarp.fit.probe.pop_pairs`: the pop constraint's probes
 
     # -- the data both models read ------------------------------------------------------------------
     @cached_property
@@ -512,8 +525,9 @@ class QuadtreeModel(PaddedModel):
         p99 = hard_percentiles(err.reshape(-1)[flat], ok & (now >= 0))
         pops = None
         if self.pops is not None:
+            keep = [k for _, k in self._hard_probes]
             pops = np.asarray([hard_percentile(self._pop_of(self._levels_of(pls[c - 1], nodes[c])[ok[c]],
-                                                            now[c][ok[c]], self.pops[c - 1]))
+                                                            now[c][ok[c]], self.pops[c - 1][:, keep[c]]))
                                for c in range(1, len(pls))])
         return Prediction(np.asarray(costs), p99, pops)
 
@@ -530,16 +544,21 @@ class QuadtreeModel(PaddedModel):
         (C, V) bool."""
         t, R = self.terrain, self.terrain.depth + 1
         offset = np.concatenate([[0], np.cumsum(self._sizes[0])[:-1]]).astype(np.int64)
-        v = max(max(len(p.rows) for p in self.probes), 1)
-        nodes = np.zeros((len(self.probes), R, v), np.int64)
-        err = np.ones((len(self.probes), R, v), np.float32)
-        ok = np.zeros((len(self.probes), v), bool)
-        for c, p in enumerate(self.probes):
+        probes = [p for p, _ in self._hard_probes]
+        v = max(max(len(p.rows) for p in probes), 1)
+        nodes = np.zeros((len(probes), R, v), np.int64)
+        err = np.ones((len(probes), R, v), np.float32)
+        ok = np.zeros((len(probes), v), bool)
+        for c, p in enumerate(probes):
             n = len(p.rows)
             nodes[c, :, :n] = np.stack([node_of(p.rows, p.cols, t, L, self._inside[L]) + offset[L] for L in range(R)])
             err[c, :, :n] = p.err
             ok[c, :n] = True
         return nodes, err, ok
+
+    @cached_property
+    def _hard_probes(self) -> list[tuple[CameraProbe, np.ndarray]]:
+        return hard_probes(self.probes, self.hard_samples)
 
     @cached_property
     def _offsets(self) -> np.ndarray:

@@ -35,12 +35,14 @@ from ..scene import LodConfig
 from .knobs import Knob
 from .probe import CameraProbe
 from .relaxed import (
+    HARD_SAMPLES,
     MIN_PAIRS,
     PAD_LOGV,
     PaddedModel,
     bucket,
     camera_mask,
     hard_percentiles,
+    hard_probes,
     knob_arrays,
     pad_to,
     relaxed_values,
@@ -133,6 +135,7 @@ class CdlodModel(PaddedModel):
         scheme: the :class:`terrainwarp.lod.cdlod.Cdlod` of this grid (its pyramids; the knobs set per setting).
         probes: per camera, one resolution per LOD 0 (finest) .. levels - 1, unmorphed.
         knobs: the fitted continuous knobs among ``first_range``, ``ratio``, ``morph_start_ratio``.
+        hard_samples: the samples the hard model reads per camera (:data:`terrainwarp.fit.relaxed.HARD_SAMPLES`).
     """
 
     scheme: Cdlod
@@ -144,6 +147,7 @@ class CdlodModel(PaddedModel):
     weights: Mapping[str, float]
     relaxed_samples: int = 1 << 13
     device: str = "cpu"
+    hard_samples: int = HARD_SAMPLES
 
     @property
     def levels(self) -> int:
@@ -235,12 +239,13 @@ class CdlodModel(PaddedModel):
         are not one ancestor line: then ``nodes`` (C, D+1, V), its node per level, is read instead), its eye
         distance (C, V) float32, the flat index of its error at LOD 0 in ``err`` (C, V), ``err`` (C, R, V) float32,
         and which samples are real (C, V) bool."""
-        depth, C, parents = self.scheme.terrain.depth, len(self.probes), self._tree["parent"]
-        v = max(max(len(p.rows) for p in self.probes), 1)
+        probes = [p for p, _ in hard_probes(self.probes, self.hard_samples)]
+        depth, C, parents = self.scheme.terrain.depth, len(probes), self._tree["parent"]
+        v = max(max(len(p.rows) for p in probes), 1)
         nodes = np.zeros((C, depth + 1, v), np.int64)
         dist, ok = np.zeros((C, v), np.float32), np.zeros((C, v), bool)
         err = np.ones((C, self.levels, v), np.float32)
-        for c, p in enumerate(self.probes):
+        for c, p in enumerate(probes):
             n = len(p.rows)
             nodes[c, :, :n] = np.stack([self._node_of(p.rows, p.cols, lvl) for lvl in range(depth + 1)])
             dist[c, :n], err[c, :, :n], ok[c, :n] = p.dist, p.err, True
