@@ -21,11 +21,13 @@ from ..camera import Camera
 from ..lod.cdlod import CdlodSelection
 from ..lod.quadtree import PatchList, Terrain, uniform_patches
 from ..measure.cost import Cost
+from ..mesh import Mesh
 from ..rendering.pipeline import Frame, render
 from ..rendering.sources import scene_source
 from ..scene import POLICY_TABLE, Scene
 from .exact import prepared, references_for
 from .jaxrt import use_cache
+from .ladder import ladder_surfaces
 from .knobs import LEVEL_SCALE, Knob, apply, knobs, values_of
 from .probe import Sight, pop_pairs, probe_cameras, sight, surfaces_of
 from .search import Calibration, Candidate
@@ -205,14 +207,17 @@ def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame],
         patches = continuous_patches(terrain, cams, level, device)
         seen = np.unique(np.concatenate([pl.key for pl in patches])) if patches else np.zeros(0, np.int64)
         ladder = factor_ladder(terrain, level)
-        meshes = []
-        for f in ladder:
-            pl = uniform_patches(terrain, level, float(f))
-            pl = _touching(_subset(pl, np.isin(pl.key, seen)), at)
-            meshes.append(render(base.with_(camera=cams[0], outputs=("mesh",)), terrain, patches=pl,
-                                 device=device).mesh)
-        probes = probe_cameras(scene.heightmap, cams, refs, surfaces_of(scene.heightmap, meshes, at, device), at,
-                               device=device)
+
+        def rung(f: float, level=level, base=base, terrain=terrain, seen=seen) -> Mesh:
+            pl = uniform_patches(terrain, level, f)
+            return render(base.with_(camera=cams[0], outputs=("mesh",)), terrain,
+                          patches=_touching(_subset(pl, np.isin(pl.key, seen)), at), device=device).mesh
+
+        pl = uniform_patches(terrain, level)
+        pl = _touching(_subset(pl, np.isin(pl.key, seen)), at)
+        surfaces = ladder_surfaces(scene.heightmap, pl, ladder, at, cams[0].position, base.lod.spacing,
+                                   base.lod.filter, rung, device)
+        probes = probe_cameras(scene.heightmap, cams, refs, surfaces, at, device=device)
         model = ContinuousModel(terrain, cams, probes, ladder, patches, [prob.knob("target_px")], fixed,
                                 lambda v, p=prob: p.make(v).lod, weights, device=device)
         model.prepare()

@@ -499,8 +499,11 @@ class QuadtreeModel(PaddedModel):
         return {"node": node, "logv": logv, "idx": idx, "mask": mask, "npairs": np.int32((P + 1) * v)}
 
     def prepare(self) -> None:
-        """Build what the relaxed and the hard model read (otherwise built on first use)."""
-        _ = self.data, self._hard_data, self._leaf_map
+        """Build what the hard model reads, and the relaxed model's data where there is more than one knob (a
+        one-knob model is fitted on its hard line alone); what is not built here is built on first use."""
+        _ = self._hard_data, self._leaf_map
+        if len(self.knobs) > 1:
+            _ = self.data
 
     # -- the hard model -----------------------------------------------------------------------------
     def predict(self, values: Mapping[str, float]) -> Prediction:

@@ -221,8 +221,11 @@ class CdlodModel(PaddedModel):
                                         + w.get("vertices", 0.0) * (g / 2 + 1) ** 2 + w.get("draw_calls", 0.0))}
 
     def prepare(self) -> None:
-        """Build what the relaxed and the hard model read (otherwise built on first use)."""
-        _ = self.data, self._hard_tree, self._hard_samples
+        """Build what the hard model reads, and the relaxed model's data where there is more than one knob (a
+        one-knob model is fitted on its hard line alone); what is not built here is built on first use."""
+        _ = self._hard_tree, self._hard_samples
+        if len(self.knobs) > 1:
+            _ = self.data
 
     # -- the hard model -----------------------------------------------------------------------------
     @cached_property

@@ -184,8 +184,11 @@ class ContinuousModel(PaddedModel):
                                 np.float32), "cmask": camera_mask(len(subs)), **knob_arrays(self.knobs)}
 
     def prepare(self) -> None:
-        """Build what the relaxed and the hard model read (otherwise built on first use)."""
-        _ = self.data, self._hard_samples
+        """Build what the hard model reads, and the relaxed model's data where there is more than one knob (a
+        one-knob model is fitted on its hard line alone); what is not built here is built on first use."""
+        _ = self._hard_samples
+        if len(self.knobs) > 1:
+            _ = self.data
 
     @cached_property
     def _hard_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
