@@ -103,6 +103,15 @@ class Problem:
     def make(self, values: Mapping[str, float]) -> Scene:
         return apply(self.scene, self.policy, values)
 
+    def coarseness(self, values: Mapping[str, float]) -> float:
+        """How far toward its coarse end the main knob of ``values`` is: its unit coordinate, turned where a
+        larger value is finer (0 for a knob that is neither, or absent)."""
+        main = self.knob(self.names[0])
+        if main.coarser_up is None or main.name not in values:
+            return 0.0
+        u = main.to_unit(float(values[main.name]))
+        return u if main.coarser_up else 1.0 - u
+
 
 def problem(scene: Scene, policy: str, names: Sequence[str] | str | None, cams: list[Camera], refs: list[Frame],
             cost_of: Cost | None, *, device: str = "cpu", cache: dict | None = None, models: bool = True,
