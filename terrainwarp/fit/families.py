@@ -27,8 +27,8 @@ from ..rendering.sources import scene_source
 from ..scene import POLICY_TABLE, Scene
 from .exact import prepared, references_for
 from .jaxrt import use_cache
-from .ladder import ladder_surfaces
 from .knobs import LEVEL_SCALE, Knob, apply, knobs, values_of
+from .ladder import ladder_surfaces
 from .probe import Sight, pop_pairs, probe_cameras, sight, surfaces_of
 from .search import Calibration, Candidate
 from .timings import say
