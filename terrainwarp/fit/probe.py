@@ -4,13 +4,21 @@ drawn at each resolution a family can draw it at; measured once, before a fit tr
 This is Martini's shape (the error map is computed once, independent of the threshold, so selecting for a new
 threshold is cheap) carried to the screen: for a quadtree with patches of T segments, resolution L is the surface
 every level-L patch draws (:func:`terrainwarp.lod.quadtree.uniform_patches`); for CDLOD, a LOD's unmorphed grid;
-for the continuous policy, the level's patches at one uniform fractional factor. The surface of each resolution
-is made once per heightmap (``render`` of that uniform selection, then
-:func:`terrainwarp.measure.sample_error.surface_heights`); each camera then measures it with the primary error's
-own kernel (:func:`terrainwarp.kernels.sample_error.sample_displacement`: the same projection and the same
-visibility against the camera's full-detail depth). A setting's frame draws each sample at one resolution (its
-leaf's), so its error map is read off the probes; edge factors toward finer neighbours, CDLOD's morph and the
-2:1 balance are what the models leave out (:mod:`terrainwarp.fit.relaxed`), and the fit's exact tries calibrate.
+for the continuous policy, the level's patches at one uniform fractional factor. A setting's frame draws each
+sample at one resolution (its leaf's), so its error map is read off the probes; edge factors toward finer
+neighbours, CDLOD's morph and the 2:1 balance are what the models leave out (:mod:`terrainwarp.fit.relaxed`), and
+the fit's exact tries calibrate.
+
+Work in proportion to what the cameras see: one pass a camera over the heightmap finds the samples it sees
+(:func:`sight`: in view, passing its full-detail depth test); a resolution's surface is drawn only from the
+patches (quadrants) that may hold one of them (``render`` of that part of the uniform selection) and evaluated at
+those samples alone (:func:`terrainwarp.kernels.sample_error.surface_at`); each camera measures it at its own
+samples with the primary error's kernel (:func:`terrainwarp.kernels.sample_error.displacement_at`: the same
+projection and the same visibility against the camera's full-detail depth as
+:func:`terrainwarp.kernels.sample_error.sample_displacement`). The probes are those of drawing and measuring the
+whole grid, bit for bit: a sample takes the lowest-numbered triangle that holds it, and the patches left out hold
+none of the samples measured. The continuous policy's rungs are placed at the samples without tessellating every
+patch (:mod:`terrainwarp.fit.ladder`), to the same bits.
 
 Measured on the bundled DEM (8 cameras of the ground path, 960x540, sse, T = 16): the probes' p99 per camera is
 within 1% of the exact frame's at tolerances 0.5-4 px; at T = 1 (two triangles a patch, where doubled edges touch

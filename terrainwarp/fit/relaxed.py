@@ -40,7 +40,8 @@ Padded cameras see nothing (cost 0, error at the floor), padded nodes are invisi
 **The hard model** reads the real selection (:func:`terrainwarp.lod.select`, one launch a camera) and works on
 every camera at once in numpy: each kept sample's node at each level is found once, a patch's counts are read
 off a table of the factor rows seen before (:func:`terrainwarp.kernels.tessellator.count_patches` on the rows
-new to it), and the percentile is numpy's, camera by camera.
+new to it), and the percentile is numpy's, camera by camera, over at most :data:`HARD_SAMPLES` of a camera's kept
+samples (a fixed subset beyond: its cost does not grow with the terrain).
 """
 
 from __future__ import annotations
