@@ -15,6 +15,7 @@ from terrainwarp.fit import ladder as ladder_mod
 from terrainwarp.fit.exact import Evaluation, Exact, prepared, references_for
 from terrainwarp.fit.families import _subset, _touching, problem
 from terrainwarp.fit.probe import FLOOR_PX, probe_cameras, sight, surfaces_of
+from terrainwarp.fit.relaxed import hard_percentile
 from terrainwarp.fit.relaxed_continuous import continuous_patches
 from terrainwarp.kernels import sample_error as k
 from terrainwarp.lod.quadtree import Terrain, uniform_patches
@@ -136,3 +137,27 @@ def test_a_fit_on_a_cost_plateau_tries_the_range_end_and_stops():
     assert tries[-1]["values"][main] == pytest.approx(64.0)  # the knob's coarse end, tried after the plateau
     assert len({round(h["cost"], 6) for h in tries[-2:]}) == 1 and len(tries) <= 6
     assert r.binding["kind"] == "knob_limit" and math.isfinite(r.validated.cost)
+
+
+def test_the_hard_percentile_is_numpys_to_the_bit():
+    rng = np.random.default_rng(1)
+    for trial in range(400):
+        n = int(rng.integers(1, 4000))
+        dtype = np.float32 if trial % 2 else np.float64
+        v = (rng.lognormal(0.0, rng.uniform(0.1, 4.0), n) * 10 ** rng.uniform(-3, 3)).astype(dtype)
+        if trial % 5 == 0:
+            v = np.round(v, 1).astype(dtype)  # ties
+        v[rng.random(n) < 0.01] = np.nan  # left out, as numpy's percentile of the finite values
+        want = float(np.percentile(v[np.isfinite(v)], 99)) if np.isfinite(v).any() else 0.0
+        assert hard_percentile(v) == want
+    assert hard_percentile(np.array([np.nan])) == 0.0 and hard_percentile(np.array([3.5], np.float32)) == 3.5
+
+
+def test_the_quadtree_hard_model_reads_leaf_levels_down_the_tree_as_level_by_level(scene):
+    sc, cams, refs = scene
+    m = problem(sc, "sse", ["level_log_scale_1"], cams, refs, None).cands[0].model
+    by_level = dataclasses.replace(m)
+    by_level.__dict__["_lines"] = [None] * len(cams)
+    assert any(line is not None for line in m._lines)
+    for v in ({"tolerance_px": 0.7, "level_log_scale_1": 1.0}, {"tolerance_px": 3.0, "level_log_scale_1": -1.5}):
+        np.testing.assert_array_equal(m.predict(v).p99_px, by_level.predict(v).p99_px)
