@@ -101,7 +101,7 @@ def run_problem(name: str, hm: Heightmap, budget: float, args, refs_cache: dict)
             prob = problem(scene, policy, names if method != "bisection" else None, cams, refs, cost_of,
                            models=False)
             ex = Exact(prob.make, prob.key, cams, refs, budget, pop, cost_of, terrains=dict(prob.terrains),
-                       started=t0)
+                       started=t0, coarseness=prob.coarseness)
             if method == "bisection":
                 baselines.bisection(ex, prob)
             else:

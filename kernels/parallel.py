@@ -148,6 +148,13 @@ def _same_process() -> None:
         _state.update(pool=None, pool_size=0, default=None, pid=os.getpid())
 
 
+def started() -> None:
+    """Start Warp's runtime on this thread, once (``wp.init()``; nothing once it runs). Call it before threads
+    that launch kernels start together: Warp's start marks every kernel module modified, and a module being
+    loaded on another thread at that moment fails (``KeyError`` in ``Module.load``)."""
+    wp.init()
+
+
 def _pool(n: int) -> ThreadPoolExecutor:
     with _lock:
         _same_process()

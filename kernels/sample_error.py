@@ -198,6 +198,16 @@ def _cover_kernel(
                 atomic_min_i32(out_tri, i, j, t)  # a true atomic: chunks run on several threads
 
 
+@wp.func
+def _surface_y(t: int, pos: wp.array(dtype=wp.vec3), tris: wp.array2d(dtype=wp.int32), eye_shift: wp.vec3d,
+               rel_origin: wp.vec3, dx: float, dz: float, i: int, j: int) -> wp.float64:
+    """The height of triangle t's plane above sample (i, j) (NaN for NONE)."""
+    if t == NONE:
+        return wp.float64(wp.nan)
+    return _plane_y(_vertex(pos, tris[t, 0], eye_shift), _vertex(pos, tris[t, 1], eye_shift),
+                    _vertex(pos, tris[t, 2], eye_shift), _sample_xz(rel_origin, dx, dz, i, j))
+
+
 @wp.kernel(enable_backward=False)
 def _surface_kernel(
     offset: int,
@@ -213,12 +223,68 @@ def _surface_kernel(
 ):
     i, j = wp.tid()
     i += offset
+    out_y[i, j] = _surface_y(cover[i, j], pos, tris, eye_shift, rel_origin, dx, dz, i, j)
+
+
+@wp.kernel(enable_backward=False)
+def _surface_list_kernel(
+    offset: int,
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    cover: wp.array2d(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec3),
+    tris: wp.array2d(dtype=wp.int32),
+    eye_shift: wp.vec3d,
+    rel_origin: wp.vec3,
+    dx: float,
+    dz: float,
+    # outputs
+    out_y: wp.array(dtype=wp.float64),
+    out_tri: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    i = rows[k]
+    j = cols[k]
     t = cover[i, j]
-    if t == NONE:
-        out_y[i, j] = wp.float64(wp.nan)
-        return
-    out_y[i, j] = _plane_y(_vertex(pos, tris[t, 0], eye_shift), _vertex(pos, tris[t, 1], eye_shift),
-                           _vertex(pos, tris[t, 2], eye_shift), _sample_xz(rel_origin, dx, dz, i, j))
+    out_tri[k] = t
+    out_y[k] = _surface_y(t, pos, tris, eye_shift, rel_origin, dx, dz, i, j)
+
+
+@wp.func
+def _displace_sample(hv: wp.float32, a_in: wp.float64, b: wp.float64, use_sample: int, p: wp.vec2d,
+                     depth: wp.array2d(dtype=wp.float32), rel_origin: wp.vec3, mvp: wp.mat44d, near: wp.float64,
+                     far: wp.float64, width: int, height: int) -> wp.vec3d:
+    """(error px: NaN unless VISIBLE, +inf behind the eye; state; pixel index or -1) of the sample at (x, z) = p
+    with height hv, between (x, a_in, z) (or the sample itself with ``use_sample``) and (x, b, z)."""
+    nan = wp.float64(wp.nan)
+    if wp.isnan(hv):
+        return wp.vec3d(nan, wp.float64(NO_DATA), wp.float64(-1.0))
+    py = wp.float64(hv - rel_origin[1])  # float32, as grid_mesh's vertex
+    s = to_window(mvp, wp.vec3d(p[0], py, p[1]), width, height)
+    if not (s[3] > wp.float64(0.0) and s[2] >= -s[3] and s[2] <= s[3] and s[0] >= wp.float64(0.0)
+            and s[1] >= wp.float64(0.0) and s[0] < wp.float64(width) and s[1] < wp.float64(height)):
+        return wp.vec3d(nan, wp.float64(OUTSIDE), wp.float64(-1.0))
+    col = wp.min(int(wp.floor(s[0])), width - 1)
+    row = height - 1 - wp.min(int(wp.floor(s[1])), height - 1)
+    d = depth[row, col]
+    if d < wp.float32(1.0):  # background: nothing in front of the sample
+        dref = _view_depth(d, near, far)
+        # the tolerance is >= 0: a sample no deeper than the buffer passes without it (same result)
+        if s[3] > dref and s[3] > dref + _depth_tolerance(depth, row, col, dref, near, far):
+            return wp.vec3d(nan, wp.float64(HIDDEN), wp.float64(-1.0))
+    pix = wp.float64(row * width + col)
+    a = py
+    if use_sample == 0:
+        a = a_in
+    if wp.isnan(a) or wp.isnan(b):
+        return wp.vec3d(nan, wp.float64(MISSING), pix)
+    pa = to_window(mvp, wp.vec3d(p[0], a, p[1]), width, height)
+    pb = to_window(mvp, wp.vec3d(p[0], b, p[1]), width, height)
+    if pa[3] > wp.float64(0.0) and pb[3] > wp.float64(0.0):
+        ex = pa[0] - pb[0]
+        ey = pa[1] - pb[1]
+        return wp.vec3d(wp.sqrt(ex * ex + ey * ey), wp.float64(VISIBLE), pix)
+    return wp.vec3d(wp.float64(wp.inf), wp.float64(VISIBLE), pix)  # a surface point behind the eye: unbounded
 
 
 @wp.kernel(enable_backward=False)
@@ -244,45 +310,42 @@ def _displacement_kernel(
 ):
     i, j = wp.tid()
     i += offset
-    out_err[i, j] = wp.float64(wp.nan)
-    out_pix[i, j] = -1
-    hv = h[i, j]
-    if wp.isnan(hv):
-        out_state[i, j] = NO_DATA
-        return
-    p = _sample_xz(rel_origin, dx, dz, i, j)
-    py = wp.float64(hv - rel_origin[1])  # float32, as grid_mesh's vertex
-    s = to_window(mvp, wp.vec3d(p[0], py, p[1]), width, height)
-    if not (s[3] > wp.float64(0.0) and s[2] >= -s[3] and s[2] <= s[3] and s[0] >= wp.float64(0.0)
-            and s[1] >= wp.float64(0.0) and s[0] < wp.float64(width) and s[1] < wp.float64(height)):
-        out_state[i, j] = OUTSIDE
-        return
-    col = wp.min(int(wp.floor(s[0])), width - 1)
-    row = height - 1 - wp.min(int(wp.floor(s[1])), height - 1)
-    d = depth[row, col]
-    if d < wp.float32(1.0):  # background: nothing in front of the sample
-        dref = _view_depth(d, near, far)
-        # the tolerance is >= 0: a sample no deeper than the buffer passes without it (same result)
-        if s[3] > dref and s[3] > dref + _depth_tolerance(depth, row, col, dref, near, far):
-            out_state[i, j] = HIDDEN
-            return
-    out_pix[i, j] = row * width + col
-    a = py
-    if use_sample == 0:
-        a = ya[i, j]
-    b = yb[i, j]
-    if wp.isnan(a) or wp.isnan(b):
-        out_state[i, j] = MISSING
-        return
-    out_state[i, j] = VISIBLE
-    pa = to_window(mvp, wp.vec3d(p[0], a, p[1]), width, height)
-    pb = to_window(mvp, wp.vec3d(p[0], b, p[1]), width, height)
-    if pa[3] > wp.float64(0.0) and pb[3] > wp.float64(0.0):
-        ex = pa[0] - pb[0]
-        ey = pa[1] - pb[1]
-        out_err[i, j] = wp.sqrt(ex * ex + ey * ey)
-    else:
-        out_err[i, j] = wp.float64(wp.inf)  # a surface point behind the eye: unbounded on screen
+    r = _displace_sample(h[i, j], ya[i, j], yb[i, j], use_sample, _sample_xz(rel_origin, dx, dz, i, j), depth,
+                         rel_origin, mvp, near, far, width, height)
+    out_err[i, j] = r[0]
+    out_state[i, j] = int(r[1])
+    out_pix[i, j] = int(r[2])
+
+
+@wp.kernel(enable_backward=False)
+def _displacement_list_kernel(
+    offset: int,
+    rows: wp.array(dtype=wp.int32),
+    cols: wp.array(dtype=wp.int32),
+    h: wp.array2d(dtype=wp.float32),
+    ya: wp.array(dtype=wp.float64),
+    yb: wp.array(dtype=wp.float64),
+    use_sample: int,
+    depth: wp.array2d(dtype=wp.float32),
+    rel_origin: wp.vec3,
+    dx: float,
+    dz: float,
+    mvp: wp.mat44d,
+    near: wp.float64,
+    far: wp.float64,
+    width: int,
+    height: int,
+    # outputs
+    out_err: wp.array(dtype=wp.float64),
+    out_state: wp.array(dtype=wp.int32),
+):
+    k = wp.tid() + offset
+    i = rows[k]
+    j = cols[k]
+    r = _displace_sample(h[i, j], ya[k], yb[k], use_sample, _sample_xz(rel_origin, dx, dz, i, j), depth,
+                         rel_origin, mvp, near, far, width, height)
+    out_err[k] = r[0]
+    out_state[k] = int(r[1])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -306,6 +369,46 @@ def surface_at_samples(positions: np.ndarray, triangles: np.ndarray, offset: tup
         below the sample. Two launches (over triangles, then over samples).
     """
     rows, cols = int(shape[0]), int(shape[1])
+    cover, args = _cover(positions, triangles, offset, rel_origin, spacing, shape, device)
+    out = pooled_array((rows, cols), wp.float64, device, keep=2)  # popping holds two surfaces at once
+    launch(_surface_kernel, dim=(rows, cols), inputs=[cover, *args], outputs=[out], device=device)
+    return out.numpy()
+
+
+def surface_at(positions: np.ndarray, triangles: np.ndarray, offset: tuple[float, float, float],
+               rel_origin: tuple[float, float, float], spacing: tuple[float, float], shape: tuple[int, int],
+               rows: np.ndarray, cols: np.ndarray, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """:func:`surface_at_samples` at the listed samples only (the same values, bit for bit), and the triangle
+    that holds each.
+
+    Args:
+        positions, triangles, offset, rel_origin, spacing, shape: as :func:`surface_at_samples`.
+        rows, cols: (n,) int32 the samples (row i along +z, column j along +x).
+
+    Returns:
+        (height (n,) float64 relative to the measuring eye, NaN where no triangle holds the sample; the
+        lowest-numbered triangle holding it (n,) int32, :data:`NONE` where none does).
+    """
+    r = np.ascontiguousarray(rows, np.int32).reshape(-1)
+    c = np.ascontiguousarray(cols, np.int32).reshape(-1)
+    n = len(r)
+    y, tri = np.empty(n, np.float64), np.empty(n, np.int32)
+    if n:
+        cover, args = _cover(positions, triangles, offset, rel_origin, spacing, shape, device)
+        y_wp, t_wp = view(y, wp.float64, device), view(tri, wp.int32, device)
+        launch(_surface_list_kernel, dim=n, inputs=[view(r, wp.int32, device), view(c, wp.int32, device), cover,
+                                                    *args], outputs=[y_wp, t_wp], device=device)
+        if y_wp.ptr != y.ctypes.data:  # not a view (a CUDA device): copy back
+            y, tri = y_wp.numpy(), t_wp.numpy()
+    return y, tri
+
+
+def _cover(positions: np.ndarray, triangles: np.ndarray, offset: tuple[float, float, float],
+           rel_origin: tuple[float, float, float], spacing: tuple[float, float], shape: tuple[int, int],
+           device: str) -> tuple[wp.array, list]:
+    """The cover map (rows, cols) int32 (each sample's lowest-numbered holding triangle, NONE where none) and the
+    surface kernels' other inputs (positions, triangles, offset, origin, dx, dz)."""
+    rows, cols = int(shape[0]), int(shape[1])
     pos = np.ascontiguousarray(positions, np.float32).reshape(-1, 3)
     tri = np.ascontiguousarray(triangles, np.int32).reshape(-1, 3)
     pos_wp = view(pos if len(pos) else np.zeros((1, 3), np.float32), wp.vec3, device)
@@ -320,10 +423,7 @@ def surface_at_samples(positions: np.ndarray, triangles: np.ndarray, offset: tup
     if len(tri):
         launch(_cover_kernel, dim=len(tri), inputs=[pos_wp, tri_wp, off, org, dx, dz, rows, cols],
                outputs=[cover], device=device)
-    out = pooled_array((rows, cols), wp.float64, device, keep=2)  # popping holds two surfaces at once
-    launch(_surface_kernel, dim=(rows, cols), inputs=[cover, pos_wp, tri_wp, off, org, dx, dz], outputs=[out],
-           device=device)
-    return out.numpy()
+    return cover, [pos_wp, tri_wp, off, org, dx, dz]
 
 
 def sample_displacement(heights: np.ndarray, ya: np.ndarray | None, yb: np.ndarray, depth: np.ndarray,
@@ -357,3 +457,36 @@ def sample_displacement(heights: np.ndarray, ya: np.ndarray | None, yb: np.ndarr
         wp.mat44d(*np.asarray(mvp, np.float64).reshape(-1).tolist()), float(near), float(far), int(ww), int(hh)],
         outputs=[err, state, pix], device=device)
     return err.numpy(), state.numpy(), pix.numpy()
+
+
+def displacement_at(heights: np.ndarray, rows: np.ndarray, cols: np.ndarray, ya: np.ndarray | None, yb: np.ndarray,
+                    depth: np.ndarray, rel_origin: tuple[float, float, float], spacing: tuple[float, float],
+                    mvp: np.ndarray, near: float, far: float, device: str = "cpu") -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_displacement` at the listed samples only (the same values, bit for bit).
+
+    Args:
+        rows, cols: (n,) int32 the samples; ya (or None: the sample itself), yb: (n,) float64 the two heights
+            relative to the eye at those samples; the others as :func:`sample_displacement`.
+
+    Returns:
+        (error (n,) float64 px, state (n,) int32), as :func:`sample_displacement`'s at those samples.
+    """
+    r = np.ascontiguousarray(rows, np.int32).reshape(-1)
+    c = np.ascontiguousarray(cols, np.int32).reshape(-1)
+    n = len(r)
+    err, state = np.empty(n, np.float64), np.empty(n, np.int32)
+    if not n:
+        return err, state
+    hh, ww = depth.shape
+    b = np.ascontiguousarray(yb, np.float64).reshape(-1)
+    a = b if ya is None else np.ascontiguousarray(ya, np.float64).reshape(-1)
+    e_wp, s_wp = view(err, wp.float64, device), view(state, wp.int32, device)
+    launch(_displacement_list_kernel, dim=n, inputs=[
+        view(r, wp.int32, device), view(c, wp.int32, device), view(heights, wp.float32, device),
+        view(a, wp.float64, device), view(b, wp.float64, device), int(ya is None), view(depth, wp.float32, device),
+        wp.vec3(*[float(v) for v in rel_origin]), float(spacing[0]), float(spacing[1]),
+        wp.mat44d(*np.asarray(mvp, np.float64).reshape(-1).tolist()), float(near), float(far), int(ww), int(hh)],
+        outputs=[e_wp, s_wp], device=device)
+    if e_wp.ptr != err.ctypes.data:  # not a view (a CUDA device): copy back
+        err, state = e_wp.numpy(), s_wp.numpy()
+    return err, state

@@ -164,7 +164,8 @@ def run_baselines(scene: Scene, policy: str, knobs, cams: list[Camera], refs: li
         t0 = time.perf_counter()
         prob = problem(scene, policy, None if m == "bisection" else knobs, cams, refs, cost_of, device=device,
                        models=False)
-        ex = Exact(prob.make, prob.key, cams, refs, budget_px, max_pop_px, cost_of, device, terrains={})
+        ex = Exact(prob.make, prob.key, cams, refs, budget_px, max_pop_px, cost_of, device, terrains={},
+                   coarseness=prob.coarseness)
         if m == "bisection":
             bisection(ex, prob)
         else:

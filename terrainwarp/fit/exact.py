@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..kernels.parallel import threads
+from ..kernels.parallel import started, threads
 from ..lod.quadtree import LodState, Terrain
 from ..measure.cost import Cost
 from ..rendering.pipeline import Frame, pop_stats, render
@@ -240,6 +240,7 @@ def _ahead(draw: Callable[[int, bool], Frame], jobs: list[tuple[int, bool]]) -> 
     whichever thread draws it (the kernels' outputs do not depend on the threads)."""
     if threads() < 2 or len(jobs) < 1:
         return {}
+    started()  # Warp's runtime up before the threads launch kernels side by side
     pool = _FRAMES.get("pool")
     if pool is None or _FRAMES.get("pid") != os.getpid():
         pool = _FRAMES["pool"] = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="terrainwarp-frame")
@@ -302,6 +303,9 @@ class Exact:
     Attributes:
         make: knob values -> the setting's scene (:func:`terrainwarp.fit.knobs.apply` of the fit's scene).
         key: knob values -> the hashable key of the setting: its (name, snapped value) pairs, sorted.
+        coarseness: knob values -> how far toward its coarse end the main knob is (0..1,
+            :meth:`terrainwarp.fit.families.Problem.coarseness`): of settings with the same cost and worst error,
+            the coarsest is the best (None: the smallest values).
     """
 
     make: Callable[[Mapping[str, float]], Scene]
@@ -321,6 +325,7 @@ class Exact:
     trace: list[tuple[int, float]] = field(default_factory=list)  # (frames so far, best confirmed cost) per change
     trace_s: list[float] = field(default_factory=list)  # seconds from ``started`` to each change of ``trace``
     started: float = field(default_factory=time.perf_counter)
+    coarseness: Callable[[Mapping[str, float]], float] | None = None
 
     def meets(self, e: Evaluation) -> bool:
         return e.meets(self.budget_px, self.max_pop_px)
@@ -369,9 +374,17 @@ class Exact:
         return e
 
     def best(self) -> Evaluation | None:
-        """The cheapest evaluation measured on every camera that meets the constraints (None: none yet)."""
+        """The cheapest evaluation measured on every camera that meets the constraints (None: none yet); of equal
+        costs the one with the lower worst error, then the coarser (:meth:`rank`)."""
         ok = [e for e in self.evals.values() if e.complete and self.meets(e)]
-        return min(ok, key=lambda e: (e.cost, tuple(e.values.values()))) if ok else None
+        return min(ok, key=self.rank) if ok else None
+
+    def rank(self, e: Evaluation) -> tuple:
+        """The order of settings that meet the constraints: cost, worst p99, the main knob coarser first
+        (``coarseness``: a cost plateau answers its coarsest setting tried, e.g. a tolerance of 63.9 px rather
+        than 1 px where both draw the same frames), then the values."""
+        return (e.cost, e.worst_p99, 0.0 if self.coarseness is None else -self.coarseness(e.values),
+                tuple(e.values.values()))
 
     def _record(self) -> None:
         b = self.best()

@@ -18,15 +18,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
-from ..lod.quadtree import Terrain, uniform_patches
+from ..lod.cdlod import CdlodSelection
+from ..lod.quadtree import PatchList, Terrain, uniform_patches
 from ..measure.cost import Cost
+from ..mesh import Mesh
 from ..rendering.pipeline import Frame, render
 from ..rendering.sources import scene_source
 from ..scene import POLICY_TABLE, Scene
 from .exact import prepared, references_for
 from .jaxrt import use_cache
 from .knobs import LEVEL_SCALE, Knob, apply, knobs, values_of
-from .probe import pop_pairs, probe_cameras, surfaces_of
+from .ladder import ladder_surfaces
+from .probe import Sight, pop_pairs, probe_cameras, sight, surfaces_of
 from .search import Calibration, Candidate
 from .timings import say
 
@@ -100,6 +103,15 @@ class Problem:
     def make(self, values: Mapping[str, float]) -> Scene:
         return apply(self.scene, self.policy, values)
 
+    def coarseness(self, values: Mapping[str, float]) -> float:
+        """How far toward its coarse end the main knob of ``values`` is: its unit coordinate, turned where a
+        larger value is finer (0 for a knob that is neither, or absent)."""
+        main = self.knob(self.names[0])
+        if main.coarser_up is None or main.name not in values:
+            return 0.0
+        u = main.to_unit(float(values[main.name]))
+        return u if main.coarser_up else 1.0 - u
+
 
 def problem(scene: Scene, policy: str, names: Sequence[str] | str | None, cams: list[Camera], refs: list[Frame],
             cost_of: Cost | None, *, device: str = "cpu", cache: dict | None = None, models: bool = True,
@@ -152,6 +164,7 @@ def _quadtree_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], c
     from .relaxed import QuadtreeModel  # lazy: imports JAX
 
     weights = cost_weights(cost_of)
+    seen = sight(scene.heightmap, cams, refs, device)
     out = []
     for i, combo in enumerate(combos):
         say(f"probes: model {i + 1}/{len(combos)}")
@@ -163,11 +176,12 @@ def _quadtree_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], c
                 and not (n.startswith(LEVEL_SCALE) and int(n[len(LEVEL_SCALE):]) >= terrain.depth)]
         every = values_of(base, policy, [k.name for k in prob.all_knobs])  # the knobs not fitted keep the scene's
         fixed = {**{n: v for n, v in every.items() if n not in {k.name for k in cont}}, **fixed_int}
-        meshes = [render(base.with_(camera=cams[0], outputs=("mesh",)), terrain, patches=uniform_patches(terrain, L),
-                         device=device).mesh for L in range(terrain.depth)]
-        surfaces = [*surfaces_of(scene.heightmap, meshes), None]
-        probes = probe_cameras(scene.heightmap, cams, refs, surfaces)
-        pops = None if max_pop_px is None else pop_pairs(scene.heightmap, cams, refs, surfaces, probes)
+        meshes = [render(base.with_(camera=cams[0], outputs=("mesh",)), terrain,
+                         patches=_touching(uniform_patches(terrain, L), seen), device=device).mesh
+                  for L in range(terrain.depth)]
+        surfaces = [*surfaces_of(scene.heightmap, meshes, seen, device), None]
+        probes = probe_cameras(scene.heightmap, cams, refs, surfaces, seen, device=device)
+        pops = None if max_pop_px is None else pop_pairs(scene.heightmap, cams, refs, surfaces, probes, seen, device)
         model = QuadtreeModel(terrain, cams, probes, policy, cont, fixed,
                               lambda v, p=prob: p.make(v).lod, weights, device=device, pops=pops)
         model.prepare()
@@ -191,6 +205,7 @@ def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame],
     weights = cost_weights(cost_of)
     base0 = prob.make(prob.start)
     levels = prob.knob("level").values if "level" in prob.names else (base0.lod.level,)
+    at = sight(scene.heightmap, cams, refs, device)
     out = []
     for i, level in enumerate(int(v) for v in levels):
         say(f"probes: model {i + 1}/{len(levels)}")
@@ -201,13 +216,17 @@ def _continuous_candidates(prob: Problem, cams: list[Camera], refs: list[Frame],
         patches = continuous_patches(terrain, cams, level, device)
         seen = np.unique(np.concatenate([pl.key for pl in patches])) if patches else np.zeros(0, np.int64)
         ladder = factor_ladder(terrain, level)
-        meshes = []
-        for f in ladder:
-            pl = uniform_patches(terrain, level, float(f))
-            pl = type(pl)(*(a[np.isin(pl.key, seen)] if isinstance(a, np.ndarray) else a for a in pl))
-            meshes.append(render(base.with_(camera=cams[0], outputs=("mesh",)), terrain, patches=pl,
-                                 device=device).mesh)
-        probes = probe_cameras(scene.heightmap, cams, refs, surfaces_of(scene.heightmap, meshes))
+
+        def rung(f: float, level=level, base=base, terrain=terrain, seen=seen) -> Mesh:
+            pl = uniform_patches(terrain, level, f)
+            return render(base.with_(camera=cams[0], outputs=("mesh",)), terrain,
+                          patches=_touching(_subset(pl, np.isin(pl.key, seen)), at), device=device).mesh
+
+        pl = uniform_patches(terrain, level)
+        pl = _touching(_subset(pl, np.isin(pl.key, seen)), at)
+        surfaces = ladder_surfaces(scene.heightmap, pl, ladder, at, cams[0].position, base.lod.spacing,
+                                   base.lod.filter, rung, device)
+        probes = probe_cameras(scene.heightmap, cams, refs, surfaces, at, device=device)
         model = ContinuousModel(terrain, cams, probes, ladder, patches, [prob.knob("target_px")], fixed,
                                 lambda v, p=prob: p.make(v).lod, weights, device=device)
         model.prepare()
@@ -228,14 +247,17 @@ def _cdlod_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], cost
     every = values_of(prob.make(prob.start), "cdlod", [k.name for k in prob.all_knobs])
     grids = prob.knob("grid").values if "grid" in prob.names else (every["grid"],)
     cont = [prob.knob(n) for n in prob.names if not prob.knob(n).integer]
+    at = sight(scene.heightmap, cams, refs, device)
     out = []
     for i, g in enumerate(int(v) for v in grids):
         say(f"probes: model {i + 1}/{len(grids)}")
         fixed = {**{n: v for n, v in every.items() if n not in {k.name for k in cont}}, "grid": g}
         base = prob.make({**prob.start, **fixed})
         scheme = copy.copy(scene_source(base, device).scheme)  # the grid's pyramids, shared; the knobs its own
-        meshes = [scheme.mesh(cams[0], scheme.uniform(i), morph=False) for i in range(scheme.levels)]
-        probes = probe_cameras(scene.heightmap, cams, refs, surfaces_of(scene.heightmap, meshes))
+        meshes = [scheme.mesh(cams[0], _seen_quadrants(scheme.uniform(i), at), morph=False)
+                  for i in range(scheme.levels)]
+        probes = probe_cameras(scene.heightmap, cams, refs, surfaces_of(scene.heightmap, meshes, at, device), at,
+                               device=device)
         model = CdlodModel(scheme, cams, probes, cont, fixed, lambda v, p=prob: p.make(v).lod, weights,
                            device=device)
         model.prepare()
@@ -244,6 +266,26 @@ def _cdlod_candidates(prob: Problem, cams: list[Camera], refs: list[Frame], cost
         if on_step is not None:
             on_step()
     return out
+
+
+def _subset(pl: PatchList, keep: np.ndarray) -> PatchList:
+    """The patches of ``pl`` where ``keep``, in their order."""
+    return type(pl)(*(a[keep] if isinstance(a, np.ndarray) else a for a in pl))
+
+
+def _touching(pl: PatchList, at: Sight) -> PatchList:
+    """The patches of ``pl`` whose triangles may hold a sample the cameras see (:meth:`Sight.touching`), in their
+    order: the surface above every such sample is the one all of ``pl`` draws, bit for bit (a sample takes the
+    lowest-numbered triangle holding it, and the patches left out hold none)."""
+    return _subset(pl, at.touching(pl.origin_cells[:, 0], pl.origin_cells[:, 1], pl.size_cells))
+
+
+def _seen_quadrants(sel: CdlodSelection, at: Sight) -> CdlodSelection:
+    """The quadrants of ``sel`` that may hold a sample the cameras see, in their order (as :func:`_touching`)."""
+    keep = at.touching(sel.origin[:, 0], sel.origin[:, 1], sel.size)
+    q = int(keep.sum())
+    return CdlodSelection(sel.origin[keep], sel.size[keep], sel.step[keep], sel.lod[keep], {},
+                          np.array([[0, q]], np.int32), np.arange(q, dtype=np.int32))
 
 
 def relaxed_model(scene: Scene, cameras: list[Camera], policy: str = "sse", *, knobs: Sequence[str] | None = None,

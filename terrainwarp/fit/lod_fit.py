@@ -259,7 +259,7 @@ def _run(job: _Job, references: list[Frame] | None, gradient: str, grid_points: 
         prob = problem(job.scene, job.policy, job.knobs, cams, refs, job.cost_of, device=device, on_step=bar,
                        budget_px=budget_px, max_pop_px=job.max_pop_px)
     exact = Exact(prob.make, prob.key, cams, refs, budget_px, job.max_pop_px, job.cost_of, device, on_frame=bar,
-                  terrains=dict(prob.terrains), started=job.t0)
+                  terrains=dict(prob.terrains), started=job.t0, coarseness=prob.coarseness)
     t_model = time.perf_counter()
     if gradient == "pixels":
         good = _one_knob(exact, prob, budget_px, job.rel_tol, job.max_tries, newton=_pixel_newton(exact, prob))

@@ -35,12 +35,14 @@ from ..scene import LodConfig
 from .knobs import Knob
 from .probe import CameraProbe
 from .relaxed import (
+    HARD_SAMPLES,
     MIN_PAIRS,
     PAD_LOGV,
     PaddedModel,
     bucket,
     camera_mask,
     hard_percentiles,
+    hard_probes,
     knob_arrays,
     pad_to,
     relaxed_values,
@@ -133,6 +135,7 @@ class CdlodModel(PaddedModel):
         scheme: the :class:`terrainwarp.lod.cdlod.Cdlod` of this grid (its pyramids; the knobs set per setting).
         probes: per camera, one resolution per LOD 0 (finest) .. levels - 1, unmorphed.
         knobs: the fitted continuous knobs among ``first_range``, ``ratio``, ``morph_start_ratio``.
+        hard_samples: the samples the hard model reads per camera (:data:`terrainwarp.fit.relaxed.HARD_SAMPLES`).
     """
 
     scheme: Cdlod
@@ -144,6 +147,7 @@ class CdlodModel(PaddedModel):
     weights: Mapping[str, float]
     relaxed_samples: int = 1 << 13
     device: str = "cpu"
+    hard_samples: int = HARD_SAMPLES
 
     @property
     def levels(self) -> int:
@@ -217,8 +221,11 @@ class CdlodModel(PaddedModel):
                                         + w.get("vertices", 0.0) * (g / 2 + 1) ** 2 + w.get("draw_calls", 0.0))}
 
     def prepare(self) -> None:
-        """Build what the relaxed and the hard model read (otherwise built on first use)."""
-        _ = self.data, self._hard_tree, self._hard_samples
+        """Build what the hard model reads, and the relaxed model's data where there is more than one knob (a
+        one-knob model is fitted on its hard line alone); what is not built here is built on first use."""
+        _ = self._hard_tree, self._hard_samples
+        if len(self.knobs) > 1:
+            _ = self.data
 
     # -- the hard model -----------------------------------------------------------------------------
     @cached_property
@@ -235,12 +242,13 @@ class CdlodModel(PaddedModel):
         are not one ancestor line: then ``nodes`` (C, D+1, V), its node per level, is read instead), its eye
         distance (C, V) float32, the flat index of its error at LOD 0 in ``err`` (C, V), ``err`` (C, R, V) float32,
         and which samples are real (C, V) bool."""
-        depth, C, parents = self.scheme.terrain.depth, len(self.probes), self._tree["parent"]
-        v = max(max(len(p.rows) for p in self.probes), 1)
+        probes = [p for p, _ in hard_probes(self.probes, self.hard_samples)]
+        depth, C, parents = self.scheme.terrain.depth, len(probes), self._tree["parent"]
+        v = max(max(len(p.rows) for p in probes), 1)
         nodes = np.zeros((C, depth + 1, v), np.int64)
         dist, ok = np.zeros((C, v), np.float32), np.zeros((C, v), bool)
         err = np.ones((C, self.levels, v), np.float32)
-        for c, p in enumerate(self.probes):
+        for c, p in enumerate(probes):
             n = len(p.rows)
             nodes[c, :, :n] = np.stack([self._node_of(p.rows, p.cols, lvl) for lvl in range(depth + 1)])
             dist[c, :n], err[c, :, :n], ok[c, :n] = p.dist, p.err, True

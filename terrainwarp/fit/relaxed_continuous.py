@@ -34,12 +34,14 @@ from ..scene import MAX_TESS, LodConfig
 from .knobs import Knob
 from .probe import CameraProbe
 from .relaxed import (
+    HARD_SAMPLES,
     MIN_PAIRS,
     PAD_LOGV,
     PaddedModel,
     bucket,
     camera_mask,
     hard_percentiles,
+    hard_probes,
     knob_arrays,
     relaxed_values,
     soft_quantile,
@@ -113,6 +115,7 @@ class ContinuousModel(PaddedModel):
         factors: the ladder (:func:`factor_ladder`).
         patches: per camera, the level's visible patches (:func:`terrainwarp.lod.select`).
         knobs: ``[target_px]``; fixed: the other knobs' values; config: values -> LodConfig.
+        hard_samples: the samples the hard model reads per camera (:data:`terrainwarp.fit.relaxed.HARD_SAMPLES`).
     """
 
     terrain: Terrain
@@ -126,6 +129,7 @@ class ContinuousModel(PaddedModel):
     weights: Mapping[str, float]
     relaxed_samples: int = 1 << 13
     device: str = "cpu"
+    hard_samples: int = HARD_SAMPLES
 
     @cached_property
     def _edges(self) -> list[np.ndarray]:
@@ -180,20 +184,24 @@ class ContinuousModel(PaddedModel):
                                 np.float32), "cmask": camera_mask(len(subs)), **knob_arrays(self.knobs)}
 
     def prepare(self) -> None:
-        """Build what the relaxed and the hard model read (otherwise built on first use)."""
-        _ = self.data, self._hard_samples
+        """Build what the hard model reads, and the relaxed model's data where there is more than one knob (a
+        one-knob model is fitted on its hard line alone); what is not built here is built on first use."""
+        _ = self._hard_samples
+        if len(self.knobs) > 1:
+            _ = self.data
 
     @cached_property
     def _hard_samples(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every camera's edges laid end to end (sum P, 4), each patch's camera (sum P,), and per camera, padded to
         the most kept samples: each sample's patch in that layout (C, V) int64, its error per rung (C, R, V) and
         which samples are drawn (C, V) bool."""
-        C, R = len(self.probes), len(self.factors)
-        v = max(max(len(p.rows) for p in self.probes), 1)
+        probes = [p for p, _ in hard_probes(self.probes, self.hard_samples)]
+        C, R = len(probes), len(self.factors)
+        v = max(max(len(p.rows) for p in probes), 1)
         start = np.concatenate([[0], np.cumsum([len(e) for e in self._edges])]).astype(np.int64)
         own = np.zeros((C, v), np.int64)
         err, ok = np.ones((C, R, v), np.float32), np.zeros((C, v), bool)
-        for c, (pl, p) in enumerate(zip(self.patches, self.probes, strict=True)):
+        for c, (pl, p) in enumerate(zip(self.patches, probes, strict=True)):
             o = self._patch_of(pl, p.rows, p.cols)
             n = len(p.rows)
             own[c, :n], err[c, :, :n], ok[c, :n] = start[c] + np.maximum(o, 0), p.err, o >= 0

@@ -342,7 +342,7 @@ def _pick(live: list[Candidate]) -> Candidate:
 def _incumbent(exact: Exact) -> Evaluation | None:
     """The cheapest try that met the constraints on the cameras it measured (provisional or whole)."""
     ok = [e for e in exact.evals.values() if exact.meets(e)]
-    return min(ok, key=lambda e: (e.cost, tuple(e.values.values()))) if ok else None
+    return min(ok, key=exact.rank) if ok else None
 
 
 def _confirm_best(exact: Exact) -> None:
@@ -354,7 +354,7 @@ def _confirm_best(exact: Exact) -> None:
                    and (best is None or e.cost < best.cost)]
         if not pending:
             return
-        e = min(pending, key=lambda x: (x.cost, tuple(x.values.values())))
+        e = min(pending, key=exact.rank)
         exact(e.values, stage="confirm")
 
 
@@ -370,9 +370,12 @@ def bracket_search(exact: Exact, knob: Knob, fixed: Mapping[str, float], budget:
     are known (leaning to the infeasible end), until the bracket's cost gap is within ``rel_tol`` or a try lands
     within ``rel_tol`` under the budget. Each try measures the cameras worst first (by their latest p99) and stops
     at the first over the budget. ``newton(e, log_target)``, when given, proposes the knob's next value until the
-    budget is bracketed (in place of the bisection midpoint). ``seed``: start from the bracket that the settings
-    already measured along this line (``fixed`` the same) give: the coarsest measured whole that meets the
-    constraints, the finest that does not. Returns the best feasible setting, or None."""
+    budget is bracketed (in place of the bisection midpoint). A feasible try that costs no less than the feasible
+    one finer than it, before any try failed, puts the search on a cost plateau: the next try is the knob's coarse
+    end (the budget holds there too, the search ends; or it fails, and the bracket is bisected). ``seed``: start
+    from the bracket that the settings already measured along this line (``fixed`` the same) give: the coarsest
+    measured whole that meets the constraints, the finest that does not. Returns the best feasible setting, or
+    None."""
     fine, coarse = (0.0, 1.0) if knob.coarser_up is not False else (1.0, 0.0)
     latest: dict[int, float] = {}
     target = math.log(budget * (1.0 - 0.5 * rel_tol))
@@ -389,11 +392,14 @@ def bracket_search(exact: Exact, knob: Knob, fixed: Mapping[str, float], budget:
     if good is not None and close_to_bound(exact, good, rel_tol):
         return exact.best()  # a setting measured whole already lands within rel_tol under a bound
     e = None
+    plateau = False  # a feasible try no cheaper than the feasible one finer than it, before any infeasible one
     for _ in range(max_tries + 1):
         if e is not None:
             for k, p in zip(e.frames if e.frames is not None else range(len(e.p99_px)), e.p99_px, strict=True):
                 latest[k] = p
             if exact.meets(e):
+                if good is not None and abs(pos(e) - coarse) < abs(pos(good) - coarse):
+                    plateau = e.cost >= good.cost
                 good = e if good is None or abs(pos(e) - coarse) < abs(pos(good) - coarse) else good
                 if close_to_bound(exact, e, rel_tol):
                     break
@@ -407,6 +413,8 @@ def bracket_search(exact: Exact, knob: Knob, fixed: Mapping[str, float], budget:
         t = 0.5 * (tg + tb)
         if newton is not None and e is not None and (good is None or bad is None):
             t = min(max(knob.to_unit(newton(e, target)), 0.0), 1.0)
+        if plateau and bad is None:  # on a cost plateau, halving toward the range's end never reaches it: try it
+            t = coarse
         if interpolate and good is not None and bad is not None:
             eg = max(math.log(max(good.worst_p99, FLOOR)), target - math.log(4.0))
             eb = max(math.log(max(bad.worst_p99, FLOOR)), target - math.log(4.0))

@@ -192,7 +192,7 @@ def _confirm(new: Scene, policy: str, cams: list[Camera], rv: dict[str, float], 
     cost_of = None if cost_of.name == "triangles" else cost_of
     refs = references_for(new, cams, device=device)
     prob = problem(new, policy, None, cams, refs, cost_of, device=device, models=False)
-    exact = Exact(prob.make, prob.key, cams, refs, budget_px, max_pop, cost_of, device)
+    exact = Exact(prob.make, prob.key, cams, refs, budget_px, max_pop, cost_of, device, coarseness=prob.coarseness)
     main = prob.knob(RULES[policy].knob)
     first = exact(rv, stop=False, stage="rule")
     vp = new.pixel_viewport
