@@ -48,7 +48,8 @@ from .pool import pooled_rows_array
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "DeviceTessellation", "tessellate_domains", "tessellate_patches",
-           "tessellate_patches_device", "SPACING_CODES", "FILTER_CODES", "tessellate_device", "count_patches"]
+           "tessellate_patches_device", "SPACING_CODES", "FILTER_CODES", "tessellate_device", "count_patches",
+           "FrameLattice", "frame_lattice"]
 
 # the spacing names (OpenGL: equal_spacing, fractional_even_spacing, fractional_odd_spacing) and the codes the
 # kernels take: the one list of spacing names (terrainwarp.scene.SPACINGS and the reference tessellator derive theirs)
@@ -907,6 +908,26 @@ def tessellate_patches_device(patches, heights, dx: float, dz: float, eye, spaci
     get = lambda flag, name: getattr(out, name) if flags & flag else None  # noqa: E731
     return DeviceTessellation(n, m, out.pos, out.tri, get(W_UV, "uv"), get(W_DOMAIN, "dom"), get(W_PATCH_ID, "pid"),
                               get(W_LEVEL, "lev"), v_off, t_off, (float(e[0]), float(e[1]), float(e[2])))
+
+
+class FrameLattice(NamedTuple):
+    """Where :func:`tessellate_patches` puts a frame on its 2^-16-cell lattice: each patch's box (P, 4) int64
+    (x0, z0, x1, z1 in lattice units), the eye's lattice cell (2,) int64 and its float remainder (x, y, z), the
+    cell size (2,) float32 in metres."""
+
+    box: np.ndarray
+    eye_cell: np.ndarray
+    eye_rem: tuple[float, float, float]
+    cell: np.ndarray
+
+
+def frame_lattice(patches, heights, dx: float, dz: float, eye, spacing: str = "equal", filter: str = "bilinear",
+                  origin=(0.0, 0.0)) -> FrameLattice:
+    """The lattice of :func:`tessellate_patches` (same arguments, validated the same way) without tessellating:
+    for code that places points exactly where the tessellator would."""
+    a, _ = _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
+    return FrameLattice(np.asarray(a.box, np.int64), np.asarray(a.eye_cell, np.int64), a.eye_rem,
+                        np.asarray(a.cell, np.float32))
 
 
 def _flags(need: Iterable[str] | None) -> int:

@@ -29,7 +29,7 @@ from ..camera import relative_origin
 from ..heightmap import Heightmap
 from ..kernels.sample_error import CONTAIN_ULPS, NONE, surface_at
 from ..kernels.sampling import sample_grid
-from ..kernels.tessellator import FXP_ONE, prepare_frame, tessellate_patches
+from ..kernels.tessellator import FXP_ONE, frame_lattice, tessellate_patches
 from ..lod.quadtree import PatchList
 from ..mesh import Mesh
 from .probe import Sight, surfaces_of
@@ -88,12 +88,12 @@ def ladder_surfaces(heightmap: Heightmap, pl: PatchList, factors: np.ndarray, at
 def _level(hm: Heightmap, pl: PatchList, eye: tuple, spacing: str, filter: str) -> _Level:
     """The lattice of ``pl``'s patches and the eye, as the tessellator's host side computes them."""
     p = len(pl)
-    args, _ = prepare_frame({"origin_xz": pl.origin, "size": pl.size, "outer": np.ones((max(p, 1), 4), np.float32),
-                             "inner": np.ones((max(p, 1), 2), np.float32), "level": pl.level} if p else
-                            {"origin_xz": np.zeros((1, 2)), "size": np.ones(1), "outer": np.ones((1, 4), np.float32),
-                             "inner": np.ones((1, 2), np.float32)}, hm.heights, hm.dx, hm.dz, eye, spacing, filter,
-                            hm.origin)
-    box, el_int, rem, cell = args[3][:p], args[6], args[7], args[8]
+    one = {"origin_xz": np.zeros((1, 2)), "size": np.ones(1), "outer": np.ones((1, 4), np.float32),
+           "inner": np.ones((1, 2), np.float32)}
+    patches = {"origin_xz": pl.origin, "size": pl.size, "outer": np.ones((p, 4), np.float32),
+               "inner": np.ones((p, 2), np.float32), "level": pl.level} if p else one
+    lat = frame_lattice(patches, hm.heights, hm.dx, hm.dz, eye, spacing, filter, hm.origin)
+    box, el_int, rem, cell = lat.box[:p], lat.eye_cell, lat.eye_rem, lat.cell
     lim = np.array([(hm.shape[1] - 1) << 16, (hm.shape[0] - 1) << 16], np.int64)
     border = (box[:, 2] > lim[0]) | (box[:, 3] > lim[1]) | (box[:, 0] < 0) | (box[:, 1] < 0)
     cells = int(round(float(pl.size_cells[0]))) if p else 1
