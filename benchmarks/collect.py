@@ -10,11 +10,9 @@ ORDER = ["frame", "warmup", "terrain_frame", "raster46", "select", "counters", "
          "cuda_parity", "cuda_parity_nofma", "gpu_frame", "calibration_gpu", "threads", "targets", "lod", "tessellate",
          "raster", "normals_curvature",
          "yardstick", "error_vs_time_jacksboro", "error_vs_time_fbm4097", "fit", "fit_640x360", "fit_fbm4097",
-         "fit_fbm4097_640x360", "fit_knobs", "fit_knobs_cont1080_dem", "fit_knobs_41", "fit_knobs_41_fits",
-         "fit_knobs_41_cdlod", "fit_knobs_41_sse-levels_tuners", "fit_knobs_41_sse-tess_tuners",
-         "fit_knobs_41_continuous_tuners", "fit_knobs_41_fresh", "fit_knobs_41_fresh2", "fit_knobs_41_fbm4097",
-         "popping", "schemes", "gpu_whitepaper", "gpu_clipmap", "gpu_fits", "rescale", "stability", "fuzz",
-         "sweep", "bintree", "polytree", "outofcore", "outofcore_cache",
+         "fit_fbm4097_640x360", "fit_knobs", "fit_knobs_cont1080_dem", "fit_knobs_41", "fit_knobs_41_fresh",
+         "fit_knobs_41b_fbm4097", "popping", "schemes", "gpu_whitepaper", "gpu_clipmap", "gpu_fits", "rescale",
+         "stability", "fuzz", "sweep", "bintree", "polytree", "outofcore", "outofcore_cache",
          "diff", "make_test"]
 # a link in a results file is relative to benchmarks/results/; at the root it needs that prefix
 _LINK = re.compile(r"\]\((?!https?:|/|#|benchmarks/)([^)]+)\)")
