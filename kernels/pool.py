@@ -27,6 +27,7 @@ Thread-safe: leases may be taken and ended from any thread.
 
 from __future__ import annotations
 
+import math
 import threading
 import weakref
 from collections import deque
@@ -36,8 +37,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "filled_array", "take",
-           "release_buffers", "kept_bytes", "host_layout"]
+__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "pooled_arrays", "filled_array",
+           "take", "release_buffers", "kept_bytes", "host_layout"]
 
 
 class _Kind:
@@ -126,30 +127,39 @@ def _lend(kind: tuple, pick: Callable[[list], int | None], make: Callable[[], An
     return buf, Lease(kind, buf, gen, returns_on_drop=returns_on_drop)
 
 
+_LAYOUTS: dict[type, tuple[tuple[int, ...], np.dtype]] = {}  # Warp dtype -> (its own axes, numpy scalar dtype)
+
+
 def host_layout(shape: int | Sequence[int], dtype: type) -> tuple[tuple[int, ...], np.dtype]:
     """The numpy (shape, dtype) of a Warp array of ``shape`` and ``dtype`` (a vector type adds its own axes)."""
     shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
-    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
-    return (*shape, *tuple(getattr(dtype, "_shape_", ()))), np.dtype(wp.dtype_to_numpy(scalar))
+    lay = _LAYOUTS.get(dtype)
+    if lay is None:
+        scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+        lay = _LAYOUTS[dtype] = (tuple(getattr(dtype, "_shape_", ())), np.dtype(wp.dtype_to_numpy(scalar)))
+    return (*shape, *lay[0]), lay[1]
 
 
-def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20) -> np.ndarray:
+def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20, *,
+           tag: str = "") -> np.ndarray:
     """An uninitialised host array for an output, on an output lease: a kept buffer of this (shape, dtype) whose
-    last lease has ended, else a new one, kept when fewer than ``keep`` are and it is at most ``max_bytes``."""
+    last lease has ended, else a new one, kept when fewer than ``keep`` are and it is at most ``max_bytes``.
+    ``tag`` names a kind of its own (buffers of other tags are never lent for it)."""
     shape = tuple(int(d) for d in shape)
     dt = np.dtype(dtype)
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
-    buf, lease = _lend(("exact", shape, dt.str), lambda free: 0 if free else None,
+    nbytes = math.prod(shape) * dt.itemsize
+    buf, lease = _lend(("exact", shape, dt.str, tag), lambda free: 0 if free else None,
                        lambda: np.empty(shape, dt), keep, nbytes <= max_bytes, returns_on_drop=True)
     return buf if lease is None else lease.array(shape, dt)
 
 
-def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarray:
+def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2, *, tag: str = "") -> np.ndarray:
     """An uninitialised host array of ``shape`` on an output lease of a kept buffer with at least ``shape[0]`` rows
     (the smallest free one), else of a new one with up to 1/64 more rows (at most 1.6% unused), kept in place of
     the smallest free one when ``keep`` are kept already. For outputs whose length changes from frame to frame (a
     tessellation's points and triangles): an exact-shape pool (:func:`pooled`) would never hit, and a frame of
-    134 M triangles writes 2.5 GB that would otherwise be faulted in again on every frame."""
+    134 M triangles writes 2.5 GB that would otherwise be faulted in again on every frame. ``tag`` names a kind of
+    its own (buffers of other tags are never lent for it)."""
     n, rest = int(shape[0]), tuple(int(d) for d in shape[1:])
     dt = np.dtype(dtype)
     grain = 1 << max(n.bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
@@ -159,7 +169,7 @@ def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarra
         free.sort(key=lambda b: b.shape[0])
         return next((i for i, b in enumerate(free) if b.shape[0] >= n), None)
 
-    buf, lease = _lend(("rows", rest, dt.str), pick, lambda: np.empty((rows, *rest), dt), keep, True,
+    buf, lease = _lend(("rows", rest, dt.str, tag), pick, lambda: np.empty((rows, *rest), dt), keep, True,
                        returns_on_drop=True)
     return buf[:n] if lease is None else lease.array((n, *rest), dt)
 
@@ -195,6 +205,37 @@ def pooled_rows_array(n: int, dtype: type, device: str | wp.Device | None = None
         return wp.empty(n, dtype=dtype, device=dev)
     a = pooled_rows(*host_layout(n, dtype), keep)
     return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+BLOCK_ALIGN = 64  # bytes: where each array of a block starts (a cache line; SIMD stores align to it)
+
+
+def pooled_arrays(fields: Sequence[tuple[int, type]], device: str | wp.Device | None = None, *, tag: str,
+                  rows: bool = True, keep: int = 2, max_bytes: int = 64 << 20) -> list[wp.array]:
+    """Warp arrays of ``n`` items of ``dtype`` for each ``(n, dtype)`` of ``fields``, carved on the CPU from one
+    output lease of a kept byte buffer, each at a :data:`BLOCK_ALIGN` boundary: outputs that a call makes together
+    and that live together (a tessellation's point fields and triangles, a frame's two images) take one lease
+    instead of one each. The lease ends when the last of the arrays (or anything made from them) is dropped. The
+    buffer is of kind ``tag``: with ``rows`` as :func:`pooled_rows` (the smallest free one with room, lengths that
+    change from call to call), else as :func:`pooled` (exactly this size, kept when at most ``max_bytes``). On
+    CUDA: ``wp.empty`` each."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        return [wp.empty(n, dtype=dt, device=dev) for n, dt in fields]
+    layouts, starts, total = [], [], 0
+    for n, dt in fields:
+        shape, npdt = host_layout(n, dt)
+        layouts.append((shape, npdt))
+        starts.append(total)
+        total += -(-(math.prod(shape) * npdt.itemsize) // BLOCK_ALIGN) * BLOCK_ALIGN
+    lines = max(total // BLOCK_ALIGN, 1)
+    if rows:
+        block = pooled_rows((lines, BLOCK_ALIGN), np.uint8, keep, tag=tag)
+    else:
+        block = pooled((lines, BLOCK_ALIGN), np.uint8, keep, max_bytes, tag=tag)
+    flat = block.reshape(-1)
+    return [wp.array(flat[o:o + math.prod(shape) * npdt.itemsize].view(npdt).reshape(shape), dtype=dt, device=dev,
+                     copy=False) for o, (shape, npdt), (_, dt) in zip(starts, layouts, fields, strict=True)]
 
 
 def take(kind: tuple, make: Callable[[], Any], keep: int = 2) -> Lease:
