@@ -83,7 +83,7 @@ from .counters import (
 )
 from .parallel import atomic_add_i32, chunks, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import filled_array, pooled_array, pooled_rows_array, take
+from .pool import filled_array, pooled_arrays, pooled_rows_array, take
 
 __all__ = ["Fragments", "rasterize", "rasterize_clip", "clip_coordinates", "clip_barycentrics", "pixel_ndc",
            "SUBPIXEL", "TILE"]
@@ -1571,8 +1571,8 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
 
 
 _SCRATCH = True  # on the CPU: scratch tiles, records drawn in SIMD (False: the way CUDA draws, for the tests)
-_IMAGES_KEPT = 2  # output images kept per (shape, dtype): the frame being made and the one before it
-_IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
+_IMAGES_KEPT = 3  # output images kept per shape: the frame being made, the one before it and one its caller holds
+_IMAGES_MAX_BYTES = 64 << 20  # larger images (each) are not kept
 
 
 class _Work:
@@ -1672,8 +1672,8 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
     -> (ids, depth (device arrays, every pixel written), the tile flags (int32, window order), the tallies summed
     (TALLIES,) int64)."""
     npx = width * height
-    out_id = pooled_array(npx, wp.int32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
-    out_depth = pooled_array(npx, wp.float32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
+    out_id, out_depth = pooled_arrays([(npx, wp.int32), (npx, wp.float32)], device, tag="images", rows=False,
+                                      keep=_IMAGES_KEPT, max_bytes=2 * _IMAGES_MAX_BYTES)
     nparts = max_parts()
     scratch = wp.get_device(device).is_cpu and _SCRATCH
     lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
@@ -1688,7 +1688,8 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
         launch(_tile_kernel, work.workers, [int(scratch), work.queue, work.ntiles, int(base == 0), clip, tri_wp, bins,
                                             width, height, cb, gb],
                [buf_id, buf_depth, out_id, out_depth, work.dirty, work.tally], device, parts=True, min_items=1)
-    tiles, tally = work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0)
+    tiles, tally = (work.views[0].copy(), work.views[1].sum(axis=0)) if work.cpu else \
+        (work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0))
     lease.give_back()
     return out_id, out_depth, tiles, tally
 
@@ -1762,15 +1763,16 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: 
     if not finite and not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
-    clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
-    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp)
+    n = max(len(pos32), 1)
+    clip, win = pooled_arrays([(n, wp.vec4), (n, wp.vec4)], device, tag="vertices")  # clip: Fragments keeps it
+    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp, win)
 
 
 def _vertices(clip: wp.array, n: int, width: int, height: int, device: str, pos: wp.array | None = None,
-              mvp: np.ndarray | None = None) -> wp.array:
+              mvp: np.ndarray | None = None, win: wp.array | None = None) -> wp.array:
     """The window positions of ``n`` vertices (:func:`_vertex_kernel`; with ``pos`` and ``mvp`` their clip
-    coordinates too, into ``clip``)."""
-    win = pooled_rows_array(max(n, 1), wp.vec4, device)
+    coordinates too, into ``clip``), into ``win`` (or a new pool array)."""
+    win = pooled_rows_array(max(n, 1), wp.vec4, device) if win is None else win
     if n:
         mat = wp.mat44(*mvp.reshape(-1).tolist()) if mvp is not None else wp.mat44()
         launch(_vertex_kernel, n, [pos if pos is not None else wp.empty(1, dtype=wp.vec3, device=device), mat,
