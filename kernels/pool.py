@@ -133,11 +133,34 @@ _LAYOUTS: dict[type, tuple[tuple[int, ...], np.dtype]] = {}  # Warp dtype -> (it
 def host_layout(shape: int | Sequence[int], dtype: type) -> tuple[tuple[int, ...], np.dtype]:
     """The numpy (shape, dtype) of a Warp array of ``shape`` and ``dtype`` (a vector type adds its own axes)."""
     shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
-    lay = _LAYOUTS.get(dtype)
-    if lay is None:
-        scalar = getattr(dtype, "_wp_scalar_type_", dtype)
-        lay = _LAYOUTS[dtype] = (tuple(getattr(dtype, "_shape_", ())), np.dtype(wp.dtype_to_numpy(scalar)))
+    lay = _LAYOUTS.get(dtype) or _layout(dtype)
     return (*shape, *lay[0]), lay[1]
+
+
+def _layout(dtype: type) -> tuple[tuple[int, ...], np.dtype]:
+    """(a Warp dtype's own axes, its numpy scalar dtype), kept in _LAYOUTS."""
+    scalar = getattr(dtype, "_wp_scalar_type_", dtype)
+    lay = _LAYOUTS[dtype] = (tuple(getattr(dtype, "_shape_", ())), np.dtype(wp.dtype_to_numpy(scalar)))
+    return lay
+
+
+def _lend_exact(shape: tuple[int, ...], dt: np.dtype, keep: int, max_bytes: int, tag: str):
+    """:func:`pooled`'s buffer and lease (None: a buffer nobody keeps)."""
+    return _lend(("exact", shape, dt.str, tag), lambda free: 0 if free else None, lambda: np.empty(shape, dt), keep,
+                 math.prod(shape) * dt.itemsize <= max_bytes, returns_on_drop=True)
+
+
+def _lend_rows(n: int, rest: tuple[int, ...], dt: np.dtype, keep: int, tag: str):
+    """:func:`pooled_rows`' buffer and lease (None: a buffer nobody keeps)."""
+    grain = 1 << max(n.bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
+    rows = -(-n // grain) * grain
+
+    def pick(free: list) -> int | None:
+        free.sort(key=lambda b: b.shape[0])
+        return next((i for i, b in enumerate(free) if b.shape[0] >= n), None)
+
+    return _lend(("rows", rest, dt.str, tag), pick, lambda: np.empty((rows, *rest), dt), keep, True,
+                 returns_on_drop=True)
 
 
 def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20, *,
@@ -147,9 +170,7 @@ def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 
     ``tag`` names a kind of its own (buffers of other tags are never lent for it)."""
     shape = tuple(int(d) for d in shape)
     dt = np.dtype(dtype)
-    nbytes = math.prod(shape) * dt.itemsize
-    buf, lease = _lend(("exact", shape, dt.str, tag), lambda free: 0 if free else None,
-                       lambda: np.empty(shape, dt), keep, nbytes <= max_bytes, returns_on_drop=True)
+    buf, lease = _lend_exact(shape, dt, keep, max_bytes, tag)
     return buf if lease is None else lease.array(shape, dt)
 
 
@@ -162,15 +183,7 @@ def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2, *, tag: str 
     its own (buffers of other tags are never lent for it)."""
     n, rest = int(shape[0]), tuple(int(d) for d in shape[1:])
     dt = np.dtype(dtype)
-    grain = 1 << max(n.bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
-    rows = -(-n // grain) * grain
-
-    def pick(free: list) -> int | None:
-        free.sort(key=lambda b: b.shape[0])
-        return next((i for i, b in enumerate(free) if b.shape[0] >= n), None)
-
-    buf, lease = _lend(("rows", rest, dt.str, tag), pick, lambda: np.empty((rows, *rest), dt), keep, True,
-                       returns_on_drop=True)
+    buf, lease = _lend_rows(n, rest, dt, keep, tag)
     return buf[:n] if lease is None else lease.array((n, *rest), dt)
 
 
@@ -222,20 +235,22 @@ def pooled_arrays(fields: Sequence[tuple[int, type]], device: str | wp.Device | 
     dev = wp.get_device(device)
     if not dev.is_cpu:
         return [wp.empty(n, dtype=dt, device=dev) for n, dt in fields]
-    layouts, starts, total = [], [], 0
+    starts, total = [], 0
     for n, dt in fields:
-        shape, npdt = host_layout(n, dt)
-        layouts.append((shape, npdt))
+        lay = _LAYOUTS.get(dt) or _layout(dt)
         starts.append(total)
-        total += -(-(math.prod(shape) * npdt.itemsize) // BLOCK_ALIGN) * BLOCK_ALIGN
+        total += -(-(int(n) * math.prod(lay[0]) * lay[1].itemsize) // BLOCK_ALIGN) * BLOCK_ALIGN
     lines = max(total // BLOCK_ALIGN, 1)
-    if rows:
-        block = pooled_rows((lines, BLOCK_ALIGN), np.uint8, keep, tag=tag)
-    else:
-        block = pooled((lines, BLOCK_ALIGN), np.uint8, keep, max_bytes, tag=tag)
-    flat = block.reshape(-1)
-    return [wp.array(flat[o:o + math.prod(shape) * npdt.itemsize].view(npdt).reshape(shape), dtype=dt, device=dev,
-                     copy=False) for o, (shape, npdt), (_, dt) in zip(starts, layouts, fields, strict=True)]
+    u8 = np.dtype(np.uint8)
+    buf, lease = (_lend_rows(lines, (BLOCK_ALIGN,), u8, keep, tag) if rows else
+                  _lend_exact((lines, BLOCK_ALIGN), u8, keep, max_bytes, tag))
+    base = buf.ctypes.data
+
+    def holds(ptr: int, size: int, lease: Lease | np.ndarray = buf if lease is None else lease) -> None:
+        """The arrays' deleter: nothing to free; while an array lives, it holds the lease (or the unkept buffer)."""
+
+    return [wp.array(ptr=base + o, shape=(int(n),), dtype=dt, device=dev, deleter=holds)
+            for o, (n, dt) in zip(starts, fields, strict=True)]
 
 
 def take(kind: tuple, make: Callable[[], Any], keep: int = 2) -> Lease:
