@@ -1648,12 +1648,18 @@ class _Work:
         """(start, room, their device arrays, their Bins counting into ``counting``) of lists holding ``counts``
         (exactly, or with a quarter more and 8 spare per cell); written into ``reuse``'s arrays when given (the
         CPU's device arrays are views of the numpy ones)."""
-        slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
-        if reuse is not None:
-            reuse[1][:] = slots
+        if reuse is not None:  # in place: int32 counts + a quarter + 8 (or the counts), then their exclusive sum
+            slots = reuse[1]
+            if spare:
+                np.floor_divide(counts, 4, out=slots)
+                slots += counts
+                slots += 8
+            else:
+                slots[:] = counts
             reuse[0][0] = 0
             np.cumsum(slots[:-1], out=reuse[0][1:])
             return reuse
+        slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
         start = np.zeros(len(slots), np.int32)
         np.cumsum(slots[:-1], out=start[1:])
         b = Bins()

@@ -751,12 +751,13 @@ class _Work:
             return self.host[6][:p + 1].copy(), self.host[7][:p + 1].copy()
         return self.v_off[:p + 1].numpy().copy(), self.t_off[:p + 1].numpy().copy()
 
-    def emit(self, p: int, code: int) -> None:
-        """The emit launch over the frame's ``p`` patches, into :attr:`out` (its outputs then let go)."""
+    def emit(self, p: int, code: int, made: Iterable[str]) -> None:
+        """The emit launch over the frame's ``p`` patches, into :attr:`out`, whose arrays ``made`` and heights are
+        then let go (the pool lends the outputs again once their holders drop them)."""
         if p:
             launch(_emit_kernel, p, [self.o, self.i, code, self.v_off, self.t_off], [self.out], self.device,
                    min_items=64, oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ
-        for name in ("dom", "pid", "tri", "pos", "uv", "lev", "h"):  # the pool lends them again once let go
+        for name in (*made, "h"):
             setattr(self.out, name, None)
 
 
@@ -1059,7 +1060,7 @@ def _frame_device(a: _FrameArgs, device, flags: int):
     out.eye_rem = wp.vec3(*eye_rem)
     out.cell = wp.vec2(float(cell[0]), float(cell[1]))
     out.method = method
-    work.emit(o.shape[0], code)
+    work.emit(o.shape[0], code, made)
     v_off, t_off = work.offsets(o.shape[0])
     lease.give_back()
     return n, m, v_off, t_off, made
