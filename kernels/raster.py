@@ -1556,7 +1556,7 @@ def _as_matrix(name: str, m: object) -> np.ndarray:
     a = np.asarray(m, dtype=np.float64)
     if a.shape != (4, 4):
         raise ValueError(f"{name}: expected a (4, 4) matrix, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise ValueError(f"{name}: expected finite entries")
     return a
 

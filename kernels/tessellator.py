@@ -1076,10 +1076,10 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
         raise ValueError(f"patches.origin_xz: expected shape ({p}, 2), got {org.shape}")
     if size.shape == (p,):  # square in metres
         size = np.repeat(size[:, None], 2, axis=1)
-    if size.shape != (p, 2) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+    if size.shape != (p, 2) or not np.isfinite(size).all() or (size <= 0).any():
         raise ValueError(f"patches.size: expected ({p},) or ({p}, 2) positive finite sizes (x, z), got shape "
                          f"{size.shape}")
-    if not np.all(np.isfinite(org)):
+    if not np.isfinite(org).all():
         raise ValueError("patches.origin_xz: expected finite coordinates, got NaN or inf")
     lvl = _get(patches, "level", required=False)
     lvl = np.zeros(p, np.int32) if lvl is None else np.asarray(lvl, dtype=np.int32).reshape(-1)
@@ -1093,18 +1093,17 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
         raise ValueError(f"dx, dz: expected positive finite spacings, got {dx}, {dz}")
     check_choice("filter", filter, FILTER_CODES)
     e = np.asarray(eye, dtype=np.float64).reshape(-1)
-    if e.size != 3 or not np.all(np.isfinite(e)):
+    if e.size != 3 or not np.isfinite(e).all():
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
     x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
     code = _spacing_code(spacing)
 
     # patch extents and the eye on the lattice of 2^-16 cells (float64 on the host, rounded once)
     scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
-    lo = np.rint((org - (x0, z0)) * scale).astype(np.int64)
-    hi = np.rint((org + size - (x0, z0)) * scale).astype(np.int64)
-    if np.any(np.abs(np.concatenate([lo, hi])) > 2**46):
+    # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled
+    box = np.rint((np.concatenate([org, org + size], axis=1) - (x0, z0, x0, z0)) * np.tile(scale, 2)).astype(np.int64)
+    if (np.abs(box) > 2**46).any():
         raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
-    box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
     el = (e[[0, 2]] - (x0, z0)) * scale
     el_int = np.floor(el).astype(np.int64)
     rem = (el - el_int) / scale
