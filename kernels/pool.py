@@ -224,33 +224,43 @@ BLOCK_ALIGN = 64  # bytes: where each array of a block starts (a cache line; SIM
 
 
 def pooled_arrays(fields: Sequence[tuple[int, type]], device: str | wp.Device | None = None, *, tag: str,
-                  rows: bool = True, keep: int = 2, max_bytes: int = 64 << 20) -> list[wp.array]:
+                  rows: bool = True, keep: int = 2, max_bytes: int = 64 << 20,
+                  host: bool = False) -> list[wp.array] | tuple[list[wp.array], list[np.ndarray] | None]:
     """Warp arrays of ``n`` items of ``dtype`` for each ``(n, dtype)`` of ``fields``, carved on the CPU from one
     output lease of a kept byte buffer, each at a :data:`BLOCK_ALIGN` boundary: outputs that a call makes together
     and that live together (a tessellation's point fields and triangles, a frame's two images) take one lease
     instead of one each. The lease ends when the last of the arrays (or anything made from them) is dropped. The
     buffer is of kind ``tag``: with ``rows`` as :func:`pooled_rows` (the smallest free one with room, lengths that
     change from call to call), else as :func:`pooled` (exactly this size, kept when at most ``max_bytes``). On
-    CUDA: ``wp.empty`` each."""
+    CUDA: ``wp.empty`` each. With ``host``: (the arrays, numpy arrays over the same memory, each ``(n, *the dtype's
+    axes)`` and holding the lease too; None on CUDA)."""
     dev = wp.get_device(device)
     if not dev.is_cpu:
-        return [wp.empty(n, dtype=dt, device=dev) for n, dt in fields]
-    starts, total = [], 0
+        arrays = [wp.empty(n, dtype=dt, device=dev) for n, dt in fields]
+        return (arrays, None) if host else arrays
+    starts, lays, total = [], [], 0
     for n, dt in fields:
         lay = _LAYOUTS.get(dt) or _layout(dt)
         starts.append(total)
+        lays.append(lay)
         total += -(-(int(n) * math.prod(lay[0]) * lay[1].itemsize) // BLOCK_ALIGN) * BLOCK_ALIGN
     lines = max(total // BLOCK_ALIGN, 1)
     u8 = np.dtype(np.uint8)
     buf, lease = (_lend_rows(lines, (BLOCK_ALIGN,), u8, keep, tag) if rows else
                   _lend_exact((lines, BLOCK_ALIGN), u8, keep, max_bytes, tag))
     base = buf.ctypes.data
+    flat = buf.reshape(-1) if lease is None or not host else lease.array((lines * BLOCK_ALIGN,), u8)
 
-    def holds(ptr: int, size: int, lease: Lease | np.ndarray = buf if lease is None else lease) -> None:
+    def holds(ptr: int, size: int, lease: Lease | np.ndarray = flat if lease is None or host else lease) -> None:
         """The arrays' deleter: nothing to free; while an array lives, it holds the lease (or the unkept buffer)."""
 
-    return [wp.array(ptr=base + o, shape=(int(n),), dtype=dt, device=dev, deleter=holds)
-            for o, (n, dt) in zip(starts, fields, strict=True)]
+    arrays = [wp.array(ptr=base + o, shape=(int(n),), dtype=dt, device=dev, deleter=holds)
+              for o, (n, dt) in zip(starts, fields, strict=True)]
+    if not host:
+        return arrays
+    views = [flat[o:o + int(n) * math.prod(inner) * npdt.itemsize].view(npdt).reshape(int(n), *inner)
+             for o, (n, _), (inner, npdt) in zip(starts, fields, lays, strict=True)]
+    return arrays, views
 
 
 def take(kind: tuple, make: Callable[[], Any], keep: int = 2) -> Lease:

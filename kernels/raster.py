@@ -1676,10 +1676,10 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
           device: str):
     """Bin and draw the triangles (vertices' clip coordinates ``clip``, window positions ``win``), BATCH at a time.
     -> (ids, depth (device arrays, every pixel written), the tile flags (int32, window order), the tallies summed
-    (TALLIES,) int64)."""
+    (TALLIES,) int64, on the CPU the two images as numpy arrays over the same memory (else None))."""
     npx = width * height
-    out_id, out_depth = pooled_arrays([(npx, wp.int32), (npx, wp.float32)], device, tag="images", rows=False,
-                                      keep=_IMAGES_KEPT, max_bytes=2 * _IMAGES_MAX_BYTES)
+    (out_id, out_depth), images = pooled_arrays([(npx, wp.int32), (npx, wp.float32)], device, tag="images", rows=False,
+                                                keep=_IMAGES_KEPT, max_bytes=2 * _IMAGES_MAX_BYTES, host=True)
     nparts = max_parts()
     scratch = wp.get_device(device).is_cpu and _SCRATCH
     lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
@@ -1697,7 +1697,7 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
     tiles, tally = (work.views[0].copy(), work.views[1].sum(axis=0)) if work.cpu else \
         (work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0))
     lease.give_back()
-    return out_id, out_depth, tiles, tally
+    return out_id, out_depth, tiles, tally, images
 
 
 def _guard_band(width: int, height: int) -> wp.vec2:
@@ -1708,9 +1708,8 @@ def _rasterize_clip(clip: wp.array, win: wp.array, tri: np.ndarray, width: int, 
                     device: str, counters: bool = False) -> Fragments:
     m = int(tri.shape[0])
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    out_id, out_depth, tiles, tally = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
-    ids = out_id.numpy().reshape(height, width)
-    depth = out_depth.numpy().reshape(height, width)
+    out_id, out_depth, tiles, tally, images = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
+    ids, depth = (a.reshape(height, width) for a in (images or (out_id.numpy(), out_depth.numpy())))
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
     frag = Fragments(ids, depth, None, raster_stats(tally, m), clip=clip, tris=tri_wp, device=device, ids=out_id,

@@ -925,22 +925,19 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     lattice offset from the eye (relative error 2^-24 of the distance to the eye); the sampling
     coordinate is float32 (2^-12 cells at column 4,096).
     """
-    n, m, v_off, t_off, made, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need,
-                                              uv_cells)
+    n, m, v_off, t_off, made, views, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device,
+                                                     need, uv_cells, host=True)
+    got = {k: a.numpy() for k, a in made.items()} if views is None else views  # (N, *axes) each
 
-    def field(name: str, cols: int) -> np.ndarray | None:
-        if name not in made:
-            return None
-        a = made[name].numpy()[:n]
-        return a.reshape(-1, cols) if cols > 1 else a
+    def field(name: str) -> np.ndarray | None:
+        return got[name][:n] if name in got else None
 
-    dom = field("dom", 2)
+    dom = field("dom")
     return Tessellation(
-        positions=made["pos"].numpy()[:n].reshape(-1, 3), uv=field("uv", 2),
+        positions=got["pos"][:n], uv=field("uv"),
         domain=None if dom is None else dom.astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
-        patch_id=field("pid", 1), level=field("lev", 1), triangles=made["tri"].numpy()[:m].reshape(-1, 3),
-        vertex_offsets=v_off, triangle_offsets=t_off, eye=e,
-        counters=patch_draw_counters(len(v_off) - 1, n, m, FILTER_TEXELS[filter]))
+        patch_id=field("pid"), level=field("lev"), triangles=got["tri"][:m], vertex_offsets=v_off,
+        triangle_offsets=t_off, eye=e, counters=patch_draw_counters(len(v_off) - 1, n, m, FILTER_TEXELS[filter]))
 
 
 class DeviceTessellation(NamedTuple):
@@ -974,20 +971,20 @@ def tessellate_patches_device(patches, heights, dx: float, dz: float, eye, spaci
                               need: Iterable[str] | None = None, uv_cells: bool = False) -> DeviceTessellation:
     """:func:`tessellate_patches` (same arguments, validated the same way) without the copies to the host: the
     device stages alone (count, scan, then emit and displace in one launch)."""
-    n, m, v_off, t_off, made, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need,
-                                              uv_cells)
+    n, m, v_off, t_off, made, _, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need,
+                                                 uv_cells)
     return DeviceTessellation(n, m, made["pos"], made["tri"], made.get("uv"), made.get("dom"), made.get("pid"),
                               made.get("lev"), wp.array(v_off, dtype=wp.int32, device=device),
                               wp.array(t_off, dtype=wp.int32, device=device), e)
 
 
-def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells):
-    """:func:`tessellate_patches_device`'s work -> (n, m, offsets (P+1,) int32 on the host, the outputs made (see
-    :func:`_frame_device`), the eye as floats)."""
+def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells, host=False):
+    """:func:`tessellate_patches_device`'s work -> (n, m, offsets (P+1,) int32 on the host, the outputs made and with
+    ``host`` their numpy arrays (see :func:`_frame_device`), the eye as floats)."""
     flags = _flags(need) | (W_CELLS if uv_cells else 0) | W_SWAP
     args, e = _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
-    n, m, v_off, t_off, made = _frame_device(args, device, flags)
-    return n, m, v_off, t_off, made, (float(e[0]), float(e[1]), float(e[2]))
+    n, m, v_off, t_off, made, views = _frame_device(args, device, flags, host)
+    return n, m, v_off, t_off, made, views, (float(e[0]), float(e[1]), float(e[2]))
 
 
 class FrameLattice(NamedTuple):
@@ -1037,10 +1034,11 @@ class _FrameArgs(NamedTuple):
     method: int
 
 
-def _frame_device(a: _FrameArgs, device, flags: int):
+def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     """Device stages of :func:`tessellate_patches` (count, scan, then emit and displace in one launch), writing
     what ``flags`` (W_*) asks for -> (n, m, vertex and triangle offsets (P+1,) int32 on the host, the outputs
-    made: ``{"tri": ..., and "dom", "pid", "pos", "uv", "lev" as asked}``, frame-sized pool arrays)."""
+    made: ``{"tri": ..., and "dom", "pid", "pos", "uv", "lev" as asked}``, frame-sized pool arrays, and with
+    ``host`` on the CPU numpy arrays over them, ``(N, *axes)`` each, else None)."""
     o, i, code, box, lvl, h, el_int, eye_rem, cell, method = a
     lease = take(("tessellator", str(wp.get_device(device))), lambda: _Work(device), keep=_WORK_KEPT)
     work = lease.buffer
@@ -1049,7 +1047,8 @@ def _frame_device(a: _FrameArgs, device, flags: int):
     out.flags = flags
     fields = [(name, max(n, 1), dt) for flag, name, dt in _FIELDS if flags & flag] + [("tri", max(m, 1), wp.vec3i)]
     # frame-sized outputs from the pool, one lease for them all: no fresh pages to fault in on every frame
-    arrays = pooled_arrays([f[1:] for f in fields], device, tag="tessellation", keep=_OUTPUTS_KEPT)
+    got = pooled_arrays([f[1:] for f in fields], device, tag="tessellation", keep=_OUTPUTS_KEPT, host=host)
+    arrays, views = got if host else (got, None)
     made = {f[0]: a for f, a in zip(fields, arrays, strict=True)}
     for name, a in made.items():
         setattr(out, name, a)
@@ -1063,7 +1062,7 @@ def _frame_device(a: _FrameArgs, device, flags: int):
     work.emit(o.shape[0], code, made)
     v_off, t_off = work.offsets(o.shape[0])
     lease.give_back()
-    return n, m, v_off, t_off, made
+    return n, m, v_off, t_off, made, None if views is None else {f[0]: v for f, v in zip(fields, views, strict=True)}
 
 
 def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, np.ndarray]:
