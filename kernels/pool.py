@@ -27,6 +27,7 @@ Thread-safe: leases may be taken and ended from any thread.
 
 from __future__ import annotations
 
+import math
 import threading
 import weakref
 from collections import deque
@@ -36,8 +37,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "filled_array", "take",
-           "release_buffers", "kept_bytes", "host_layout"]
+__all__ = ["Lease", "pooled", "pooled_rows", "pooled_array", "pooled_rows_array", "pooled_arrays", "filled_array",
+           "take", "release_buffers", "kept_bytes", "host_layout"]
 
 
 class _Kind:
@@ -126,32 +127,31 @@ def _lend(kind: tuple, pick: Callable[[list], int | None], make: Callable[[], An
     return buf, Lease(kind, buf, gen, returns_on_drop=returns_on_drop)
 
 
+_LAYOUTS: dict[type, tuple[tuple[int, ...], np.dtype]] = {}  # Warp dtype -> (its own axes, numpy scalar dtype)
+
+
 def host_layout(shape: int | Sequence[int], dtype: type) -> tuple[tuple[int, ...], np.dtype]:
     """The numpy (shape, dtype) of a Warp array of ``shape`` and ``dtype`` (a vector type adds its own axes)."""
     shape = (int(shape),) if isinstance(shape, int | np.integer) else tuple(int(d) for d in shape)
+    lay = _LAYOUTS.get(dtype) or _layout(dtype)
+    return (*shape, *lay[0]), lay[1]
+
+
+def _layout(dtype: type) -> tuple[tuple[int, ...], np.dtype]:
+    """(a Warp dtype's own axes, its numpy scalar dtype), kept in _LAYOUTS."""
     scalar = getattr(dtype, "_wp_scalar_type_", dtype)
-    return (*shape, *tuple(getattr(dtype, "_shape_", ()))), np.dtype(wp.dtype_to_numpy(scalar))
+    lay = _LAYOUTS[dtype] = (tuple(getattr(dtype, "_shape_", ())), np.dtype(wp.dtype_to_numpy(scalar)))
+    return lay
 
 
-def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20) -> np.ndarray:
-    """An uninitialised host array for an output, on an output lease: a kept buffer of this (shape, dtype) whose
-    last lease has ended, else a new one, kept when fewer than ``keep`` are and it is at most ``max_bytes``."""
-    shape = tuple(int(d) for d in shape)
-    dt = np.dtype(dtype)
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
-    buf, lease = _lend(("exact", shape, dt.str), lambda free: 0 if free else None,
-                       lambda: np.empty(shape, dt), keep, nbytes <= max_bytes, returns_on_drop=True)
-    return buf if lease is None else lease.array(shape, dt)
+def _lend_exact(shape: tuple[int, ...], dt: np.dtype, keep: int, max_bytes: int, tag: str):
+    """:func:`pooled`'s buffer and lease (None: a buffer nobody keeps)."""
+    return _lend(("exact", shape, dt.str, tag), lambda free: 0 if free else None, lambda: np.empty(shape, dt), keep,
+                 math.prod(shape) * dt.itemsize <= max_bytes, returns_on_drop=True)
 
 
-def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarray:
-    """An uninitialised host array of ``shape`` on an output lease of a kept buffer with at least ``shape[0]`` rows
-    (the smallest free one), else of a new one with up to 1/64 more rows (at most 1.6% unused), kept in place of
-    the smallest free one when ``keep`` are kept already. For outputs whose length changes from frame to frame (a
-    tessellation's points and triangles): an exact-shape pool (:func:`pooled`) would never hit, and a frame of
-    134 M triangles writes 2.5 GB that would otherwise be faulted in again on every frame."""
-    n, rest = int(shape[0]), tuple(int(d) for d in shape[1:])
-    dt = np.dtype(dtype)
+def _lend_rows(n: int, rest: tuple[int, ...], dt: np.dtype, keep: int, tag: str):
+    """:func:`pooled_rows`' buffer and lease (None: a buffer nobody keeps)."""
     grain = 1 << max(n.bit_length() - 7, 0)  # <= 1/64 more rows: a slowly growing frame still hits
     rows = -(-n // grain) * grain
 
@@ -159,8 +159,31 @@ def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2) -> np.ndarra
         free.sort(key=lambda b: b.shape[0])
         return next((i for i, b in enumerate(free) if b.shape[0] >= n), None)
 
-    buf, lease = _lend(("rows", rest, dt.str), pick, lambda: np.empty((rows, *rest), dt), keep, True,
-                       returns_on_drop=True)
+    return _lend(("rows", rest, dt.str, tag), pick, lambda: np.empty((rows, *rest), dt), keep, True,
+                 returns_on_drop=True)
+
+
+def pooled(shape: tuple[int, ...], dtype: type, keep: int = 2, max_bytes: int = 64 << 20, *,
+           tag: str = "") -> np.ndarray:
+    """An uninitialised host array for an output, on an output lease: a kept buffer of this (shape, dtype) whose
+    last lease has ended, else a new one, kept when fewer than ``keep`` are and it is at most ``max_bytes``.
+    ``tag`` names a kind of its own (buffers of other tags are never lent for it)."""
+    shape = tuple(int(d) for d in shape)
+    dt = np.dtype(dtype)
+    buf, lease = _lend_exact(shape, dt, keep, max_bytes, tag)
+    return buf if lease is None else lease.array(shape, dt)
+
+
+def pooled_rows(shape: tuple[int, ...], dtype: type, keep: int = 2, *, tag: str = "") -> np.ndarray:
+    """An uninitialised host array of ``shape`` on an output lease of a kept buffer with at least ``shape[0]`` rows
+    (the smallest free one), else of a new one with up to 1/64 more rows (at most 1.6% unused), kept in place of
+    the smallest free one when ``keep`` are kept already. For outputs whose length changes from frame to frame (a
+    tessellation's points and triangles): an exact-shape pool (:func:`pooled`) would never hit, and a frame of
+    134 M triangles writes 2.5 GB that would otherwise be faulted in again on every frame. ``tag`` names a kind of
+    its own (buffers of other tags are never lent for it)."""
+    n, rest = int(shape[0]), tuple(int(d) for d in shape[1:])
+    dt = np.dtype(dtype)
+    buf, lease = _lend_rows(n, rest, dt, keep, tag)
     return buf[:n] if lease is None else lease.array((n, *rest), dt)
 
 
@@ -195,6 +218,49 @@ def pooled_rows_array(n: int, dtype: type, device: str | wp.Device | None = None
         return wp.empty(n, dtype=dtype, device=dev)
     a = pooled_rows(*host_layout(n, dtype), keep)
     return wp.array(a, dtype=dtype, device=dev, copy=False)
+
+
+BLOCK_ALIGN = 64  # bytes: where each array of a block starts (a cache line; SIMD stores align to it)
+
+
+def pooled_arrays(fields: Sequence[tuple[int, type]], device: str | wp.Device | None = None, *, tag: str,
+                  rows: bool = True, keep: int = 2, max_bytes: int = 64 << 20,
+                  host: bool = False) -> list[wp.array] | tuple[list[wp.array], list[np.ndarray] | None]:
+    """Warp arrays of ``n`` items of ``dtype`` for each ``(n, dtype)`` of ``fields``, carved on the CPU from one
+    output lease of a kept byte buffer, each at a :data:`BLOCK_ALIGN` boundary: outputs that a call makes together
+    and that live together (a tessellation's point fields and triangles, a frame's two images) take one lease
+    instead of one each. The lease ends when the last of the arrays (or anything made from them) is dropped. The
+    buffer is of kind ``tag``: with ``rows`` as :func:`pooled_rows` (the smallest free one with room, lengths that
+    change from call to call), else as :func:`pooled` (exactly this size, kept when at most ``max_bytes``). On
+    CUDA: ``wp.empty`` each. With ``host``: (the arrays, numpy arrays over the same memory, each ``(n, *the dtype's
+    axes)`` and holding the lease too; None on CUDA)."""
+    dev = wp.get_device(device)
+    if not dev.is_cpu:
+        arrays = [wp.empty(n, dtype=dt, device=dev) for n, dt in fields]
+        return (arrays, None) if host else arrays
+    starts, lays, total = [], [], 0
+    for n, dt in fields:
+        lay = _LAYOUTS.get(dt) or _layout(dt)
+        starts.append(total)
+        lays.append(lay)
+        total += -(-(int(n) * math.prod(lay[0]) * lay[1].itemsize) // BLOCK_ALIGN) * BLOCK_ALIGN
+    lines = max(total // BLOCK_ALIGN, 1)
+    u8 = np.dtype(np.uint8)
+    buf, lease = (_lend_rows(lines, (BLOCK_ALIGN,), u8, keep, tag) if rows else
+                  _lend_exact((lines, BLOCK_ALIGN), u8, keep, max_bytes, tag))
+    base = buf.ctypes.data
+    flat = buf.reshape(-1) if lease is None or not host else lease.array((lines * BLOCK_ALIGN,), u8)
+
+    def holds(ptr: int, size: int, lease: Lease | np.ndarray = flat if lease is None or host else lease) -> None:
+        """The arrays' deleter: nothing to free; while an array lives, it holds the lease (or the unkept buffer)."""
+
+    arrays = [wp.array(ptr=base + o, shape=(int(n),), dtype=dt, device=dev, deleter=holds)
+              for o, (n, dt) in zip(starts, fields, strict=True)]
+    if not host:
+        return arrays
+    views = [flat[o:o + int(n) * math.prod(inner) * npdt.itemsize].view(npdt).reshape(int(n), *inner)
+             for o, (n, _), (inner, npdt) in zip(starts, fields, lays, strict=True)]
+    return arrays, views
 
 
 def take(kind: tuple, make: Callable[[], Any], keep: int = 2) -> Lease:

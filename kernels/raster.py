@@ -83,7 +83,7 @@ from .counters import (
 )
 from .parallel import atomic_add_i32, chunks, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
-from .pool import filled_array, pooled_array, pooled_rows_array, take
+from .pool import filled_array, pooled_arrays, pooled_rows_array, take
 
 __all__ = ["Fragments", "rasterize", "rasterize_clip", "clip_coordinates", "clip_barycentrics", "pixel_ndc",
            "SUBPIXEL", "TILE"]
@@ -1556,7 +1556,7 @@ def _as_matrix(name: str, m: object) -> np.ndarray:
     a = np.asarray(m, dtype=np.float64)
     if a.shape != (4, 4):
         raise ValueError(f"{name}: expected a (4, 4) matrix, got shape {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not np.isfinite(a).all():
         raise ValueError(f"{name}: expected finite entries")
     return a
 
@@ -1571,8 +1571,8 @@ def _bands(dirty: np.ndarray, width: int) -> np.ndarray:
 
 
 _SCRATCH = True  # on the CPU: scratch tiles, records drawn in SIMD (False: the way CUDA draws, for the tests)
-_IMAGES_KEPT = 2  # output images kept per (shape, dtype): the frame being made and the one before it
-_IMAGES_MAX_BYTES = 64 << 20  # larger images are not kept
+_IMAGES_KEPT = 3  # output images kept per shape: the frame being made, the one before it and one its caller holds
+_IMAGES_MAX_BYTES = 64 << 20  # larger images (each) are not kept
 
 
 class _Work:
@@ -1648,12 +1648,18 @@ class _Work:
         """(start, room, their device arrays, their Bins counting into ``counting``) of lists holding ``counts``
         (exactly, or with a quarter more and 8 spare per cell); written into ``reuse``'s arrays when given (the
         CPU's device arrays are views of the numpy ones)."""
-        slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
-        if reuse is not None:
-            reuse[1][:] = slots
+        if reuse is not None:  # in place: int32 counts + a quarter + 8 (or the counts), then their exclusive sum
+            slots = reuse[1]
+            if spare:
+                np.floor_divide(counts, 4, out=slots)
+                slots += counts
+                slots += 8
+            else:
+                slots[:] = counts
             reuse[0][0] = 0
             np.cumsum(slots[:-1], out=reuse[0][1:])
             return reuse
+        slots = (counts + counts // 4 + 8 if spare else counts).astype(np.int32)
         start = np.zeros(len(slots), np.int32)
         np.cumsum(slots[:-1], out=start[1:])
         b = Bins()
@@ -1670,10 +1676,10 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
           device: str):
     """Bin and draw the triangles (vertices' clip coordinates ``clip``, window positions ``win``), BATCH at a time.
     -> (ids, depth (device arrays, every pixel written), the tile flags (int32, window order), the tallies summed
-    (TALLIES,) int64)."""
+    (TALLIES,) int64, on the CPU the two images as numpy arrays over the same memory (else None))."""
     npx = width * height
-    out_id = pooled_array(npx, wp.int32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
-    out_depth = pooled_array(npx, wp.float32, device, keep=_IMAGES_KEPT, max_bytes=_IMAGES_MAX_BYTES)
+    (out_id, out_depth), images = pooled_arrays([(npx, wp.int32), (npx, wp.float32)], device, tag="images", rows=False,
+                                                keep=_IMAGES_KEPT, max_bytes=2 * _IMAGES_MAX_BYTES, host=True)
     nparts = max_parts()
     scratch = wp.get_device(device).is_cpu and _SCRATCH
     lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
@@ -1688,9 +1694,10 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
         launch(_tile_kernel, work.workers, [int(scratch), work.queue, work.ntiles, int(base == 0), clip, tri_wp, bins,
                                             width, height, cb, gb],
                [buf_id, buf_depth, out_id, out_depth, work.dirty, work.tally], device, parts=True, min_items=1)
-    tiles, tally = work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0)
+    tiles, tally = (work.views[0].copy(), work.views[1].sum(axis=0)) if work.cpu else \
+        (work.dirty.numpy().copy(), work.tally.numpy().sum(axis=0))
     lease.give_back()
-    return out_id, out_depth, tiles, tally
+    return out_id, out_depth, tiles, tally, images
 
 
 def _guard_band(width: int, height: int) -> wp.vec2:
@@ -1701,9 +1708,8 @@ def _rasterize_clip(clip: wp.array, win: wp.array, tri: np.ndarray, width: int, 
                     device: str, counters: bool = False) -> Fragments:
     m = int(tri.shape[0])
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    out_id, out_depth, tiles, tally = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
-    ids = out_id.numpy().reshape(height, width)
-    depth = out_depth.numpy().reshape(height, width)
+    out_id, out_depth, tiles, tally, images = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
+    ids, depth = (a.reshape(height, width) for a in (images or (out_id.numpy(), out_depth.numpy())))
     if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
     frag = Fragments(ids, depth, None, raster_stats(tally, m), clip=clip, tris=tri_wp, device=device, ids=out_id,
@@ -1762,15 +1768,16 @@ def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: 
     if not finite and not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
-    clip = pooled_rows_array(max(len(pos32), 1), wp.vec4, device)  # kept by Fragments for its barycentrics
-    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp)
+    n = max(len(pos32), 1)
+    clip, win = pooled_arrays([(n, wp.vec4), (n, wp.vec4)], device, tag="vertices")  # clip: Fragments keeps it
+    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp, win)
 
 
 def _vertices(clip: wp.array, n: int, width: int, height: int, device: str, pos: wp.array | None = None,
-              mvp: np.ndarray | None = None) -> wp.array:
+              mvp: np.ndarray | None = None, win: wp.array | None = None) -> wp.array:
     """The window positions of ``n`` vertices (:func:`_vertex_kernel`; with ``pos`` and ``mvp`` their clip
-    coordinates too, into ``clip``)."""
-    win = pooled_rows_array(max(n, 1), wp.vec4, device)
+    coordinates too, into ``clip``), into ``win`` (or a new pool array)."""
+    win = pooled_rows_array(max(n, 1), wp.vec4, device) if win is None else win
     if n:
         mat = wp.mat44(*mvp.reshape(-1).tolist()) if mvp is not None else wp.mat44()
         launch(_vertex_kernel, n, [pos if pos is not None else wp.empty(1, dtype=wp.vec3, device=device), mat,

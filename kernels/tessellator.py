@@ -44,7 +44,7 @@ import warp as wp
 from .checks import check_choice
 from .counters import patch_draw_counters
 from .parallel import empty, launch, scan, view
-from .pool import pooled_rows_array
+from .pool import pooled_arrays, take
 from .sampling import sample_height
 
 __all__ = ["Tessellation", "DeviceTessellation", "tessellate_domains", "tessellate_patches",
@@ -694,6 +694,80 @@ def _spacing_code(spacing: str) -> int:
     return SPACING_CODES[spacing]
 
 
+class _Work:
+    """What a frame's count, scan and emit work in besides their outputs, leased from the pool (:func:`.pool.take`)
+    and given back when the call is done: the patches' levels, lattice boxes and LOD levels, their counts and
+    offsets (P+1: entry P is the total), kept at a power-of-two capacity that grows with the frames (their first P
+    entries are the frame's), and the emit launch's :class:`_Out`. On the CPU the host writes and scans them in
+    place, through numpy views of the same memory; elsewhere they are copied in and scanned on the device."""
+
+    def __init__(self, device: str) -> None:
+        self.device, self.cpu, self.cap = device, wp.get_device(device).is_cpu, -1
+        self.out = _Out()
+
+    def fit(self, p: int) -> None:
+        """Make room for ``p`` patches."""
+        if p <= self.cap:
+            return
+        cap = max(64, 1 << max(p - 1, 0).bit_length())
+        dev = self.device
+        self.o, self.i, self.box, self.lvl = (empty(cap, t, dev) for t in (wp.vec4, wp.vec2, vec4l, wp.int32))
+        self.nv, self.nt, self.v_off, self.t_off = (empty(cap + 1, wp.int32, dev) for _ in range(4))
+        self.host = [a.numpy() for a in (self.o, self.i, self.box, self.lvl, self.nv, self.nt, self.v_off,
+                                         self.t_off)] if self.cpu else None
+        self.out.box, self.out.level = self.box, self.lvl
+        self.cap = cap
+
+    def put(self, k: int, a: np.ndarray) -> None:
+        """Write the frame's rows of kept input ``k`` (0 levels outer, 1 inner, 2 boxes, 3 LOD levels)."""
+        if self.host is not None:
+            self.host[k][: len(a)] = a
+        elif len(a):
+            dst = (self.o, self.i, self.box, self.lvl)[k]
+            wp.copy(dst, wp.array(a, dtype=dst.dtype, device="cpu"), count=len(a))
+
+    def count_scan(self, o: np.ndarray, i: np.ndarray, code: int) -> tuple[int, int]:
+        """Count the points and triangles of the P patches ``o``, ``i`` and scan them into the offsets: -> the
+        totals (points n, triangles m)."""
+        p = o.shape[0]
+        self.fit(p)
+        self.put(0, o)
+        self.put(1, i)
+        if p:
+            launch(_count_kernel, p, [self.o, self.i, code], [self.nv, self.nt], self.device)
+        if self.host is not None:  # a prefix sum of some hundred counts: numpy, in place
+            for c, off in ((self.host[4], self.host[6]), (self.host[5], self.host[7])):
+                off[0] = 0
+                np.cumsum(c[:p], out=off[1:p + 1])
+            return int(self.host[6][p]), int(self.host[7][p])
+        for c, off in ((self.nv, self.v_off), (self.nt, self.t_off)):
+            c[p:p + 1].zero_()
+            scan(c[:p + 1], off[:p + 1], inclusive=False)
+        return int(self.v_off[p:p + 1].numpy()[0]), int(self.t_off[p:p + 1].numpy()[0])
+
+    def offsets(self, p: int) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's vertex and triangle offsets (P+1,) int32, as host copies."""
+        if self.host is not None:
+            return self.host[6][:p + 1].copy(), self.host[7][:p + 1].copy()
+        return self.v_off[:p + 1].numpy().copy(), self.t_off[:p + 1].numpy().copy()
+
+    def emit(self, p: int, code: int, made: Iterable[str]) -> None:
+        """The emit launch over the frame's ``p`` patches, into :attr:`out`, whose arrays ``made`` and heights are
+        then let go (the pool lends the outputs again once their holders drop them)."""
+        if p:
+            launch(_emit_kernel, p, [self.o, self.i, code, self.v_off, self.t_off], [self.out], self.device,
+                   min_items=64, oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ
+        for name in (*made, "h"):
+            setattr(self.out, name, None)
+
+
+_WORK_KEPT = 2  # per device: a call, and another on another thread
+_OUTPUTS_KEPT = 3  # frames' outputs kept: the one being made, the one before it and one its caller holds
+# the per-point outputs (flag, name in _Out, dtype)
+_FIELDS = ((W_DOMAIN, "dom", wp.vec2i), (W_PATCH_ID, "pid", wp.int32), (W_POSITION, "pos", wp.vec3),
+           (W_UV, "uv", wp.vec2), (W_LEVEL, "lev", wp.int32))
+
+
 def _count_scan(o: np.ndarray, i: np.ndarray, code: int, device: str):
     """Count and scan: -> (points n, triangles m, levels and offsets as Warp arrays)."""
     p = o.shape[0]
@@ -851,24 +925,19 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     lattice offset from the eye (relative error 2^-24 of the distance to the eye); the sampling
     coordinate is float32 (2^-12 cells at column 4,096).
     """
-    d = tessellate_patches_device(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells)
-    n = d.n_points
+    n, m, v_off, t_off, made, views, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device,
+                                                     need, uv_cells, host=True)
+    got = {k: a.numpy() for k, a in made.items()} if views is None else views  # (N, *axes) each
 
-    def field(arr: wp.array | None, cols: int) -> np.ndarray | None:
-        if arr is None:
-            return None
-        a = arr.numpy()[:n]
-        return a.reshape(-1, cols) if cols > 1 else a
+    def field(name: str) -> np.ndarray | None:
+        return got[name][:n] if name in got else None
 
-    dom = field(d.domain, 2)
+    dom = field("dom")
     return Tessellation(
-        positions=d.positions.numpy()[:n].reshape(-1, 3), uv=field(d.uv, 2),
+        positions=got["pos"][:n], uv=field("uv"),
         domain=None if dom is None else dom.astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
-        patch_id=field(d.patch_id, 1), level=field(d.level, 1),
-        triangles=d.triangles.numpy()[:d.n_triangles].reshape(-1, 3),
-        vertex_offsets=d.vertex_offsets.numpy().copy(), triangle_offsets=d.triangle_offsets.numpy().copy(),
-        eye=d.eye, counters=patch_draw_counters(d.vertex_offsets.shape[0] - 1, n, d.n_triangles,
-                                                FILTER_TEXELS[filter]))
+        patch_id=field("pid"), level=field("lev"), triangles=got["tri"][:m], vertex_offsets=v_off,
+        triangle_offsets=t_off, eye=e, counters=patch_draw_counters(len(v_off) - 1, n, m, FILTER_TEXELS[filter]))
 
 
 class DeviceTessellation(NamedTuple):
@@ -902,12 +971,20 @@ def tessellate_patches_device(patches, heights, dx: float, dz: float, eye, spaci
                               need: Iterable[str] | None = None, uv_cells: bool = False) -> DeviceTessellation:
     """:func:`tessellate_patches` (same arguments, validated the same way) without the copies to the host: the
     device stages alone (count, scan, then emit and displace in one launch)."""
+    n, m, v_off, t_off, made, _, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need,
+                                                 uv_cells)
+    return DeviceTessellation(n, m, made["pos"], made["tri"], made.get("uv"), made.get("dom"), made.get("pid"),
+                              made.get("lev"), wp.array(v_off, dtype=wp.int32, device=device),
+                              wp.array(t_off, dtype=wp.int32, device=device), e)
+
+
+def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells, host=False):
+    """:func:`tessellate_patches_device`'s work -> (n, m, offsets (P+1,) int32 on the host, the outputs made and with
+    ``host`` their numpy arrays (see :func:`_frame_device`), the eye as floats)."""
     flags = _flags(need) | (W_CELLS if uv_cells else 0) | W_SWAP
     args, e = _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
-    n, m, v_off, t_off, out = _frame_device(args, device, flags)
-    get = lambda flag, name: getattr(out, name) if flags & flag else None  # noqa: E731
-    return DeviceTessellation(n, m, out.pos, out.tri, get(W_UV, "uv"), get(W_DOMAIN, "dom"), get(W_PATCH_ID, "pid"),
-                              get(W_LEVEL, "lev"), v_off, t_off, (float(e[0]), float(e[1]), float(e[2])))
+    n, m, v_off, t_off, made, views = _frame_device(args, device, flags, host)
+    return n, m, v_off, t_off, made, views, (float(e[0]), float(e[1]), float(e[2]))
 
 
 class FrameLattice(NamedTuple):
@@ -957,28 +1034,35 @@ class _FrameArgs(NamedTuple):
     method: int
 
 
-def _frame_device(a: _FrameArgs, device, flags: int):
+def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     """Device stages of :func:`tessellate_patches` (count, scan, then emit and displace in one launch), writing
-    what ``flags`` (W_*) asks for -> (n, m, vertex and triangle offsets, the launch's :class:`_Out`, whose
-    arrays not asked for are None)."""
+    what ``flags`` (W_*) asks for -> (n, m, vertex and triangle offsets (P+1,) int32 on the host, the outputs
+    made: ``{"tri": ..., and "dom", "pid", "pos", "uv", "lev" as asked}``, frame-sized pool arrays, and with
+    ``host`` on the CPU numpy arrays over them, ``(N, *axes)`` each, else None)."""
     o, i, code, box, lvl, h, el_int, eye_rem, cell, method = a
-    n, m, wo, wi, v_off, t_off = _count_scan(o, i, code, device)
-    out = _Out()
+    lease = take(("tessellator", str(wp.get_device(device))), lambda: _Work(device), keep=_WORK_KEPT)
+    work = lease.buffer
+    n, m = work.count_scan(o, i, code)
+    out = work.out
     out.flags = flags
-    for flag, name, dtype in ((W_DOMAIN, "dom", wp.vec2i), (W_PATCH_ID, "pid", wp.int32), (W_POSITION, "pos", wp.vec3),
-                              (W_UV, "uv", wp.vec2), (W_LEVEL, "lev", wp.int32)):
-        if flags & flag:  # frame-sized outputs from the pool: no fresh pages to fault in on every frame
-            setattr(out, name, pooled_rows_array(max(n, 1), dtype, device))
-    out.tri = pooled_rows_array(max(m, 1), wp.vec3i, device)
-    out.box = wp.array(box, dtype=vec4l, device=device)
-    out.level = wp.array(lvl, dtype=wp.int32, device=device)
+    fields = [(name, max(n, 1), dt) for flag, name, dt in _FIELDS if flags & flag] + [("tri", max(m, 1), wp.vec3i)]
+    # frame-sized outputs from the pool, one lease for them all: no fresh pages to fault in on every frame
+    got = pooled_arrays([f[1:] for f in fields], device, tag="tessellation", keep=_OUTPUTS_KEPT, host=host)
+    arrays, views = got if host else (got, None)
+    made = {f[0]: a for f, a in zip(fields, arrays, strict=True)}
+    for name, a in made.items():
+        setattr(out, name, a)
+    work.put(2, box)
+    work.put(3, lvl)
     out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place
     out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
     out.eye_rem = wp.vec3(*eye_rem)
     out.cell = wp.vec2(float(cell[0]), float(cell[1]))
     out.method = method
-    _emit(wo, wi, code, v_off, t_off, out, device)
-    return n, m, v_off, t_off, out
+    work.emit(o.shape[0], code, made)
+    v_off, t_off = work.offsets(o.shape[0])
+    lease.give_back()
+    return n, m, v_off, t_off, made, None if views is None else {f[0]: v for f, v in zip(fields, views, strict=True)}
 
 
 def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, np.ndarray]:
@@ -991,10 +1075,10 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
         raise ValueError(f"patches.origin_xz: expected shape ({p}, 2), got {org.shape}")
     if size.shape == (p,):  # square in metres
         size = np.repeat(size[:, None], 2, axis=1)
-    if size.shape != (p, 2) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+    if size.shape != (p, 2) or not np.isfinite(size).all() or (size <= 0).any():
         raise ValueError(f"patches.size: expected ({p},) or ({p}, 2) positive finite sizes (x, z), got shape "
                          f"{size.shape}")
-    if not np.all(np.isfinite(org)):
+    if not np.isfinite(org).all():
         raise ValueError("patches.origin_xz: expected finite coordinates, got NaN or inf")
     lvl = _get(patches, "level", required=False)
     lvl = np.zeros(p, np.int32) if lvl is None else np.asarray(lvl, dtype=np.int32).reshape(-1)
@@ -1008,18 +1092,17 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
         raise ValueError(f"dx, dz: expected positive finite spacings, got {dx}, {dz}")
     check_choice("filter", filter, FILTER_CODES)
     e = np.asarray(eye, dtype=np.float64).reshape(-1)
-    if e.size != 3 or not np.all(np.isfinite(e)):
+    if e.size != 3 or not np.isfinite(e).all():
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
     x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
     code = _spacing_code(spacing)
 
     # patch extents and the eye on the lattice of 2^-16 cells (float64 on the host, rounded once)
     scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
-    lo = np.rint((org - (x0, z0)) * scale).astype(np.int64)
-    hi = np.rint((org + size - (x0, z0)) * scale).astype(np.int64)
-    if np.any(np.abs(np.concatenate([lo, hi])) > 2**46):
+    # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled
+    box = np.rint((np.concatenate([org, org + size], axis=1) - (x0, z0, x0, z0)) * np.tile(scale, 2)).astype(np.int64)
+    if (np.abs(box) > 2**46).any():
         raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
-    box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
     el = (e[[0, 2]] - (x0, z0)) * scale
     el_int = np.floor(el).astype(np.int64)
     rem = (el - el_int) / scale

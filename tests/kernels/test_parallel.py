@@ -403,3 +403,21 @@ def test_frames_rendered_and_held_by_threads_keep_their_bits():
     assert not bad
 
 
+
+
+def test_pooled_arrays_share_one_lease_that_ends_with_the_last_of_them():
+    """A call's outputs carved from one kept buffer: each aligned, none overlapping, and the buffer lent again only
+    once every one of them (or a view of it) is dropped; a buffer of another tag is never lent for it."""
+    pool.release_buffers()
+    pos, tri = pool.pooled_arrays([(100, wp.vec3), (37, wp.vec3i)], "cpu", tag="t")
+    assert pos.shape == (100,) and tri.shape == (37,) and pos.dtype == wp.vec3 and tri.dtype == wp.vec3i
+    assert pos.ptr % pool.BLOCK_ALIGN == tri.ptr % pool.BLOCK_ALIGN and tri.ptr >= pos.ptr + 100 * 12
+    base = pos.ptr
+    held = tri.numpy()
+    del pos, tri
+    assert pool.pooled_arrays([(100, wp.vec3)], "cpu", tag="t")[0].ptr != base  # held through tri's numpy view
+    del held
+    assert pool.pooled_arrays([(10, wp.vec3)], "cpu", tag="other")[0].ptr != base  # free, but of another tag
+    again = pool.pooled_arrays([(90, wp.vec3), (30, wp.vec3i)], "cpu", tag="t")
+    assert again[0].ptr == base  # every array dropped: the buffer is lent again
+    assert pool.release_buffers() > 0
