@@ -43,6 +43,7 @@ from ..rendering.pipeline import Frame
 __all__ = ["CameraProbe", "Sight", "sight", "probe_cameras", "surfaces_of", "pop_pairs", "FLOOR_PX"]
 
 FLOOR_PX = 1e-4  # errors below this (a sample on a vertex: exactly 0) are taken as this, so their log is finite
+LAUNCH_SAMPLES = 1 << 22  # samples x surfaces measured in one launch (a camera's surfaces batched up to this)
 
 
 @dataclass(frozen=True)
@@ -160,7 +161,8 @@ def probe_cameras(heightmap: Heightmap, cameras: list[Camera], refs: list[Frame]
     samples themselves, error 0).
 
     A sample is kept where it is visible (in view and passing the full-detail depth test) and every resolution
-    draws a surface above it. Only the samples the camera sees are measured (``at.seen``)."""
+    draws a surface above it. Only the samples the camera sees are measured (``at.seen``), a camera's surfaces in
+    one launch (up to :data:`LAUNCH_SAMPLES` samples)."""
     hm = heightmap
     hu = np.asarray(hm.heights, np.float64)[at.rows, at.cols]
     out = []
@@ -169,12 +171,15 @@ def probe_cameras(heightmap: Heightmap, cameras: list[Camera], refs: list[Frame]
         mvp = cam.proj_matrix() @ cam.view_matrix(relative=True)
         r, c = at.rows[idx], at.cols[idx]
         errs, ok = [], np.ones(len(idx), bool)
-        for y in surfaces:
-            yb = (hu if y is None else y)[idx] - float(cam.position[1])
-            e, st = _k.displacement_at(hm.heights, r, c, None, yb, ref.depth, rel, (hm.dx, hm.dz), mvp, cam.near,
-                                       cam.far, device=device)
-            ok &= st == _k.VISIBLE
-            errs.append(e)
+        per = max(1, LAUNCH_SAMPLES // max(len(idx), 1))  # surfaces measured in one launch
+        for k in range(0, len(surfaces), per):
+            group = surfaces[k:k + per]
+            yb = np.concatenate([(hu if y is None else y)[idx] for y in group]) - float(cam.position[1])
+            e, st = _k.displacement_at(hm.heights, np.tile(r, len(group)), np.tile(c, len(group)), None, yb,
+                                       ref.depth, rel, (hm.dx, hm.dz), mvp, cam.near, cam.far, device=device)
+            for e_s, st_s in zip(np.split(e, len(group)), np.split(st, len(group)), strict=True):
+                ok &= st_s == _k.VISIBLE
+                errs.append(e_s)
         keep = np.flatnonzero(ok)
         visible = len(keep)
         if visible > max_samples:
@@ -209,9 +214,14 @@ def pop_pairs(heightmap: Heightmap, cameras: list[Camera], refs: list[Frame], su
         eye = float(cam.position[1])
         u = np.searchsorted(union, probe.rows.astype(np.int64) * hm.shape[1] + probe.cols)
         rows = []
-        for a, b in itertools.combinations(range(len(ys)), 2):
-            e, _ = _k.displacement_at(hm.heights, probe.rows, probe.cols, ys[a][u] - eye, ys[b][u] - eye, ref.depth,
-                                      rel, (hm.dx, hm.dz), mvp, cam.near, cam.far, device=device)
-            rows.append(np.clip(np.nan_to_num(e, nan=FLOOR_PX), FLOOR_PX, 1e6))
+        pairs = list(itertools.combinations(range(len(ys)), 2))
+        per = max(1, LAUNCH_SAMPLES // max(len(u), 1))  # pairs measured in one launch
+        for k in range(0, len(pairs), per):
+            group = pairs[k:k + per]
+            ya = np.concatenate([ys[a][u] for a, _ in group]) - eye
+            yb = np.concatenate([ys[b][u] for _, b in group]) - eye
+            e, _ = _k.displacement_at(hm.heights, np.tile(probe.rows, len(group)), np.tile(probe.cols, len(group)),
+                                      ya, yb, ref.depth, rel, (hm.dx, hm.dz), mvp, cam.near, cam.far, device=device)
+            rows += [np.clip(np.nan_to_num(x, nan=FLOOR_PX), FLOOR_PX, 1e6) for x in np.split(e, len(group))]
         out.append(np.stack(rows).astype(np.float32) if rows else np.zeros((0, len(probe.rows)), np.float32))
     return out
