@@ -41,7 +41,7 @@ from typing import NamedTuple
 import numpy as np
 import warp as wp
 
-from .checks import check_choice
+from .checks import check_bool, check_choice
 from .counters import patch_draw_counters
 from .parallel import empty, launch, scan, view
 from .pool import pooled_arrays, take
@@ -895,7 +895,8 @@ def _get(patches, name: str, required: bool = True):
 
 def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str = "equal",
                        filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu",
-                       need: Iterable[str] | None = None, uv_cells: bool = False) -> Tessellation:
+                       need: Iterable[str] | None = None, uv_cells: bool = False, *,
+                       checked: bool = False) -> Tessellation:
     """Tessellate and displace all patches of a frame (one launch per stage).
 
     Args:
@@ -915,6 +916,12 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
             ``"domain"``, ``"patch_id"``, ``"level"`` (None: all of them); the others are None. A
             depth-only frame asks for none and stores 12 bytes per point and 12 per triangle.
         uv_cells: ``uv`` in grid cells (column, row) instead of normalised to [0, 1].
+        checked: the caller vouches for the arguments, as :func:`terrainwarp.render` does for the patches its
+            selection made: ``patches`` has every field (``level`` too) as C-contiguous arrays of exactly the
+            shapes and dtypes above (``origin_xz`` and ``size`` (P, 2) float64), finite, sizes positive, extents
+            within 2^30 cells of the origin; ``heights`` a 2-D float32 array, ``dx``, ``dz`` positive, ``eye`` 3
+            finite numbers, ``spacing`` and ``filter`` valid names. Nothing is checked or converted then; arguments
+            that break this give undefined results.
 
     Returns:
         A :class:`Tessellation`. Not differentiable (discrete topology; heights are sampled with the
@@ -926,7 +933,7 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     coordinate is float32 (2^-12 cells at column 4,096).
     """
     n, m, v_off, t_off, made, views, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device,
-                                                     need, uv_cells, host=True)
+                                                     need, uv_cells, host=True, checked=check_bool("checked", checked))
     got = {k: a.numpy() for k, a in made.items()} if views is None else views  # (N, *axes) each
 
     def field(name: str) -> np.ndarray | None:
@@ -978,11 +985,12 @@ def tessellate_patches_device(patches, heights, dx: float, dz: float, eye, spaci
                               wp.array(t_off, dtype=wp.int32, device=device), e)
 
 
-def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells, host=False):
+def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells, host=False,
+                checked=False):
     """:func:`tessellate_patches_device`'s work -> (n, m, offsets (P+1,) int32 on the host, the outputs made and with
     ``host`` their numpy arrays (see :func:`_frame_device`), the eye as floats)."""
     flags = _flags(need) | (W_CELLS if uv_cells else 0) | W_SWAP
-    args, e = _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
+    args, e = (_prepare_checked if checked else _prepare_frame)(patches, heights, dx, dz, eye, spacing, filter, origin)
     n, m, v_off, t_off, made, views = _frame_device(args, device, flags, host)
     return n, m, v_off, t_off, made, views, (float(e[0]), float(e[1]), float(e[2]))
 
@@ -1094,19 +1102,31 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
     e = np.asarray(eye, dtype=np.float64).reshape(-1)
     if e.size != 3 or not np.isfinite(e).all():
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
-    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
     code = _spacing_code(spacing)
+    args = _on_lattice(o, i, code, org, size, lvl, h, dx, dz, e, origin, filter)
+    if (np.abs(args.box) > 2**46).any():
+        raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
+    return args, e
 
-    # patch extents and the eye on the lattice of 2^-16 cells (float64 on the host, rounded once)
+
+def _prepare_checked(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, np.ndarray]:
+    """:func:`_prepare_frame` for arguments the caller vouches for (``checked=True``): nothing scanned or checked."""
+    e = np.asarray(eye, dtype=np.float64)
+    return _on_lattice(_get(patches, "outer"), _get(patches, "inner"), SPACING_CODES[spacing],
+                       _get(patches, "origin_xz"), _get(patches, "size"), _get(patches, "level"), heights, float(dx),
+                       float(dz), e, origin, filter), e
+
+
+def _on_lattice(o, i, code, org, size, lvl, h, dx: float, dz: float, e, origin, filter) -> _FrameArgs:
+    """The frame's :class:`_FrameArgs`: patch extents (``org``, ``size`` (P, 2) float64) and the eye ``e`` on the
+    lattice of 2^-16 cells (float64 on the host, rounded once)."""
+    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
     scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
     # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled
     box = np.rint((np.concatenate([org, org + size], axis=1) - (x0, z0, x0, z0)) * np.tile(scale, 2)).astype(np.int64)
-    if (np.abs(box) > 2**46).any():
-        raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
     el = (e[[0, 2]] - (x0, z0)) * scale
     el_int = np.floor(el).astype(np.int64)
     rem = (el - el_int) / scale
     cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
-
     return _FrameArgs(o, i, code, box, lvl, h, el_int, (float(rem[0]), float(e[1]), float(rem[1])), cell,
-                      FILTER_CODES[filter]), e
+                      FILTER_CODES[filter])
