@@ -81,6 +81,7 @@ from .counters import (
     raster_counters,
     raster_stats,
 )
+from .device import device_named
 from .parallel import atomic_add_i32, chunks, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import filled_array, pooled_arrays, pooled_rows_array, take
@@ -1681,8 +1682,9 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
     (out_id, out_depth), images = pooled_arrays([(npx, wp.int32), (npx, wp.float32)], device, tag="images", rows=False,
                                                 keep=_IMAGES_KEPT, max_bytes=2 * _IMAGES_MAX_BYTES, host=True)
     nparts = max_parts()
-    scratch = wp.get_device(device).is_cpu and _SCRATCH
-    lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
+    dev = device_named(device)
+    scratch = dev.is_cpu and _SCRATCH
+    lease = take(("raster_work", dev.alias, width, height, nparts, scratch),
                  lambda: _Work(device, width, height, nparts, scratch), keep=_WORK_KEPT)
     work = lease.buffer
     work.clear()
@@ -1710,7 +1712,7 @@ def _rasterize_clip(clip: wp.array, win: wp.array, tri: np.ndarray, width: int, 
     tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
     out_id, out_depth, tiles, tally, images = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
     ids, depth = (a.reshape(height, width) for a in (images or (out_id.numpy(), out_depth.numpy())))
-    if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
+    if not device_named(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
     frag = Fragments(ids, depth, None, raster_stats(tally, m), clip=clip, tris=tri_wp, device=device, ids=out_id,
                      tiles=tiles)

@@ -43,6 +43,7 @@ import warp as wp
 
 from .checks import check_bool, check_choice
 from .counters import patch_draw_counters
+from .device import device_named
 from .parallel import empty, launch, scan, view
 from .pool import pooled_arrays, take
 from .sampling import sample_height
@@ -1048,7 +1049,7 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     made: ``{"tri": ..., and "dom", "pid", "pos", "uv", "lev" as asked}``, frame-sized pool arrays, and with
     ``host`` on the CPU numpy arrays over them, ``(N, *axes)`` each, else None)."""
     o, i, code, box, lvl, h, el_int, eye_rem, cell, method = a
-    lease = take(("tessellator", str(wp.get_device(device))), lambda: _Work(device), keep=_WORK_KEPT)
+    lease = take(("tessellator", device_named(device).alias), lambda: _Work(device), keep=_WORK_KEPT)
     work = lease.buffer
     n, m = work.count_scan(o, i, code)
     out = work.out
