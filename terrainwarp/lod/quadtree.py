@@ -561,9 +561,12 @@ def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarra
     if keys is None:
         keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
     s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
-    origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
-    origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
-    size = np.stack([s_cells * hm.dx, s_cells * hm.dz], axis=1)
+    # (P, 2) columns written in place, one ufunc per column (a (P, 2) broadcast loops two items at a time)
+    origin_cells, origin, size = (np.empty((len(level), 2)) for _ in range(3))
+    for c, (l, d) in enumerate(((lx, hm.dx), (ly, hm.dz))):
+        np.multiply(l, s_cells, out=origin_cells[:, c])
+        np.add(np.multiply(origin_cells[:, c], d, out=origin[:, c]), hm.origin[c], out=origin[:, c])
+        np.multiply(s_cells, d, out=size[:, c])
     outer, inner = _edge_factors(terrain, camera, policy, level, nbr, origin, size)
     stats = {"nodes_visited": counts["nodes_visited"], "leaves": counts["leaves"], "culled": counts["culled"],
              "patches": int(len(level)), "forced_splits": counts["forced_splits"],
