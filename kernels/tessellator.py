@@ -1051,9 +1051,20 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     o, i, code, box, lvl, h, el_int, eye_rem, cell, method = a
     lease = take(("tessellator", device_named(device).alias), lambda: _Work(device), keep=_WORK_KEPT)
     work = lease.buffer
-    n, m = work.count_scan(o, i, code)
+    # all that does not wait for the counts is set before the count launch (the host code after a launch runs with
+    # the caches it emptied: each kind of work once between two launches)
+    work.fit(o.shape[0])
+    work.put(2, box)
+    work.put(3, lvl)
     out = work.out
     out.flags = flags
+    out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place
+    out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
+    out.eye_rem = wp.vec3(*eye_rem)
+    out.cell = wp.vec2(float(cell[0]), float(cell[1]))
+    out.method = method
+    n, m = work.count_scan(o, i, code)
+    v_off, t_off = work.offsets(o.shape[0])
     fields = [(name, max(n, 1), dt) for flag, name, dt in _FIELDS if flags & flag] + [("tri", max(m, 1), wp.vec3i)]
     # frame-sized outputs from the pool, one lease for them all: no fresh pages to fault in on every frame
     got = pooled_arrays([f[1:] for f in fields], device, tag="tessellation", keep=_OUTPUTS_KEPT, host=host)
@@ -1061,15 +1072,7 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     made = {f[0]: a for f, a in zip(fields, arrays, strict=True)}
     for name, a in made.items():
         setattr(out, name, a)
-    work.put(2, box)
-    work.put(3, lvl)
-    out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place
-    out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
-    out.eye_rem = wp.vec3(*eye_rem)
-    out.cell = wp.vec2(float(cell[0]), float(cell[1]))
-    out.method = method
     work.emit(o.shape[0], code, made)
-    v_off, t_off = work.offsets(o.shape[0])
     lease.give_back()
     return n, m, v_off, t_off, made, None if views is None else {f[0]: v for f, v in zip(fields, views, strict=True)}
 
