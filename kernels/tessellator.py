@@ -1126,8 +1126,14 @@ def _on_lattice(o, i, code, org, size, lvl, h, dx: float, dz: float, e, origin, 
     lattice of 2^-16 cells (float64 on the host, rounded once)."""
     x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
     scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
-    # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled
-    box = np.rint((np.concatenate([org, org + size], axis=1) - (x0, z0, x0, z0)) * np.tile(scale, 2)).astype(np.int64)
+    # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled;
+    # worked out as four rows of P (a (P, 4) broadcast loops four items at a time), then laid out (P, 4)
+    rows = np.empty((4, len(org)))
+    for c, o_c in enumerate((x0, z0)):
+        np.subtract(org[:, c], o_c, out=rows[c])
+        np.subtract(np.add(org[:, c], size[:, c], out=rows[2 + c]), o_c, out=rows[2 + c])
+        rows[c::2] *= scale[c]
+    box = np.rint(rows, out=rows).T.astype(np.int64, order="C")
     el = (e[[0, 2]] - (x0, z0)) * scale
     el_int = np.floor(el).astype(np.int64)
     rem = (el - el_int) / scale
