@@ -701,7 +701,8 @@ class _Work:
     offsets (P+1: entry P is the total), kept at a power-of-two capacity that grows with the frames (their first P
     entries are the frame's), and the emit launch's :class:`_Out`. On the CPU the host writes and scans them in
     place, through numpy views of the same memory; elsewhere they are copied in and scanned on the device. The
-    output arrays the last call set in :attr:`out` (and its heights) stay there until the next call lets them go
+    output arrays the last call set in :attr:`out` (and its heights, until a call with others) stay there until the
+    next call lets them go
     (:meth:`let_go`) before it takes its own outputs from the pool, or until :func:`.pool.release_buffers` drops
     the kept work."""
 
@@ -709,6 +710,23 @@ class _Work:
         self.device, self.cpu, self.cap = device, wp.get_device(device).is_cpu, -1
         self.out = _Out()
         self.made: tuple[str, ...] = ()  # the output fields of :attr:`out` the last call set
+        self.last: dict[str, object] = {}  # what :meth:`set_frame` set last
+
+    def set_frame(self, flags: int, h: wp.array, eye: tuple, cell: tuple[float, float], method: int) -> None:
+        """Set :attr:`out`'s per-call fields: what to write, the heights, the eye (lattice cell x, z and remainder),
+        the cell size, the filter; a field that holds the same value already is not set again (a Warp struct
+        field set costs microseconds; the heights, cell and filter change with the heightmap, the eye with the
+        camera)."""
+        out, last = self.out, self.last
+        if last.get("h") is not h:
+            out.h = last["h"] = h
+        if last.get("eye") != eye:
+            out.eye_lx, out.eye_lz = eye[0], eye[1]
+            out.eye_rem = wp.vec3(*eye[2])
+            last["eye"] = eye
+        if last.get("fixed") != (flags, cell, method):
+            out.flags, out.cell, out.method = flags, wp.vec2(*cell), method
+            last["fixed"] = (flags, cell, method)
 
     def let_go(self) -> None:
         """Let go of the last call's outputs (the pool lends them again once their other holders drop them)."""
@@ -1066,13 +1084,8 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     work.put(2, box)
     work.put(3, lvl)
     work.let_go()
-    out = work.out
-    out.flags = flags
-    out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place
-    out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
-    out.eye_rem = wp.vec3(*eye_rem)
-    out.cell = wp.vec2(float(cell[0]), float(cell[1]))
-    out.method = method
+    work.set_frame(flags, h if isinstance(h, wp.array) else view(h, wp.float32, device),  # heights read in place
+                   (int(el_int[0]), int(el_int[1]), eye_rem), (float(cell[0]), float(cell[1])), method)
     n, m = work.count_scan(o, i, code)
     v_off, t_off = work.offsets(o.shape[0])
     fields = [(name, max(n, 1), dt) for flag, name, dt in _FIELDS if flags & flag] + [("tri", max(m, 1), wp.vec3i)]
@@ -1081,7 +1094,7 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     arrays, views = got if host else (got, None)
     made = {f[0]: a for f, a in zip(fields, arrays, strict=True)}
     for name, a in made.items():
-        setattr(out, name, a)
+        setattr(work.out, name, a)
     work.emit(o.shape[0], code, made)
     lease.give_back()
     return n, m, v_off, t_off, made, None if views is None else {f[0]: v for f, v in zip(fields, views, strict=True)}
