@@ -50,7 +50,6 @@ from ..kernels.lod import (
     DENSE_MAX_CELLS,
     QuadtreeWalk,
     TreeMapHost,
-    frustum_planes,
     mark_nodes,
     neighbour_levels,
     select_level,
@@ -325,7 +324,7 @@ class _View(NamedTuple):
 
 def _view(terrain: Terrain, camera: Camera) -> _View:
     rel = relative_origin(terrain.heightmap.origin, camera.position)
-    return _View(rel, frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True)), camera.focal_px)
+    return _View(rel, camera.frustum_planes(), camera.focal_px)
 
 
 class _Nodes(NamedTuple):
