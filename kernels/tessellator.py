@@ -35,6 +35,7 @@ the world origin, or large ones, keep their precision near the camera.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import NamedTuple
 
@@ -1148,7 +1149,7 @@ def _on_lattice(o, i, code, org, size, lvl, h, dx: float, dz: float, e, origin, 
     """The frame's :class:`_FrameArgs`: patch extents (``org``, ``size`` (P, 2) float64) and the eye ``e`` on the
     lattice of 2^-16 cells (float64 on the host, rounded once)."""
     x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
-    scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
+    scale = (FXP_ONE / dx, FXP_ONE / dz)
     # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled;
     # worked out as four rows of P (a (P, 4) broadcast loops four items at a time), then laid out (P, 4)
     rows = np.empty((4, len(org)))
@@ -1157,9 +1158,9 @@ def _on_lattice(o, i, code, org, size, lvl, h, dx: float, dz: float, e, origin, 
         np.subtract(np.add(org[:, c], size[:, c], out=rows[2 + c]), o_c, out=rows[2 + c])
         rows[c::2] *= scale[c]
     box = np.rint(rows, out=rows).T.astype(np.int64, order="C")
-    el = (e[[0, 2]] - (x0, z0)) * scale
-    el_int = np.floor(el).astype(np.int64)
-    rem = (el - el_int) / scale
+    # the eye: its lattice cell and the float64 remainder (the same IEEE operations as on arrays, on two numbers)
+    ex, ez = (float(e[0]) - x0) * scale[0], (float(e[2]) - z0) * scale[1]
+    ix, iz = math.floor(ex), math.floor(ez)
     cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
-    return _FrameArgs(o, i, code, box, lvl, h, el_int, (float(rem[0]), float(e[1]), float(rem[1])), cell,
-                      FILTER_CODES[filter])
+    return _FrameArgs(o, i, code, box, lvl, h, np.array([ix, iz], np.int64),
+                      ((ex - ix) / scale[0], float(e[1]), (ez - iz) / scale[1]), cell, FILTER_CODES[filter])
