@@ -701,26 +701,20 @@ class _Work:
     and given back when the call is done: the patches' levels, lattice boxes and LOD levels, their counts and
     offsets (P+1: entry P is the total), kept at a power-of-two capacity that grows with the frames (their first P
     entries are the frame's), and the emit launch's :class:`_Out`. On the CPU the host writes and scans them in
-    place, through numpy views of the same memory; elsewhere they are copied in and scanned on the device. The
-    output arrays the last call set in :attr:`out` (and its heights, until a call with others) stay there until the
-    next call lets them go
-    (:meth:`let_go`) before it takes its own outputs from the pool, or until :func:`.pool.release_buffers` drops
-    the kept work."""
+    place, through numpy views of the same memory; elsewhere they are copied in and scanned on the device."""
 
     def __init__(self, device: str) -> None:
         self.device, self.cpu, self.cap = device, wp.get_device(device).is_cpu, -1
         self.out = _Out()
-        self.made: tuple[str, ...] = ()  # the output fields of :attr:`out` the last call set
-        self.last: dict[str, object] = {}  # what :meth:`set_frame` set last
+        self.last: dict[str, object] = {}  # the values :meth:`set_frame` set last (:attr:`out` holds them)
 
     def set_frame(self, flags: int, h: wp.array, eye: tuple, cell: tuple[float, float], method: int) -> None:
-        """Set :attr:`out`'s per-call fields: what to write, the heights, the eye (lattice cell x, z and remainder),
-        the cell size, the filter; a field that holds the same value already is not set again (a Warp struct
-        field set costs microseconds; the heights, cell and filter change with the heightmap, the eye with the
-        camera)."""
+        """Set :attr:`out`'s per-call fields: what to write, the heights (let go after the emit), the eye (lattice
+        cell x, z and remainder), the cell size, the filter; a value field that holds the same value already is not
+        set again (a Warp struct field set costs microseconds; the cell and filter change with the heightmap, the eye
+        with the camera)."""
         out, last = self.out, self.last
-        if last.get("h") is not h:
-            out.h = last["h"] = h
+        out.h = h
         if last.get("eye") != eye:
             out.eye_lx, out.eye_lz = eye[0], eye[1]
             out.eye_rem = wp.vec3(*eye[2])
@@ -728,12 +722,6 @@ class _Work:
         if last.get("fixed") != (flags, cell, method):
             out.flags, out.cell, out.method = flags, wp.vec2(*cell), method
             last["fixed"] = (flags, cell, method)
-
-    def let_go(self) -> None:
-        """Let go of the last call's outputs (the pool lends them again once their other holders drop them)."""
-        for name in self.made:
-            setattr(self.out, name, None)
-        self.made = ()
 
     def fit(self, p: int) -> None:
         """Make room for ``p`` patches."""
@@ -782,12 +770,14 @@ class _Work:
         return self.v_off[:p + 1].numpy().copy(), self.t_off[:p + 1].numpy().copy()
 
     def emit(self, p: int, code: int, made: Iterable[str]) -> None:
-        """The emit launch over the frame's ``p`` patches, into :attr:`out`, whose output arrays ``made`` are let go
-        by the next call (:meth:`let_go`: the setters run there with the others, not after this launch)."""
-        self.made = tuple(made)
+        """The emit launch over the frame's ``p`` patches, into :attr:`out`, whose arrays ``made`` and heights are
+        then let go (the pool lends the outputs again once their holders drop them; were they let go by the next
+        call instead, that call would pay for freeing whatever its caller dropped meanwhile)."""
         if p:
             launch(_emit_kernel, p, [self.o, self.i, code, self.v_off, self.t_off], [self.out], self.device,
                    min_items=64, oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ
+        for name in (*made, "h"):
+            setattr(self.out, name, None)
 
 
 _WORK_KEPT = 2  # per device: a call, and another on another thread
@@ -1084,7 +1074,6 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     work.fit(o.shape[0])
     work.put(2, box)
     work.put(3, lvl)
-    work.let_go()
     work.set_frame(flags, h if isinstance(h, wp.array) else view(h, wp.float32, device),  # heights read in place
                    (int(el_int[0]), int(el_int[1]), eye_rem), (float(cell[0]), float(cell[1])), method)
     n, m = work.count_scan(o, i, code)
