@@ -1120,24 +1120,25 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
     if e.size != 3 or not np.isfinite(e).all():
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
     code = _spacing_code(spacing)
-    args = _on_lattice(o, i, code, org, size, lvl, h, dx, dz, e, origin, filter)
+    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
+    args = _on_lattice(o, i, code, org, size, lvl, h, dx, dz, e, (x0, z0), filter)
     if (np.abs(args.box) > 2**46).any():
         raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
     return args, e
 
 
-def _prepare_checked(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, np.ndarray]:
+def _prepare_checked(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, tuple]:
     """:func:`_prepare_frame` for arguments the caller vouches for (``checked=True``): nothing scanned or checked."""
-    e = np.asarray(eye, dtype=np.float64)
+    e = (float(eye[0]), float(eye[1]), float(eye[2]))
     return _on_lattice(_get(patches, "outer"), _get(patches, "inner"), SPACING_CODES[spacing],
                        _get(patches, "origin_xz"), _get(patches, "size"), _get(patches, "level"), heights, float(dx),
-                       float(dz), e, origin, filter), e
+                       float(dz), e, (float(origin[0]), float(origin[1])), filter), e
 
 
 def _on_lattice(o, i, code, org, size, lvl, h, dx: float, dz: float, e, origin, filter) -> _FrameArgs:
     """The frame's :class:`_FrameArgs`: patch extents (``org``, ``size`` (P, 2) float64) and the eye ``e`` on the
-    lattice of 2^-16 cells (float64 on the host, rounded once)."""
-    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
+    lattice of 2^-16 cells (float64 on the host, rounded once) from ``origin`` (x0, z0) floats."""
+    x0, z0 = origin
     scale = (FXP_ONE / dx, FXP_ONE / dz)
     # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled;
     # worked out as four rows of P (a (P, 4) broadcast loops four items at a time), then laid out (P, 4)

@@ -559,13 +559,16 @@ def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarra
     nx, nz = terrain.roots
     if keys is None:
         keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
-    s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
-    # (P, 2) columns written in place, one ufunc per column (a (P, 2) broadcast loops two items at a time)
-    origin_cells, origin, size = (np.empty((len(level), 2)) for _ in range(3))
-    for c, (l, d) in enumerate(((lx, hm.dx), (ly, hm.dz))):
-        np.multiply(l, s_cells, out=origin_cells[:, c])
-        np.add(np.multiply(origin_cells[:, c], d, out=origin[:, c]), hm.origin[c], out=origin[:, c])
-        np.multiply(s_cells, d, out=size[:, c])
+    # a node's side in cells per level (root_cells / 2^level), the spacing and origin as columns: kept per terrain
+    side, spacing, org = terrain.cached(("patch_extents",), lambda: (
+        terrain.root_cells / np.exp2(np.arange(terrain.depth + 1, dtype=np.float64)), np.array([[hm.dx], [hm.dz]]),
+        np.array([[hm.origin[0]], [hm.origin[1]]], np.float64)))
+    s_cells = side[level]
+    # as (2, P) rows (x, z), laid out (P, 2) at the end: few numpy calls (each costs microseconds right after a
+    # launch), and no broadcast over a 2-item inner axis
+    cells = np.array([lx, ly]) * s_cells
+    origin, size = (cells * spacing + org).T.copy(), (spacing * s_cells).T.copy()
+    origin_cells = cells.T.astype(np.float32, order="C")
     outer, inner = _edge_factors(terrain, camera, policy, level, nbr, origin, size)
     stats = {"nodes_visited": counts["nodes_visited"], "leaves": counts["leaves"], "culled": counts["culled"],
              "patches": int(len(level)), "forced_splits": counts["forced_splits"],
@@ -573,7 +576,7 @@ def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarra
              "tess": terrain.tess}
     f32, i32 = {"dtype": np.float32, "copy": False}, {"dtype": np.int32, "copy": False}
     return PatchList(level.astype(**i32), keys.astype(np.int64, copy=False), origin, size,
-                     origin_cells.astype(**f32), s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
+                     origin_cells, s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
                      nbr.astype(**i32), dist.astype(**f32), metric.astype(**f32), err, stats)
 
 
