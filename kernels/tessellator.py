@@ -955,14 +955,16 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
                                                      need, uv_cells, host=True, checked=check_bool("checked", checked))
     got = {k: a.numpy() for k, a in made.items()} if views is None else views  # (N, *axes) each
 
-    def field(name: str) -> np.ndarray | None:
-        return got[name][:n] if name in got else None
+    def field(name: str, rows: int | None = None) -> np.ndarray | None:
+        """The frame's rows of an output (N is the frame's count, or 1 when that is 0)."""
+        a, k = got.get(name), n if rows is None else rows
+        return a if a is None or len(a) == k else a[:k]
 
     dom = field("dom")
     return Tessellation(
-        positions=got["pos"][:n], uv=field("uv"),
+        positions=field("pos"), uv=field("uv"),
         domain=None if dom is None else dom.astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
-        patch_id=field("pid"), level=field("lev"), triangles=got["tri"][:m], vertex_offsets=v_off,
+        patch_id=field("pid"), level=field("lev"), triangles=field("tri", m), vertex_offsets=v_off,
         triangle_offsets=t_off, eye=e, counters=patch_draw_counters(len(v_off) - 1, n, m, FILTER_TEXELS[filter]))
 
 

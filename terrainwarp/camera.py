@@ -265,15 +265,18 @@ class Camera:
 
     def proj_matrix(self) -> np.ndarray:
         """OpenGL gluPerspective projection matrix, float64 (4, 4); clip z in [-w, w]."""
-        t = 1.0 / math.tan(math.radians(self.fov_y_deg) / 2.0)
-        n, f = self.near, self.far
-        p = np.zeros((4, 4))
-        p[0, 0] = t / self.aspect
-        p[1, 1] = t
-        p[2, 2] = (f + n) / (n - f)
-        p[2, 3] = 2.0 * f * n / (n - f)
-        p[3, 2] = -1.0
-        return p
+        p = self.__dict__.get("_proj")  # made once per camera, as the view matrix
+        if p is None:
+            t = 1.0 / math.tan(math.radians(self.fov_y_deg) / 2.0)
+            n, f = self.near, self.far
+            p = np.zeros((4, 4))
+            p[0, 0] = t / self.aspect
+            p[1, 1] = t
+            p[2, 2] = (f + n) / (n - f)
+            p[2, 3] = 2.0 * f * n / (n - f)
+            p[3, 2] = -1.0
+            object.__setattr__(self, "_proj", p)
+        return p.copy()
 
     def with_(self, **changes: object) -> Camera:
         """A copy with some fields replaced (validated again)."""
