@@ -135,7 +135,7 @@ def check_triangle_shape(name: str, shape: tuple[int, ...], dtype: object) -> No
     shape = tuple(int(s) for s in shape)
     if len(shape) != 2 or shape[1] != 3:
         raise ValueError(f"{name}: expected shape (m, 3), got {shape}")
-    if shape[0] and not np.issubdtype(np.dtype(dtype), np.integer):
+    if shape[0] and np.dtype(dtype).kind not in "iu":  # np.issubdtype(dtype, np.integer), without its Python
         raise TypeError(f"{name}: expected integer vertex indices, got dtype {np.dtype(dtype)}")
 
 
@@ -156,6 +156,8 @@ def check_triangles(name: str, triangles: object, n_vertices: int | None = None,
         if int(u.max()) >= top:
             lo, hi = int(tri.min()), int(tri.max())
             raise ValueError(f"{name}: expected indices in [0, {top}), got [{lo}, {hi}]")
+    if tri.dtype == np.int32 and tri.flags.c_contiguous:  # already as asked (the shape is checked above)
+        return tri
     return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)
 
 
