@@ -169,6 +169,8 @@ def check_device(name: str, device: object) -> wp.Device:
         TypeError: not a string, a device or None. ValueError: a CUDA device on a machine where Warp finds no
             GPU (the message says so), or a name Warp does not know (the message lists the devices it has).
     """
+    if isinstance(device, str) and device in _SEEN:  # a full name checked before names that device for good
+        return _SEEN[device]
     start()
     if device is None or isinstance(device, wp.Device):
         return wp.get_device(device)
@@ -178,7 +180,13 @@ def check_device(name: str, device: object) -> wp.Device:
         raise ValueError(f"{name}: {device!r} asks for an NVIDIA GPU, but Warp finds no CUDA device on this machine "
                          "(no GPU or no CUDA driver); use 'cpu'")
     try:
-        return wp.get_device(device)
+        dev = wp.get_device(device)
     except (ValueError, RuntimeError, KeyError):
         have = ", ".join(repr(d.alias) for d in wp.get_devices())
         raise ValueError(f"{name}: expected one of the devices Warp sees ({have}), got {device!r}") from None
+    if device != "cuda":  # "cuda" names whichever CUDA device is current
+        _SEEN[device] = dev
+    return dev
+
+
+_SEEN: dict[str, wp.Device] = {}  # device names check_device accepted, and their devices
