@@ -135,7 +135,7 @@ def check_triangle_shape(name: str, shape: tuple[int, ...], dtype: object) -> No
     shape = tuple(int(s) for s in shape)
     if len(shape) != 2 or shape[1] != 3:
         raise ValueError(f"{name}: expected shape (m, 3), got {shape}")
-    if shape[0] and not np.issubdtype(np.dtype(dtype), np.integer):
+    if shape[0] and np.dtype(dtype).kind not in "iu":  # np.issubdtype(dtype, np.integer), without its Python
         raise TypeError(f"{name}: expected integer vertex indices, got dtype {np.dtype(dtype)}")
 
 
@@ -156,6 +156,8 @@ def check_triangles(name: str, triangles: object, n_vertices: int | None = None,
         if int(u.max()) >= top:
             lo, hi = int(tri.min()), int(tri.max())
             raise ValueError(f"{name}: expected indices in [0, {top}), got [{lo}, {hi}]")
+    if tri.dtype == np.int32 and tri.flags.c_contiguous:  # already as asked (the shape is checked above)
+        return tri
     return np.ascontiguousarray(tri, dtype=np.int32).reshape(-1, 3)
 
 
@@ -167,6 +169,8 @@ def check_device(name: str, device: object) -> wp.Device:
         TypeError: not a string, a device or None. ValueError: a CUDA device on a machine where Warp finds no
             GPU (the message says so), or a name Warp does not know (the message lists the devices it has).
     """
+    if isinstance(device, str) and device in _SEEN:  # a full name checked before names that device for good
+        return _SEEN[device]
     start()
     if device is None or isinstance(device, wp.Device):
         return wp.get_device(device)
@@ -176,7 +180,13 @@ def check_device(name: str, device: object) -> wp.Device:
         raise ValueError(f"{name}: {device!r} asks for an NVIDIA GPU, but Warp finds no CUDA device on this machine "
                          "(no GPU or no CUDA driver); use 'cpu'")
     try:
-        return wp.get_device(device)
+        dev = wp.get_device(device)
     except (ValueError, RuntimeError, KeyError):
         have = ", ".join(repr(d.alias) for d in wp.get_devices())
         raise ValueError(f"{name}: expected one of the devices Warp sees ({have}), got {device!r}") from None
+    if device != "cuda":  # "cuda" names whichever CUDA device is current
+        _SEEN[device] = dev
+    return dev
+
+
+_SEEN: dict[str, wp.Device] = {}  # device names check_device accepted, and their devices

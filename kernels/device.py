@@ -23,8 +23,8 @@ from collections.abc import Iterator
 
 import warp as wp
 
-__all__ = ["cuda_driver_present", "is_quiet", "launch_block_dim", "native_stderr_silenced", "quietly", "set_quiet",
-           "start", "started"]
+__all__ = ["cuda_driver_present", "device_named", "is_quiet", "launch_block_dim", "native_stderr_silenced", "quietly",
+           "set_quiet", "start", "started"]
 
 _lock = threading.Lock()
 _state = {"started": False, "quiet": True}
@@ -114,6 +114,22 @@ def start() -> None:
         with quietly(), native_stderr_silenced() if silence else contextlib.nullcontext():
             wp.init()
         _state["started"] = True
+
+
+_DEVICES: dict[str, wp.Device] = {}  # a full device name ("cpu", "cuda:0") names that device for good
+
+
+def device_named(device: str | wp.Device | None) -> wp.Device:
+    """``wp.get_device(device)``, Warp started first (:func:`start`); a full name is looked up once per process
+    (``"cuda"`` and None name whichever device is current, and are looked up every time)."""
+    dev = _DEVICES.get(device) if isinstance(device, str) else None
+    if dev is not None:
+        return dev
+    start()
+    dev = wp.get_device(device)
+    if isinstance(device, str) and device != "cuda":
+        _DEVICES[device] = dev
+    return dev
 
 
 def launch_block_dim(device: wp.Device) -> int | None:

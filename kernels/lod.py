@@ -158,13 +158,17 @@ def _select_kernel(
     out_split[k] = split
 
 
+_PLANE_ROWS = np.array([0, 0, 1, 1, 2, 2])
+_PLANE_SIGNS = np.array([[1.0], [-1.0], [1.0], [-1.0], [1.0], [-1.0]])
+
+
 def frustum_planes(view_proj: np.ndarray) -> np.ndarray:
     """The six planes (a, b, c, d), inside where a x + b y + c z + d >= 0, of an OpenGL view-projection
     matrix (Gribb & Hartmann), normalised, float32 (6, 4): left, right, bottom, top, near, far."""
     m = np.asarray(view_proj, dtype=np.float64)
-    r0, r1, r2, r3 = m
-    pl = np.array([r3 + r0, r3 - r0, r3 + r1, r3 - r1, r3 + r2, r3 - r2])
-    pl /= np.linalg.norm(pl[:, :3], axis=1, keepdims=True)
+    pl = m[3] + m[_PLANE_ROWS] * _PLANE_SIGNS  # r3 + r0, r3 - r0, r3 + r1, r3 - r1, r3 + r2, r3 - r2 (exactly)
+    xyz = pl[:, :3]
+    pl /= np.sqrt(np.add.reduce(xyz * xyz, axis=1, keepdims=True))  # np.linalg.norm's sum, without its dispatch
     return pl.astype(np.float32)
 
 
@@ -912,7 +916,8 @@ class QuadtreeWalk(TreeWalk):
             patch, f, split, key, n = self._run(vals)
             q, ns = int(n[0]), int(n[5])
             order = np.argsort(key[:q])  # key order (the keys are distinct)
-            patch, f = patch[order], f[order]
-            return (patch[:, 0].copy(), patch[:, 1].copy(), patch[:, 2].copy(), patch[:, 3:7].copy(), f[:, 0].copy(),
-                    f[:, 1].copy(), f[:, 2].copy(), key[order], split[:ns].copy(), int(n[1]), int(n[2]), int(n[3]),
-                    int(n[4]))
+            # the columns in key order, each a contiguous row of one gathered copy: few numpy calls (each costs
+            # microseconds right after a launch, whatever its size)
+            cols, fc = np.take(patch.T, order, axis=1), np.take(f.T, order, axis=1)
+            return (cols[0], cols[1], cols[2], patch[order, 3:7], fc[0], fc[1], fc[2], key[order], split[:ns].copy(),
+                    int(n[1]), int(n[2]), int(n[3]), int(n[4]))

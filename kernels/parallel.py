@@ -34,7 +34,7 @@ import numpy as np
 import warp as wp
 
 from .checks import check_int
-from .device import launch_block_dim, quietly, start
+from .device import device_named, launch_block_dim, quietly
 from .pool import host_layout
 
 THREADS_ENV = "TERRAINWARP_THREADS"
@@ -215,9 +215,8 @@ _hook: list = [None]
 
 
 def _device(device: str | wp.Device | None) -> wp.Device:
-    """``wp.get_device``, Warp started quietly first (:func:`.device.start`)."""
-    start()
-    return wp.get_device(device)
+    """``wp.get_device``, Warp started quietly first (:func:`.device.device_named`)."""
+    return device_named(device)
 
 
 def on_first_load(hook: Callable[[wp.Module, wp.Device], None] | None) -> None:

@@ -62,6 +62,9 @@ differentiable path's (``terrainwarp.diff.interpolate``, ``kernels/gradients.py`
 Output images have row 0 at the top (window y is flipped once, here).
 """
 
+import functools
+from collections.abc import Callable
+
 import numpy as np
 import warp as wp
 
@@ -81,6 +84,7 @@ from .counters import (
     raster_counters,
     raster_stats,
 )
+from .device import device_named
 from .parallel import atomic_add_i32, chunks, launch, launch_one, max_parts
 from .parallel import view as as_warp  # 'view' is a view matrix here
 from .pool import filled_array, pooled_arrays, pooled_rows_array, take
@@ -1672,20 +1676,31 @@ class _Work:
 _WORK_KEPT = 2  # per kind: a call, and another on another thread
 
 
-def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool,
-          device: str):
-    """Bin and draw the triangles (vertices' clip coordinates ``clip``, window positions ``win``), BATCH at a time.
-    -> (ids, depth (device arrays, every pixel written), the tile flags (int32, window order), the tallies summed
-    (TALLIES,) int64, on the CPU the two images as numpy arrays over the same memory (else None))."""
+def _targets(width: int, height: int, device: str) -> tuple:
+    """What a draw writes and works in, taken before its launches: (ids, depth (frame-sized pool arrays), on the CPU
+    the two images as numpy arrays over the same memory (else None), the :class:`_Work` lease (cleared), scratch
+    tiles or not). :func:`rasterize` takes them before the vertex launch, beside the vertices' own pool arrays: the
+    host code between two launches runs with the caches the launch before it emptied, so the pool's is run there."""
     npx = width * height
     (out_id, out_depth), images = pooled_arrays([(npx, wp.int32), (npx, wp.float32)], device, tag="images", rows=False,
                                                 keep=_IMAGES_KEPT, max_bytes=2 * _IMAGES_MAX_BYTES, host=True)
     nparts = max_parts()
-    scratch = wp.get_device(device).is_cpu and _SCRATCH
-    lease = take(("raster_work", str(wp.get_device(device)), width, height, nparts, scratch),
+    dev = device_named(device)
+    scratch = dev.is_cpu and _SCRATCH
+    lease = take(("raster_work", dev.alias, width, height, nparts, scratch),
                  lambda: _Work(device, width, height, nparts, scratch), keep=_WORK_KEPT)
+    lease.buffer.clear()
+    return out_id, out_depth, images, lease, scratch
+
+
+def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, height: int, cull_back: bool,
+          device: str, targets: tuple):
+    """Bin and draw the triangles (vertices' clip coordinates ``clip``, window positions ``win``), BATCH at a time,
+    into ``targets`` (:func:`_targets`). -> (ids, depth (device arrays, every pixel written), the tile flags (int32,
+    window order), the tallies summed (TALLIES,) int64, on the CPU the two images as numpy arrays over the same
+    memory (else None))."""
+    out_id, out_depth, images, lease, scratch = targets
     work = lease.buffer
-    work.clear()
     gb = _guard_band(width, height)
     cb = int(bool(cull_back))
     buf_id, buf_depth = (work.buf_id, work.buf_depth) if scratch else (out_id, out_depth)
@@ -1700,17 +1715,26 @@ def _draw(clip: wp.array, win: wp.array, tri_wp: wp.array, m: int, width: int, h
     return out_id, out_depth, tiles, tally, images
 
 
+@functools.lru_cache(maxsize=64)
 def _guard_band(width: int, height: int) -> wp.vec2:
+    """The guard band as a launch argument, made once per viewport (never written: launches copy it)."""
     return wp.vec2(1.0 + 2.0 * GUARD_BAND_PX / width, 1.0 + 2.0 * GUARD_BAND_PX / height)
 
 
+def _tri_array(tri: np.ndarray, device: str) -> wp.array:
+    """The (m, 3) int32 triangles as a Warp array (one dummy row when there are none); not copied on the CPU."""
+    return as_warp(tri if len(tri) else np.zeros((1, 3), np.int32), wp.int32, device)
+
+
 def _rasterize_clip(clip: wp.array, win: wp.array, tri: np.ndarray, width: int, height: int, cull_back: bool,
-                    device: str, counters: bool = False) -> Fragments:
+                    device: str, counters: bool = False, prepared: tuple | None = None) -> Fragments:
+    """Draw ``tri`` over the vertices (``clip``, ``win``); ``prepared``: (:func:`_tri_array`, :func:`_targets`) taken
+    already."""
     m = int(tri.shape[0])
-    tri_wp = as_warp(tri if m else np.zeros((1, 3), np.int32), wp.int32, device)  # not copied on the CPU
-    out_id, out_depth, tiles, tally, images = _draw(clip, win, tri_wp, m, width, height, cull_back, device)
+    tri_wp, targets = prepared if prepared is not None else (_tri_array(tri, device), _targets(width, height, device))
+    out_id, out_depth, tiles, tally, images = _draw(clip, win, tri_wp, m, width, height, cull_back, device, targets)
     ids, depth = (a.reshape(height, width) for a in (images or (out_id.numpy(), out_depth.numpy())))
-    if not wp.get_device(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
+    if not device_named(device).is_cpu:  # numpy() copied: the device arrays keep the kernel's values only
         out_id = None
     frag = Fragments(ids, depth, None, raster_stats(tally, m), clip=clip, tris=tri_wp, device=device, ids=out_id,
                      tiles=tiles)
@@ -1724,7 +1748,7 @@ def _points(name: str, a: object, k: int) -> np.ndarray:
     p = np.asarray(a)
     if p.ndim != 2 or p.shape[1] != k:
         raise ValueError(f"{name}: expected shape (n, {k}), got {p.shape}")
-    if not np.issubdtype(p.dtype, np.floating):
+    if p.dtype.kind != "f":  # (np.issubdtype, without its Python)
         raise TypeError(f"{name}: expected a float array, got {p.dtype}")
     return p
 
@@ -1756,21 +1780,24 @@ def rasterize(positions: object, triangles: object, view: object, proj: object, 
     tri = check_triangles("triangles", triangles, None if checked else len(pos), scan=not checked)
     width, height = check_viewport(width, height)
     counters = check_bool("counters", counters)
-    clip, win = _transform(pos, view, proj, device, width, height, finite=checked)
-    return _rasterize_clip(clip, win, tri, width, height, cull_back, device, counters)
+    clip, win, prepared = _transform(pos, view, proj, device, width, height, finite=checked,  # see _targets
+                                     then=lambda: (_tri_array(tri, device), _targets(width, height, device)))
+    return _rasterize_clip(clip, win, tri, width, height, cull_back, device, counters, prepared)
 
 
 def _transform(pos: np.ndarray, view: object, proj: object, device: str, width: int = 1, height: int = 1,
-               finite: bool = False) -> tuple[wp.array, wp.array]:
-    """The vertices' clip coordinates and window positions (:func:`_vertex_kernel`); ``finite``: the positions
-    are known to be finite."""
+               finite: bool = False, then: Callable[[], object] | None = None) -> tuple[wp.array, wp.array, object]:
+    """The vertices' clip coordinates and window positions (:func:`_vertex_kernel`), and what ``then()`` returns,
+    called once the arguments are checked, before the launch (None: nothing); ``finite``: the positions are known to
+    be finite."""
     pos32 = np.ascontiguousarray(pos, dtype=np.float32)
     if not finite and not np.all(np.isfinite(pos32)):
         raise ValueError("positions: expected finite coordinates")
     mvp = (_as_matrix("proj", proj) @ _as_matrix("view", view)).astype(np.float32)
+    made = then() if then is not None else None
     n = max(len(pos32), 1)
     clip, win = pooled_arrays([(n, wp.vec4), (n, wp.vec4)], device, tag="vertices")  # clip: Fragments keeps it
-    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp, win)
+    return clip, _vertices(clip, len(pos32), width, height, device, as_warp(pos32, wp.vec3, device), mvp, win), made
 
 
 def _vertices(clip: wp.array, n: int, width: int, height: int, device: str, pos: wp.array | None = None,

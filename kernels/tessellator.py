@@ -35,14 +35,16 @@ the world origin, or large ones, keep their precision near the camera.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import NamedTuple
 
 import numpy as np
 import warp as wp
 
-from .checks import check_choice
+from .checks import check_bool, check_choice
 from .counters import patch_draw_counters
+from .device import device_named
 from .parallel import empty, launch, scan, view
 from .pool import pooled_arrays, take
 from .sampling import sample_height
@@ -704,6 +706,22 @@ class _Work:
     def __init__(self, device: str) -> None:
         self.device, self.cpu, self.cap = device, wp.get_device(device).is_cpu, -1
         self.out = _Out()
+        self.last: dict[str, object] = {}  # the values :meth:`set_frame` set last (:attr:`out` holds them)
+
+    def set_frame(self, flags: int, h: wp.array, eye: tuple, cell: tuple[float, float], method: int) -> None:
+        """Set :attr:`out`'s per-call fields: what to write, the heights (let go after the emit), the eye (lattice
+        cell x, z and remainder), the cell size, the filter; a value field that holds the same value already is not
+        set again (a Warp struct field set costs microseconds; the cell and filter change with the heightmap, the eye
+        with the camera)."""
+        out, last = self.out, self.last
+        out.h = h
+        if last.get("eye") != eye:
+            out.eye_lx, out.eye_lz = eye[0], eye[1]
+            out.eye_rem = wp.vec3(*eye[2])
+            last["eye"] = eye
+        if last.get("fixed") != (flags, cell, method):
+            out.flags, out.cell, out.method = flags, wp.vec2(*cell), method
+            last["fixed"] = (flags, cell, method)
 
     def fit(self, p: int) -> None:
         """Make room for ``p`` patches."""
@@ -753,7 +771,8 @@ class _Work:
 
     def emit(self, p: int, code: int, made: Iterable[str]) -> None:
         """The emit launch over the frame's ``p`` patches, into :attr:`out`, whose arrays ``made`` and heights are
-        then let go (the pool lends the outputs again once their holders drop them)."""
+        then let go (the pool lends the outputs again once their holders drop them; were they let go by the next
+        call instead, that call would pay for freeing whatever its caller dropped meanwhile)."""
         if p:
             launch(_emit_kernel, p, [self.o, self.i, code, self.v_off, self.t_off], [self.out], self.device,
                    min_items=64, oversplit=4)  # a patch emits tens to thousands of points; near and far ones differ
@@ -895,7 +914,8 @@ def _get(patches, name: str, required: bool = True):
 
 def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str = "equal",
                        filter: str = "bilinear", origin=(0.0, 0.0), device: str = "cpu",
-                       need: Iterable[str] | None = None, uv_cells: bool = False) -> Tessellation:
+                       need: Iterable[str] | None = None, uv_cells: bool = False, *,
+                       checked: bool = False) -> Tessellation:
     """Tessellate and displace all patches of a frame (one launch per stage).
 
     Args:
@@ -915,6 +935,12 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
             ``"domain"``, ``"patch_id"``, ``"level"`` (None: all of them); the others are None. A
             depth-only frame asks for none and stores 12 bytes per point and 12 per triangle.
         uv_cells: ``uv`` in grid cells (column, row) instead of normalised to [0, 1].
+        checked: the caller vouches for the arguments, as :func:`terrainwarp.render` does for the patches its
+            selection made: ``patches`` has every field (``level`` too) as C-contiguous arrays of exactly the
+            shapes and dtypes above (``origin_xz`` and ``size`` (P, 2) float64), finite, sizes positive, extents
+            within 2^30 cells of the origin; ``heights`` a 2-D float32 array, ``dx``, ``dz`` positive, ``eye`` 3
+            finite numbers, ``spacing`` and ``filter`` valid names. Nothing is checked or converted then; arguments
+            that break this give undefined results.
 
     Returns:
         A :class:`Tessellation`. Not differentiable (discrete topology; heights are sampled with the
@@ -926,17 +952,19 @@ def tessellate_patches(patches, heights, dx: float, dz: float, eye, spacing: str
     coordinate is float32 (2^-12 cells at column 4,096).
     """
     n, m, v_off, t_off, made, views, e = _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device,
-                                                     need, uv_cells, host=True)
+                                                     need, uv_cells, host=True, checked=check_bool("checked", checked))
     got = {k: a.numpy() for k, a in made.items()} if views is None else views  # (N, *axes) each
 
-    def field(name: str) -> np.ndarray | None:
-        return got[name][:n] if name in got else None
+    def field(name: str, rows: int | None = None) -> np.ndarray | None:
+        """The frame's rows of an output (N is the frame's count, or 1 when that is 0)."""
+        a, k = got.get(name), n if rows is None else rows
+        return a if a is None or len(a) == k else a[:k]
 
     dom = field("dom")
     return Tessellation(
-        positions=got["pos"][:n], uv=field("uv"),
+        positions=field("pos"), uv=field("uv"),
         domain=None if dom is None else dom.astype(np.float32) * np.float32(1.0 / FXP_ONE),  # exact
-        patch_id=field("pid"), level=field("lev"), triangles=got["tri"][:m], vertex_offsets=v_off,
+        patch_id=field("pid"), level=field("lev"), triangles=field("tri", m), vertex_offsets=v_off,
         triangle_offsets=t_off, eye=e, counters=patch_draw_counters(len(v_off) - 1, n, m, FILTER_TEXELS[filter]))
 
 
@@ -978,11 +1006,12 @@ def tessellate_patches_device(patches, heights, dx: float, dz: float, eye, spaci
                               wp.array(t_off, dtype=wp.int32, device=device), e)
 
 
-def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells, host=False):
+def _tessellate(patches, heights, dx, dz, eye, spacing, filter, origin, device, need, uv_cells, host=False,
+                checked=False):
     """:func:`tessellate_patches_device`'s work -> (n, m, offsets (P+1,) int32 on the host, the outputs made and with
     ``host`` their numpy arrays (see :func:`_frame_device`), the eye as floats)."""
     flags = _flags(need) | (W_CELLS if uv_cells else 0) | W_SWAP
-    args, e = _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin)
+    args, e = (_prepare_checked if checked else _prepare_frame)(patches, heights, dx, dz, eye, spacing, filter, origin)
     n, m, v_off, t_off, made, views = _frame_device(args, device, flags, host)
     return n, m, v_off, t_off, made, views, (float(e[0]), float(e[1]), float(e[2]))
 
@@ -1040,27 +1069,25 @@ def _frame_device(a: _FrameArgs, device, flags: int, host: bool = False):
     made: ``{"tri": ..., and "dom", "pid", "pos", "uv", "lev" as asked}``, frame-sized pool arrays, and with
     ``host`` on the CPU numpy arrays over them, ``(N, *axes)`` each, else None)."""
     o, i, code, box, lvl, h, el_int, eye_rem, cell, method = a
-    lease = take(("tessellator", str(wp.get_device(device))), lambda: _Work(device), keep=_WORK_KEPT)
+    lease = take(("tessellator", device_named(device).alias), lambda: _Work(device), keep=_WORK_KEPT)
     work = lease.buffer
+    # all that does not wait for the counts is set before the count launch (the host code after a launch runs with
+    # the caches it emptied: each kind of work once between two launches)
+    work.fit(o.shape[0])
+    work.put(2, box)
+    work.put(3, lvl)
+    work.set_frame(flags, h if isinstance(h, wp.array) else view(h, wp.float32, device),  # heights read in place
+                   (int(el_int[0]), int(el_int[1]), eye_rem), (float(cell[0]), float(cell[1])), method)
     n, m = work.count_scan(o, i, code)
-    out = work.out
-    out.flags = flags
+    v_off, t_off = work.offsets(o.shape[0])
     fields = [(name, max(n, 1), dt) for flag, name, dt in _FIELDS if flags & flag] + [("tri", max(m, 1), wp.vec3i)]
     # frame-sized outputs from the pool, one lease for them all: no fresh pages to fault in on every frame
     got = pooled_arrays([f[1:] for f in fields], device, tag="tessellation", keep=_OUTPUTS_KEPT, host=host)
     arrays, views = got if host else (got, None)
     made = {f[0]: a for f, a in zip(fields, arrays, strict=True)}
     for name, a in made.items():
-        setattr(out, name, a)
-    work.put(2, box)
-    work.put(3, lvl)
-    out.h = h if isinstance(h, wp.array) else view(h, wp.float32, device)  # the CPU reads the heights in place
-    out.eye_lx, out.eye_lz = int(el_int[0]), int(el_int[1])
-    out.eye_rem = wp.vec3(*eye_rem)
-    out.cell = wp.vec2(float(cell[0]), float(cell[1]))
-    out.method = method
+        setattr(work.out, name, a)
     work.emit(o.shape[0], code, made)
-    v_off, t_off = work.offsets(o.shape[0])
     lease.give_back()
     return n, m, v_off, t_off, made, None if views is None else {f[0]: v for f, v in zip(fields, views, strict=True)}
 
@@ -1094,19 +1121,38 @@ def _prepare_frame(patches, heights, dx, dz, eye, spacing, filter, origin) -> tu
     e = np.asarray(eye, dtype=np.float64).reshape(-1)
     if e.size != 3 or not np.isfinite(e).all():
         raise ValueError(f"eye: expected 3 finite numbers, got {eye!r}")
-    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
     code = _spacing_code(spacing)
-
-    # patch extents and the eye on the lattice of 2^-16 cells (float64 on the host, rounded once)
-    scale = np.array([FXP_ONE / dx, FXP_ONE / dz])
-    # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled
-    box = np.rint((np.concatenate([org, org + size], axis=1) - (x0, z0, x0, z0)) * np.tile(scale, 2)).astype(np.int64)
-    if (np.abs(box) > 2**46).any():
+    x0, z0 = (float(c) for c in np.asarray(origin, dtype=np.float64).reshape(2))
+    args = _on_lattice(o, i, code, org, size, lvl, h, dx, dz, e, (x0, z0), filter)
+    if (np.abs(args.box) > 2**46).any():
         raise ValueError("patches: expected extents within 2^30 cells of the heightmap origin")
-    el = (e[[0, 2]] - (x0, z0)) * scale
-    el_int = np.floor(el).astype(np.int64)
-    rem = (el - el_int) / scale
-    cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
+    return args, e
 
-    return _FrameArgs(o, i, code, box, lvl, h, el_int, (float(rem[0]), float(e[1]), float(rem[1])), cell,
-                      FILTER_CODES[filter]), e
+
+def _prepare_checked(patches, heights, dx, dz, eye, spacing, filter, origin) -> tuple[_FrameArgs, tuple]:
+    """:func:`_prepare_frame` for arguments the caller vouches for (``checked=True``): nothing scanned or checked."""
+    e = (float(eye[0]), float(eye[1]), float(eye[2]))
+    return _on_lattice(_get(patches, "outer"), _get(patches, "inner"), SPACING_CODES[spacing],
+                       _get(patches, "origin_xz"), _get(patches, "size"), _get(patches, "level"), heights, float(dx),
+                       float(dz), e, (float(origin[0]), float(origin[1])), filter), e
+
+
+def _on_lattice(o, i, code, org, size, lvl, h, dx: float, dz: float, e, origin, filter) -> _FrameArgs:
+    """The frame's :class:`_FrameArgs`: patch extents (``org``, ``size`` (P, 2) float64) and the eye ``e`` on the
+    lattice of 2^-16 cells (float64 on the host, rounded once) from ``origin`` (x0, z0) floats."""
+    x0, z0 = origin
+    scale = (FXP_ONE / dx, FXP_ONE / dz)
+    # (x0, z0, x1, z1) per patch: the low corner and the low corner plus the size, each minus the origin, scaled;
+    # worked out as four rows of P (a (P, 4) broadcast loops four items at a time), then laid out (P, 4)
+    rows = np.empty((4, len(org)))
+    for c, o_c in enumerate((x0, z0)):
+        np.subtract(org[:, c], o_c, out=rows[c])
+        np.subtract(np.add(org[:, c], size[:, c], out=rows[2 + c]), o_c, out=rows[2 + c])
+        rows[c::2] *= scale[c]
+    box = np.rint(rows, out=rows).T.astype(np.int64, order="C")
+    # the eye: its lattice cell and the float64 remainder (the same IEEE operations as on arrays, on two numbers)
+    ex, ez = (float(e[0]) - x0) * scale[0], (float(e[2]) - z0) * scale[1]
+    ix, iz = math.floor(ex), math.floor(ez)
+    cell = np.array([dx / FXP_ONE, dz / FXP_ONE], np.float32)
+    return _FrameArgs(o, i, code, box, lvl, h, np.array([ix, iz], np.int64),
+                      ((ex - ix) / scale[0], float(e[1]), (ez - iz) / scale[1]), cell, FILTER_CODES[filter])

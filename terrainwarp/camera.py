@@ -34,6 +34,7 @@ import numpy as np
 
 from .heightmap import Heightmap, StreamedHeightmap
 from .kernels.checks import check_number, check_pixels, check_viewport
+from .kernels.lod import frustum_planes
 
 __all__ = ["Camera", "Viewport", "orbit", "flyover", "relative_origin", "camera_from_angles", "read_camera_csv",
            "CSV_COLUMNS", "DepthPrecisionWarning", "check_depth_range", "DEPTH_STEPS"]
@@ -252,17 +253,30 @@ class Camera:
             object.__setattr__(self, key, m)
         return m.copy()
 
+    def frustum_planes(self) -> np.ndarray:
+        """The view frustum of camera-relative positions: the six planes of ``proj_matrix() @
+        view_matrix(relative=True)`` (:func:`terrainwarp.kernels.lod.frustum_planes`: (a, b, c, d), inside where
+        a x + b y + c z + d >= 0, normalised), float32 (6, 4): left, right, bottom, top, near, far."""
+        pl = self.__dict__.get("_planes")  # made once per camera, as the view matrix: selection asks every frame
+        if pl is None:
+            pl = frustum_planes(self.proj_matrix() @ self.view_matrix(relative=True))
+            object.__setattr__(self, "_planes", pl)
+        return pl.copy()
+
     def proj_matrix(self) -> np.ndarray:
         """OpenGL gluPerspective projection matrix, float64 (4, 4); clip z in [-w, w]."""
-        t = 1.0 / math.tan(math.radians(self.fov_y_deg) / 2.0)
-        n, f = self.near, self.far
-        p = np.zeros((4, 4))
-        p[0, 0] = t / self.aspect
-        p[1, 1] = t
-        p[2, 2] = (f + n) / (n - f)
-        p[2, 3] = 2.0 * f * n / (n - f)
-        p[3, 2] = -1.0
-        return p
+        p = self.__dict__.get("_proj")  # made once per camera, as the view matrix
+        if p is None:
+            t = 1.0 / math.tan(math.radians(self.fov_y_deg) / 2.0)
+            n, f = self.near, self.far
+            p = np.zeros((4, 4))
+            p[0, 0] = t / self.aspect
+            p[1, 1] = t
+            p[2, 2] = (f + n) / (n - f)
+            p[2, 3] = 2.0 * f * n / (n - f)
+            p[3, 2] = -1.0
+            object.__setattr__(self, "_proj", p)
+        return p.copy()
 
     def with_(self, **changes: object) -> Camera:
         """A copy with some fields replaced (validated again)."""

@@ -71,7 +71,8 @@ class Mesh:
 
     def __post_init__(self) -> None:
         # the per-vertex arrays must describe the same vertices: a mismatch is a pipeline bug, caught here
-        n = np.shape(self.positions)
+        n = getattr(self.positions, "shape", None)
+        n = np.shape(self.positions) if n is None else n
         if len(n) != 2 or n[1] != 3:
             raise ValueError(f"positions: expected shape (n, 3), got {n}")
         if self.normals is not None and np.shape(self.normals) != n:

@@ -37,7 +37,6 @@ from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels import bintree as _k
 from ..kernels.checks import check_choice, check_int
-from ..kernels.lod import frustum_planes
 from ..mesh import Mesh
 
 __all__ = ["Bintree", "BintreeFrame", "select_bintree", "lod_threshold", "HEIGHT_METHODS"]
@@ -258,7 +257,7 @@ def select_bintree(tree: Bintree, camera: Camera, *, lod: bool = True, hole_fix:
     eye = np.asarray(camera.position, dtype=np.float64)
     planes = None
     if frustum:
-        planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+        planes = camera.frustum_planes()
     r = _k.select_nodes(tree.arrays, tree.depth, relative_origin(tree.origin, eye)[::2], tree.step,
                         float(eye[1]), tree.short_side, mode=int(bool(lod)), hole_fix=bool(hole_fix and lod),
                         propagate=bool(propagate and lod), planes=planes, vis=vis, device=tree.device,

@@ -43,7 +43,6 @@ import numpy as np
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
 from ..kernels.checks import check_int, check_number
-from ..kernels.lod import frustum_planes
 from ..kernels.schemes import clipmap_mesh
 from ..mesh import Draws, Mesh
 from .scheme import SelectThenMesh
@@ -169,7 +168,7 @@ class Clipmap(SelectThenMesh):
         levels (held): the blend still follows this camera."""
         hm = self.heightmap
         m = (self.n - 1) // 2
-        planes = frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+        planes = camera.frustum_planes()
         viewer = ((camera.position[0] - hm.origin[0]) / hm.dx, (camera.position[2] - hm.origin[1]) / hm.dz)
         pos, uv, lev, item, tri, draws, groups = clipmap_mesh(
             self._h, sel.origin, sel.spacing, sel.coarser, sel.level, sel.hole, self.n, viewer,

@@ -13,6 +13,7 @@ heightmap-terrain rule (:func:`cesium_level_error`, :func:`cesium_sse`, :func:`c
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -121,9 +122,23 @@ POLICY_CLASSES: dict[str, type] = {"sse": ScreenErrorPolicy, "distance": Distanc
 
 def make_policy(config: LodConfig) -> Policy:
     """The policy object of a :class:`terrainwarp.LodConfig`: the class of its ``POLICY_TABLE`` row,
-    given the row's parameter field, the hysteresis and the fields the row ``reads``."""
+    given the row's parameter field, the hysteresis and the fields the row ``reads``. Both are frozen: the object
+    made for an equal configuration is returned again (the last 256 kept; a render asks once per frame)."""
     if not isinstance(config, LodConfig):
         raise TypeError(f"config: expected a LodConfig, got {type(config).__name__}")
+    try:
+        hash(config)
+    except TypeError:  # a field holding something unhashable: made afresh
+        return _make_policy(config)
+    return _kept_policy(config)
+
+
+@functools.lru_cache(maxsize=256)
+def _kept_policy(config: LodConfig) -> Policy:
+    return _make_policy(config)
+
+
+def _make_policy(config: LodConfig) -> Policy:
     if config.is_scheme:
         raise ValueError(f"config: the scheme {config.policy!r} is drawn by its mesh source "
                          f"(terrainwarp.rendering.sources.scene_source), not by a quadtree policy object")

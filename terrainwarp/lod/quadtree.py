@@ -50,7 +50,6 @@ from ..kernels.lod import (
     DENSE_MAX_CELLS,
     QuadtreeWalk,
     TreeMapHost,
-    frustum_planes,
     mark_nodes,
     neighbour_levels,
     select_level,
@@ -325,7 +324,7 @@ class _View(NamedTuple):
 
 def _view(terrain: Terrain, camera: Camera) -> _View:
     rel = relative_origin(terrain.heightmap.origin, camera.position)
-    return _View(rel, frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True)), camera.focal_px)
+    return _View(rel, camera.frustum_planes(), camera.focal_px)
 
 
 class _Nodes(NamedTuple):
@@ -560,10 +559,16 @@ def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarra
     nx, nz = terrain.roots
     if keys is None:
         keys = tile_key(level, lx, ly) if len(level) else np.zeros(0, np.int64)
-    s_cells = (terrain.root_cells / np.exp2(level.astype(np.float64)))
-    origin_cells = np.stack([lx * s_cells, ly * s_cells], axis=1)
-    origin = np.stack([hm.origin[0] + origin_cells[:, 0] * hm.dx, hm.origin[1] + origin_cells[:, 1] * hm.dz], axis=1)
-    size = np.stack([s_cells * hm.dx, s_cells * hm.dz], axis=1)
+    # a node's side in cells per level (root_cells / 2^level), the spacing and origin as columns: kept per terrain
+    side, spacing, org = terrain.cached(("patch_extents",), lambda: (
+        terrain.root_cells / np.exp2(np.arange(terrain.depth + 1, dtype=np.float64)), np.array([[hm.dx], [hm.dz]]),
+        np.array([[hm.origin[0]], [hm.origin[1]]], np.float64)))
+    s_cells = side[level]
+    # as (2, P) rows (x, z), laid out (P, 2) at the end: few numpy calls (each costs microseconds right after a
+    # launch), and no broadcast over a 2-item inner axis
+    cells = np.array([lx, ly]) * s_cells
+    origin, size = (cells * spacing + org).T.copy(), (spacing * s_cells).T.copy()
+    origin_cells = cells.T.astype(np.float32, order="C")
     outer, inner = _edge_factors(terrain, camera, policy, level, nbr, origin, size)
     stats = {"nodes_visited": counts["nodes_visited"], "leaves": counts["leaves"], "culled": counts["culled"],
              "patches": int(len(level)), "forced_splits": counts["forced_splits"],
@@ -571,7 +576,7 @@ def _assemble(terrain: Terrain, camera: Camera, policy: Policy, level: np.ndarra
              "tess": terrain.tess}
     f32, i32 = {"dtype": np.float32, "copy": False}, {"dtype": np.int32, "copy": False}
     return PatchList(level.astype(**i32), keys.astype(np.int64, copy=False), origin, size,
-                     origin_cells.astype(**f32), s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
+                     origin_cells, s_cells.astype(**f32), outer.astype(**f32), inner.astype(**f32),
                      nbr.astype(**i32), dist.astype(**f32), metric.astype(**f32), err, stats)
 
 

@@ -11,7 +11,6 @@ import numpy as np
 
 from ..camera import Camera, relative_origin
 from ..heightmap import Heightmap
-from ..kernels.lod import frustum_planes
 from ..mesh import Mesh
 from .quadtree import Terrain
 
@@ -39,7 +38,7 @@ class SelectThenMesh:
 def view_of(heightmap: Heightmap, camera: Camera) -> tuple[tuple[float, float, float], np.ndarray]:
     """The camera-relative origin of the heightmap and the camera's frustum planes (camera-relative)."""
     rel = relative_origin(heightmap.origin, camera.position)
-    return rel, frustum_planes(camera.proj_matrix() @ camera.view_matrix(relative=True))
+    return rel, camera.frustum_planes()
 
 
 def root_nodes(terrain: Terrain) -> tuple[np.ndarray, np.ndarray]:

@@ -77,6 +77,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import warp as wp
 
 from ..camera import Camera, DepthPrecisionWarning, check_depth_range, relative_origin
 from ..heightmap import Heightmap, StreamedHeightmap
@@ -86,7 +87,7 @@ from ..kernels.checks import check_device
 from ..kernels.counters import frame_counters, indexed_draw_counters
 from ..kernels.displacement import drop_nonfinite_triangles, grid_mesh, sample_normal_map
 from ..kernels.normals import sobel_normals
-from ..kernels.parallel import kernel_clock
+from ..kernels.parallel import kernel_clock, view
 from ..kernels.raster import clip_coordinates, rasterize
 from ..kernels.shading import shade, splat_map
 from ..kernels.tessellator import tessellate_patches
@@ -564,7 +565,8 @@ def _stage_mesh(run: _Run, rec: StageRecord) -> float | None:
         mesh, ms = frame.mesh, run.source_mesh_ms
         n_patches = len(frame.patches) if frame.patches is not None else 0
     elif kind == "lod":
-        mesh, n_patches, ms = _lod_mesh(run.scene, frame.patches, run.nmap, run.plan.attributes, run.device), \
+        mesh, n_patches, ms = _lod_mesh(run.scene, frame.patches, run.nmap, run.plan.attributes, run.device,
+                                        checked="select" in run.plan.stages, terrain=run.terrain), \
             len(frame.patches), None
     else:
         mesh, n_patches, ms = _grid_mesh(run.hm, run.cam, run.nmap, run.device), 1, None
@@ -804,15 +806,19 @@ def _grid_mesh(hm: Heightmap, cam: Camera, nmap: np.ndarray | None, device: str)
                 patch_id=np.zeros(n, np.int32), normals=None if nmap is None else nmap.reshape(-1, 3))
 
 
-def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, attributes: bool, device: str) -> Mesh:
+def _lod_mesh(scene: Scene, patches: PatchList, nmap: np.ndarray | None, attributes: bool, device: str,
+              checked: bool = False, terrain: Terrain | None = None) -> Mesh:
     """Tessellate and displace the selected patches in one launch (the GPU's single draw call); uv, level and
-    patch id only with ``attributes`` (the plan's)."""
+    patch id only with ``attributes`` (the plan's); ``checked``: the patches are this frame's selection's (valid);
+    ``terrain``: the heightmap's Terrain, which keeps the heights' device array from frame to frame."""
     hm = scene.heightmap
     cam = scene.camera
+    heights = hm.heights if terrain is None else terrain.cached(("heights", device),
+                                                                lambda: view(hm.heights, wp.float32, device))
     t = tessellate_patches({"origin_xz": patches.origin, "size": patches.size, "outer": patches.outer,
-                            "inner": patches.inner, "level": patches.level}, hm.heights, hm.dx, hm.dz,
+                            "inner": patches.inner, "level": patches.level}, heights, hm.dx, hm.dz,
                            cam.position, spacing=scene.lod.spacing, filter=scene.lod.filter, origin=hm.origin,
-                           device=device, need=("uv", "level", "patch_id") if attributes else ())
+                           device=device, need=("uv", "level", "patch_id") if attributes else (), checked=checked)
     normals = None if nmap is None else sample_normal_map(nmap, t.uv, device=device)
     positions, triangles = t.positions, t.triangles
     if hm.has_nodata:  # no-data holes: no triangle may touch a vertex that sampled NaN
